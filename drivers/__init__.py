@@ -1,0 +1,4 @@
+"""I/O with the Stäubli controller: one link interface, one module per protocol.
+
+May import only the standard library, pymodbus and pyserial (design.md §2).
+"""

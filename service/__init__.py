@@ -1,0 +1,1 @@
+"""The FastAPI service, DICOM watcher, orchestration, persistence and the ``oarmreg`` CLI."""

@@ -1,0 +1,74 @@
+"""The ``oarmreg`` command line.
+
+``main(argv=None) -> int`` is callable from tests.  Exit codes: see
+:mod:`registration.errors` (0 ok, 2 usage, 3 configuration, 4 input data,
+5 robot link, 6 registration refused, 7 accuracy gate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from drivers.errors import RobotLinkError
+from registration import __version__
+from registration.errors import OarmRegError
+
+log = logging.getLogger(__name__)
+
+COMMANDS: dict[str, str] = {
+    "simulate": "service.commands.simulate",
+    "detect": "service.commands.detect",
+    "register": "service.commands.register",
+    "verify": "service.commands.verify",
+    "robot": "service.commands.robot",
+    "mock": "service.commands.mock",
+    "serve": "service.commands.serve",
+    "demo": "service.commands.demo",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="oarmreg",
+        description="O-arm ↔ Stäubli spatial registration (Bai et al. 2018, "
+        "doi:10.1088/1742-6596/1016/1/012006)",
+    )
+    parser.add_argument("--version", action="version", version=f"oarmreg {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module_name in COMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as e:
+            if e.name == module_name:
+                continue  # command not built yet
+            raise
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help(sys.stderr)
+        return 2
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args._run(args))
+    except (OarmRegError, RobotLinkError) as e:
+        print(f"oarmreg {args.command}: {e.title.lower()}: {e}", file=sys.stderr)  # noqa: T201
+        return int(e.exit_code)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
