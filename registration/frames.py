@@ -90,3 +90,15 @@ def rotation_angle_deg(rotation: ArrayLike) -> float:
     r = np.asarray(rotation, dtype=np.float64)
     c = (float(np.trace(r)) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def transform_from_xyz_rpy(translation_mm: ArrayLike, rpy_deg: ArrayLike) -> F64:
+    """Transform from a translation (mm) and roll-pitch-yaw angles (deg).
+
+    Convention as URDF ``<origin rpy>``: R = Rz(yaw) · Ry(pitch) · Rx(roll),
+    i.e. extrinsic x-y-z rotations.
+    """
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_euler("xyz", np.asarray(rpy_deg, dtype=np.float64).reshape(3), degrees=True)
+    return make_transform(r.as_matrix(), translation_mm)
