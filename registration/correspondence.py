@@ -1,0 +1,306 @@
+"""Click-free correspondence between labelled robot-space spheres and unlabelled image detections.
+
+The robot side is ordered (sphere k is hole k of the phantom, N points); the
+image side is an unordered set of M detections, some spheres missing and some
+detections spurious.  ICP alone only converges from within about half the hole
+pitch (≈ 9° of rotation, research/registration-ecosystem.md §1.7), so the pose
+is found globally first:
+
+1. a few *base triples* of robot spheres are chosen: long, rare edges (few
+   image pairs share their length) and disjoint vertices, so that up to a few
+   missing spheres cannot remove all of them;
+2. for each base triple (a, b, c), every ordered image pair (i, j) whose
+   distance matches |ab| within ``pair_tol_mm`` is found by a ``searchsorted``
+   on the sorted image distances; each third image point k must match |ac| and
+   |bc| too (pairwise distances are invariant under rigid motion);
+3. each consistent image triple gives a proper rigid transform (Kabsch with the
+   determinant fix, :func:`registration.rigid.fit_rigid_batch`), first scored on
+   a few far-apart *probe* spheres, then the best ones on every sphere: the
+   number of robot spheres that land within ``gate_mm`` of a detection
+   (``scipy.spatial.cKDTree``).  The 3-point transforms are accurate to a
+   fraction of a mm, well inside ICP's 7.5 mm starting gate, so they are not
+   refit here;
+4. hypotheses are merged into *distinct* poses (rotations differ by more than
+   ``distinct_rotation_deg`` or the robot centroid lands more than
+   ``distinct_translation_mm`` apart); the search stops early once the best
+   pose has been found from ``min_agreeing`` independent base triples.
+
+The caller (:mod:`registration.register`) refines the best and the runner-up
+poses with ICP and refuses an ambiguous result.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Final
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from registration.rigid import fit_rigid_batch, rotation_difference_deg
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+MIN_EDGE_FRACTION: Final = 0.45
+"""Base-triple edges are at least this fraction of the robot set's diameter: long edges make the
+3-point rotation accurate (error ≈ σ·√2 / edge) so its inlier count is meaningful."""
+
+DEFAULT_N_PROBES: Final = 8
+"""Probe spheres scored for every 3-point hypothesis before full scoring (cheap pre-filter)."""
+
+DEFAULT_MAX_SCORED: Final = 48
+"""Hypotheses per base triple that are scored on every sphere (the best by probe hits)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """A candidate pose from one consistent triple, refit on its inliers.
+
+    Attributes
+    ----------
+    image_from_robot : ndarray, shape (4, 4), float64
+    n_inliers : int
+        Robot spheres landing within the gate of a detection.
+    rms_mm : float
+        RMS distance of those inliers (mm).
+    support : int
+        Number of independent base triples that produced this pose.
+    """
+
+    image_from_robot: F64
+    n_inliers: int
+    rms_mm: float
+    support: int = 1
+    base_triples: tuple[tuple[int, int, int], ...] = field(default=())
+
+
+def pairwise_distances(points_mm: F64) -> F64:
+    """(N, N) Euclidean distance matrix in mm."""
+    diff = points_mm[:, None, :] - points_mm[None, :, :]
+    return np.asarray(np.sqrt(np.einsum("ijk,ijk->ij", diff, diff)), dtype=np.float64)
+
+
+def farthest_point_order(points_mm: F64, start: int = 0, count: int | None = None) -> I64:
+    """Greedy farthest-point ordering of the first ``count`` point indices (for well-spread probes)."""
+    n = len(points_mm) if count is None else min(count, len(points_mm))
+    order = np.empty(n, dtype=np.int64)
+    order[0] = start
+    d = np.linalg.norm(points_mm - points_mm[start], axis=1)
+    for k in range(1, n):
+        nxt = int(np.argmax(d))
+        order[k] = nxt
+        d = np.minimum(d, np.linalg.norm(points_mm - points_mm[nxt], axis=1))
+    return order
+
+
+def choose_base_triples(
+    robot_mm: F64, d_robot: F64, image_pair_dist_sorted: F64, pair_tol_mm: float, max_triples: int
+) -> list[tuple[int, int, int]]:
+    """Robot triples with long, rare edges and (as far as possible) disjoint vertices.
+
+    Edge (a, b) is the one with the fewest image pairs of matching length, so
+    it gets the ``searchsorted`` look-up; c maximises the triangle area among
+    points whose edges to a and b are long as well.
+    """
+    n = len(robot_mm)
+    if n < 3:
+        return []
+    iu, ju = np.triu_indices(n, 1)
+    lengths = d_robot[iu, ju]
+    diameter = float(lengths.max())
+    lo = np.searchsorted(image_pair_dist_sorted, lengths - pair_tol_mm, side="left")
+    hi = np.searchsorted(image_pair_dist_sorted, lengths + pair_tol_mm, side="right")
+    rarity = hi - lo
+    eligible = lengths >= MIN_EDGE_FRACTION * diameter
+    # rare first, long second
+    order = np.lexsort((-lengths, rarity))
+    order = order[eligible[order]]
+    used = np.zeros(n, dtype=bool)
+    triples: list[tuple[int, int, int]] = []
+    for allow_reuse in (False, True):
+        for e in order:
+            if len(triples) >= max_triples:
+                return triples
+            a, b = int(iu[e]), int(ju[e])
+            if not allow_reuse and (used[a] or used[b]):
+                continue
+            ok = (d_robot[a] >= MIN_EDGE_FRACTION * diameter) & (d_robot[b] >= MIN_EDGE_FRACTION * diameter)
+            if not allow_reuse:
+                ok &= ~used
+            ok[[a, b]] = False
+            cands = np.flatnonzero(ok)
+            if len(cands) == 0:
+                continue
+            area = np.linalg.norm(np.cross(robot_mm[b] - robot_mm[a], robot_mm[cands] - robot_mm[a]), axis=1)
+            c = int(cands[int(np.argmax(area))])
+            if area.max() < 1e-6 * diameter**2:
+                continue  # collinear
+            t = (a, b, c)
+            if any(set(t) == set(s) for s in triples):
+                continue
+            triples.append(t)
+            used[[a, b, c]] = True
+    return triples
+
+
+def _count_inliers(
+    transforms: F64, points_mm: F64, tree: cKDTree, gate_mm: float
+) -> tuple[NDArray[np.int64], F64]:
+    """Inlier counts and inlier RMS (mm) of each (H, 4, 4) transform applied to (P, 3) points."""
+    mapped = np.einsum("hij,pj->hpi", transforms[:, :3, :3], points_mm) + transforms[:, None, :3, 3]
+    d, _ = tree.query(mapped.reshape(-1, 3), distance_upper_bound=gate_mm)
+    d = d.reshape(len(transforms), len(points_mm))
+    hit = np.isfinite(d)
+    n = hit.sum(axis=1)
+    ss = np.where(hit, d, 0.0) ** 2
+    rms = np.sqrt(ss.sum(axis=1) / np.maximum(n, 1))
+    return n.astype(np.int64), np.asarray(rms, dtype=np.float64)
+
+
+def same_pose(t_a: F64, t_b: F64, centroid_mm: F64, rotation_deg: float, translation_mm: float) -> bool:
+    """True if two poses are the same hypothesis (rotation and centroid position both close)."""
+    if rotation_difference_deg(t_a[:3, :3], t_b[:3, :3]) > rotation_deg:
+        return False
+    pa = t_a[:3, :3] @ centroid_mm + t_a[:3, 3]
+    pb = t_b[:3, :3] @ centroid_mm + t_b[:3, 3]
+    return float(np.linalg.norm(pa - pb)) <= translation_mm
+
+
+def find_hypotheses(
+    robot_mm: F64,
+    image_mm: F64,
+    *,
+    pair_tol_mm: float,
+    gate_mm: float,
+    max_base_triples: int = 12,
+    min_agreeing: int = 2,
+    distinct_rotation_deg: float = 3.0,
+    distinct_translation_mm: float = 3.0,
+    max_hypotheses: int = 12,
+    n_probes: int = DEFAULT_N_PROBES,
+    max_scored: int = DEFAULT_MAX_SCORED,
+    tree: cKDTree | None = None,
+) -> list[Hypothesis]:
+    """Distinct candidate poses ``image_from_robot``, best first.
+
+    Parameters
+    ----------
+    robot_mm : ndarray, shape (N, 3), float64
+        Labelled sphere centres, robot frame, mm.
+    image_mm : ndarray, shape (M, 3), float64
+        Unordered detections, image (LPS) frame, mm.
+    pair_tol_mm : float
+        Two distances agree when they differ by less than this (mm).
+    gate_mm : float
+        A robot sphere mapped by a hypothesis is an inlier when a detection
+        lies within this distance (mm).
+    max_base_triples, min_agreeing : int
+        Search at most this many base triples; stop early once the best pose
+        has been produced by ``min_agreeing`` of them.
+    distinct_rotation_deg, distinct_translation_mm : float
+        Hypotheses closer than both are merged.
+    max_hypotheses : int
+        Distinct hypotheses returned at most.
+
+    Returns
+    -------
+    list of Hypothesis
+        Sorted by inlier count (descending) then RMS; empty if no consistent
+        triple exists.  Each pose has det R = +1.
+    """
+    n, m = len(robot_mm), len(image_mm)
+    if n < 3 or m < 3:
+        return []
+    if tree is None:
+        tree = cKDTree(image_mm)
+    d_robot = pairwise_distances(robot_mm)
+    d_image = pairwise_distances(image_mm)
+    iu, ju = np.triu_indices(m, 1)
+    pair_d = d_image[iu, ju]
+    order = np.argsort(pair_d)
+    pair_sorted = pair_d[order]
+    pi_sorted, pj_sorted = iu[order], ju[order]
+    triples = choose_base_triples(robot_mm, d_robot, pair_sorted, pair_tol_mm, max_base_triples)
+    centroid = robot_mm.mean(axis=0)
+    cos_min = float(np.cos(np.radians(distinct_rotation_deg)))
+    # clusters of equivalent poses, as arrays for vectorised comparison
+    cl_t = np.empty((0, 4, 4))
+    cl_pos = np.empty((0, 3))  # where each cluster maps the robot centroid
+    cl_n: list[int] = []
+    cl_rms: list[float] = []
+    cl_triples: list[set[int]] = []
+
+    for t_idx, (a, b, c) in enumerate(triples):
+        lo = int(np.searchsorted(pair_sorted, d_robot[a, b] - pair_tol_mm, side="left"))
+        hi = int(np.searchsorted(pair_sorted, d_robot[a, b] + pair_tol_mm, side="right"))
+        if hi <= lo:
+            continue
+        ia = np.concatenate([pi_sorted[lo:hi], pj_sorted[lo:hi]])
+        ib = np.concatenate([pj_sorted[lo:hi], pi_sorted[lo:hi]])
+        ok = (np.abs(d_image[ia] - d_robot[a, c]) < pair_tol_mm) & (
+            np.abs(d_image[ib] - d_robot[b, c]) < pair_tol_mm
+        )
+        p_idx, k_idx = np.nonzero(ok)
+        if len(p_idx) == 0:
+            continue
+        img_triples = np.stack([ia[p_idx], ib[p_idx], k_idx], axis=1)
+        transforms = fit_rigid_batch(robot_mm[[a, b, c]], image_mm[img_triples])
+        # probe pre-filter: far-apart spheres outside the triple
+        probe_order = farthest_point_order(robot_mm, start=a, count=n_probes + 3)
+        probes = [int(p) for p in probe_order if p not in (a, b, c)][:n_probes]
+        if len(transforms) > max_scored and probes:
+            hits, _ = _count_inliers(transforms, robot_mm[probes], tree, gate_mm)
+            keep = np.argsort(-hits, kind="stable")[:max_scored]
+            transforms = transforms[keep]
+        n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
+        rank = np.lexsort((rms, -n_in))
+        rank = rank[n_in[rank] >= 3]
+        for r in rank:
+            t = transforms[r]
+            pos = t[:3, :3] @ centroid + t[:3, 3]
+            if len(cl_t):
+                # cos of the angle between rotations: (trace(R_k Rᵀ) − 1) / 2
+                cos = (np.einsum("kij,ij->k", cl_t[:, :3, :3], t[:3, :3]) - 1.0) / 2.0
+                near = (cos >= cos_min) & (np.linalg.norm(cl_pos - pos, axis=1) <= distinct_translation_mm)
+                hit = np.flatnonzero(near)
+            else:
+                hit = np.empty(0, dtype=np.int64)
+            if len(hit):
+                cl_triples[int(hit[0])].add(t_idx)
+                continue
+            cl_t = np.concatenate([cl_t, t[None]])
+            cl_pos = np.concatenate([cl_pos, pos[None]])
+            cl_n.append(int(n_in[r]))
+            cl_rms.append(float(rms[r]))
+            cl_triples.append({t_idx})
+        if cl_n:
+            best_i = max(range(len(cl_n)), key=lambda i: (cl_n[i], -cl_rms[i]))
+            if len(cl_triples[best_i]) >= min_agreeing:
+                log.debug(
+                    "correspondence: best pose confirmed by %d base triples after %d",
+                    len(cl_triples[best_i]),
+                    t_idx + 1,
+                )
+                break
+
+    ranked = sorted(range(len(cl_n)), key=lambda i: (cl_n[i], -cl_rms[i]), reverse=True)
+    return [
+        Hypothesis(
+            image_from_robot=cl_t[i].copy(),
+            n_inliers=cl_n[i],
+            rms_mm=cl_rms[i],
+            support=len(cl_triples[i]),
+            base_triples=tuple(triples[k] for k in sorted(cl_triples[i])),
+        )
+        for i in ranked[:max_hypotheses]
+    ]
+
+
+def _key(h: object) -> tuple[int, float]:
+    assert isinstance(h, Hypothesis)
+    return (h.n_inliers, -h.rms_mm)

@@ -1,0 +1,683 @@
+"""From sphere centres to ``image_from_robot``: correspondence, ICP, symmetry and quality checks.
+
+:func:`register_points` is the contract (brief "Registration"):
+
+1. the robot configuration is checked (collinear / coplanar refused);
+2. candidate poses come from the click-free triple search
+   (:func:`registration.correspondence.find_hypotheses`), or from the paper's
+   four-mark pre-registration (eq. 7, :mod:`registration.prereg`) when
+   ``prereg_pairs`` are given;
+3. an orientation prior, if any, discards poses rotated further than its
+   tolerance (< 45°, half the 90° symmetry of the hole grid: research §1.6);
+4. the best candidates and, when a :class:`~registration.phantom.Phantom` is
+   given, every symmetry twin of the best pose are refined by gated ICP
+   (:mod:`registration.icp`); the best must explain at least
+   ``min_runner_up_margin`` more spheres than the best *distinct* runner-up or
+   the result is refused as ambiguous (design.md §4);
+5. the mirrored problem (image z → −z) is tried whenever it could explain
+   clearly more spheres; if it does, the input is refused as mirrored;
+6. quality figures (design.md §5) are computed and gated.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import weakref
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from registration import __version__
+from registration.correspondence import Hypothesis, find_hypotheses, same_pose
+from registration.errors import (
+    AccuracyGateError,
+    AmbiguousMatchError,
+    ConfigError,
+    MirroredInputError,
+    OarmRegError,
+    RegistrationError,
+    TooFewSpheresError,
+)
+from registration.icp import IcpResult, icp
+from registration.phantom import Phantom, Symmetry
+from registration.prereg import PreregResult, preregister
+from registration.quality import (
+    check_configuration,
+    fle_from_fre,
+    predicted_tre_mm,
+)
+from registration.rigid import fit_rigid, rotation_difference_deg
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+MAX_PRIOR_TOLERANCE_DEG: Final = 45.0
+"""An orientation prior must be tighter than half the 90° grid symmetry to separate twins."""
+
+PHANTOM_FIT_MAX_RMS_MM: Final = 1.0
+"""The robot points must match the phantom's CAD centres within this RMS (mm) for the phantom's
+symmetry twins to be tried; otherwise the robot points are not this phantom's."""
+
+
+class PointSetError(OarmRegError):
+    """A point set passed to the registration has the wrong shape or non-finite values."""
+
+    title = "Invalid point set"
+
+
+class PriorMismatchError(RegistrationError):
+    """No pose within the orientation prior's tolerance explains the detections."""
+
+    title = "Orientation prior not met"
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Tolerances and gates of :func:`register_points` (lengths in mm, angles in degrees).
+
+    The service may override any of them from TOML.
+    """
+
+    min_matched: int = 6
+    """Fewest matched spheres accepted (a rigid fit needs 3; 6 leaves FLE/FRE meaningful, N−2 ≥ 4)."""
+    min_runner_up_margin: int = 3
+    """Matched spheres by which the best pose must beat the best distinct runner-up (research §1.6:
+    m ≥ 3, so that one or two missed detections cannot flip the answer)."""
+    max_fre_mm: float = 1.0
+    """FRE gate.  Simulated FRE is ≈ 0.1 mm (σ 0.05 mm image, 0.02 mm robot); research §2 measures
+    0.6 mm at σ = 0.25 mm per axis per space; above 1 mm something is wrong (distortion, a sphere
+    that moved, a wrong robot pose), not noise."""
+    pair_distance_tol_mm: float = 1.0
+    """Two inter-sphere distances agree when closer than this.  A distance difference has sd ≈ 2σ
+    (σ√2 per space for σ per axis); 4 × 2 × σ with σ = 0.1 mm is 0.8 mm, + margin → 1 mm."""
+    hypothesis_gate_mm: float = 1.5
+    """Inlier gate for 3-point hypotheses: their pose error at 100 mm lever with σ = 0.25 mm and
+    ≥ 45 mm edges is ≈ 0.7 mm, ×2 margin; far below half the 15 mm pitch."""
+    max_base_triples: int = 12
+    """Base triples searched at most: disjoint ones first (≤ 3 missing spheres spoil at most 3 of
+    them), then overlapping ones for scans with many missing spheres.  The search stops as soon as
+    ``min_agreeing_triples`` agree, so the usual scan uses two or three."""
+    min_agreeing_triples: int = 2
+    """The search stops once the best pose was found from this many independent base triples."""
+    distinct_rotation_deg: float = 5.0
+    """Two poses are distinct if their rotations differ by more than this (the grid's symmetries are
+    ≥ 90° apart; 3-point pose noise is ≈ 0.1°)."""
+    distinct_translation_mm: float = 3.0
+    """... or if the robot centroid lands more than this apart (one pitch is 15 mm)."""
+    max_runner_ups: int = 3
+    """Distinct runner-up candidates refined by ICP (plus every phantom symmetry twin)."""
+    icp_gate_start_mm: float = 7.5
+    """Half the 15 mm hole pitch (research §1.7)."""
+    icp_gate_sigma_factor: float = 3.0
+    """The ICP gate shrinks to this × the robust RMS residual (research §1.7: "~3σ_FRE")."""
+    icp_gate_floor_mm: float = 0.3
+    """Smallest ICP gate (≈ 3 × simulated FRE); spurious blobs are > 2 mm from spheres."""
+    icp_max_iterations: int = 50
+    icp_tol_mm: float = 1e-7
+    """ICP stops when no sphere moves by more than this between iterations."""
+    min_collinear_ratio: float = 1e-3
+    """λ2/λ1 below this = collinear spheres (see registration.quality)."""
+    min_coplanar_ratio: float = 1e-3
+    """λ3/λ1 below this = coplanar spheres (see registration.quality)."""
+    mirror_axis: int = 2
+    """Image axis negated to build the mirrored problem (2 = z, the slice axis most often flipped)."""
+    mirror_min_fraction: float = 0.75
+    """The mirrored problem must explain this fraction of min(expected, detected) spheres to call the
+    input mirrored: the cube grid is achiral, so a mirror image of a filled pattern still overlaps
+    the proper pattern partly (14 of 28 spheres for bai2018_cube) and must not win by default."""
+    verify_gate_mm: float = 5.0
+    """Verification pairs a predicted sphere with a detection within this distance: large enough to
+    report a registration error of several mm honestly, below half the pitch so pairs stay unique."""
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationResult:
+    """A registration that passed every check.
+
+    Attributes
+    ----------
+    image_from_robot : ndarray, shape (4, 4), float64
+        p_image = image_from_robot @ p_robot (LPS mm ← robot mm).
+    fre_mm, fle_mm : float
+        RMS residual over the matched spheres and the FLE it implies (Fitzpatrick 1998 eq. 10).
+    robot_indices, image_indices : ndarray, shape (K,), int64
+        Matched pairs: index into the robot list (phantom sphere order) and into the detections.
+    residuals_mm : ndarray, shape (K,), float64
+    n_expected, n_detected, n_matched : int
+    predicted_tre_mm : ndarray, shape (T,), float64
+        Fitzpatrick eq. 46 at ``targets_robot_mm``; empty if no targets.
+    symmetry_margin : int
+        matched(best) − matched(best distinct runner-up).
+    rotation_det : float
+        det R (always +1).
+    timings_s : dict
+    """
+
+    image_from_robot: F64
+    fre_mm: float
+    fle_mm: float
+    robot_indices: I64
+    image_indices: I64
+    residuals_mm: F64
+    n_expected: int
+    n_detected: int
+    n_matched: int
+    predicted_tre_mm: F64
+    symmetry_margin: int
+    rotation_det: float
+    timings_s: dict[str, float]
+    robot_mm: F64 = field(default_factory=lambda: np.empty((0, 3)))
+    image_mm: F64 = field(default_factory=lambda: np.empty((0, 3)))
+    targets_robot_mm: F64 = field(default_factory=lambda: np.empty((0, 3)))
+    runner_up_matched: int = 0
+    runner_up_rotation_deg: float | None = None
+    runner_up_source: str = ""
+    method: str = "triples+icp"
+    n_icp_iterations: int = 0
+    collinearity: float = 0.0
+    planarity: float = 0.0
+    prior_angle_deg: float | None = None
+    prereg: PreregResult | None = None
+    mirror_checked: bool = False
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict: the ``oarmreg register --json`` format."""
+        spheres = [
+            {
+                "index": int(r),
+                "image_index": int(i),
+                "robot_mm": [float(v) for v in self.robot_mm[r]] if len(self.robot_mm) else None,
+                "image_mm": [float(v) for v in self.image_mm[i]] if len(self.image_mm) else None,
+                "residual_mm": float(e),
+            }
+            for r, i, e in zip(self.robot_indices, self.image_indices, self.residuals_mm, strict=True)
+        ]
+        out: dict[str, Any] = {
+            "image_from_robot": [[float(v) for v in row] for row in self.image_from_robot],
+            "fre_mm": self.fre_mm,
+            "fle_mm": self.fle_mm,
+            "n_expected": self.n_expected,
+            "n_detected": self.n_detected,
+            "n_matched": self.n_matched,
+            "spheres": spheres,
+            "max_residual_mm": float(np.max(self.residuals_mm)) if len(self.residuals_mm) else None,
+            "targets_robot_mm": [[float(v) for v in t] for t in self.targets_robot_mm],
+            "predicted_tre_mm": [float(v) for v in self.predicted_tre_mm],
+            "symmetry_margin": self.symmetry_margin,
+            "runner_up_matched": self.runner_up_matched,
+            "runner_up_rotation_deg": self.runner_up_rotation_deg,
+            "runner_up_source": self.runner_up_source,
+            "rotation_det": self.rotation_det,
+            "method": self.method,
+            "n_icp_iterations": self.n_icp_iterations,
+            "conditioning": {"collinearity": self.collinearity, "planarity": self.planarity},
+            "prior_angle_deg": self.prior_angle_deg,
+            "mirror_checked": self.mirror_checked,
+            "timings_s": dict(self.timings_s),
+            "provenance": dict(self.provenance),
+        }
+        if self.prereg is not None:
+            out["prereg"] = {
+                "affine": [[float(v) for v in row] for row in self.prereg.affine],
+                "nonrigidity": self.prereg.nonrigidity,
+                "singular_values": [float(v) for v in self.prereg.singular_values],
+                "rms_mm": self.prereg.rms_mm,
+                "max_distance_mismatch_mm": self.prereg.max_distance_mismatch_mm,
+            }
+        return out
+
+
+def params_dict(params: RegistrationParams) -> dict[str, Any]:
+    """The parameters as a plain dict (for provenance)."""
+    return asdict(params)
+
+
+def _as_points(a: ArrayLike, name: str) -> F64:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise PointSetError(
+            f"{name}: expected an (N, 3) array of sphere centres in mm, got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
+        raise PointSetError(f"{name}: rows {bad[:5].tolist()} contain NaN or infinite values")
+    return arr
+
+
+def _as_rotation(prior: ArrayLike) -> F64:
+    m = np.asarray(prior, dtype=np.float64)
+    if m.shape == (4, 4):
+        m = m[:3, :3]
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise ConfigError(f"orientation prior: expected a 3 × 3 rotation (or 4 × 4 transform), got {m.shape}")
+    if np.max(np.abs(m.T @ m - np.eye(3))) > 1e-3 or abs(np.linalg.det(m) - 1.0) > 1e-3:
+        raise ConfigError(
+            f"orientation prior is not a proper rotation (det = {np.linalg.det(m):.4f}); give the "
+            "expected rotation of image_from_robot"
+        )
+    return m
+
+
+_SYMMETRIES: weakref.WeakKeyDictionary[Phantom, list[Symmetry]] = weakref.WeakKeyDictionary()
+"""Memo of Phantom.symmetries() (≈ 7 ms each; a phantom is immutable), dropped with the phantom."""
+
+
+def _symmetries(phantom: Phantom) -> list[Symmetry]:
+    syms = _SYMMETRIES.get(phantom)
+    if syms is None:
+        syms = phantom.symmetries()
+        _SYMMETRIES[phantom] = syms
+    return syms
+
+
+def _twins(best: F64, robot_mm: F64, phantom: Phantom | None) -> list[tuple[str, F64]]:
+    """best ∘ each phantom symmetry, expressed as image_from_robot poses."""
+    if phantom is None:
+        return []
+    ph = phantom.centres_phantom_mm
+    if len(ph) != len(robot_mm):
+        log.warning(
+            "phantom %s has %d spheres but %d robot points were given; symmetry twins not tried "
+            "(the runtime runner-up check still applies)",
+            phantom.name,
+            len(ph),
+            len(robot_mm),
+        )
+        return []
+    robot_from_phantom = fit_rigid(ph, robot_mm)
+    rms = float(
+        np.sqrt(
+            np.mean(
+                np.sum(
+                    (ph @ robot_from_phantom[:3, :3].T + robot_from_phantom[:3, 3] - robot_mm) ** 2, axis=1
+                )
+            )
+        )
+    )
+    if rms > PHANTOM_FIT_MAX_RMS_MM:
+        log.warning(
+            "robot points do not match phantom %s (RMS %.2f mm > %.1f mm); symmetry twins not tried",
+            phantom.name,
+            rms,
+            PHANTOM_FIT_MAX_RMS_MM,
+        )
+        return []
+    phantom_from_robot = np.linalg.inv(robot_from_phantom)
+    out = []
+    for sym in _symmetries(phantom):
+        s4 = np.eye(4)
+        s4[:3, :3] = sym.rotation
+        out.append(
+            (f"phantom symmetry {sym.describe()}", best @ robot_from_phantom @ s4 @ phantom_from_robot)
+        )
+    return out
+
+
+@dataclass
+class _Candidate:
+    """A pose in the competition: refined by ICP, or only counted (cannot threaten the best)."""
+
+    source: str
+    image_from_robot: F64
+    n_matched: int
+    rms_mm: float
+    result: IcpResult | None = None
+
+
+def _key(c: _Candidate) -> tuple[int, float]:
+    return (c.n_matched, -c.rms_mm)
+
+
+def _refined(source: str, res: IcpResult) -> _Candidate:
+    return _Candidate(source, res.image_from_robot, res.n_matched, res.rms_mm, res)
+
+
+def _quick_count(t: F64, robot_mm: F64, tree: cKDTree, gate_mm: float) -> tuple[int, float]:
+    """Spheres landing within ``gate_mm`` of a detection under pose ``t`` (no refinement)."""
+    d, _ = tree.query(robot_mm @ t[:3, :3].T + t[:3, 3], distance_upper_bound=gate_mm)
+    ok = np.isfinite(d)
+    n = int(ok.sum())
+    return n, float(np.sqrt(np.mean(d[ok] ** 2))) if n else float("inf")
+
+
+def _refine(robot_mm: F64, image_mm: F64, tree: cKDTree, init: F64, p: RegistrationParams) -> IcpResult:
+    return icp(
+        robot_mm,
+        image_mm,
+        init,
+        tree=tree,
+        gate_start_mm=p.icp_gate_start_mm,
+        gate_sigma_factor=p.icp_gate_sigma_factor,
+        gate_floor_mm=p.icp_gate_floor_mm,
+        max_iterations=p.icp_max_iterations,
+        tol_mm=p.icp_tol_mm,
+    )
+
+
+def _hypotheses(robot_mm: F64, image_mm: F64, tree: cKDTree, p: RegistrationParams) -> list[Hypothesis]:
+    return find_hypotheses(
+        robot_mm,
+        image_mm,
+        pair_tol_mm=p.pair_distance_tol_mm,
+        gate_mm=p.hypothesis_gate_mm,
+        max_base_triples=p.max_base_triples,
+        min_agreeing=p.min_agreeing_triples,
+        distinct_rotation_deg=p.distinct_rotation_deg,
+        distinct_translation_mm=p.distinct_translation_mm,
+        tree=tree,
+    )
+
+
+def _best_mirrored(robot_mm: F64, image_mm: F64, p: RegistrationParams) -> int:
+    """Matched count of the best pose of the mirrored problem (image axis ``p.mirror_axis`` negated)."""
+    mirrored = image_mm.copy()
+    mirrored[:, p.mirror_axis] *= -1.0
+    tree = cKDTree(mirrored)
+    hyps = _hypotheses(robot_mm, mirrored, tree, p)
+    if not hyps:
+        return 0
+    refined = _refine(robot_mm, mirrored, tree, hyps[0].image_from_robot, p).image_from_robot
+    return max(hyps[0].n_inliers, _quick_count(refined, robot_mm, tree, p.hypothesis_gate_mm)[0])
+
+
+def register_points(
+    robot_mm: ArrayLike,
+    image_mm: ArrayLike,
+    *,
+    params: RegistrationParams = RegistrationParams(),
+    targets_robot_mm: ArrayLike | None = None,
+    orientation_prior: ArrayLike | None = None,
+    prior_tolerance_deg: float = 30.0,
+    prereg_pairs: Sequence[tuple[int, int]] | None = None,
+    phantom: Phantom | None = None,
+) -> RegistrationResult:
+    """Register labelled robot-space sphere centres to unlabelled image detections.
+
+    Parameters
+    ----------
+    robot_mm : array_like, shape (N, 3)
+        Sphere centres in the robot frame (mm), in the phantom's sphere order.
+    image_mm : array_like, shape (M, 3)
+        Detected centres in the image frame (DICOM LPS, mm), any order; some may
+        be missing, some spurious.
+    params : RegistrationParams
+    targets_robot_mm : array_like, shape (T, 3), optional
+        Points (robot frame, mm) where Fitzpatrick's TRE is predicted.
+    orientation_prior : array_like, shape (3, 3) or (4, 4), optional
+        Expected rotation of ``image_from_robot``; poses further than
+        ``prior_tolerance_deg`` from it are discarded (resolves a symmetric phantom).
+    prior_tolerance_deg : float
+        Must be < 45°.
+    prereg_pairs : sequence of 4 (robot_index, image_index), optional
+        Four named marks for the paper's pre-registration (eq. 7); ICP starts
+        from its rigid projection, and its rotation acts as the orientation
+        prior unless one is given.
+    phantom : Phantom, optional
+        When given (and the robot points are this phantom's spheres), every
+        symmetry twin of the best pose is refined and compared explicitly.
+
+    Returns
+    -------
+    RegistrationResult
+
+    Raises
+    ------
+    PointSetError
+        Malformed input arrays.
+    DegenerateConfigurationError
+        Robot or matched spheres collinear / coplanar; coplanar marks.
+    TooFewSpheresError
+        Fewer than ``params.min_matched`` spheres matched.
+    AmbiguousMatchError
+        The best pose does not beat the best distinct runner-up by
+        ``params.min_runner_up_margin`` matched spheres.
+    MirroredInputError
+        The detections match the robot points only as a mirror image.
+    PriorMismatchError
+        No pose within the prior's tolerance explains enough spheres.
+    AccuracyGateError
+        FRE above ``params.max_fre_mm``.
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    p = params
+    robot = _as_points(robot_mm, "robot points")
+    image = _as_points(image_mm, "image points")
+    n, m = len(robot), len(image)
+    targets = (
+        np.empty((0, 3))
+        if targets_robot_mm is None
+        else _as_points(np.reshape(targets_robot_mm, (-1, 3)), "targets")
+    )
+    check_configuration(
+        robot,
+        "robot points",
+        min_collinear_ratio=p.min_collinear_ratio,
+        min_coplanar_ratio=p.min_coplanar_ratio,
+    )
+    if m < 3:
+        raise TooFewSpheresError(
+            f"{m} sphere(s) detected, {n} expected: a registration needs at least {p.min_matched} matched "
+            "spheres. Check that the phantom is inside the scanned volume and the detection threshold"
+        )
+    prior: F64 | None = None
+    if orientation_prior is not None:
+        prior = _as_rotation(orientation_prior)
+    if not 0.0 < prior_tolerance_deg < MAX_PRIOR_TOLERANCE_DEG:
+        raise ConfigError(
+            f"orientation prior tolerance must be in (0, {MAX_PRIOR_TOLERANCE_DEG:g})°, got "
+            f"{prior_tolerance_deg:g}°: the hole grid repeats every 90°"
+        )
+    tree = cKDTree(image)
+
+    # --- pre-registration (paper eq. 7) ----------------------------------------------------------
+    prereg: PreregResult | None = None
+    pool: list[_Candidate] = []
+    if prereg_pairs is not None:
+        pairs = [(int(a), int(b)) for a, b in prereg_pairs]
+        if len(pairs) != 4:
+            raise PointSetError(
+                f"pre-registration needs exactly 4 (robot, image) index pairs, got {len(pairs)}"
+            )
+        ri = [a for a, _ in pairs]
+        ii = [b for _, b in pairs]
+        if min(ri) < 0 or max(ri) >= n or min(ii) < 0 or max(ii) >= m:
+            raise PointSetError(
+                f"pre-registration pairs {pairs}: robot indices must be in 0..{n - 1}, "
+                f"image indices in 0..{m - 1}"
+            )
+        if len(set(ri)) != 4 or len(set(ii)) != 4:
+            raise PointSetError(f"pre-registration pairs {pairs}: each sphere may be named only once")
+        t0 = time.perf_counter()
+        prereg = preregister(robot[ri], image[ii])
+        pool.append(_refined("pre-registration", _refine(robot, image, tree, prereg.image_from_robot, p)))
+        timings["prereg_s"] = time.perf_counter() - t0
+        if prior is None:
+            prior = prereg.image_from_robot[:3, :3]
+
+    def within_prior(t: F64) -> bool:
+        return prior is None or rotation_difference_deg(t[:3, :3], prior) <= prior_tolerance_deg
+
+    # --- global correspondence --------------------------------------------------------------------
+    t0 = time.perf_counter()
+    hyps_all = _hypotheses(robot, image, tree, p)
+    hyps = [h for h in hyps_all if within_prior(h.image_from_robot)]
+    timings["correspondence_s"] = time.perf_counter() - t0
+
+    # Refine the best candidate by ICP; every other pose (remaining candidates, phantom twins) is
+    # first counted as is and refined only if it comes within 2 × margin of the best: a pose that
+    # far behind cannot threaten the answer, and its count still bounds the runner-up.
+    t0 = time.perf_counter()
+    centroid = robot.mean(axis=0)
+    best: _Candidate | None = None
+    if prereg is not None:
+        best = pool[0]  # the named marks define the pose; candidates only compete as runner-ups
+    elif hyps:
+        best = _refined("candidate 0", _refine(robot, image, tree, hyps[0].image_from_robot, p))
+        pool.append(best)
+    if best is not None:
+        others: list[tuple[str, F64, int, float]] = [
+            (f"candidate {k}", h.image_from_robot, h.n_inliers, h.rms_mm)
+            for k, h in enumerate(hyps)
+            if k > 0 or prereg is not None
+        ]
+        for name, twin in _twins(best.image_from_robot, robot, phantom):
+            if within_prior(twin):
+                n_q, rms_q = _quick_count(twin, robot, tree, p.hypothesis_gate_mm)
+                others.append((name, twin, n_q, rms_q))
+        others.sort(key=lambda o: (o[2], -o[3]), reverse=True)
+        n_refined = 0
+        for name, t_o, n_o, rms_o in others:
+            threat = n_o + 2 * p.min_runner_up_margin >= best.n_matched
+            if threat and n_refined < p.max_runner_ups + 8:
+                n_refined += 1
+                cand = _refined(name, _refine(robot, image, tree, t_o, p))
+            else:
+                cand = _Candidate(name, t_o, n_o, rms_o)
+            pool.append(cand)
+            if prereg is None and _key(cand) > _key(best):
+                best = cand
+    timings["icp_s"] = time.perf_counter() - t0
+
+    # --- mirrored input -----------------------------------------------------------------------
+    t0 = time.perf_counter()
+    # Handedness is independent of the prior: compare with the best proper pose of any orientation.
+    # Both sides are counted at the fixed hypothesis gate, not at ICP's self-adapted one: a proper
+    # fit of mirrored data is loose, and a gate grown from its own residuals would flatter it.
+    n_best = max(
+        _quick_count(best.image_from_robot, robot, tree, p.hypothesis_gate_mm)[0] if best is not None else 0,
+        hyps_all[0].n_inliers if hyps_all else 0,
+    )
+    # The proper problem "fails" when it would be refused for too few spheres; then a mirrored
+    # problem that succeeds is reported as such even without the full margin (issue #4 item 4).
+    proper_fails = best is None or best.n_matched < p.min_matched
+    mirror_checked = False
+    if proper_fails or n_best + p.min_runner_up_margin <= min(n, m):
+        mirror_checked = True
+        n_mirror = _best_mirrored(robot, image, p)
+        if (
+            (n_mirror >= n_best + p.min_runner_up_margin or (proper_fails and n_mirror > n_best))
+            and n_mirror >= p.min_matched
+            and n_mirror >= p.mirror_min_fraction * min(n, m)
+        ):
+            raise MirroredInputError(
+                f"the image point set matches the robot points only as a mirror image ({n_mirror} of {n} "
+                f"spheres match the mirrored image, {n_best} the image as given): check slice order / "
+                "ImageOrientationPatient / a flipped axis in the export"
+            )
+    timings["mirror_check_s"] = time.perf_counter() - t0
+
+    if best is None or best.result is None or best.n_matched < p.min_matched:
+        n_matched = 0 if best is None else best.n_matched
+        if prior is not None and hyps_all and not hyps:
+            top = hyps_all[0]
+            angle = rotation_difference_deg(top.image_from_robot[:3, :3], prior)
+            if top.n_inliers >= p.min_matched:
+                raise PriorMismatchError(
+                    f"no pose within {prior_tolerance_deg:g}° of the orientation prior explains the "
+                    "detections; "
+                    f"the best pose ({top.n_inliers} of {n} spheres) is {angle:.1f}° away from the prior. "
+                    "Check the prior rotation (it is image_from_robot's rotation) or the "
+                    "pre-registration marks"
+                )
+        raise TooFewSpheresError(
+            f"only {n_matched} sphere(s) matched ({n} expected, {m} detected, {p.min_matched} needed). "
+            "Check that the robot points belong to this scan (same phantom, same pose), that the phantom "
+            "is inside the scanned volume, and the detection result"
+        )
+
+    # --- ambiguity: best vs. best distinct runner-up ----------------------------------------------
+    t_best = best.image_from_robot
+    runner: _Candidate | None = None
+    for c in pool:
+        if c is best or same_pose(
+            t_best, c.image_from_robot, centroid, p.distinct_rotation_deg, p.distinct_translation_mm
+        ):
+            continue
+        if runner is None or _key(c) > _key(runner):
+            runner = c
+    n_runner = runner.n_matched if runner is not None else 0
+    runner_angle = (
+        rotation_difference_deg(t_best[:3, :3], runner.image_from_robot[:3, :3]) if runner else None
+    )
+    margin = best.n_matched - n_runner
+    if margin < p.min_runner_up_margin:
+        assert runner is not None
+        raise AmbiguousMatchError(
+            f"ambiguous sphere correspondence: the best pose matches {best.n_matched} spheres and a "
+            f"different pose ({runner.source}, rotated {runner_angle:.1f}° from it) matches {n_runner}; "
+            f"a margin of {p.min_runner_up_margin} is required. Give an orientation prior "
+            "(--prior-rotation, tolerance < 45°), name 4 marks for the pre-registration, or use a phantom "
+            "with an asymmetric filled pattern"
+        )
+
+    # --- quality -----------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    r = best.result
+    assert r is not None
+    cond = check_configuration(
+        robot[r.robot_indices],
+        "matched spheres",
+        min_collinear_ratio=p.min_collinear_ratio,
+        min_coplanar_ratio=p.min_coplanar_ratio,
+    )
+    det = float(np.linalg.det(t_best[:3, :3]))
+    assert abs(det - 1.0) < 1e-9, f"det(R) = {det}: the determinant fix must prevent this"
+    fre = float(np.sqrt(np.mean(r.residuals_mm**2)))
+    fle = fle_from_fre(fre, r.n_matched)
+    tre = predicted_tre_mm(fle, robot[r.robot_indices], targets) if len(targets) else np.empty(0)
+    if fre > p.max_fre_mm:
+        raise AccuracyGateError(
+            f"FRE {fre:.3f} mm over {r.n_matched} matched spheres exceeds the gate of {p.max_fre_mm:g} mm "
+            f"(largest residual {float(np.max(r.residuals_mm)):.3f} mm at robot sphere "
+            f"{int(r.robot_indices[int(np.argmax(r.residuals_mm))])}). Check that the robot did not move "
+            "during the scan, the robot points' pose, and the detection"
+        )
+    timings["quality_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    log.info(
+        "registered %d/%d spheres (%d detected): FRE %.3f mm, FLE %.3f mm, margin %d",
+        r.n_matched,
+        n,
+        m,
+        fre,
+        fle,
+        margin,
+    )
+    return RegistrationResult(
+        image_from_robot=t_best,
+        fre_mm=fre,
+        fle_mm=fle,
+        robot_indices=r.robot_indices,
+        image_indices=r.image_indices,
+        residuals_mm=r.residuals_mm,
+        n_expected=n,
+        n_detected=m,
+        n_matched=r.n_matched,
+        predicted_tre_mm=np.asarray(tre, dtype=np.float64),
+        symmetry_margin=int(margin),
+        rotation_det=det,
+        timings_s=timings,
+        robot_mm=robot,
+        image_mm=image,
+        targets_robot_mm=targets,
+        runner_up_matched=int(n_runner),
+        runner_up_rotation_deg=runner_angle,
+        runner_up_source=runner.source if runner else "",
+        method="prereg+icp" if prereg is not None else "triples+icp",
+        n_icp_iterations=r.n_iterations,
+        collinearity=cond.collinearity,
+        planarity=cond.planarity,
+        prior_angle_deg=None if prior is None else rotation_difference_deg(t_best[:3, :3], prior),
+        prereg=prereg,
+        mirror_checked=mirror_checked,
+        provenance={"software": f"oarmreg {__version__}"},
+    )

@@ -1,0 +1,255 @@
+"""``oarmreg register``: DICOM series (or image points) + robot points → ``image_from_robot``."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
+
+DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+
+
+def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments shared by ``register`` and ``verify``: where the image-space sphere centres come from."""
+    parser.add_argument("dicom_dir", nargs="?", type=Path, help="folder holding the O-arm DICOM series")
+    parser.add_argument(
+        "--image-points",
+        type=Path,
+        metavar="FILE.json",
+        help='detected centres in the image frame, {"spheres_mm": [[x, y, z], ...]}, instead of DICOM_DIR',
+    )
+    parser.add_argument("--series-uid", help="SeriesInstanceUID to use when the folder holds several series")
+    parser.add_argument(
+        "--method", help="sphere detection method (e.g. 'subvoxel' or 'paper'; default: detection's)"
+    )
+    parser.add_argument(
+        "--robot-points",
+        type=Path,
+        required=True,
+        metavar="FILE.json",
+        help='sphere centres in the robot frame in phantom sphere order, {"spheres_mm": [[x, y, z], ...]}',
+    )
+    parser.add_argument(
+        "--json", type=Path, metavar="OUT.json", help="write the result (or the refusal) here"
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_common_image_arguments(parser)
+    parser.add_argument(
+        "--targets",
+        type=Path,
+        metavar="FILE.json",
+        help='targets (robot frame) for the predicted TRE, {"targets_mm": [[x, y, z], ...]}',
+    )
+    parser.add_argument(
+        "--prior-rotation",
+        metavar="RX,RY,RZ|FILE.json",
+        help="expected rotation of image_from_robot: roll,pitch,yaw in degrees (URDF xyz convention) or a "
+        'JSON file with "image_from_robot" (4 × 4) or "rotation" (3 × 3)',
+    )
+    parser.add_argument(
+        "--prior-tolerance-deg",
+        type=float,
+        default=30.0,
+        help="discard poses further than this from the prior (must be < 45; default 30)",
+    )
+    parser.add_argument(
+        "--prereg",
+        metavar="R:I,R:I,R:I,R:I",
+        help="paper pre-registration: 4 pairs robot sphere index : image point index (non-coplanar)",
+    )
+    parser.add_argument(
+        "--phantom",
+        default=str(DEFAULT_PHANTOM),
+        help="phantom TOML whose symmetry twins are checked explicitly "
+        "('none' to skip; default: %(default)s)",
+    )
+    parser.add_argument("--max-fre-mm", type=float, help="override the FRE gate (mm)")
+    parser.add_argument("--min-margin", type=int, help="override the symmetry margin (matched spheres)")
+
+
+def sha256_of(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timings: dict[str, float]) -> Any:
+    """(M, 3) image-frame centres from ``--image-points`` or by loading + detecting ``dicom_dir``."""
+    from registration.errors import PointsFileError
+    from registration.points_io import read_points
+
+    if (args.dicom_dir is None) == (args.image_points is None):
+        raise PointsFileError("give either DICOM_DIR or --image-points FILE.json (exactly one of them)")
+    if args.image_points is not None:
+        provenance["image_points_file"] = str(args.image_points)
+        provenance["image_points_sha256"] = (
+            sha256_of(args.image_points) if args.image_points.is_file() else None
+        )
+        return read_points(args.image_points, min_points=0)
+    from registration.detection import DetectionParams, detect_spheres
+    from registration.dicom_series import load_series
+
+    t0 = time.perf_counter()
+    volume = load_series(args.dicom_dir, series_uid=args.series_uid)
+    timings["load_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    dparams = DetectionParams() if args.method is None else DetectionParams(method=args.method)
+    det = detect_spheres(volume, dparams)
+    timings["detect_s"] = time.perf_counter() - t0
+    provenance.update(
+        {
+            "dicom_dir": str(args.dicom_dir),
+            "series_uid": volume.series_uid,
+            "frame_of_reference_uid": volume.frame_of_reference_uid,
+            "detection_method": det.method,
+            "n_rejected_detections": len(det.rejections),
+        }
+    )
+    return det.centres_image_mm
+
+
+def parse_prior(text: str | None) -> Any:
+    """Rotation (3 × 3) from 'rx,ry,rz' degrees or a JSON file; None if not given."""
+    if text is None:
+        return None
+    import numpy as np
+
+    from registration.errors import PointsFileError
+    from registration.frames import transform_from_xyz_rpy
+    from registration.points_io import _load_json
+
+    path = Path(text)
+    if path.suffix.lower() == ".json" or path.is_file():
+        obj = _load_json(path)
+        key = "image_from_robot" if isinstance(obj, dict) and "image_from_robot" in obj else "rotation"
+        if not isinstance(obj, dict) or key not in obj:
+            raise PointsFileError(f'{path}: expected "image_from_robot" (4 × 4) or "rotation" (3 × 3)')
+        m = np.asarray(obj[key], dtype=np.float64)
+        return m[:3, :3] if m.shape == (4, 4) else m
+    try:
+        rpy = [float(v) for v in text.split(",")]
+    except ValueError:
+        rpy = []
+    if len(rpy) != 3:
+        raise PointsFileError(f"--prior-rotation {text!r}: expected RX,RY,RZ in degrees or a JSON file")
+    return transform_from_xyz_rpy([0.0, 0.0, 0.0], rpy)[:3, :3]
+
+
+def parse_prereg(text: str | None) -> list[tuple[int, int]] | None:
+    if text is None:
+        return None
+    from registration.errors import PointsFileError
+
+    try:
+        pairs = [tuple(int(v) for v in item.split(":")) for item in text.split(",")]
+    except ValueError:
+        pairs = []
+    if len(pairs) != 4 or any(len(pr) != 2 for pr in pairs):
+        raise PointsFileError(
+            f"--prereg {text!r}: expected 4 pairs ROBOT_INDEX:IMAGE_INDEX separated by commas"
+        )
+    return [(a, b) for a, b in pairs]
+
+
+def write_refusal(path: Path | None, error: Exception) -> None:
+    if path is None:
+        return
+    from registration.points_io import write_json
+
+    write_json(path, {"refused": True, "reason": str(error), "error": type(error).__name__})
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import numpy as np
+
+    from registration import __version__
+    from registration.errors import OarmRegError
+    from registration.phantom import load_phantom
+    from registration.points_io import read_points, read_targets, write_json
+    from registration.register import RegistrationParams, params_dict, register_points
+
+    try:
+        timings: dict[str, float] = {}
+        provenance: dict[str, Any] = {
+            "software": f"oarmreg {__version__}",
+            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+        robot = read_points(args.robot_points)
+        provenance["robot_points_file"] = str(args.robot_points)
+        provenance["robot_points_sha256"] = sha256_of(args.robot_points)
+        image = load_image_points(args, provenance, timings)
+        targets = read_targets(args.targets) if args.targets else None
+        overrides: dict[str, Any] = {}
+        if args.max_fre_mm is not None:
+            overrides["max_fre_mm"] = args.max_fre_mm
+        if args.min_margin is not None:
+            overrides["min_runner_up_margin"] = args.min_margin
+        params = RegistrationParams(**overrides)
+        phantom = None
+        if args.phantom and args.phantom.lower() != "none":
+            phantom = load_phantom(args.phantom)
+            provenance["phantom"] = phantom.name
+        provenance["params"] = params_dict(params)
+        result = register_points(
+            robot,
+            np.asarray(image, dtype=np.float64).reshape(-1, 3),
+            params=params,
+            targets_robot_mm=targets,
+            orientation_prior=parse_prior(args.prior_rotation),
+            prior_tolerance_deg=args.prior_tolerance_deg,
+            prereg_pairs=parse_prereg(args.prereg),
+            phantom=phantom,
+        )
+    except OarmRegError as e:
+        write_refusal(args.json, e)
+        raise
+    result = dataclasses.replace(
+        result,
+        timings_s={**timings, **result.timings_s},
+        provenance={**provenance, **dict(result.provenance)},
+    )
+    sys.stdout.write(summary(result.to_dict()))
+    if args.json:
+        write_json(args.json, result.to_dict())
+        sys.stdout.write(f"written: {args.json}\n")
+    return 0
+
+
+def summary(d: dict[str, Any]) -> str:
+    """Human-readable summary of a registration dict."""
+    lines = ["image_from_robot (p_image = M · p_robot, mm, LPS):"]
+    for row in d["image_from_robot"]:
+        lines.append("  [" + "  ".join(f"{v:12.6f}" for v in row) + "]")
+    lines.append(
+        f"spheres: {d['n_expected']} expected, {d['n_detected']} detected, {d['n_matched']} matched "
+        f"({d['method']})"
+    )
+    lines.append(
+        f"FRE {d['fre_mm']:.3f} mm (RMS residual, not accuracy); implied FLE {d['fle_mm']:.3f} mm; "
+        f"max residual {d['max_residual_mm']:.3f} mm"
+    )
+    for t, tre in zip(d["targets_robot_mm"], d["predicted_tre_mm"], strict=True):
+        lines.append(
+            f"predicted TRE at robot ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm: {tre:.3f} mm (Fitzpatrick)"
+        )
+    ru = d.get("runner_up_rotation_deg")
+    ru_txt = (
+        f", runner-up {d['runner_up_matched']} matched, {ru:.1f}° away ({d['runner_up_source']})"
+        if ru
+        else ""
+    )
+    lines.append(f"symmetry margin {d['symmetry_margin']} spheres{ru_txt}; det(R) = {d['rotation_det']:.9f}")
+    if "prereg" in d:
+        lines.append(
+            f"pre-registration non-rigidity {d['prereg']['nonrigidity']:.2%}, "
+            f"rms {d['prereg']['rms_mm']:.3f} mm"
+        )
+    return "\n".join(lines) + "\n"
