@@ -1,0 +1,583 @@
+"""The one robot-link interface, its shared machinery, and the URL factory.
+
+A link reads joint angles from a Stäubli CS8/CS9 controller (design.md §6).
+Every implementation (``simple-message://``, ``modbus://``, ``serial://``)
+shares this module's :class:`BaseLink`: a background task that connects,
+reads, publishes :class:`JointState` samples into a ring buffer, and on any
+failure marks the link *down* with the reason, backs off (capped exponential)
+and reconnects.  Constructors never connect and never start tasks or threads:
+:meth:`BaseLink.connect` is the awaited step that does, with a ``timeout_s``.
+
+Health
+------
+``connected``  a valid joint frame arrived less than ``stale_after_s`` ago;
+``stale``      the transport is up but no valid frame for longer than that;
+``down``       no transport (never connected, refused, closed, protocol error),
+               with the reason.
+
+Threading: a link lives on the event loop that called :meth:`connect`.  The
+read-only accessors (``latest``, ``status``, ``health``, ``history``,
+``counters``) take a lock and may be called from any thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from types import TracebackType
+from typing import Any, Protocol, Self, runtime_checkable
+from urllib.parse import parse_qs, urlsplit
+
+from drivers.errors import LinkConfigError, LinkTimeoutError, ProtocolError, RobotLinkError
+
+log = logging.getLogger(__name__)
+
+N_JOINTS = 6
+"""Joints of a TX60 / TX2-60 arm (the VAL3 driver fills 6 of the 10 JOINT_POSITION slots)."""
+
+FRAME_PERIOD_S = 0.02
+"""Nominal joint frame period: the VAL3 driver's feedback task runs every 20 ms (50 Hz),
+staubli_val3_driver ``start.pgx`` (research/staubli-link.md §1.6)."""
+
+STALE_AFTER_S = 3 * FRAME_PERIOD_S
+"""Default: a link is *stale* when no valid frame arrived for 3 frame periods (60 ms at 50 Hz)."""
+
+SILENCE_RECONNECT_S = 2.0
+"""Drop and re-open a transport that has delivered no valid frame for this long (half-open TCP,
+a VAL3 task that stopped streaming after a failed ``sioSet``)."""
+
+HISTORY_S = 120.0
+"""Ring buffer span; at 50 Hz that is 6000 samples (the contract asks for ≥ 60 s)."""
+
+BACKOFF_INITIAL_S = 0.05
+BACKOFF_MAX_S = 0.5
+"""Reconnect back-off: 50 ms doubling to a 500 ms cap, so a controller that comes back is
+picked up within ~0.5 s plus one connect (the issue asks for < 1 s)."""
+
+CONNECT_TIMEOUT_S = 5.0
+"""Default for :meth:`RobotLink.connect`."""
+
+CHECKLIST = (
+    "check: the controller is switched on and reachable (cable, IP address, ping); "
+    "the VAL3 program that publishes joints is running; the port is open on the "
+    "controller (simple_message: socket 'Feedback' on TCP 11002; Modbus: TCP 502); "
+    "no firewall between this PC and the controller; for serial: the device path, "
+    "baud rate and user permissions (dialout group)"
+)
+"""Appended to every 'cannot reach the controller' message."""
+
+
+# --------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class JointState:
+    """One joint sample as received.
+
+    Attributes
+    ----------
+    joints_rad : tuple of float
+        Joint angles J1…J6 in radians, as sent by the controller (no offsets).
+    t_s : float
+        ``time.monotonic()`` at receipt (the controllers send no timestamp).
+    received_at : datetime
+        UTC wall clock at receipt, for provenance.
+    source_url : str
+        The link URL the sample came from.
+    """
+
+    joints_rad: tuple[float, ...]
+    t_s: float
+    received_at: datetime
+    source_url: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "joints_rad": list(self.joints_rad),
+            "received_at": self.received_at.isoformat(),
+            "link": self.source_url,
+        }
+
+
+@dataclass(frozen=True)
+class RobotStatus:
+    """Controller status (simple_message STATUS, msg 13).
+
+    TriState fields: −1 unknown, 0 false, 1 true.  ``mode``: −1 unknown, 1 manual,
+    2 auto (industrial_msgs ``TriState.msg``, ``RobotMode.msg``).
+    """
+
+    drives_powered: int
+    e_stopped: int
+    error_code: int
+    in_error: int
+    in_motion: int
+    mode: int
+    motion_possible: int
+    t_s: float
+
+
+@dataclass(frozen=True)
+class LinkHealth:
+    """``state`` is ``"connected"``, ``"stale"`` or ``"down"``; ``reason`` says why."""
+
+    state: str
+    reason: str
+    last_frame_age_s: float | None
+
+
+@runtime_checkable
+class RobotLink(Protocol):
+    """What every controller link offers (an async context manager)."""
+
+    url: str
+
+    async def connect(self, timeout_s: float = CONNECT_TIMEOUT_S) -> None: ...
+    async def close(self) -> None: ...
+    def latest(self) -> JointState | None: ...
+    def status(self) -> RobotStatus | None: ...
+    def health(self) -> LinkHealth: ...
+    def history(self, since_t_s: float) -> list[JointState]: ...
+    def stream(self) -> AsyncIterator[JointState]: ...
+    async def __aenter__(self) -> Self: ...
+    async def __aexit__(
+        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None: ...
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class JointRing:
+    """Thread-safe ring buffer of :class:`JointState`, ordered by ``t_s``."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"ring capacity must be >= 1, got {capacity}")
+        self._items: deque[JointState] = deque(maxlen=capacity)
+        self._lock = threading.Lock()
+
+    @property
+    def capacity(self) -> int:
+        return self._items.maxlen or 0
+
+    def append(self, state: JointState) -> None:
+        with self._lock:
+            self._items.append(state)
+
+    def latest(self) -> JointState | None:
+        with self._lock:
+            return self._items[-1] if self._items else None
+
+    def since(self, since_t_s: float) -> list[JointState]:
+        """Samples with ``t_s >= since_t_s``, oldest first."""
+        with self._lock:
+            out: list[JointState] = []
+            for s in reversed(self._items):
+                if s.t_s < since_t_s:
+                    break
+                out.append(s)
+        out.reverse()
+        return out
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
+
+@dataclass
+class Backoff:
+    """Capped exponential back-off (seconds)."""
+
+    initial_s: float = BACKOFF_INITIAL_S
+    max_s: float = BACKOFF_MAX_S
+    factor: float = 2.0
+    _next_s: float = field(default=0.0, init=False)
+
+    def __post_init__(self) -> None:
+        if not (0 < self.initial_s <= self.max_s) or self.factor < 1:
+            raise LinkConfigError(
+                f"back-off needs 0 < initial_s <= max_s and factor >= 1, got "
+                f"initial_s={self.initial_s}, max_s={self.max_s}, factor={self.factor}"
+            )
+        self.reset()
+
+    def reset(self) -> None:
+        self._next_s = self.initial_s
+
+    def next_delay_s(self) -> float:
+        d = self._next_s
+        self._next_s = min(self.max_s, self._next_s * self.factor)
+        return d
+
+
+def parse_query(url: str) -> dict[str, str]:
+    """The query parameters of ``url`` as a flat dict (last value wins)."""
+    return {k: v[-1] for k, v in parse_qs(urlsplit(url).query, keep_blank_values=True).items()}
+
+
+def option_float(opts: dict[str, Any], key: str, default: float, url: str) -> float:
+    if key not in opts:
+        return default
+    try:
+        return float(opts.pop(key))
+    except (TypeError, ValueError) as e:
+        raise LinkConfigError(f"{url}: option {key!r} must be a number ({e})") from None
+
+
+_BASE_OPTIONS: dict[str, type] = {
+    "stale_after_s": float,
+    "silence_reconnect_s": float,
+    "history_s": float,
+    "frame_period_s": float,
+    "backoff_initial_s": float,
+    "backoff_max_s": float,
+    "n_joints": int,
+}
+
+
+def base_options(opts: dict[str, Any], url: str) -> dict[str, Any]:
+    """Convert the :class:`BaseLink` options in ``opts`` (strings from a URL query, or values);
+    raise :class:`LinkConfigError` for anything left over."""
+    out: dict[str, Any] = {}
+    for key, value in opts.items():
+        typ = _BASE_OPTIONS.get(key)
+        if typ is None:
+            raise LinkConfigError(f"{url}: unknown link option {key!r}; known here: {sorted(_BASE_OPTIONS)}")
+        try:
+            out[key] = typ(value)
+        except (TypeError, ValueError):
+            raise LinkConfigError(f"{url}: option {key}={value!r} is not a valid {typ.__name__}") from None
+    return out
+
+
+# --------------------------------------------------------------------------- base link
+
+
+class _Disconnect(Exception):
+    """Internal: the session ended (peer closed, silence, protocol error)."""
+
+
+class BaseLink:
+    """Shared machinery of every link.  Subclasses implement :meth:`_session`.
+
+    Parameters
+    ----------
+    url : str
+        The link URL (scheme picks the class, see :func:`open_link`).
+    stale_after_s : float
+        Age of the last valid frame beyond which :meth:`health` says ``stale``.
+    silence_reconnect_s : float
+        Drop and re-open a transport that delivered nothing valid for this long.
+    history_s, frame_period_s : float
+        Ring-buffer span and the nominal frame period used to size it.
+    backoff_initial_s, backoff_max_s : float
+        Reconnect back-off.
+    n_joints : int
+        Joints published (6 for TX60 / TX2-60).
+    """
+
+    scheme: str = ""
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        stale_after_s: float = STALE_AFTER_S,
+        silence_reconnect_s: float = SILENCE_RECONNECT_S,
+        history_s: float = HISTORY_S,
+        frame_period_s: float = FRAME_PERIOD_S,
+        backoff_initial_s: float = BACKOFF_INITIAL_S,
+        backoff_max_s: float = BACKOFF_MAX_S,
+        n_joints: int = N_JOINTS,
+    ) -> None:
+        if stale_after_s <= 0 or silence_reconnect_s <= 0 or history_s <= 0 or frame_period_s <= 0:
+            raise LinkConfigError(
+                f"{url}: stale_after_s, silence_reconnect_s, history_s and frame_period_s must be > 0"
+            )
+        if not 1 <= n_joints <= 10:
+            raise LinkConfigError(f"{url}: n_joints must be 1..10, got {n_joints}")
+        self.url = url
+        self.stale_after_s = stale_after_s
+        self.silence_reconnect_s = silence_reconnect_s
+        self.n_joints = n_joints
+        self._ring = JointRing(max(1, math.ceil(history_s / frame_period_s)))
+        self._backoff = Backoff(backoff_initial_s, backoff_max_s)
+        self._lock = threading.Lock()
+        self._status: RobotStatus | None = None
+        self._transport_up = False
+        self._down_reason = "not connected yet (call connect())"
+        self._counters: dict[str, int] = {
+            "frames_accepted": 0,
+            "frames_rejected": 0,
+            "status_frames": 0,
+            "unknown_frames": 0,
+            "protocol_errors": 0,
+            "connects": 0,
+            "disconnects": 0,
+        }
+        self._task: asyncio.Task[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._first_state: asyncio.Event | None = None
+        self._subscribers: list[asyncio.Queue[JointState | None]] = []
+        self._closing = False
+        self._last_error: str = ""
+
+    # ---- public API -------------------------------------------------------
+
+    async def connect(self, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+        """Start the reader and wait for the first valid joint state.
+
+        Raises
+        ------
+        LinkTimeoutError
+            No valid joint frame within ``timeout_s``; the message says whether the
+            transport could be opened at all and ends with a checklist.
+        """
+        if self._task is None:
+            self._loop = asyncio.get_running_loop()
+            self._first_state = asyncio.Event()
+            self._closing = False
+            self._task = asyncio.create_task(self._run(), name=f"robot-link {self.url}")
+        assert self._first_state is not None
+        try:
+            await asyncio.wait_for(self._first_state.wait(), timeout_s)
+        except TimeoutError:
+            with self._lock:
+                up, err = self._transport_up, self._last_error or self._down_reason
+            await self.close()
+            if up or self._counters["connects"]:
+                what = (
+                    f"connected to {self.url} but received no valid joint frame within {timeout_s:g} s "
+                    f"(frames rejected: {self._counters['frames_rejected']}, protocol errors: "
+                    f"{self._counters['protocol_errors']}; last problem: {err})"
+                )
+            else:
+                what = f"could not connect to {self.url} within {timeout_s:g} s (last error: {err})"
+            raise LinkTimeoutError(f"{what}; {CHECKLIST}") from None
+
+    async def close(self) -> None:
+        """Stop the reader, close the transport, end every :meth:`stream`."""
+        self._closing = True
+        task, self._task = self._task, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._set_down("closed")
+        for q in list(self._subscribers):
+            with contextlib.suppress(asyncio.QueueFull):
+                q.put_nowait(None)
+
+    async def __aenter__(self) -> Self:
+        await self.connect()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.close()
+
+    def latest(self) -> JointState | None:
+        return self._ring.latest()
+
+    def status(self) -> RobotStatus | None:
+        with self._lock:
+            return self._status
+
+    def history(self, since_t_s: float) -> list[JointState]:
+        """Samples received at or after ``since_t_s`` (``time.monotonic()`` seconds), oldest first."""
+        return self._ring.since(since_t_s)
+
+    def counters(self) -> dict[str, int]:
+        """Frame and connection counters (accepted, rejected, protocol errors, reconnects…)."""
+        with self._lock:
+            return dict(self._counters)
+
+    def health(self, now_t_s: float | None = None) -> LinkHealth:
+        """Link health at ``now_t_s`` (default: ``time.monotonic()``)."""
+        now = time.monotonic() if now_t_s is None else now_t_s
+        last = self._ring.latest()
+        age = None if last is None else max(0.0, now - last.t_s)
+        with self._lock:
+            up, reason = self._transport_up, self._down_reason
+        if not up:
+            return LinkHealth("down", reason, age)
+        if age is None:
+            return LinkHealth("stale", "connected, no valid joint frame received yet", None)
+        if age > self.stale_after_s:
+            return LinkHealth(
+                "stale", f"no valid joint frame for {age:.3f} s (> {self.stale_after_s:g} s)", age
+            )
+        return LinkHealth("connected", "receiving joint frames", age)
+
+    async def stream(self) -> AsyncIterator[JointState]:
+        """Yield every accepted joint state from now on until :meth:`close`.
+
+        A slow consumer loses the oldest queued states (bounded queue of 1000).
+        """
+        q: asyncio.Queue[JointState | None] = asyncio.Queue(maxsize=1000)
+        self._subscribers.append(q)
+        try:
+            while True:
+                item = await q.get()
+                if item is None:
+                    return
+                yield item
+        finally:
+            self._subscribers.remove(q)
+
+    # ---- for subclasses ----------------------------------------------------
+
+    async def _session(self) -> None:
+        """Open the transport, call :meth:`_mark_up`, read until failure (raise) or cancel."""
+        raise NotImplementedError
+
+    async def _cleanup(self) -> None:
+        """Close whatever :meth:`_session` opened (called after every session)."""
+
+    def _mark_up(self) -> None:
+        with self._lock:
+            self._transport_up = True
+            self._down_reason = ""
+            self._counters["connects"] += 1
+        log.info("robot link %s: connected", self.url)
+
+    def _count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self._counters[key] = self._counters.get(key, 0) + n
+
+    def _publish_joints(self, joints_rad: Sequence[float], t_s: float | None = None) -> JointState | None:
+        """Validate and publish one joint sample; returns it, or None if rejected (logged, counted)."""
+        q = tuple(float(v) for v in joints_rad[: self.n_joints])
+        if len(q) != self.n_joints or not all(math.isfinite(v) for v in q):
+            with self._lock:
+                self._counters["frames_rejected"] += 1
+                n = self._counters["frames_rejected"]
+            log.warning(
+                "robot link %s: rejected joint frame %s (expected %d finite values); rejected so far: %d",
+                self.url, q, self.n_joints, n,
+            )  # fmt: skip
+            return None
+        state = JointState(
+            joints_rad=q,
+            t_s=time.monotonic() if t_s is None else t_s,
+            received_at=datetime.now(UTC),
+            source_url=self.url,
+        )
+        self._ring.append(state)
+        with self._lock:
+            self._counters["frames_accepted"] += 1
+        self._backoff.reset()
+        if self._first_state is not None and not self._first_state.is_set():
+            self._first_state.set()
+        for sub in self._subscribers:
+            if sub.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    sub.get_nowait()
+            sub.put_nowait(state)
+        return state
+
+    def _publish_status(self, status: RobotStatus) -> None:
+        with self._lock:
+            self._status = status
+            self._counters["status_frames"] += 1
+
+    def _silence_exceeded(self, since_t_s: float) -> bool:
+        """True if nothing valid arrived for ``silence_reconnect_s`` (since the later of the
+        last frame and ``since_t_s``, the session start)."""
+        last = self._ring.latest()
+        ref = since_t_s if last is None else max(last.t_s, since_t_s)
+        return time.monotonic() - ref > self.silence_reconnect_s
+
+    # ---- internals ----------------------------------------------------------
+
+    def _set_down(self, reason: str) -> None:
+        with self._lock:
+            was_up = self._transport_up
+            self._transport_up = False
+            self._down_reason = reason
+            if was_up:
+                self._counters["disconnects"] += 1
+
+    async def _run(self) -> None:
+        while not self._closing:
+            reason = "session ended"
+            try:
+                await self._session()
+                reason = "peer closed the connection"
+            except asyncio.CancelledError:
+                await self._cleanup()
+                raise
+            except ProtocolError as e:
+                self._count("protocol_errors")
+                reason = f"protocol error: {e}"
+                log.error("robot link %s: %s; closing the connection as corrupt", self.url, e)
+            except (OSError, EOFError, TimeoutError, RobotLinkError, _Disconnect) as e:
+                reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+                log.info("robot link %s: %s", self.url, reason)
+            except Exception as e:  # a bug must not kill the reader silently
+                reason = f"unexpected {type(e).__name__}: {e}"
+                log.exception("robot link %s: unexpected error", self.url)
+            await self._cleanup()
+            self._last_error = reason
+            self._set_down(reason)
+            if self._closing:
+                break
+            delay = self._backoff.next_delay_s()
+            log.debug("robot link %s: down (%s); retry in %.3f s", self.url, reason, delay)
+            await asyncio.sleep(delay)
+
+
+# --------------------------------------------------------------------------- factory
+
+_SCHEMES: dict[str, Callable[..., BaseLink]] = {}
+
+
+def register_scheme(scheme: str, factory: Callable[..., BaseLink]) -> None:
+    """Register a link class for a URL scheme (used by the link modules)."""
+    _SCHEMES[scheme] = factory
+
+
+def open_link(url: str, **options: Any) -> BaseLink:
+    """Build (never connect) the link for ``url``.
+
+    ``simple-message://HOST[:11002]``, ``modbus://HOST[:502]?…``,
+    ``serial:///dev/ttyS0?baudrate=115200``.  ``options`` are passed to the
+    link's constructor (e.g. ``stale_after_s=0.1``).
+
+    Raises
+    ------
+    LinkConfigError
+        Unknown scheme or malformed URL / options.
+    """
+    scheme = urlsplit(url).scheme
+    if not _SCHEMES:
+        _load_builtin()
+    factory = _SCHEMES.get(scheme)
+    if factory is None:
+        _load_builtin()
+        factory = _SCHEMES.get(scheme)
+    if factory is None:
+        raise LinkConfigError(
+            f"unknown robot link scheme {scheme!r} in {url!r}; expected one of "
+            f"{sorted(_SCHEMES)} (e.g. simple-message://192.168.0.254:11002)"
+        )
+    try:
+        return factory(url, **options)
+    except TypeError as e:
+        raise LinkConfigError(f"{url}: bad link option ({e})") from None
+
+
+def _load_builtin() -> None:
+    import drivers.modbus
+    import drivers.serial_link
+    import drivers.simple_message  # noqa: F401

@@ -1,0 +1,119 @@
+"""Serial line-protocol link against the mock on a pty pair (issue #5)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from drivers.base import open_link
+from mocks.robot.robot import ScriptedRobot
+from mocks.robot.runner import run_mock_controller
+from registration.stillness import assess_stillness
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pty pairs are POSIX only")
+
+Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
+DEADLINE_S = 5.0
+
+
+async def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        await asyncio.sleep(0.002)
+
+
+def test_exact_values_rate_and_read_only() -> None:
+    robot = ScriptedRobot(Q)
+    robot.run_script({"steps": [{"hold_s": 0.3}, {"move_to_deg": [0, 0, 90, 0, 45, 0], "duration_s": 2.0}]})
+
+    async def main() -> None:
+        with run_mock_controller("serial", robot) as mock:
+            assert mock.url.startswith("serial:///dev/") and "baudrate=115200" in mock.url
+            link = open_link(mock.url)
+            await link.connect()
+            first = link.latest().joints_rad
+            assert np.array_equal(np.array(first, dtype=np.float32), np.array(Q, dtype=np.float32))
+            n0 = link.counters()["frames_accepted"]
+            t0 = time.monotonic()
+            await wait_until(lambda: time.monotonic() - t0 >= 3.0, "3 s of lines", 5.0)
+            mock.stall()
+            last_sent_seq = mock.call(lambda: mock.server._seq - 1)
+            # every line up to the last one sent arrived (seq gaps would count as frames_lost)
+            await wait_until(lambda: link._last_seq == last_sent_seq, "the last line sent")  # type: ignore[attr-defined]
+            c = link.counters()
+            await link.close()
+            assert c["frames_accepted"] - n0 >= 130  # 50 Hz for 3 s
+            assert c.get("frames_lost", 0) == 0 and c["frames_rejected"] == 0
+            assert mock.bytes_from_clients() == 0
+
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("fault", ["split", "garbage", "nan", "checksum"])
+def test_faults_rejected_not_published(fault: str) -> None:
+    async def main() -> None:
+        with run_mock_controller("serial", ScriptedRobot(Q)) as mock:
+            async with open_link(mock.url) as link:
+                if fault == "split":
+                    mock.set_split_frames(True)
+                elif fault == "garbage":
+                    mock.inject_garbage(b"\x00\xff garbage $J,1,2,3*00\r\n" + b"\xaa" * 300)
+                elif fault == "nan":
+                    mock.inject_nan(n_frames=2, joint=3)
+                else:
+                    mock._fault("inject_bad_checksum", 2)
+                if fault != "split":
+                    await wait_until(lambda: link.counters()["frames_rejected"] >= 2, "rejections")
+                n = link.counters()["frames_accepted"]
+                await wait_until(lambda: link.counters()["frames_accepted"] >= n + 3, "good lines after")
+                want = np.array(Q, dtype=np.float32)
+                assert all(np.array_equal(np.array(s.joints_rad, dtype=np.float32), want)
+                           for s in link.history(0.0))  # fmt: skip
+                if fault == "split":
+                    assert link.counters()["frames_rejected"] == 0
+
+    asyncio.run(main())
+
+
+def test_silence_stale_then_back_within_1s() -> None:
+    async def main() -> None:
+        with run_mock_controller("serial", ScriptedRobot(Q)) as mock:
+            async with open_link(mock.url) as link:
+                back = asyncio.create_task(asyncio.to_thread(mock.disconnect, 0.4))
+                await wait_until(lambda: link.health().state == "stale", "stale", 2.0)
+                last = link.latest().t_s
+                assert link.health(now_t_s=last + 0.059).state == "connected"
+                assert link.health(now_t_s=last + 0.061).state == "stale"
+                t_return = await back
+                await wait_until(lambda: link.latest().t_s > t_return, "a line after the return", 1.0)
+                await wait_until(lambda: link.status() is not None, "a $S line")
+                assert link.status().mode == 2 and link.status().drives_powered == 1
+
+    asyncio.run(main())
+
+
+def test_moving_vs_still() -> None:
+    robot = ScriptedRobot(Q)
+
+    async def main() -> None:
+        with run_mock_controller("serial", robot) as mock:
+            async with open_link(mock.url) as link:
+                t0 = time.monotonic()
+                robot.move_to([q - 0.05 for q in Q], duration_s=0.5)
+                end = robot.motion_end_t_s()
+                await wait_until(lambda: link.latest().t_s > end + 0.4, "hold after the move")
+                h = link.history(t0)
+                t, q = np.array([s.t_s for s in h]), np.array([s.joints_rad for s in h])
+                kw = {"window_s": 0.3, "max_deviation_rad": 0.0005, "max_gap_s": 0.1}
+                assert not assess_stillness(t, q, window_end_t_s=t0 + 0.4, **kw).still
+                assert assess_stillness(t, q, window_end_t_s=t[-1], **kw).still
+
+    asyncio.run(main())
