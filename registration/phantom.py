@@ -15,6 +15,7 @@ margin is below ``min_symmetry_margin``.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import tomllib
 from dataclasses import dataclass
@@ -109,9 +110,13 @@ class Phantom:
     def n_spheres(self) -> int:
         return int(self.filled.sum())
 
+    @functools.cached_property
+    def _symmetries(self) -> tuple[Symmetry, ...]:
+        return tuple(grid_symmetries(self.holes_phantom_mm))
+
     def symmetries(self) -> list[Symmetry]:
-        """Non-trivial proper rotations mapping the hole grid onto itself."""
-        return grid_symmetries(self.holes_phantom_mm)
+        """Non-trivial proper rotations mapping the hole grid onto itself (computed once)."""
+        return list(self._symmetries)
 
     def symmetry_margins(self) -> list[tuple[Symmetry, int]]:
         """For each non-trivial symmetry, how many filled spheres land on empty holes."""

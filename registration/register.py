@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import time
-import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Final
@@ -44,7 +43,7 @@ from registration.errors import (
     TooFewSpheresError,
 )
 from registration.icp import IcpResult, icp
-from registration.phantom import Phantom, Symmetry
+from registration.phantom import Phantom
 from registration.prereg import PreregResult, preregister
 from registration.quality import (
     check_configuration,
@@ -266,18 +265,6 @@ def _as_rotation(prior: ArrayLike) -> F64:
     return m
 
 
-_SYMMETRIES: weakref.WeakKeyDictionary[Phantom, list[Symmetry]] = weakref.WeakKeyDictionary()
-"""Memo of Phantom.symmetries() (≈ 7 ms each; a phantom is immutable), dropped with the phantom."""
-
-
-def _symmetries(phantom: Phantom) -> list[Symmetry]:
-    syms = _SYMMETRIES.get(phantom)
-    if syms is None:
-        syms = phantom.symmetries()
-        _SYMMETRIES[phantom] = syms
-    return syms
-
-
 def _twins(best: F64, robot_mm: F64, phantom: Phantom | None) -> list[tuple[str, F64]]:
     """best ∘ each phantom symmetry, expressed as image_from_robot poses."""
     if phantom is None:
@@ -312,7 +299,7 @@ def _twins(best: F64, robot_mm: F64, phantom: Phantom | None) -> list[tuple[str,
         return []
     phantom_from_robot = np.linalg.inv(robot_from_phantom)
     out = []
-    for sym in _symmetries(phantom):
+    for sym in phantom.symmetries():
         s4 = np.eye(4)
         s4[:3, :3] = sym.rotation
         out.append(
