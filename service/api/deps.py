@@ -1,0 +1,49 @@
+"""Dependencies as ``Annotated`` aliases (tests can override them)."""
+
+from __future__ import annotations
+
+import hmac
+from typing import TYPE_CHECKING, Annotated, ClassVar
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from registration.errors import OarmRegError
+
+if TYPE_CHECKING:
+    from service.app import ServiceContext
+
+
+class AuthError(OarmRegError):
+    """Missing or wrong Bearer token (answered 401 with ``WWW-Authenticate: Bearer``)."""
+
+    http_status = 401
+    title = "Unauthorized"
+    headers: ClassVar[dict[str, str]] = {"WWW-Authenticate": 'Bearer realm="oarmreg"'}
+
+
+async def get_ctx(request: Request) -> ServiceContext:
+    return request.app.state.ctx  # type: ignore[no-any-return]
+
+
+CtxDep = Annotated["ServiceContext", Depends(get_ctx)]
+
+_bearer = HTTPBearer(auto_error=False, description="API token (settings: api_token / OARMREG_API_TOKEN)")
+
+
+async def require_token(
+    request: Request,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """Check ``Authorization: Bearer <token>`` in constant time (``hmac.compare_digest``)."""
+    ctx: ServiceContext = request.app.state.ctx
+    token = ctx.settings.api_token
+    if token is None:
+        return  # authentication disabled (loopback only; refused by the settings otherwise)
+    if credentials is None or credentials.scheme.lower() != "bearer":
+        raise AuthError("missing 'Authorization: Bearer <token>' header; the API token is set in api_token")
+    if not hmac.compare_digest(credentials.credentials.encode(), token.get_secret_value().encode()):
+        raise AuthError("the Bearer token does not match the service's api_token")
+
+
+AuthDep = Depends(require_token)

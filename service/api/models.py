@@ -1,0 +1,359 @@
+"""Request and response bodies (separate models; internals never leak).
+
+Units are in the field names; matrices are nested lists ``[[r00, r01, r02, tx], ...]``
+(row-major, 4 × 4, mm).  ``image_from_robot`` maps robot-frame points (Stäubli world
+frame = URDF ``base``) to image points (DICOM patient coordinates, LPS, of the scan's
+FrameOfReferenceUID): ``p_image = image_from_robot @ p_robot``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+EXAMPLE_MATRIX = [
+    [0.0, -1.0, 0.0, 412.5],
+    [1.0, 0.0, 0.0, -35.2],
+    [0.0, 0.0, 1.0, -610.0],
+    [0.0, 0.0, 0.0, 1.0],
+]
+
+Matrix4 = list[list[float]]
+Point3 = list[float]
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+# ---- requests ------------------------------------------------------------------------------
+
+
+class RegisterRequest(BaseModel):
+    """``POST /register``."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{}, {"scan_id": 3, "targets_mm": [[10.0, -25.5, 140.0]]}]},
+    )
+
+    scan_id: int | None = Field(
+        default=None, description="Scan to register (GET /scans); default: the latest complete scan."
+    )
+    targets_mm: list[Point3] | None = Field(
+        default=None,
+        description=(
+            "Target points in the IMAGE frame (DICOM LPS mm, the navigation UI's space) at which to report "
+            "Fitzpatrick's predicted TRE, e.g. the planned screw entry points.  Default: 6 points "
+            "`quality.default_target_distance_mm` (150 mm) from the phantom centre along the robot axes."
+        ),
+        max_length=1000,
+    )
+
+    @field_validator("targets_mm")
+    @classmethod
+    def _three(cls, v: list[Point3] | None) -> list[Point3] | None:
+        if v is None:
+            return v
+        for i, p in enumerate(v):
+            if len(p) != 3:
+                raise ValueError(f"targets_mm[{i}] must be [x, y, z] in mm, got {len(p)} values")
+            if any(abs(c) > 1e5 or c != c for c in p):
+                raise ValueError(f"targets_mm[{i}] = {p} is not a finite position in mm")
+        return v
+
+
+class VerifyRequest(BaseModel):
+    """``POST /verify``."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{}, {"scan_id": 4}]})
+
+    scan_id: int | None = Field(
+        default=None,
+        description="A scan newer than the current registration's scan; default: the latest complete scan.",
+    )
+
+
+# ---- responses -----------------------------------------------------------------------------
+
+
+class Health(_Out):
+    status: Literal["ok"] = "ok"
+    version: str
+
+
+class LinkOut(_Out):
+    url: str
+    state: str = Field(description="connected | stale | down")
+    reason: str
+    last_frame_age_s: float | None
+    history_s: float = Field(description="Span of joint history currently buffered, s.")
+
+
+class JointsOut(_Out):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "joints_rad": [0.1, -0.3, 1.9, 0.0, 0.8, 0.0],
+                    "received_at": "2025-01-01T10:00:00+00:00",
+                    "age_s": 0.012,
+                    "link": {
+                        "url": "simple-message://10.0.0.5:11002",
+                        "state": "connected",
+                        "reason": "receiving joint frames",
+                        "last_frame_age_s": 0.012,
+                        "history_s": 120.0,
+                    },
+                }
+            ]
+        }
+    )
+    joints_rad: list[float]
+    received_at: str
+    age_s: float
+    link: LinkOut
+
+
+class JointSnapshotOut(_Out):
+    captured_at: str
+    link_url: str
+    link_state: str
+    link_reason: str
+    joints_rad: list[float] | None
+    joints_received_at: str | None
+    still: bool
+    max_deviation_rad: float | None
+    covered_s: float | None
+    n_samples: int
+    window_s: float
+    stillness_reason: str
+
+
+class ScanOut(_Out):
+    id: int
+    series_uid: str
+    frame_of_reference_uid: str
+    folder: str
+    arrived_at: str
+    n_files: int
+    n_slices: int
+    rows: int
+    columns: int
+    image_from_voxel: Matrix4 | None = Field(
+        default=None, description="(i, j, k, 1) → LPS mm, 4 × 4 row-major."
+    )
+    spacing_mm: list[float] | None = Field(
+        default=None, description="Voxel size along (column, row, slice), mm."
+    )
+    status: str = Field(description="complete | invalid")
+    reason: str
+    seen_count: int = Field(
+        description="How often the series was exported (re-exports are deduplicated by UID)."
+    )
+    joints: JointSnapshotOut | None
+
+
+class SphereResidual(_Out):
+    sphere: str = Field(description="Phantom hole id, e.g. '+x-r1c2'.")
+    robot_index: int
+    image_index: int
+    residual_mm: float
+
+
+class RegistrationOut(_Out):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": 3,
+                    "status": "accepted",
+                    "reason": "",
+                    "is_current": True,
+                    "scan_id": 2,
+                    "series_uid": "1.2.826.0.1.3680043.8.498.1",
+                    "created_at": "2025-01-01T10:00:05+00:00",
+                    "image_from_robot": EXAMPLE_MATRIX,
+                    "fre_mm": 0.06,
+                    "fle_mm": 0.062,
+                    "n_expected": 28,
+                    "n_detected": 28,
+                    "n_matched": 28,
+                    "predicted_tre_mm": [0.05, 0.05, 0.06, 0.05, 0.05, 0.06],
+                    "targets_image_mm": [[562.5, -35.2, -610.0]],
+                    "symmetry_margin": 16,
+                    "rotation_det": 1.0,
+                }
+            ]
+        }
+    )
+
+    id: int
+    status: str = Field(description="accepted | refused")
+    reason: str = Field(description="Why it was refused (empty when accepted).")
+    problem_title: str = ""
+    is_current: bool
+    scan_id: int | None
+    series_uid: str
+    created_at: str
+    image_from_robot: Matrix4 | None = Field(
+        default=None, description="4 × 4 row-major, mm: p_image(LPS) = image_from_robot @ p_robot."
+    )
+    fre_mm: float | None = Field(
+        default=None, description="RMS residual over the matched spheres (not an accuracy figure)."
+    )
+    fle_mm: float | None = Field(default=None, description="FLE implied by FRE: FRE·√(N/(N−2)).")
+    n_expected: int | None = None
+    n_detected: int | None = None
+    n_matched: int | None = None
+    spheres: list[SphereResidual] = []
+    predicted_tre_mm: list[float] = Field([], description="Fitzpatrick's predicted TRE at targets_image_mm.")
+    targets_image_mm: list[Point3] = []
+    targets_source: str = ""
+    symmetry_margin: int | None = Field(
+        default=None, description="Matched spheres, best minus runner-up hypothesis."
+    )
+    rotation_det: float | None = None
+    joints_rad: list[float] | None = None
+    joints_received_at: str | None = None
+    config_hash: str
+    software_version: str
+    duration_s: float | None = None
+    provenance: dict[str, Any] = {}
+    timings_s: dict[str, float] = {}
+
+
+class VerificationError(_Out):
+    sphere: str
+    robot_index: int
+    error_mm: float
+
+
+class VerificationOut(_Out):
+    id: int
+    created_at: str
+    registration_id: int
+    scan_id: int
+    series_uid: str
+    passed: bool = Field(description="max_mm ≤ quality.max_verification_error_mm")
+    mean_mm: float
+    rms_mm: float
+    max_mm: float
+    n_expected: int
+    n_detected: int
+    n_matched: int
+    errors: list[VerificationError]
+    histogram_url: str | None
+    config_hash: str
+    software_version: str
+
+
+class StatusOut(_Out):
+    version: str
+    started_at: str
+    uptime_s: float
+    auth_enabled: bool
+    link: LinkOut
+    watcher: dict[str, Any]
+    latest_scan: ScanOut | None
+    current_registration: RegistrationOut | None
+    busy: bool = Field(description="A registration or verification is running.")
+    counts: dict[str, int]
+    config_hash: str
+
+
+# ---- converters ----------------------------------------------------------------------------
+
+
+def scan_out(scan: Any) -> ScanOut:
+    geom = scan.geometry or {}
+    return ScanOut(
+        id=scan.id,
+        series_uid=scan.series_uid,
+        frame_of_reference_uid=scan.frame_of_reference_uid,
+        folder=scan.folder,
+        arrived_at=scan.arrived_at,
+        n_files=scan.n_files,
+        n_slices=scan.n_slices,
+        rows=scan.rows,
+        columns=scan.columns,
+        image_from_voxel=geom.get("image_from_voxel"),
+        spacing_mm=geom.get("spacing_mm"),
+        status=scan.status,
+        reason=scan.reason,
+        seen_count=scan.seen_count,
+        joints=JointSnapshotOut(**scan.snapshot) if scan.snapshot else None,
+    )
+
+
+def registration_out(rec: dict[str, Any], current_id: int | None = None) -> RegistrationOut:
+    fig = rec.get("figures") or {}
+    is_current = rec.get("is_current", False) if current_id is None else rec["id"] == current_id
+    return RegistrationOut(
+        **{
+            k: rec.get(k)
+            for k in (
+                "id",
+                "status",
+                "reason",
+                "problem_title",
+                "scan_id",
+                "series_uid",
+                "created_at",
+                "image_from_robot",
+                "fre_mm",
+                "joints_rad",
+                "joints_received_at",
+                "config_hash",
+                "software_version",
+                "duration_s",
+            )
+        },
+        is_current=bool(is_current),
+        **{
+            k: fig[k]
+            for k in (
+                "fle_mm",
+                "n_expected",
+                "n_detected",
+                "n_matched",
+                "spheres",
+                "predicted_tre_mm",
+                "targets_image_mm",
+                "targets_source",
+                "symmetry_margin",
+                "rotation_det",
+                "provenance",
+                "timings_s",
+            )
+            if k in fig
+        },
+    )
+
+
+def verification_out(rec: dict[str, Any]) -> VerificationOut:
+    fig = rec.get("figures") or {}
+    return VerificationOut(
+        **{
+            k: rec[k]
+            for k in (
+                "id",
+                "created_at",
+                "registration_id",
+                "scan_id",
+                "series_uid",
+                "passed",
+                "mean_mm",
+                "rms_mm",
+                "max_mm",
+                "config_hash",
+                "software_version",
+            )
+        },
+        n_expected=fig.get("n_expected", 0),
+        n_detected=fig.get("n_detected", 0),
+        n_matched=fig.get("n_matched", 0),
+        errors=fig.get("errors", []),
+        histogram_url=f"/verifications/{rec['id']}/histogram.png" if rec.get("histogram_path") else None,
+    )

@@ -1,0 +1,80 @@
+"""``POST /register``, ``GET /registration/current``, ``GET /registrations[/{id}]``."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import anyio.to_thread
+from fastapi import APIRouter, Body, Query, Response
+
+from service.api.deps import CtxDep
+from service.api.models import RegisterRequest, RegistrationOut, registration_out
+from service.api.problems import problem_responses
+from service.orchestrator import NoCurrentRegistrationError, NotFoundError
+
+router = APIRouter(tags=["registration"])
+
+
+@router.post(
+    "/register",
+    response_model=RegistrationOut,
+    summary="Register the latest (or given) scan: load → MAR → detect → register",
+    description=(
+        "Runs the pipeline on the scan's DICOM series with the joint angles captured when it arrived, "
+        "stores the result and makes it current if every quality gate passes.  A refusal (robot moved, "
+        "robot link down, too few spheres, ambiguous correspondence, FRE over the gate) answers 409, an "
+        "unusable scan 422, both as problem details carrying `registration_id` of the stored refusal; the "
+        "previous current registration stays current.  `targets_mm` are in the IMAGE frame (LPS mm)."
+    ),
+    responses=problem_responses(401, 404, 409, 422),
+)
+async def register(ctx: CtxDep, body: Annotated[RegisterRequest | None, Body()] = None) -> RegistrationOut:
+    req = body or RegisterRequest()
+    rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_mm)
+    return registration_out(rec, rec["id"])
+
+
+@router.get(
+    "/registration/current",
+    response_model=RegistrationOut,
+    summary="The registration the navigation UI should use",
+    responses=problem_responses(401, 404),
+)
+async def current(ctx: CtxDep) -> Response:
+    cur = ctx.orchestrator.current
+    if cur is None:
+        raise NoCurrentRegistrationError("no registration has been accepted yet; POST /register after a scan")
+    # The navigation UI polls this: serve pre-encoded JSON, re-encoded only when the current one changes.
+    cached = ctx.current_json
+    if cached is None or cached[0] is not cur:
+        body = registration_out(cur, cur["id"]).model_dump_json().encode()
+        cached = (cur, body)
+        ctx.current_json = cached
+    return Response(cached[1], media_type="application/json")
+
+
+@router.get(
+    "/registrations",
+    response_model=list[RegistrationOut],
+    summary="Every registration, newest first",
+    responses=problem_responses(401),
+)
+def list_registrations(
+    ctx: CtxDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[RegistrationOut]:
+    return [registration_out(r) for r in ctx.db.list_registrations(limit, offset)]
+
+
+@router.get(
+    "/registrations/{registration_id}",
+    response_model=RegistrationOut,
+    summary="One registration",
+    responses=problem_responses(401, 404),
+)
+def get_registration(ctx: CtxDep, registration_id: int) -> RegistrationOut:
+    rec = ctx.db.get_registration(registration_id)
+    if rec is None:
+        raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")
+    return registration_out(rec)

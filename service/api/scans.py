@@ -1,0 +1,41 @@
+"""``GET /scans`` and ``GET /scans/{id}``."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from service.api.deps import CtxDep
+from service.api.models import ScanOut, scan_out
+from service.api.problems import problem_responses
+from service.orchestrator import NotFoundError
+
+router = APIRouter(tags=["scans"])
+
+
+@router.get(
+    "/scans",
+    response_model=list[ScanOut],
+    summary="Recorded scans, newest first",
+    responses=problem_responses(401),
+)
+def list_scans(
+    ctx: CtxDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[ScanOut]:
+    return [scan_out(s) for s in ctx.db.list_scans(limit, offset)]
+
+
+@router.get(
+    "/scans/{scan_id}",
+    response_model=ScanOut,
+    summary="One scan with its joint snapshot",
+    responses=problem_responses(401, 404),
+)
+def get_scan(ctx: CtxDep, scan_id: int) -> ScanOut:
+    scan = ctx.db.get_scan(scan_id)
+    if scan is None:
+        raise NotFoundError(f"scan {scan_id} does not exist; GET /scans lists the recorded scans")
+    return scan_out(scan)

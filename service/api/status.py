@@ -1,0 +1,61 @@
+"""``GET /status`` and ``GET /robot/joints``."""
+
+from __future__ import annotations
+
+import time
+from datetime import UTC, datetime
+
+from fastapi import APIRouter
+
+from drivers.errors import RobotLinkError
+from registration import __version__
+from service.api.deps import CtxDep
+from service.api.models import JointsOut, LinkOut, StatusOut, registration_out, scan_out
+from service.api.problems import problem_responses
+
+router = APIRouter(tags=["status"])
+
+
+@router.get(
+    "/status",
+    response_model=StatusOut,
+    summary="Robot link, watcher, latest scan, current registration",
+    responses=problem_responses(401),
+)
+def status(ctx: CtxDep) -> StatusOut:
+    latest = ctx.db.latest_complete_scan()
+    cur = ctx.orchestrator.current
+    return StatusOut(
+        version=__version__,
+        started_at=ctx.started_at.isoformat(),
+        uptime_s=(datetime.now(UTC) - ctx.started_at).total_seconds(),
+        auth_enabled=ctx.settings.auth_enabled,
+        link=LinkOut(**ctx.capture.health()),
+        watcher=ctx.watcher.state() if ctx.watcher is not None else {"mode": "disabled", "running": False},
+        latest_scan=scan_out(latest) if latest else None,
+        current_registration=registration_out(cur, cur["id"]) if cur else None,
+        busy=ctx.orchestrator.busy,
+        counts=ctx.db.counts(),
+        config_hash=ctx.orchestrator.config_hash,
+    )
+
+
+@router.get(
+    "/robot/joints",
+    response_model=JointsOut,
+    summary="Latest joint angles from the robot link",
+    responses=problem_responses(401, 409),
+)
+def robot_joints(ctx: CtxDep) -> JointsOut:
+    h = ctx.capture.health()
+    latest = ctx.capture.latest()
+    if latest is None:
+        raise RobotLinkError(
+            f"no joint angles received from {h['url']} (link {h['state']}: {h['reason']}); check GET /status"
+        )
+    return JointsOut(
+        joints_rad=list(latest.joints_rad),
+        received_at=latest.received_at.isoformat(),
+        age_s=max(0.0, time.monotonic() - latest.t_s),
+        link=LinkOut(**h),
+    )

@@ -1,0 +1,60 @@
+"""``POST /verify``, ``GET /verifications/{id}`` and its histogram PNG."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import anyio.to_thread
+from fastapi import APIRouter, Body
+from fastapi.responses import FileResponse
+
+from service.api.deps import CtxDep
+from service.api.models import VerificationOut, VerifyRequest, verification_out
+from service.api.problems import problem_responses
+from service.orchestrator import NotFoundError
+
+router = APIRouter(tags=["verification"])
+
+
+@router.post(
+    "/verify",
+    response_model=VerificationOut,
+    summary="Error analysis of a newer scan against the current registration (Bai 2018 §3, eq. 10)",
+    description=(
+        "Predicts every sphere centre of the scan through the current `image_from_robot` from the joints "
+        "captured with the scan, compares with the detected centres, and returns the per-sphere errors, "
+        "mean / RMS / max (mm) and a histogram PNG (`histogram_url`)."
+    ),
+    responses=problem_responses(401, 404, 409, 422),
+)
+async def verify(ctx: CtxDep, body: Annotated[VerifyRequest | None, Body()] = None) -> VerificationOut:
+    req = body or VerifyRequest()
+    rec = await anyio.to_thread.run_sync(ctx.orchestrator.verify, req.scan_id)
+    return verification_out(rec)
+
+
+@router.get(
+    "/verifications/{verification_id}",
+    response_model=VerificationOut,
+    summary="One verification",
+    responses=problem_responses(401, 404),
+)
+def get_verification(ctx: CtxDep, verification_id: int) -> VerificationOut:
+    rec = ctx.db.get_verification(verification_id)
+    if rec is None:
+        raise NotFoundError(f"verification {verification_id} does not exist")
+    return verification_out(rec)
+
+
+@router.get(
+    "/verifications/{verification_id}/histogram.png",
+    response_class=FileResponse,
+    summary="Histogram of the verification's per-sphere errors",
+    responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404)},
+)
+def histogram(ctx: CtxDep, verification_id: int) -> FileResponse:
+    rec = ctx.db.get_verification(verification_id)
+    if rec is None or not rec.get("histogram_path") or not Path(rec["histogram_path"]).is_file():
+        raise NotFoundError(f"verification {verification_id} has no histogram")
+    return FileResponse(rec["histogram_path"], media_type="image/png")

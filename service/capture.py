@@ -1,0 +1,192 @@
+"""Joint capture: hold the robot link open and record the joints at each scan's arrival.
+
+The link (``drivers.base.open_link``) keeps a ≥ 60 s ring buffer of timestamped joint
+states and reconnects on its own once connected.  :class:`Capture` runs on the
+service's event loop: it connects (retrying every ``reconnect_interval_s`` while the
+controller is unreachable), watches the link health and publishes ``link_state``
+events on every change.  :meth:`Capture.snapshot` (thread-safe) takes the joints at a
+scan's arrival and asks :func:`registration.stillness.assess_stillness` whether the
+robot was still over ``stillness.window_s`` before the first file appeared and until
+the last file landed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import RobotLinkError
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+HEALTH_POLL_S = 0.1
+"""Link-health sampling period for ``link_state`` events (5 joint frames at 50 Hz)."""
+
+
+class Capture:
+    """Owner of the robot link inside the service.
+
+    Parameters
+    ----------
+    link : RobotLink
+        Built by ``drivers.base.open_link`` (never connected yet) or injected by tests.
+    settings : Settings
+    publish : callable
+        ``publish(event_name, data)``; thread-safe (``EventBus.publish``).
+    """
+
+    def __init__(self, link: Any, settings: Settings, publish: Callable[[str, dict[str, Any]], None]) -> None:
+        self.link = link
+        self.settings = settings
+        self.publish = publish
+        self._task: asyncio.Task[None] | None = None
+        self._connected_once = False
+        self._last_state: tuple[str, str] | None = None
+        self._connect_error = "not connected yet"
+        self._connected_since_t_s: float | None = None
+
+    @property
+    def url(self) -> str:
+        return str(self.link.url)
+
+    # ---- lifecycle ------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        self._task = asyncio.create_task(self._supervise(), name="oarmreg-capture")
+
+    async def stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        with contextlib.suppress(Exception):
+            await self.link.close()
+
+    async def _supervise(self) -> None:
+        rs = self.settings.robot
+        while not self._connected_once:
+            try:
+                await self.link.connect(timeout_s=rs.connect_timeout_s)
+                self._connected_once = True
+                self._connected_since_t_s = time.monotonic()
+            except RobotLinkError as e:
+                self._connect_error = str(e)
+                self._check_state()
+                log.warning("robot link %s: %s; retrying in %.3g s", self.url, e, rs.reconnect_interval_s)
+                await asyncio.sleep(rs.reconnect_interval_s)
+        # Connected once: the link reconnects by itself; report its health changes.
+        while True:
+            self._check_state()
+            await asyncio.sleep(HEALTH_POLL_S)
+
+    def _check_state(self) -> None:
+        h = self.health()
+        key = (h["state"], h["state"] if h["state"] != "down" else h["reason"][:80])
+        if key != self._last_state:
+            prev = self._last_state[0] if self._last_state else None
+            self._last_state = key
+            if h["state"] == "connected" and prev != "connected":
+                self._connected_since_t_s = time.monotonic()
+            self.publish("link_state", {"url": self.url, "state": h["state"], "reason": h["reason"]})
+
+    # ---- queries (any thread) -------------------------------------------------------------
+
+    def health(self) -> dict[str, Any]:
+        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``."""
+        if not self._connected_once:
+            age = None
+            return {
+                "url": self.url,
+                "state": "down",
+                "reason": self._connect_error,
+                "last_frame_age_s": age,
+                "history_s": 0.0,
+            }
+        h = self.link.health()
+        latest = self.link.latest()
+        hist = self.link.history(time.monotonic() - self.settings.stillness.window_s * 4)
+        span = (hist[-1].t_s - hist[0].t_s) if len(hist) > 1 else 0.0
+        return {
+            "url": self.url,
+            "state": h.state,
+            "reason": h.reason,
+            "last_frame_age_s": h.last_frame_age_s if latest is not None else None,
+            "history_s": float(span),
+        }
+
+    def latest(self) -> Any:
+        return self.link.latest() if self._connected_once else None
+
+    def snapshot(
+        self, first_seen_t_s: float, last_change_t_s: float, *, preexisting: bool = False
+    ) -> dict[str, Any]:
+        """Joints at a scan's arrival and the stillness verdict (a JSON-ready dict for the database).
+
+        The window runs from ``stillness.window_s`` before ``first_seen_t_s`` (the first file of the
+        series appeared) to ``last_change_t_s`` (the last file landed), monotonic seconds.
+        """
+        from registration.stillness import assess_stillness
+
+        st = self.settings.stillness
+        h = self.health()
+        base: dict[str, Any] = {
+            "captured_at": datetime.now(UTC).isoformat(),
+            "link_url": self.url,
+            "link_state": h["state"],
+            "link_reason": h["reason"],
+            "window_s": st.window_s,
+            "joints_rad": None,
+            "joints_received_at": None,
+            "still": False,
+            "max_deviation_rad": None,
+            "covered_s": 0.0,
+            "n_samples": 0,
+        }
+        if preexisting:
+            base["stillness_reason"] = (
+                "the series was already in the watch folder when the service started, so the joint angles "
+                "during its acquisition are unknown; re-export or rescan it while the service runs"
+            )
+            return base
+        start_t = first_seen_t_s - st.window_s
+        samples = self.link.history(start_t - st.max_gap_s) if self._connected_once else []
+        samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
+        if not samples:
+            base["stillness_reason"] = (
+                f"no joint samples from {self.url} between {st.window_s:g} s before the scan arrived and its "
+                f"last file; the robot link is {h['state']} ({h['reason']})"
+            )
+            return base
+        # the joints "at arrival": the last sample at or before the first file, else the first after it
+        before = [s for s in samples if s.t_s <= first_seen_t_s]
+        at = before[-1] if before else samples[0]
+        t = np.array([s.t_s for s in samples], dtype=np.float64)
+        q = np.array([s.joints_rad for s in samples], dtype=np.float64)
+        window_s = last_change_t_s - start_t
+        res = assess_stillness(
+            t,
+            q,
+            window_end_t_s=last_change_t_s,
+            window_s=window_s,
+            max_deviation_rad=st.max_deviation_rad,
+            max_gap_s=st.max_gap_s,
+        )
+        base.update(
+            joints_rad=[float(v) for v in at.joints_rad],
+            joints_received_at=at.received_at.isoformat(),
+            still=bool(res.still),
+            max_deviation_rad=float(res.max_deviation_rad),
+            covered_s=float(res.covered_s),
+            n_samples=int(res.n_samples),
+            stillness_reason=str(res.reason),
+        )
+        return base

@@ -1,0 +1,279 @@
+"""``oarmreg demo``: the whole loop on mock hardware, end to end, over real sockets.
+
+1. a mock Stäubli controller speaks simple_message on loopback (robot holding still);
+2. the service (uvicorn, random free port, temporary API token) watches ``OUT/watch``;
+3. the mock O-arm writes a DICOM scan of the phantom, posed by the mock robot's forward
+   kinematics and a hidden ``image_from_robot``, into the watch folder;
+4. acting as the navigation UI over HTTP, the demo waits for the scan, calls ``/register``
+   and prints the matrix, the quality figures and the TRUE error (the simulator knows the
+   hidden transform);
+5. it moves the robot, rescans, calls ``/verify``, prints the error table and saves the
+   histogram PNG into ``OUT``.
+
+Progress goes to stderr; results to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import secrets
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+HELP = "run the whole registration loop on a mock robot and a simulated O-arm (≈ 1–2 min)"
+
+Q1_RAD = (0.0, 0.0, 1.5707963267948966, 0.0, 0.7853981633974483, 0.0)
+"""First pose: the mock robot's home (TX60, J3 = 90°, J5 = 45°)."""
+Q2_DELTA_RAD = (0.0, 0.0, 0.0, 0.0, 0.0, 0.35)
+"""Verification pose: J6 turned by 20°, so the phantom spins about its own axis and stays in the volume."""
+MOVE_DURATION_S = 2.0
+WINDOW_S = 1.5
+"""Stillness window of the demo's service, s."""
+TARGET_DISTANCE_MM = 150.0
+WAIT_SCAN_S = 120.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: a temporary folder)")
+    parser.add_argument(
+        "--preset", default="demo", help="simulator preset: demo (512×512×132, default), small (fast), oarm"
+    )
+
+
+def _err(msg: str) -> None:
+    sys.stderr.write(msg + "\n")
+    sys.stderr.flush()
+
+
+def _out(msg: str = "") -> None:
+    sys.stdout.write(msg + "\n")
+    sys.stdout.flush()
+
+
+class _Progress:
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self.t0 = time.perf_counter()
+        self.last = -1
+
+    def __call__(self, fraction: float) -> None:
+        pct = int(fraction * 100)
+        if pct // 10 != self.last // 10 or pct == 100:
+            self.last = pct
+            sys.stderr.write(f"\r  {self.label}: {pct:3d} %  ({time.perf_counter() - self.t0:.0f} s)")
+            sys.stderr.flush()
+            if pct >= 100:
+                sys.stderr.write("\n")
+
+
+def _fmt_matrix(m: Any) -> str:
+    return "\n".join("    [" + ", ".join(f"{v:12.6f}" for v in row) + "]" for row in m)
+
+
+def _wait_scan(client: Any, uid: str, deadline_s: float) -> dict[str, Any]:
+    import threading
+
+    ev = threading.Event()
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        r = client.get("/scans")
+        r.raise_for_status()
+        for s in r.json():
+            if s["series_uid"] == uid:
+                return s  # type: ignore[no-any-return]
+        ev.wait(0.2)
+    from registration.errors import DicomSeriesError
+
+    raise DicomSeriesError(f"the service did not record series {uid} within {deadline_s:g} s")
+
+
+def _wait_still(client: Any, robot: Any, deadline_s: float = 30.0) -> None:
+    import threading
+
+    ev = threading.Event()
+    end = time.monotonic() + deadline_s
+    settle = robot.motion_end_t_s() + WINDOW_S
+    while time.monotonic() < end:
+        link = client.get("/status").json()["link"]
+        if link["state"] == "connected" and link["history_s"] > WINDOW_S and time.monotonic() > settle:
+            return
+        ev.wait(0.1)
+    from drivers.errors import RobotLinkError
+
+    raise RobotLinkError(f"the mock robot did not settle within {deadline_s:g} s (link {link})")
+
+
+def _check(r: Any) -> dict[str, Any]:
+    if r.status_code >= 400:
+        body = r.json()
+        from registration.errors import RegistrationError
+
+        raise RegistrationError(
+            f"{r.request.method} {r.request.url.path} → {r.status_code}: {body.get('detail')}"
+        )
+    return r.json()  # type: ignore[no-any-return]
+
+
+def run(args: argparse.Namespace) -> int:
+    import httpx
+    import numpy as np
+
+    from mocks.oarm.dicom_export import write_dicom_series
+    from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
+    from mocks.robot.robot import ScriptedRobot
+    from mocks.robot.runner import run_mock_controller
+    from registration.frames import apply, invert, rotation_angle_deg
+    from service.app import create_app
+    from service.commands.serve import serve_in_thread
+    from service.settings import load_settings
+
+    t_start = time.perf_counter()
+    tmp = None
+    if args.out is None:
+        tmp = tempfile.TemporaryDirectory(prefix="oarmreg-demo-")
+        out = Path(tmp.name)
+    else:
+        out = Path(args.out).resolve()
+        out.mkdir(parents=True, exist_ok=True)
+    watch, data = out / "watch", out / "data"
+    if watch.exists() and any(watch.iterdir()):
+        from registration.errors import ConfigError
+
+        raise ConfigError(f"{watch} is not empty; pass an empty or new --out folder")
+    token = secrets.token_urlsafe(24)
+    try:
+        _err(f"oarmreg demo: output in {out}")
+        robot = ScriptedRobot(Q1_RAD)
+        with run_mock_controller("simple-message", robot) as mock:
+            _err(f"  mock Stäubli controller (simple_message) on {mock.url}")
+            settings = load_settings(
+                None,
+                {
+                    "host": "127.0.0.1",
+                    "port": 0,
+                    "watch_dir": watch,
+                    "data_dir": data,
+                    "api_token": token,
+                    "robot.link_url": mock.url,
+                    "stillness.window_s": WINDOW_S,
+                    "watcher.quiet_period_s": 1.0,
+                    "watcher.poll_interval_s": 0.5,
+                },
+            )
+            app = create_app(settings)
+            ctx = app.state.ctx
+            phantom, model = ctx.phantom, ctx.robot_model
+            t0p = settings.robot.tool0_from_phantom.matrix()
+            image_from_phantom_1 = demo_pose()
+            robot_from_phantom_1 = model.robot_from_tool0(Q1_RAD) @ t0p
+            hidden_image_from_robot = image_from_phantom_1 @ invert(robot_from_phantom_1)
+            with (
+                serve_in_thread(app, "127.0.0.1", 0) as server,
+                httpx.Client(
+                    base_url=server.base_url, headers={"Authorization": f"Bearer {token}"}, timeout=300.0
+                ) as client,
+            ):
+                _err(f"  service on {server.base_url} (watching {watch})")
+                acq = AcquisitionSettings.preset(args.preset)
+                # ---- scan 1 -----------------------------------------------------------------
+                scan1 = simulate_scan(phantom, image_from_phantom_1, acq, progress=_Progress("O-arm scan 1"))
+                _wait_still(client, robot)
+                exp1 = write_dicom_series(scan1, watch / "scan-1")
+                _err(f"  exported {len(exp1.paths)} slices → {watch / 'scan-1'}; waiting for the service")
+                s1 = _wait_scan(client, exp1.series_uid, WAIT_SCAN_S)
+                _err(
+                    f"  scan {s1['id']} recorded ({s1['n_slices']} slices, robot still: "
+                    f"{s1['joints']['still']})"
+                )
+                _err("  POST /register ...")
+                t = time.perf_counter()
+                reg = _check(client.post("/register", json={}))
+                dt = time.perf_counter() - t
+                m = np.asarray(reg["image_from_robot"])
+                _report_registration(
+                    reg, dt, m, hidden_image_from_robot, model, t0p, apply, rotation_angle_deg
+                )
+                # ---- move, scan 2, verify ---------------------------------------------------
+                q2 = tuple(a + b for a, b in zip(Q1_RAD, Q2_DELTA_RAD, strict=True))
+                _err(f"  moving the robot to {np.round(q2, 3).tolist()} rad ...")
+                robot.move_to(q2, MOVE_DURATION_S)
+                image_from_phantom_2 = hidden_image_from_robot @ model.robot_from_tool0(q2) @ t0p
+                scan2 = simulate_scan(
+                    phantom,
+                    image_from_phantom_2,
+                    AcquisitionSettings.preset(args.preset, seed=1),
+                    progress=_Progress("O-arm scan 2"),
+                )
+                _wait_still(client, robot)
+                exp2 = write_dicom_series(scan2, watch / "scan-2")
+                s2 = _wait_scan(client, exp2.series_uid, WAIT_SCAN_S)
+                _err(f"  scan {s2['id']} recorded; POST /verify ...")
+                ver = _check(client.post("/verify", json={"scan_id": s2["id"]}))
+                png_path = out / "verification-histogram.png"
+                png = client.get(ver["histogram_url"])
+                png.raise_for_status()
+                png_path.write_bytes(png.content)
+                _report_verification(ver, png_path)
+        _out(f"\ndemo finished in {time.perf_counter() - t_start:.0f} s; service data in {data}")
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    return 0
+
+
+def _report_registration(
+    reg: dict[str, Any], dt: float, m: Any, truth: Any, model: Any, t0p: Any, apply: Any, rot_deg: Any
+) -> None:
+    import numpy as np
+
+    _out(f"\n== Registration {reg['id']} ({reg['status']}, {dt:.1f} s) of scan {reg['scan_id']}")
+    _out("image_from_robot (mm; p_image[LPS] = M @ p_robot):")
+    _out(_fmt_matrix(m))
+    _out("quality figures:")
+    _out(
+        f"  spheres expected / detected / matched : {reg['n_expected']} / {reg['n_detected']} "
+        f"/ {reg['n_matched']}"
+    )
+    _out(f"  FRE (RMS residual)                    : {reg['fre_mm']:.4f} mm")
+    _out(f"  FLE implied by FRE                    : {reg['fle_mm']:.4f} mm")
+    tre = reg["predicted_tre_mm"]
+    _out(f"  predicted TRE at {len(tre)} targets {TARGET_DISTANCE_MM:g} mm away : max {max(tre):.4f} mm")
+    _out(f"  symmetry margin                       : {reg['symmetry_margin']} spheres")
+    _out(f"  det(R)                                : {reg['rotation_det']:.9f}")
+    _out(f"  joints_rad                            : {np.round(reg['joints_rad'], 5).tolist()}")
+    # true error against the simulator's hidden transform
+    rot_err = rot_deg(m[:3, :3] @ truth[:3, :3].T)
+    centre = (model.robot_from_tool0(reg["joints_rad"]) @ t0p)[:3, 3]
+    dirs = np.vstack(
+        [np.eye(3), -np.eye(3), np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T]
+    )
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = centre + TARGET_DISTANCE_MM * dirs
+    errs = np.linalg.norm(apply(m, pts) - apply(truth, pts), axis=1)
+    centre_err = float(np.linalg.norm(apply(m, centre) - apply(truth, centre)))
+    _out("TRUE error (vs the simulator's hidden image_from_robot):")
+    _out(f"  rotation error                        : {rot_err:.4f} deg")
+    _out(f"  translation error at the phantom centre : {centre_err:.4f} mm")
+    _out(
+        f"  TRE at {len(pts)} points {TARGET_DISTANCE_MM:g} mm from the phantom : mean {errs.mean():.4f} mm, "
+        f"max {errs.max():.4f} mm"
+    )
+
+
+def _report_verification(ver: dict[str, Any], png_path: Path) -> None:
+    _out(
+        f"\n== Verification {ver['id']} of scan {ver['scan_id']} against registration "
+        f"{ver['registration_id']}"
+    )
+    _out("  sphere      error (mm)")
+    for e in sorted(ver["errors"], key=lambda e: e["sphere"]):
+        _out(f"  {e['sphere']:<10}  {e['error_mm']:.4f}")
+    _out(
+        f"  matched {ver['n_matched']}/{ver['n_expected']}: mean {ver['mean_mm']:.4f} mm, RMS "
+        f"{ver['rms_mm']:.4f} mm, "
+        f"max {ver['max_mm']:.4f} mm → {'PASS' if ver['passed'] else 'FAIL'}"
+    )
+    _out(f"  histogram: {png_path}")

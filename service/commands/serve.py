@@ -1,0 +1,168 @@
+"""``oarmreg serve``: run the registration service (uvicorn).
+
+Settings: ``--config FILE`` (TOML), then ``OARMREG_*`` environment variables, then the flags
+below (highest precedence).  See ``configs/oarmreg.toml``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import socket
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+HELP = "run the registration service (REST API, DICOM watcher, robot link)"
+
+log = logging.getLogger(__name__)
+
+SERVER_START_TIMEOUT_S = 30.0
+"""How long :func:`serve_in_thread` waits for uvicorn to listen."""
+GRACEFUL_SHUTDOWN_S = 5
+UVICORN_LOOP = "asyncio"
+"""The standard event loop even when uvloop is installed: the robot links run on the server's loop
+and are written against asyncio's transports.  (httptools, when installed, is still used: it
+roughly doubles the request rate of h11.)"""
+"""uvicorn's ``timeout_graceful_shutdown``: open requests get this long on shutdown."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, default=None, help="TOML settings file (configs/oarmreg.toml)")
+    parser.add_argument("--host", default=None, help="bind address (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=None, help="TCP port (default 8750; 0 = any free port)")
+    parser.add_argument("--watch", type=Path, default=None, help="folder the O-arm exports DICOM into")
+    parser.add_argument("--data", type=Path, default=None, help="folder for the database and histograms")
+    parser.add_argument("--robot-link", default=None, help="robot link URL, e.g. simple-message://HOST:11002")
+
+
+def settings_from_args(args: argparse.Namespace) -> Any:
+    from service.settings import load_settings
+
+    return load_settings(
+        args.config,
+        {
+            "host": args.host,
+            "port": args.port,
+            "watch_dir": args.watch,
+            "data_dir": args.data,
+            "robot.link_url": args.robot_link,
+        },
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+
+    settings = settings_from_args(args)
+    app = create_app(settings)
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_config=None,  # the CLI configured logging
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+        loop=UVICORN_LOOP,
+    )
+    server = _Server(config, app)
+    server.run()
+    return 0
+
+
+class _Server:
+    """uvicorn.Server that ends SSE streams before waiting for open connections on shutdown."""
+
+    def __new__(cls, config: Any, app: Any) -> Any:
+        import uvicorn
+
+        class Server(uvicorn.Server):
+            async def shutdown(self, sockets: Any = None) -> None:
+                ctx = getattr(app.state, "ctx", None)
+                if ctx is not None:
+                    ctx.bus.close()
+                await super().shutdown(sockets=sockets)
+
+        return Server(config)
+
+
+class ServerThread:
+    """A running uvicorn server on a background thread (see :func:`serve_in_thread`)."""
+
+    def __init__(self, server: Any, thread: threading.Thread, host: str, port: int) -> None:
+        self.server = server
+        self.thread = thread
+        self.host = host
+        self.port = port
+
+    @property
+    def base_url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout_s)
+
+
+@contextlib.contextmanager
+def serve_in_thread(app: Any, host: str = "127.0.0.1", port: int = 0) -> Iterator[ServerThread]:
+    """Run ``app`` with uvicorn on ``host:port`` (0 = a free port) in a background thread.
+
+    The socket is bound before the thread starts, so the port is known and reserved.
+    Yields once the app's lifespan has started; stops the server (lifespan shutdown
+    included) and joins the thread on exit.
+    """
+    import uvicorn
+
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # inherited by accepted connections
+    sock.bind((host, port))
+    bound_port = int(sock.getsockname()[1])
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=bound_port,
+        log_config=None,
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+        loop=UVICORN_LOOP,
+    )
+    server = _Server(config, app)
+    failure: list[BaseException] = []
+
+    def main() -> None:
+        try:
+            server.run(sockets=[sock])
+        except BaseException as e:  # start-up failure (lifespan error): report to the caller
+            failure.append(e)
+
+    thread = threading.Thread(target=main, name=f"uvicorn-{bound_port}", daemon=True)
+    thread.start()
+    started = threading.Event()
+    # wait until uvicorn reports started (or the thread died), polling with a deadline
+    import time
+
+    deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if server.started:
+            started.set()
+            break
+        if not thread.is_alive():
+            break
+        thread.join(0.02)
+    if not started.is_set():
+        server.should_exit = True
+        thread.join(10.0)
+        sock.close()
+        if failure:
+            raise failure[0]
+        raise RuntimeError(f"uvicorn did not start on {host}:{bound_port} within {SERVER_START_TIMEOUT_S} s")
+    handle = ServerThread(server, thread, host, bound_port)
+    try:
+        yield handle
+    finally:
+        handle.stop()
+        sock.close()
