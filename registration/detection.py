@@ -1,0 +1,630 @@
+"""Metal-sphere detection in a CT volume: candidates, MAR, circles, centres, rejections.
+
+The chain of Bai et al. 2018 (doi:10.1088/1742-6596/1016/1/012006, §2.2):
+metal artefact reduction in polar coordinates (:mod:`registration.mar`),
+circle recognition by moment invariants (:mod:`registration.circles`) and the
+sphere centre by Pythagorean depth, plus a 3-D sub-voxel estimate on the raw
+volume that research (image-side.md §0.4, §3) and our own measurements
+(benchmarks/bench_detection.py) show to be more accurate.
+
+Pipeline (only small crops are ever copied or converted to float):
+
+1. **candidates**: one vectorised threshold of the whole volume
+   (``voxels >= candidate_threshold_hu``), ``np.flatnonzero``, grouping of the
+   hits through a coarse cell grid;
+2. **components**: each group's crop is thresholded and labelled
+   (26-connectivity); every component is measured (extent, volume, peak)
+   and rejected with a reason if it is not a sphere-sized bright blob
+   (connecting rod, bone edge, streak crossing, blob cut by the volume edge);
+3. **per slice**: a patch around the component, MAR (optional), circles;
+4. **centre**: ``subvoxel`` = intensity-weighted 3-D centroid of the raw
+   voxels above ``background + margin`` inside a ball, iterated; ``paper`` =
+   per-slice Pythagorean depth with a per-sphere fitted radius.
+
+Coordinates: the work is done in voxel indices (i, j, k) = (column, row,
+slice) and mapped to the image frame (LPS, mm) by ``volume.image_from_voxel``,
+so flipped orientations and reversed slice order need no special case.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from registration.circles import CircleParams, find_circles
+from registration.errors import DetectionError
+from registration.mar import MarParams, reduce_metal_artifacts
+from registration.volume import Volume
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+METHODS: Final = ("subvoxel", "paper")
+"""Centre estimators.  ``subvoxel`` measured more accurate (benchmarks/bench_detection.py)."""
+
+AIR_HU: Final = -1000.0
+"""Padding outside a circular FOV is stored at or below air (−1024 HU for RescaleIntercept −1024)."""
+
+_GROUP_CELL_VOXELS: Final = (4, 8, 8)
+"""(k, j, i) size of the coarse cells used to group threshold hits: ~3.3 mm, far below the 15 mm pitch."""
+
+
+@dataclass(frozen=True)
+class DetectionParams:
+    """Sphere-detection settings.  Every threshold has its unit in its name.
+
+    Attributes
+    ----------
+    method : str
+        ``"subvoxel"`` (default: intensity-weighted 3-D centroid, measured
+        mean error ~0.01 mm) or ``"paper"`` (per-slice Pythagoras, Bai 2018).
+    sphere_diameter_mm : float
+        Nominal sphere diameter (phantom definition, 2.5 mm in Bai 2018 §2.1).
+    use_mar : bool
+        Run the polar MAR on every slice patch before circle recognition.
+    candidate_threshold_hu : float
+        Metal threshold of the candidate pass.  Steel spheres saturate at
+        3071 HU (12-bit export); cortical bone and streaks stay below ~1800 HU
+        in the simulator and in the literature (image-side.md §3.3).
+    min_peak_hu : float
+        A sphere's brightest voxel must reach this: a 2.5 mm steel sphere
+        blurred by a 0.8 mm FWHM PSF still clips at 3071 HU; bone edges and
+        streak crossings that cross the candidate threshold peak lower.
+    bloom_mm : float
+        Allowance for the apparent growth of the sphere by PSF and clipping:
+        the apparent radius reached 1.9 mm for a 1.25 mm sphere
+        (image-side.md §3.3), so 1.5 mm on the radius leaves margin.
+    min_extent_fraction : float
+        Smallest thresholded extent (per axis) as a fraction of the diameter;
+        smaller blobs are streak crossings or noise.
+    min_volume_fraction : float
+        Smallest thresholded volume as a fraction of the nominal sphere volume.
+    centroid_margin_hu : float
+        ``subvoxel``: voxels are weighted by ``HU − (background + margin)``
+        (clipped at 0).  The margin keeps noise and streaks (±200 HU in the
+        simulator) out of the weights (image-side.md §3.3).
+    centroid_margin_fraction : float
+        The margin is at least this fraction of (peak − background): 0.5
+        weights only the half-maximum core, which keeps the plastic/air face
+        the spheres sit on out of the weights (on the O-arm preset: mean error
+        0.077 mm at 0.1, 0.055 at 0.3, 0.051 at 0.5, 0.052 at 0.7).
+    centroid_iterations : int
+        Re-centre the weighting ball this many times.
+    min_circle_slices : int
+        Slices with an accepted circle needed to accept a sphere (the
+        circles are the cross-check of the 3-D estimate; ``paper`` always
+        needs ≥ 2 for its radius fit).
+    patch_half_mm : float
+        Half-size of the square slice patch used for MAR and circles.
+    mar, circles : MarParams, CircleParams
+    """
+
+    method: str = "subvoxel"
+    sphere_diameter_mm: float = 2.5
+    use_mar: bool = True
+    candidate_threshold_hu: float = 2000.0
+    min_peak_hu: float = 2500.0
+    bloom_mm: float = 1.5
+    min_extent_fraction: float = 0.5
+    min_volume_fraction: float = 0.25
+    centroid_margin_hu: float = 300.0
+    centroid_margin_fraction: float = 0.5
+    centroid_iterations: int = 3
+    min_circle_slices: int = 1
+    patch_half_mm: float = 6.0
+    mar: MarParams = field(default_factory=MarParams)
+    circles: CircleParams = field(default_factory=CircleParams)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise DetectionError(
+                f"unknown detection method {self.method!r}: expected one of {', '.join(METHODS)}"
+            )
+        if not 0.5 <= self.sphere_diameter_mm <= 50.0:
+            raise DetectionError(
+                f"sphere diameter {self.sphere_diameter_mm} mm is implausible: expected 0.5 … 50 mm "
+                "(the Bai 2018 phantom uses 2.5 mm)"
+            )
+
+    @property
+    def radius_mm(self) -> float:
+        return self.sphere_diameter_mm / 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class DetectedSphere:
+    """One detected sphere.
+
+    Attributes
+    ----------
+    center_image_mm : ndarray, shape (3,), float64
+        Centre in the image frame (DICOM LPS, mm).
+    radius_mm : float
+        Per-sphere fitted radius from the circle radii (r_i² + z_i² = c + 2·z0·z_i);
+        this is the *apparent* (bloomed) radius, typically 1.5–2 mm for a
+        1.25 mm steel sphere.  NaN if fewer than two circle slices.
+    n_slices : int
+        Slices with an accepted circle.
+    score : float
+        0 … 1: fraction of the blob's slices with an accepted circle × (1 −
+        in-plane disagreement between the circles and the centre / radius).
+    center_voxel : ndarray, shape (3,), float64
+        Centre in continuous voxel indices (i, j, k).
+    """
+
+    center_image_mm: F64
+    radius_mm: float
+    n_slices: int
+    score: float
+    center_voxel: F64 = field(default_factory=lambda: np.full(3, math.nan))
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A bright blob that is not reported as a sphere, and why."""
+
+    center_image_mm: tuple[float, float, float]
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class DetectionResult:
+    """Spheres found in one volume, the rejected candidates and the time spent per stage."""
+
+    spheres: tuple[DetectedSphere, ...]
+    rejections: tuple[Rejection, ...]
+    method: str
+    timings_s: dict[str, float]
+
+    @property
+    def centres_image_mm(self) -> F64:
+        """(M, 3) float64 sphere centres, image frame (LPS, mm), in detection order."""
+        if not self.spheres:
+            return np.zeros((0, 3))
+        return np.stack([s.center_image_mm for s in self.spheres]).astype(np.float64)
+
+    def to_dict(self, series_uid: str = "") -> dict[str, Any]:
+        """The ``oarmreg detect --json`` document."""
+        return {
+            "series_uid": series_uid,
+            "frame": "image",
+            "method": self.method,
+            "spheres": [
+                {
+                    "center_mm": [float(v) for v in s.center_image_mm],
+                    "radius_mm": None if math.isnan(s.radius_mm) else float(s.radius_mm),
+                    "n_slices": int(s.n_slices),
+                    "score": float(s.score),
+                }
+                for s in self.spheres
+            ],
+            "rejected": [{"center_mm": list(r.center_image_mm), "reason": r.reason} for r in self.rejections],
+            "timings_s": dict(self.timings_s),
+        }
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+def _group_hits(flat: NDArray[np.intp], shape: tuple[int, int, int]) -> list[tuple[slice, slice, slice]]:
+    """Bounding boxes (k, j, i slices) of clusters of threshold hits, via a coarse cell grid."""
+    k, j, i = np.unravel_index(flat, shape)
+    ck, cj, ci = _GROUP_CELL_VOXELS
+    grid_shape = (shape[0] // ck + 1, shape[1] // cj + 1, shape[2] // ci + 1)
+    cell = (k // ck, j // cj, i // ci)
+    occ = np.zeros(grid_shape, dtype=bool)
+    occ[cell] = True
+    labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
+    hit_label = labels[cell]
+    boxes: list[tuple[slice, slice, slice]] = []
+    order = np.argsort(hit_label, kind="stable")
+    bounds = np.searchsorted(hit_label[order], np.arange(1, n + 2))
+    for g in range(n):
+        idx = order[bounds[g] : bounds[g + 1]]
+        if len(idx) == 0:
+            continue
+        boxes.append(
+            (
+                slice(int(k[idx].min()), int(k[idx].max()) + 1),
+                slice(int(j[idx].min()), int(j[idx].max()) + 1),
+                slice(int(i[idx].min()), int(i[idx].max()) + 1),
+            )
+        )
+    return boxes
+
+
+def _expand(
+    box: tuple[slice, slice, slice], margin: tuple[int, int, int], shape: tuple[int, int, int]
+) -> tuple[slice, slice, slice]:
+    return (
+        slice(max(box[0].start - margin[0], 0), min(box[0].stop + margin[0], shape[0])),
+        slice(max(box[1].start - margin[1], 0), min(box[1].stop + margin[1], shape[1])),
+        slice(max(box[2].start - margin[2], 0), min(box[2].stop + margin[2], shape[2])),
+    )
+
+
+@dataclass
+class _Blob:
+    """A connected above-threshold component (internal)."""
+
+    box: tuple[slice, slice, slice]  # in the full volume, (k, j, i)
+    n_voxels: int
+    peak_hu: float
+    centroid_voxel: F64  # (i, j, k)
+    extent_mm: F64  # (3,) along i, j, k
+
+
+def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
+    """Radius of the reconstruction's circular field of view, or None if the volume has none.
+
+    Scanners (and the simulator) fill the corners outside the inscribed FOV
+    circle with one constant (the lowest stored value).  If the four 3 × 3
+    corner blocks of the middle slice all hold that one value, the FOV is the
+    circle inscribed in the matrix.
+    """
+    k = vox.shape[0] // 2
+    sl = vox[k]
+    corners = [sl[:3, :3], sl[:3, -3:], sl[-3:, :3], sl[-3:, -3:]]
+    v0 = corners[0].flat[0]
+    if not all(bool(np.all(c == v0)) for c in corners):
+        return None
+    if float(v0) > AIR_HU:  # a constant but not air-or-below corner is an image, not padding
+        return None
+    return float(min(vox.shape[1] * spacing[1], vox.shape[2] * spacing[0]) / 2.0)
+
+
+# ----------------------------------------------------------------------------- centres
+
+
+def _subvoxel_centre(
+    vox: NDArray[Any], start_ijk: F64, spacing: F64, params: DetectionParams
+) -> tuple[F64, float, float]:
+    """Intensity-weighted 3-D centroid of the raw voxels above background + margin.
+
+    Returns (centre (i, j, k), background HU, peak HU).  The ball has radius
+    ``radius + bloom`` mm; the background is the median of the shell between
+    that radius and 1.5 mm farther out.
+    """
+    r_ball = params.radius_mm + params.bloom_mm
+    r_shell = r_ball + 1.5
+    half = np.ceil(r_shell / spacing).astype(int) + 1  # (i, j, k) voxels
+    shape = vox.shape  # (k, j, i)
+    centre = start_ijk.astype(np.float64).copy()
+    bg = peak = math.nan
+    for _ in range(max(1, params.centroid_iterations)):
+        c = np.rint(centre).astype(int)
+        lo = np.maximum(c - half, 0)
+        hi = np.minimum(c + half + 1, (shape[2], shape[1], shape[0]))
+        crop = np.asarray(vox[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]], dtype=np.float64)
+        ii = np.arange(lo[0], hi[0], dtype=np.float64)[None, None, :]
+        jj = np.arange(lo[1], hi[1], dtype=np.float64)[None, :, None]
+        kk = np.arange(lo[2], hi[2], dtype=np.float64)[:, None, None]
+        d2 = (
+            ((ii - centre[0]) * spacing[0]) ** 2
+            + ((jj - centre[1]) * spacing[1]) ** 2
+            + ((kk - centre[2]) * spacing[2]) ** 2
+        )
+        ball = d2 <= r_ball**2
+        shell = (d2 > r_ball**2) & (d2 <= r_shell**2)
+        bg = float(np.median(crop[shell])) if shell.any() else float(np.median(crop))
+        peak = float(crop[ball].max()) if ball.any() else float(crop.max())
+        level = bg + max(params.centroid_margin_hu, params.centroid_margin_fraction * (peak - bg))
+        w = np.where(ball, np.clip(crop - level, 0.0, None), 0.0)
+        total = float(w.sum())
+        if total <= 0.0:
+            break
+        centre = (
+            np.array(
+                [
+                    float((w.sum(axis=(0, 1)) * ii.ravel()).sum()),
+                    float((w.sum(axis=(0, 2)) * jj.ravel()).sum()),
+                    float((w.sum(axis=(1, 2)) * kk.ravel()).sum()),
+                ]
+            )
+            / total
+        )
+    return centre, bg, peak
+
+
+@dataclass(frozen=True)
+class _SliceCircle:
+    i: float  # column, full-volume index
+    j: float  # row
+    k: int  # slice
+    r_mm: float
+
+
+def _fit_radius(circles: list[_SliceCircle], dz_mm: float) -> tuple[float, float]:
+    """Least-squares sphere from per-slice radii: r_i² + z_i² = c + 2·z0·z_i (image-side.md §3.2).
+
+    Returns (R mm, z0 mm) with z measured as ``k · dz_mm``; NaN if < 2 distinct slices.
+    """
+    z = np.array([c.k * dz_mm for c in circles])
+    r = np.array([c.r_mm for c in circles])
+    if len(np.unique(z)) < 2:
+        return math.nan, math.nan
+    a = np.stack([np.ones_like(z), 2.0 * z], axis=1)
+    (cc, z0), *_ = np.linalg.lstsq(a, r * r + z * z, rcond=None)
+    r2 = cc + z0 * z0
+    return (math.sqrt(r2) if r2 > 0 else math.nan), float(z0)
+
+
+def _paper_depth(circles: list[_SliceCircle], radius_mm: float, dz_mm: float) -> float:
+    """Pythagorean depth (Bai 2018 §2.2): per slice two depths z_i ± √(R² − r_i²); the radius trend picks one.
+
+    Slices before the largest circle (in k) have the centre above them, slices
+    after it below; at the largest circle the larger neighbour says which way.
+    Returns the centre's k (continuous slice index), the average over slices.
+    """
+    cs = sorted(circles, key=lambda c: c.k)
+    radii = np.array([c.r_mm for c in cs])
+    m = int(np.argmax(radii))
+    zs = []
+    for n, c in enumerate(cs):
+        d = math.sqrt(max(radius_mm * radius_mm - c.r_mm * c.r_mm, 0.0)) / dz_mm
+        if n < m:
+            sign = 1.0
+        elif n > m:
+            sign = -1.0
+        else:
+            below = radii[n - 1] if n > 0 else -math.inf
+            above = radii[n + 1] if n + 1 < len(cs) else -math.inf
+            sign = 1.0 if above > below else -1.0
+        zs.append(c.k + sign * d)
+    return float(np.mean(zs))
+
+
+# ----------------------------------------------------------------------------- main entry
+
+
+def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) -> DetectionResult:
+    """Find the metal spheres of a calibration phantom in a CT volume.
+
+    Parameters
+    ----------
+    volume : Volume
+        ``voxels[k, j, i]`` in HU (int16 or float), with ``image_from_voxel``.
+    params : DetectionParams
+
+    Returns
+    -------
+    DetectionResult
+        Spheres (centres in the image frame, LPS mm) in order of increasing
+        (k, j, i) of their candidate blob, every rejected candidate with its
+        reason, and per-stage timings.  An empty result is not an error: the
+        caller decides how many spheres it needs.
+
+    Raises
+    ------
+    DetectionError
+        If the volume is not 3-D or has a degenerate geometry.
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    vox = volume.voxels
+    if vox.ndim != 3 or min(vox.shape) < 1:
+        raise DetectionError(
+            f"series {volume.series_uid or '(no UID)'}: expected a 3-D volume, got shape {vox.shape}"
+        )
+    spacing = volume.spacing_mm  # (i, j, k) mm
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise DetectionError(
+            f"series {volume.series_uid or '(no UID)'}: voxel spacing {spacing.tolist()} mm is not positive"
+        )
+    shape = volume.shape  # (k, j, i)
+    pixel_mm = float(0.5 * (spacing[0] + spacing[1]))
+    dz_mm = float(spacing[2])
+
+    # 1. candidates: one threshold pass over the whole volume, no float copy
+    thr = params.candidate_threshold_hu
+    thr_cast = np.ceil(thr) if np.issubdtype(vox.dtype, np.integer) else thr
+    if np.issubdtype(vox.dtype, np.integer) and thr_cast > np.iinfo(vox.dtype).max:
+        flat = np.zeros(0, dtype=np.intp)
+    else:
+        flat = np.flatnonzero(vox >= np.asarray(thr_cast).astype(vox.dtype))
+    timings["threshold_s"] = time.perf_counter() - t_start
+    t = time.perf_counter()
+    boxes = _group_hits(flat, shape) if len(flat) else []
+    timings["group_s"] = time.perf_counter() - t
+
+    # 2. components inside each group's crop
+    t = time.perf_counter()
+    r = params.radius_mm
+    margin = tuple(math.ceil(2.0 / s) + 1 for s in (spacing[2], spacing[1], spacing[0]))
+    blobs: list[_Blob] = []
+    for box in boxes:
+        crop_box = _expand(box, (margin[0], margin[1], margin[2]), shape)
+        crop = vox[crop_box]
+        mask = crop >= thr_cast
+        labels, _ = ndimage.label(mask, structure=np.ones((3, 3, 3), dtype=bool))
+        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+            if sl is None:
+                continue
+            sub = labels[sl] == lab
+            kk, jj, ii = np.nonzero(sub)
+            off = (
+                crop_box[0].start + sl[0].start,
+                crop_box[1].start + sl[1].start,
+                crop_box[2].start + sl[2].start,
+            )
+            full_box = (
+                slice(off[0], off[0] + sub.shape[0]),
+                slice(off[1], off[1] + sub.shape[1]),
+                slice(off[2], off[2] + sub.shape[2]),
+            )
+            vals = crop[sl][sub]
+            blobs.append(
+                _Blob(
+                    box=full_box,
+                    n_voxels=int(sub.sum()),
+                    peak_hu=float(vals.max()),
+                    centroid_voxel=np.array([ii.mean() + off[2], jj.mean() + off[1], kk.mean() + off[0]]),
+                    extent_mm=np.array(sub.shape[::-1], dtype=np.float64) * spacing,
+                )
+            )
+    blobs.sort(key=lambda b: (b.box[0].start, b.box[1].start, b.box[2].start))
+    timings["components_s"] = time.perf_counter() - t
+
+    fov_radius_mm = _circular_fov_radius_mm(vox, spacing)
+    fov_centre = np.array([(shape[2] - 1) / 2.0, (shape[1] - 1) / 2.0])
+    spheres: list[DetectedSphere] = []
+    rejections: list[Rejection] = []
+    t_mar = t_circ = t_cent = 0.0
+    voxel_mm3 = float(np.prod(spacing))
+    v_nominal = 4.0 / 3.0 * math.pi * r**3
+    v_max = 4.0 / 3.0 * math.pi * (r + params.bloom_mm) ** 3
+    ext_min = params.min_extent_fraction * params.sphere_diameter_mm
+    # blooming on both sides, plus one voxel each side for the quantised extent of the blob
+    ext_max = params.sphere_diameter_mm + 2.0 * params.bloom_mm + 2.0 * float(spacing.max())
+    half_px = max(math.ceil(params.patch_half_mm / pixel_mm), 4)
+
+    for b in blobs:
+        where = tuple(float(v) for v in volume.voxel_to_image(b.centroid_voxel))
+        pos = (where[0], where[1], where[2])
+
+        def reject(reason: str, pos: tuple[float, float, float] = pos) -> None:
+            rejections.append(Rejection(pos, reason))
+
+        size = " × ".join(f"{e:.1f}" for e in b.extent_mm)
+        n_sl = b.box[0].stop - b.box[0].start
+        if b.extent_mm.max() > ext_max:
+            reject(
+                f"elongated or oversized metal ({size} mm over {n_sl} slices, sphere ≤ {ext_max:.1f} mm "
+                "with blooming): connecting rod or other hardware"
+            )
+            continue
+        vol_mm3 = b.n_voxels * voxel_mm3
+        if vol_mm3 > v_max:
+            reject(
+                f"blob volume {vol_mm3:.1f} mm³ > {v_max:.1f} mm³ "
+                f"(Ø{params.sphere_diameter_mm} mm sphere with blooming): wrong size"
+            )
+            continue
+        if b.peak_hu < params.min_peak_hu:
+            reject(
+                f"not bright enough for metal (peak {b.peak_hu:.0f} HU < {params.min_peak_hu:.0f} HU): "
+                "bone edge or streak crossing"
+            )
+            continue
+        if b.extent_mm.min() < ext_min or vol_mm3 < params.min_volume_fraction * v_nominal:
+            reject(
+                f"too small ({size} mm, {vol_mm3:.2f} mm³; a Ø{params.sphere_diameter_mm} mm sphere is "
+                f"≥ {ext_min:.2f} mm across): streak crossing or noise"
+            )
+            continue
+        # 3-D sub-voxel centre on the raw volume (also the centre the circles are checked against)
+        t = time.perf_counter()
+        centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params)
+        t_cent += time.perf_counter() - t
+        # fully inside: the nominal sphere must lie inside the sampled volume (voxel centres 0 … n−1);
+        # blooming may touch the first/last slice, the sphere itself may not
+        room_mm = (
+            np.minimum(centre_sv, np.array([shape[2] - 1, shape[1] - 1, shape[0] - 1]) - centre_sv) * spacing
+        )
+        if float(room_mm.min()) < r:
+            reject(
+                f"cut by the edge of the volume (first/last slice or matrix edge): centre "
+                f"{float(room_mm.min()):.2f} mm from the edge < sphere radius {r} mm"
+            )
+            continue
+
+        if fov_radius_mm is not None:
+            off_axis_mm = float(np.hypot(*((centre_sv[:2] - fov_centre) * spacing[:2])))
+            if off_axis_mm + r > fov_radius_mm:
+                reject(
+                    f"cut by the circular field of view: {off_axis_mm:.1f} mm off axis + radius {r} mm "
+                    f"> FOV radius {fov_radius_mm:.1f} mm"
+                )
+                continue
+
+        # per-slice MAR + circles
+        circles: list[_SliceCircle] = []
+        ci, cj = float(centre_sv[0]), float(centre_sv[1])
+        j0 = max(round(cj) - half_px, 0)
+        j1 = min(round(cj) + half_px + 1, shape[1])
+        i0 = max(round(ci) - half_px, 0)
+        i1 = min(round(ci) + half_px + 1, shape[2])
+        r_app_px = (r + params.bloom_mm) / pixel_mm
+        for k in range(b.box[0].start, b.box[0].stop):
+            patch = np.asarray(vox[k, j0:j1, i0:i1], dtype=np.float32)
+            if params.use_mar:
+                t = time.perf_counter()
+                patch = reduce_metal_artifacts(patch, pixel_mm, params.mar).patch
+                t_mar += time.perf_counter() - t
+            t = time.perf_counter()
+            best: _SliceCircle | None = None
+            best_d = math.inf
+            for c in find_circles(patch, pixel_mm, params.circles):
+                if not c.accepted:
+                    continue
+                d = math.hypot(c.center_px[0] + i0 - ci, c.center_px[1] + j0 - cj)
+                if d <= r_app_px and d < best_d:
+                    best_d = d
+                    best = _SliceCircle(c.center_px[0] + i0, c.center_px[1] + j0, k, c.radius_px * pixel_mm)
+            t_circ += time.perf_counter() - t
+            if best is not None:
+                circles.append(best)
+
+        if len(circles) < params.min_circle_slices:
+            reject(
+                f"{len(circles)} slice(s) with a circular cross-section (need {params.min_circle_slices}): "
+                "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
+            )
+            continue
+        radius_fit, _ = _fit_radius(circles, dz_mm)
+        if params.method == "paper":
+            if len({c.k for c in circles}) < 2 or not math.isfinite(radius_fit) or radius_fit <= 0:
+                reject(
+                    f"paper method: {len(circles)} circle slice(s), the per-slice radii do not fit a sphere "
+                    "(r_i² + z_i² = c + 2·z0·z_i needs ≥ 2 slices); try --method subvoxel"
+                )
+                continue
+            k_c = _paper_depth(circles, radius_fit, dz_mm)
+            centre = np.array([np.mean([c.i for c in circles]), np.mean([c.j for c in circles]), k_c])
+        else:
+            centre = centre_sv
+        inplane_mm = math.hypot(
+            (np.mean([c.i for c in circles]) - centre_sv[0]) * spacing[0],
+            (np.mean([c.j for c in circles]) - centre_sv[1]) * spacing[1],
+        )
+        frac = len(circles) / n_sl
+        score = float(np.clip(frac, 0.0, 1.0) * max(0.0, 1.0 - inplane_mm / r))
+        spheres.append(
+            DetectedSphere(
+                center_image_mm=volume.voxel_to_image(centre).astype(np.float64),
+                radius_mm=float(radius_fit),
+                n_slices=len(circles),
+                score=score,
+                center_voxel=centre.astype(np.float64),
+            )
+        )
+        log.debug(
+            "sphere at voxel %s: bg %.0f HU, peak %.0f HU, %d circles, R_fit %.2f mm",
+            centre,
+            bg,
+            peak,
+            len(circles),
+            radius_fit,
+        )
+
+    timings["mar_s"] = t_mar
+    timings["circles_s"] = t_circ
+    timings["centres_s"] = t_cent
+    timings["total_s"] = time.perf_counter() - t_start
+    log.info(
+        "series %s: %d spheres, %d rejected, method %s, %.3f s",
+        volume.series_uid,
+        len(spheres),
+        len(rejections),
+        params.method,
+        timings["total_s"],
+    )
+    return DetectionResult(tuple(spheres), tuple(rejections), params.method, timings)
