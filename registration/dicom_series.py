@@ -7,10 +7,9 @@ research/image-side.md §1.2):
    holding one at its root) is read as a File-set with
    :class:`pydicom.fileset.FileSet`.  Temporary files (``*.part``, written by
    the exporter before an atomic rename) are skipped.
-2. **Read headers** (one cheap pass, pixel data never read): a small
-   :mod:`struct` walker reads the first 64 KiB of each file up to PixelData
-   (little-endian explicit/implicit VR, undefined-length sequences); anything
-   it does not handle goes to ``pydicom.dcmread(defer_size=...)``.  Keep CT Image
+2. **Read headers** (one pass, native pixel data never read): every file is
+   parsed once by ``pydicom.dcmread(defer_size=...)``, which skips the large
+   PixelData value and records where it starts.  Keep CT Image
    Storage (1.2.840.10008.5.1.4.1.1.2) and Enhanced CT Image Storage
    (1.2.840.10008.5.1.4.1.1.2.1) objects; skip localizers (ImageType
    (0008,0008) contains ``LOCALIZER``), structured reports, secondary
@@ -23,9 +22,9 @@ research/image-side.md §1.2):
    InstanceNumber (0020,0013) or file order).  Every inconsistency is refused
    with a typed error naming the files (see :func:`check_series_geometry`).
 5. **Read pixels** once, straight into one preallocated array (uncompressed
-   little-endian data is ``readinto`` the output without going through
-   pydicom; compressed transfer syntaxes are decoded by pydicom's pixel
-   plugins, pylibjpeg included), and apply the Modality LUT rescale
+   little-endian data is ``readinto`` the output from the PixelData offset
+   pydicom reported; compressed transfer syntaxes are decoded by pydicom's
+   pixel plugins, pylibjpeg included), and apply the Modality LUT rescale
    ``HU = RescaleSlope (0028,1053) · stored + RescaleIntercept (0028,1052)``.
 
 Geometry (DICOM PS3.3 C.7.6.2.1.1): ImagePositionPatient (0020,0032) is the
@@ -42,7 +41,6 @@ import logging
 import math
 import os
 import statistics
-import struct
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -52,7 +50,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 from pydicom import dcmread
-from pydicom.datadict import dictionary_VR, tag_for_keyword
+from pydicom.datadict import tag_for_keyword
 from pydicom.dataelem import RawDataElement
 from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
@@ -86,7 +84,8 @@ TEMP_FILE_SUFFIXES: Final = (".part",)
 """Names the O-arm simulator / exporters use while a file is still being written (then ``os.replace``)."""
 
 HEADER_DEFER_SIZE_BYTES: Final = 4096
-"""Values larger than this are not read in the header pass (only PixelData is that big in a CT file)."""
+"""Values larger than this are not read in the header pass (only PixelData, or a big private blob, is that
+large in a CT file; the header attributes the loader uses are a few bytes each)."""
 
 ORIENTATION_TOLERANCE: Final = 1e-4
 """Max difference of any ImageOrientationPatient direction cosine between slices of one series
@@ -153,19 +152,12 @@ HEADER_TAGS: Final = [
     "PixelRepresentation",
     "RescaleIntercept",
     "RescaleSlope",
-    "SharedFunctionalGroupsSequence",
-    "PerFrameFunctionalGroupsSequence",
-    "PixelData",
 ]
-"""The attributes the header pass keeps (everything else in the header is skipped).
+"""The attributes the header pass converts (through :class:`_Header`); everything else stays raw.
 
-Measured per file on the simulator's export (2-core VM): ``dcmread(specific_tags=...)`` 0.46 ms,
-``dcmread(defer_size=...)`` 0.26 ms plus ~0.5 ms converting values through pydicom, the fast
-:func:`_parse_header_fast` walker ~0.1 ms including open and read."""
-
-_PIXEL_DATA_TAG: Final = 0x7FE00010
-_SEQUENCE_DELIMITER: Final = b"\xfe\xff\xdd\xe0\x00\x00\x00\x00"
-"""(FFFE,E0DD) with length 0, little endian: the last 8 bytes of complete encapsulated PixelData."""
+Measured per file on the simulator's export (2-core VM, page cache warm, under load):
+``dcmread(defer_size=...)`` ~0.5 ms; converting these values through pydicom ~0.5 ms more, ~0.2 ms
+with :class:`_Header`'s cache (``benchmarks/bench_loader.py``: list_series)."""
 
 
 # --------------------------------------------------------------------------- errors
@@ -287,8 +279,9 @@ class SliceHeader:
 
     Single-frame CT files give one ``SliceHeader`` with ``frame = 0``; an
     Enhanced CT file gives one per frame.  ``pixel_offset`` is the byte offset
-    of this frame's native little-endian pixel values in the file, or ``None``
-    when the data must be decoded by pydicom (compressed, big endian, ...).
+    of this frame's native little-endian pixel values in the file (from the
+    ``value_tell`` of pydicom's deferred PixelData element), or ``None`` when the
+    data must be decoded by pydicom (compressed, big endian, ...).
     """
 
     path: Path
@@ -706,8 +699,9 @@ def _scan(root: Path) -> tuple[list[SliceHeader], list[SkippedFile]]:
     paths = _candidate_files(root)
     headers: list[SliceHeader] = []
     skipped: list[SkippedFile] = []
+    memo: dict[tuple[Any, ...], Any] = {}
     for p in paths:
-        result = _read_headers(p)
+        result = _read_headers(p, memo)
         if isinstance(result, SkippedFile):
             skipped.append(result)
         else:
@@ -759,33 +753,25 @@ def _skip(path: Path, reason: str, series_uid: str = "", *, damaged: bool = Fals
     return SkippedFile(path=path, reason=reason, series_uid=series_uid)
 
 
-def _read_headers(path: Path) -> list[SliceHeader] | SkippedFile:
-    """Read one file's header (pixel data deferred); return its slice(s) or why it was skipped."""
+def _read_headers(path: Path, memo: dict[tuple[Any, ...], Any]) -> list[SliceHeader] | SkippedFile:
+    """Read one file's header with pydicom (PixelData deferred); return its slice(s) or why it was skipped.
+
+    ``memo`` caches pydicom's converted values by raw bytes for the whole scan (see :class:`_Header`).
+    """
     if path.name.endswith(TEMP_FILE_SUFFIXES):
         return _skip(path, "temporary file still being written (*.part)")
     try:
-        fast = _parse_header_fast(path)
-    except _NeedPydicom:
-        fast = None
-    except OSError as exc:
-        return _skip(path, f"unreadable file ({type(exc).__name__}: {exc})", damaged=True)
-    if fast is not None:
-        try:
-            return _headers_from(path, fast, None)
-        except _NeedPydicom:
-            pass
-        except _Skip as s:
-            return _skip(path, s.reason, s.series_uid, damaged=s.damaged)
-        except Exception as exc:  # malformed values (non-numeric DS, ...) in a file we cannot trust
-            return _skip(path, f"malformed header values ({type(exc).__name__}: {exc})", damaged=True)
-    try:
-        ds = dcmread(path, defer_size=HEADER_DEFER_SIZE_BYTES)
+        with path.open("rb") as f:
+            ds = dcmread(f, defer_size=HEADER_DEFER_SIZE_BYTES)
+            file_size = os.fstat(f.fileno()).st_size
     except InvalidDicomError:
         return _skip(path, "not a DICOM Part-10 file (no 'DICM' marker at byte 128)")
+    except OSError as exc:
+        return _skip(path, f"unreadable file ({type(exc).__name__}: {exc})", damaged=True)
     except Exception as exc:  # truncated / corrupt headers raise EOFError, struct.error, ValueError, ...
         return _skip(path, f"unreadable DICOM header ({type(exc).__name__}: {exc})", damaged=True)
     try:
-        return _headers_from(path, _pydicom_header(path, ds), ds)
+        return _headers_from(path, _Header(ds, memo), file_size)
     except _Skip as s:
         return _skip(path, s.reason, s.series_uid, damaged=s.damaged)
     except Exception as exc:  # malformed values (non-numeric DS, ...) in a file we cannot trust
@@ -800,286 +786,92 @@ class _Skip(Exception):
         self.damaged = damaged
 
 
-class _Fields:
-    """Fast read-only access to a header's values without pydicom's per-element conversion.
+class _Header:
+    """The header values of one dataset, converted by pydicom, identical raw values converted once per scan.
 
-    The header pass touches ~30 attributes in every file; converting each
-    :class:`~pydicom.dataelem.RawDataElement` through pydicom's value hooks costs
-    more than parsing the file.  Text VRs are decoded as latin-1 and split on
-    backslash; US/SS/UL/SL are unpacked with the element's byte order;
-    anything else (sequences, already converted elements) goes through pydicom.
+    Converting a raw element through pydicom costs ~15 µs, ~0.5 ms for the ~30
+    attributes of every file, more than reading the file.  All but a few of them
+    (ImagePositionPatient, SOPInstanceUID, InstanceNumber) carry the same bytes in
+    every slice of a series, so the converted value is cached under the raw bytes
+    (with tag, VR, byte order and SpecificCharacterSet): the conversion is still
+    pydicom's, done once per distinct value.
     """
 
-    _TEXT_VRS: Final = frozenset(
-        {"AE", "AS", "CS", "DA", "DS", "DT", "IS", "LO", "SH", "TM", "UI", "LT", "ST"}
-    )
-    _BINARY_VRS: Final = {"US": "H", "SS": "h", "UL": "I", "SL": "i"}
-
-    def __init__(
-        self, ds: Dataset | None = None, raw: dict[int, tuple[str | None, bytes]] | None = None
-    ) -> None:
+    def __init__(self, ds: Dataset, memo: dict[tuple[Any, ...], Any]) -> None:
         self.ds = ds
-        self.raw = raw
+        self.memo = memo
+        charset = ds.get_item(_CHARSET_TAG, keep_deferred=True)
+        self.charset_key = None if charset is None else repr(charset.value)
 
-    def values(self, keyword: str) -> list[Any]:
+    def value(self, keyword: str) -> Any:
+        """pydicom's value of ``keyword`` (``None`` when absent or deferred)."""
         tag = _TAG[keyword]
-        if self.raw is not None:  # the fast parser's (VR, value bytes), little endian
-            found = self.raw.get(tag)
-            if found is None:
-                return []
-            converted = self._convert(tag, found[0], found[1], True)
-            if converted is None:
-                raise _NeedPydicom
-            return converted
-        if self.ds is None:
-            return []
         elem = self.ds.get_item(tag, keep_deferred=True)
         if elem is None:
-            return []
-        if isinstance(elem, RawDataElement):
-            if elem.value is None:  # deferred (larger than HEADER_DEFER_SIZE_BYTES): not a header value
-                return []
-            converted = self._convert(tag, elem.VR, elem.value, elem.is_little_endian)
-            if converted is not None:
-                return converted
-        return _as_list(self.ds[tag].value)
-
-    @classmethod
-    def _convert(cls, tag: int, vr: str | None, value: bytes, little_endian: bool) -> list[Any] | None:
-        vr = vr or dictionary_VR(tag)
-        if vr in cls._TEXT_VRS:
-            text = value.decode("latin-1").strip(" \x00")
-            return [part.strip(" \x00") for part in text.split("\\")] if text else []
-        code = cls._BINARY_VRS.get(vr)
-        if code is not None:
-            size = struct.calcsize(code)
-            count = len(value) // size
-            order = "<" if little_endian else ">"
-            return list(struct.unpack(f"{order}{count}{code}", value[: count * size]))
-        return None
+            return None
+        if not isinstance(elem, RawDataElement):
+            return elem.value
+        if elem.value is None:  # deferred (larger than HEADER_DEFER_SIZE_BYTES): not a header value
+            return None
+        key = (tag, elem.VR, elem.is_little_endian, self.charset_key, elem.value)
+        try:
+            return self.memo[key]
+        except KeyError:
+            value = self.memo[key] = self.ds[tag].value
+            return value
 
     def text(self, keyword: str) -> str:
-        return "\\".join(str(v) for v in self.values(keyword))
+        return "\\".join(str(v) for v in _as_list(self.value(keyword)))
 
     def integer(self, keyword: str, default: int) -> int:
-        values = self.values(keyword)
+        values = _as_list(self.value(keyword))
         return int(values[0]) if values and values[0] != "" else default
 
-    def optional_integer(self, keyword: str) -> int | None:
-        return _opt_int(v[0] if (v := self.values(keyword)) else None)
-
     def number(self, keyword: str, default: float) -> float:
-        values = self.values(keyword)
+        values = _as_list(self.value(keyword))
         return float(values[0]) if values and values[0] != "" else default
-
-    def floats(self, keyword: str, n: int) -> tuple[float, ...] | None:
-        return _opt_floats(self.values(keyword), n)
 
 
 _TAG: Final = {keyword: int(tag_for_keyword(keyword) or 0) for keyword in HEADER_TAGS}
+_CHARSET_TAG: Final = 0x00080005
+_PIXEL_DATA_TAG: Final = 0x7FE00010
 
 
-@dataclass(frozen=True)
-class _RawHeader:
-    """What either header parser hands to :func:`_headers_from`."""
-
-    fields: _Fields
-    media_sop_class: str
-    transfer_syntax: str
-    pixel_length: int | None  # None: no PixelData; 0xFFFFFFFF: encapsulated
-    pixel_value_offset: int
-    file_size: int
-
-
-class _NeedPydicom(Exception):
-    """The fast header parser met something it does not handle; parse the file with pydicom instead."""
-
-
-_LONG_VRS: Final = frozenset(
-    {b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"}
-)
-"""Explicit VRs with a 2-byte reserved field and a 4-byte length (PS3.5 7.1.2)."""
-_WANTED_TAGS: Final = frozenset(_TAG.values()) - {_PIXEL_DATA_TAG}
-_IMPLICIT_VR_LITTLE_ENDIAN: Final = "1.2.840.10008.1.2"
-_NOT_EXPLICIT_LE_DATASETS: Final = frozenset({"1.2.840.10008.1.2.1.99", "1.2.840.10008.1.2.2"})  # deflate, BE
-FAST_HEADER_READ_BYTES: Final = 64 * 1024
-"""The fast parser reads this much of each file; a header that does not fit goes to pydicom."""
-
-
-def _parse_header_fast(path: Path) -> _RawHeader:
-    """Walk a Part-10 header up to PixelData with :mod:`struct`, keeping only the attributes we need.
-
-    Handles little-endian explicit and implicit VR datasets, including
-    undefined-length sequences (skipped item by item).  Anything else (no
-    preamble, deflate, big endian, a header longer than
-    :data:`FAST_HEADER_READ_BYTES`, Enhanced CT, a truncated header) raises
-    :class:`_NeedPydicom` and the file is parsed by pydicom, which also produces
-    the error messages for damaged files.  Measured: ~20x faster than
-    ``dcmread(defer_size=...)`` on the simulator's files.
-    """
-    with path.open("rb") as f:
-        buf = f.read(FAST_HEADER_READ_BYTES)
-        file_size = os.fstat(f.fileno()).st_size
-    if len(buf) < 132 or buf[128:132] != b"DICM":
-        raise _NeedPydicom
-    try:
-        meta: dict[int, bytes] = {}
-        pos = 132
-        while pos + 8 <= len(buf):
-            group, elem = _TAG_STRUCT.unpack_from(buf, pos)
-            if group != 0x0002:
-                break
-            vr = buf[pos + 4 : pos + 6]
-            if vr in _LONG_VRS:
-                (length,) = _U32.unpack_from(buf, pos + 8)
-                pos += 12
-            else:
-                (length,) = _U16.unpack_from(buf, pos + 6)
-                pos += 8
-            meta[(group << 16) | elem] = buf[pos : pos + length]
-            pos += length
-        transfer_syntax = meta.get(0x00020010, b"").decode("ascii", "replace").strip(" \x00")
-        if not transfer_syntax or transfer_syntax in _NOT_EXPLICIT_LE_DATASETS:
-            raise _NeedPydicom
-        implicit = transfer_syntax == _IMPLICIT_VR_LITTLE_ENDIAN
-        values: dict[int, tuple[str | None, bytes]] = {}
-        pixel_length: int | None = None
-        pixel_offset = 0
-        while True:
-            tag, vr_bytes, length, pos = _element_header(buf, pos, implicit)
-            if tag == _PIXEL_DATA_TAG:
-                pixel_length, pixel_offset = length, pos
-                break
-            if tag > _PIXEL_DATA_TAG:
-                break
-            if length == 0xFFFFFFFF:
-                if vr_bytes == b"UN":
-                    raise _NeedPydicom
-                pos = _skip_undefined_sequence(buf, pos, implicit)
-                continue
-            if pos + length > len(buf):
-                raise _NeedPydicom
-            if tag in _WANTED_TAGS:
-                values[tag] = (vr_bytes.decode("ascii") if vr_bytes else None, buf[pos : pos + length])
-            pos += length
-    except (struct.error, UnicodeDecodeError) as exc:
-        raise _NeedPydicom from exc
-    return _RawHeader(
-        fields=_Fields(raw=values),
-        media_sop_class=meta.get(0x00020002, b"").decode("ascii", "replace").strip(" \x00"),
-        transfer_syntax=transfer_syntax,
-        pixel_length=pixel_length,
-        pixel_value_offset=pixel_offset,
-        file_size=file_size,
-    )
-
-
-_TAG_STRUCT: Final = struct.Struct("<HH")
-_U16: Final = struct.Struct("<H")
-_U32: Final = struct.Struct("<I")
-
-
-def _element_header(buf: bytes, pos: int, implicit: bool) -> tuple[int, bytes, int, int]:
-    """(tag, VR bytes or b"", value length, value position) of the element at ``pos``."""
-    if pos + 8 > len(buf):
-        raise _NeedPydicom
-    group, elem = _TAG_STRUCT.unpack_from(buf, pos)
-    tag = (group << 16) | elem
-    if implicit or group == 0xFFFE:  # item / delimiter tags never carry a VR
-        (length,) = _U32.unpack_from(buf, pos + 4)
-        return tag, b"", length, pos + 8
-    vr = buf[pos + 4 : pos + 6]
-    if vr in _LONG_VRS:
-        (length,) = _U32.unpack_from(buf, pos + 8)
-        return tag, vr, length, pos + 12
-    (length,) = _U16.unpack_from(buf, pos + 6)
-    return tag, vr, length, pos + 8
-
-
-def _skip_undefined_sequence(buf: bytes, pos: int, implicit: bool) -> int:
-    """Position just after the (FFFE,E0DD) delimiter of the undefined-length sequence starting at ``pos``."""
-    while True:
-        tag, _, length, pos = _element_header(buf, pos, implicit)
-        if tag == 0xFFFEE0DD:
-            return pos
-        if tag != 0xFFFEE000:
-            raise _NeedPydicom
-        if length != 0xFFFFFFFF:
-            pos += length
-            continue
-        while True:  # undefined-length item: walk its elements to the item delimiter
-            tag, vr, length, pos = _element_header(buf, pos, implicit)
-            if tag == 0xFFFEE00D:
-                break
-            if length == 0xFFFFFFFF:
-                if vr == b"UN":
-                    raise _NeedPydicom
-                pos = _skip_undefined_sequence(buf, pos, implicit)
-            else:
-                pos += length
-        if pos > len(buf):
-            raise _NeedPydicom
-
-
-def _pydicom_header(path: Path, ds: Dataset) -> _RawHeader:
+def _headers_from(path: Path, header: _Header, file_size: int) -> list[SliceHeader]:
+    ds = header.ds
     meta = getattr(ds, "file_meta", None)
-    raw = ds.get_item(_PIXEL_DATA_TAG, keep_deferred=True)
-    if raw is not None and not isinstance(raw, RawDataElement):  # only if pydicom changed how it defers
-        raise _Skip("PixelData was not deferred by the header pass (pydicom behaviour changed?)")
-    return _RawHeader(
-        fields=_Fields(ds=ds),
-        media_sop_class=str(meta.get("MediaStorageSOPClassUID", "")) if meta else "",
-        transfer_syntax=str(meta.get("TransferSyntaxUID", "")) if meta else "",
-        pixel_length=None if raw is None else int(raw.length),
-        pixel_value_offset=0 if raw is None else int(raw.value_tell),
-        file_size=path.stat().st_size,
-    )
-
-
-def _headers_from(path: Path, header: _RawHeader, ds: Dataset | None) -> list[SliceHeader]:
-    fields = header.fields
-    sop_class = fields.text("SOPClassUID") or header.media_sop_class
+    sop_class = header.text("SOPClassUID") or (str(meta.get("MediaStorageSOPClassUID", "")) if meta else "")
     if sop_class == MEDIA_STORAGE_DIRECTORY_STORAGE:
         raise _Skip("DICOMDIR (file-set directory, not an image)")
-    series_uid = fields.text("SeriesInstanceUID")
+    series_uid = header.text("SeriesInstanceUID")
     if sop_class not in CT_SOP_CLASSES:
         name = UID(sop_class).name if sop_class else "missing SOPClassUID"
         raise _Skip(f"not a CT image object (SOP class {name})", series_uid)
-    image_type = [str(v).upper() for v in fields.values("ImageType")]
+    image_type = [str(v).upper() for v in _as_list(header.value("ImageType"))]
     if "LOCALIZER" in image_type:
         raise _Skip(f"localizer (ImageType {'/'.join(image_type)})", series_uid)
     if not series_uid:
         raise _Skip("no SeriesInstanceUID (0020,000E)", damaged=True)
-    if sop_class == ENHANCED_CT_IMAGE_STORAGE and ds is None:
-        raise _NeedPydicom  # functional groups are sequences: let pydicom parse them
-    if header.pixel_length is None:
-        raise _Skip("no PixelData (7FE0,0010)", series_uid)
+    pixel_data = ds.get_item(_PIXEL_DATA_TAG, keep_deferred=True)
+    if pixel_data is None:  # pydicom drops an encapsulated PixelData cut before its delimiter
+        raise _Skip("no PixelData (7FE0,0010): not an image, or truncated", series_uid, damaged=True)
+    if not isinstance(pixel_data, RawDataElement):  # only if pydicom changed how it reads/defers
+        raise _Skip("PixelData was converted by the header pass (pydicom behaviour changed?)", series_uid)
 
-    transfer_syntax = header.transfer_syntax
-    rows = fields.integer("Rows", 0)
-    columns = fields.integer("Columns", 0)
-    bits_allocated = fields.integer("BitsAllocated", 0)
-    samples = fields.integer("SamplesPerPixel", 1)
-    n_frames = fields.integer("NumberOfFrames", 1)
+    transfer_syntax = str(meta.get("TransferSyntaxUID", "")) if meta else ""
+    rows = header.integer("Rows", 0)
+    columns = header.integer("Columns", 0)
+    bits_allocated = header.integer("BitsAllocated", 0)
+    samples = header.integer("SamplesPerPixel", 1)
+    n_frames = header.integer("NumberOfFrames", 1)
     if rows <= 0 or columns <= 0 or bits_allocated <= 0:
         raise _Skip(
             f"no image size (Rows {rows}, Columns {columns}, BitsAllocated {bits_allocated})", series_uid
         )
 
-    length = header.pixel_length
-    value_offset = header.pixel_value_offset
-    file_size = header.file_size
     pixel_offset: int | None = None
-    if length == 0xFFFFFFFF:  # encapsulated (compressed): complete only if it ends with the delimiter
-        with path.open("rb") as f:
-            f.seek(max(file_size - 8, 0))
-            if f.read(8) != _SEQUENCE_DELIMITER:
-                raise _Skip(
-                    "truncated: encapsulated PixelData does not end with the sequence delimiter",
-                    series_uid,
-                    damaged=True,
-                )
-    else:
+    if pixel_data.length != 0xFFFFFFFF:  # native; encapsulated data is checked by pydicom's decoder
+        length, value_offset = int(pixel_data.length), int(pixel_data.value_tell)
         expected = rows * columns * samples * n_frames * bits_allocated // 8
         if length < expected or length > expected + 1:  # +1: the pad byte of an odd-length value
             raise _Skip(
@@ -1098,47 +890,46 @@ def _headers_from(path: Path, header: _RawHeader, ds: Dataset | None) -> list[Sl
         "path": path,
         "n_frames": n_frames,
         "sop_class_uid": sop_class,
-        "sop_instance_uid": fields.text("SOPInstanceUID"),
+        "sop_instance_uid": header.text("SOPInstanceUID"),
         "series_uid": series_uid,
-        "study_uid": fields.text("StudyInstanceUID"),
-        "modality": fields.text("Modality"),
-        "series_description": fields.text("SeriesDescription"),
+        "study_uid": header.text("StudyInstanceUID"),
+        "modality": header.text("Modality"),
+        "series_description": header.text("SeriesDescription"),
         "rows": rows,
         "columns": columns,
         "samples_per_pixel": samples,
-        "photometric": fields.text("PhotometricInterpretation"),
+        "photometric": header.text("PhotometricInterpretation"),
         "bits_allocated": bits_allocated,
-        "bits_stored": fields.integer("BitsStored", bits_allocated),
-        "pixel_representation": fields.integer("PixelRepresentation", 0),
+        "bits_stored": header.integer("BitsStored", bits_allocated),
+        "pixel_representation": header.integer("PixelRepresentation", 0),
         "transfer_syntax_uid": transfer_syntax,
         "manufacturer": " ".join(
-            t for k in ("Manufacturer", "ManufacturerModelName") if (t := fields.text(k))
+            t for k in ("Manufacturer", "ManufacturerModelName") if (t := header.text(k))
         ),
         "acquisition": " ".join(
             t
             for t in (
-                fields.text("AcquisitionDate") or fields.text("SeriesDate"),
-                fields.text("AcquisitionTime") or fields.text("SeriesTime"),
+                header.text("AcquisitionDate") or header.text("SeriesDate"),
+                header.text("AcquisitionTime") or header.text("SeriesTime"),
             )
             if t
         ),
     }
-    frame_bytes = rows * columns * samples * bits_allocated // 8
     if sop_class == ENHANCED_CT_IMAGE_STORAGE:
-        assert ds is not None  # the fast path raised _NeedPydicom above
+        frame_bytes = rows * columns * samples * bits_allocated // 8
         return _enhanced_frames(ds, common, pixel_offset, frame_bytes)
     if n_frames != 1:
         raise _Skip(f"CT Image Storage with NumberOfFrames {n_frames} (expected 1)", series_uid, damaged=True)
     return [
         SliceHeader(
             frame=0,
-            frame_of_reference_uid=fields.text("FrameOfReferenceUID"),
-            instance_number=fields.optional_integer("InstanceNumber"),
-            position_mm=fields.floats("ImagePositionPatient", 3),
-            orientation=fields.floats("ImageOrientationPatient", 6),
-            pixel_spacing_mm=fields.floats("PixelSpacing", 2),
-            slope=fields.number("RescaleSlope", 1.0),
-            intercept=fields.number("RescaleIntercept", 0.0),
+            frame_of_reference_uid=header.text("FrameOfReferenceUID"),
+            instance_number=_opt_int(header.value("InstanceNumber")),
+            position_mm=_opt_floats(header.value("ImagePositionPatient"), 3),
+            orientation=_opt_floats(header.value("ImageOrientationPatient"), 6),
+            pixel_spacing_mm=_opt_floats(header.value("PixelSpacing"), 2),
+            slope=header.number("RescaleSlope", 1.0),
+            intercept=header.number("RescaleIntercept", 0.0),
             pixel_offset=pixel_offset,
             **common,
         )
@@ -1182,9 +973,7 @@ def _enhanced_frames(
                 orientation=_opt_floats(
                     group_value(item, "PlaneOrientationSequence", "ImageOrientationPatient"), 6
                 ),
-                pixel_spacing_mm=_opt_floats(
-                    group_value(item, "PixelMeasuresSequence", "PixelSpacing"), 2
-                ),
+                pixel_spacing_mm=_opt_floats(group_value(item, "PixelMeasuresSequence", "PixelSpacing"), 2),
                 slope=float(slope if slope not in (None, "") else 1.0),
                 intercept=float(intercept if intercept not in (None, "") else 0.0),
                 pixel_offset=None if pixel_offset is None else pixel_offset + f * frame_bytes,
@@ -1476,24 +1265,24 @@ def _read_voxels(slices: Sequence[SliceHeader], series_uid: str) -> NDArray[Any]
                 series_uid=series_uid,
             ) from exc
         if out.dtype == np.int16:
-            hu = raw.astype(np.int32)
-            if h.slope != 1.0:
-                hu *= int(h.slope)
-            if h.intercept != 0.0:
-                hu += int(h.intercept)
-            lo, hi = int(hu.min()), int(hu.max())
+            slope, intercept = int(h.slope), int(h.intercept)
+            ends = (int(raw.min()) * slope + intercept, int(raw.max()) * slope + intercept)
+            lo, hi = min(ends), max(ends)
             if lo < -32768 or hi > 32767:
                 log.info(
                     "series %s: %s has HU %d..%d outside int16; switching the volume to float32",
-                    series_uid, _name(h), lo, hi,
+                    series_uid,
+                    _name(h),
+                    lo,
+                    hi,
                 )
                 out = out.astype(np.float32)  # rare: one extra copy while converting
-                out[k] = hu
-            else:
-                out[k] = hu
-        else:
-            np.multiply(raw, h.slope, out=out[k], casting="unsafe")
-            out[k] += np.float32(h.intercept)
+            else:  # in range: computed in int32, stored as int16 without overflow
+                stored = raw if slope == 1 else raw.astype(np.int32) * slope
+                np.add(stored, np.int32(intercept), out=out[k], casting="unsafe")
+                continue
+        np.multiply(raw, h.slope, out=out[k], casting="unsafe")
+        out[k] += np.float32(h.intercept)
     return out
 
 
