@@ -12,8 +12,18 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-DEFAULT_BIN_WIDTH_MM = 0.05
-"""Bin width: a tenth of the paper's ~0.5 mm error range, fine enough for sub-0.1 mm errors."""
+TARGET_BINS = 10
+"""About this many bins between 0 and the largest error (the bin width is rounded to 1, 2 or 5 × 10^k mm)."""
+
+
+def nice_bin_width_mm(max_error_mm: float, target_bins: int = TARGET_BINS) -> float:
+    """A 1/2/5 × 10^k bin width giving about ``target_bins`` bins up to ``max_error_mm``."""
+    raw = max(max_error_mm, 1e-3) / target_bins
+    exp = np.floor(np.log10(raw))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if m * 10**exp >= raw:
+            return float(m * 10**exp)
+    return float(10 ** (exp + 1))
 
 
 def write_error_histogram(
@@ -21,7 +31,7 @@ def write_error_histogram(
     path: str | Path,
     *,
     title: str = "Position error of the calibration spheres",
-    bin_width_mm: float = DEFAULT_BIN_WIDTH_MM,
+    bin_width_mm: float | None = None,
 ) -> Path:
     """Write a PNG histogram of per-sphere position errors; returns the path.
 
@@ -31,6 +41,8 @@ def write_error_histogram(
         Per-sphere errors |T·p_r − p_i| in mm (paper eq. 10).
     path : str or Path
         Output PNG.
+    bin_width_mm : float, optional
+        Default: :func:`nice_bin_width_mm` of the largest error.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -41,7 +53,10 @@ def write_error_histogram(
     fig = Figure(figsize=(6.4, 4.0), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    top = max(float(e.max()) if len(e) else 0.0, bin_width_mm)
+    max_mm = float(e.max()) if len(e) else 0.0
+    if bin_width_mm is None:
+        bin_width_mm = nice_bin_width_mm(max_mm)
+    top = max(max_mm, bin_width_mm)
     bins = np.arange(0.0, top + bin_width_mm, bin_width_mm)
     ax.hist(e, bins=bins, color="#4a7ab5", edgecolor="black", linewidth=0.6)
     if len(e):

@@ -182,7 +182,10 @@ class SimpleMessageServer:
 
     async def _count_incoming(self, reader: asyncio.StreamReader) -> None:
         while True:
-            data = await reader.read(4096)
+            try:
+                data = await reader.read(4096)
+            except (ConnectionError, OSError):
+                return  # the client aborted (as the link does on close): nothing more to count
             if not data:
                 return
             self.bytes_from_clients += len(data)
