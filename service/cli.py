@@ -64,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args._run(args))
     except (OarmRegError, RobotLinkError) as e:
-        print(f"oarmreg {args.command}: {e.title.lower()}: {e}", file=sys.stderr)  # noqa: T201
+        print(f"oarmreg {args.command}: {e.title}: {e}", file=sys.stderr)  # noqa: T201
         return int(e.exit_code)
     except KeyboardInterrupt:
         return 130

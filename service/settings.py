@@ -110,7 +110,8 @@ class QualitySettings(_Section):
 
 
 class StillnessSettings(_Section):
-    window_s: float = Field(default=2.0, gt=0, le=600)
+    # ≤ 100 s: the links keep 120 s of joint history (drivers.base.HISTORY_S)
+    window_s: float = Field(default=60.0, gt=0, le=100)
     max_deviation_rad: float = Field(default=5e-4, gt=0, le=0.1)
     max_gap_s: float = Field(default=0.25, gt=0, le=60)
 
