@@ -71,6 +71,22 @@ class EventBus:
             item = (next(self._seq), event, data)
             self._recent.append(item)
         log.info("event %s %s", event, json.dumps(data)[:300])
+        self._deliver_on_loop(item)
+
+    def _deliver(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
+        for q in list(self._subs):
+            if q.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    q.get_nowait()
+            q.put_nowait(item)
+
+    def close(self) -> None:
+        """End every subscription (called on shutdown, before the server waits for connections)."""
+        self._closed = True
+        self._deliver_on_loop(None)
+
+    def _deliver_on_loop(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
+        """Deliver ``item`` on the server's loop, from that loop or from any other thread."""
         loop = self._loop
         if loop is None or loop.is_closed():
             return
@@ -83,29 +99,6 @@ class EventBus:
         else:
             with contextlib.suppress(RuntimeError):  # loop closing
                 loop.call_soon_threadsafe(self._deliver, item)
-
-    def _deliver(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
-        for q in list(self._subs):
-            if q.full():
-                with contextlib.suppress(asyncio.QueueEmpty):
-                    q.get_nowait()
-            q.put_nowait(item)
-
-    def close(self) -> None:
-        """End every subscription (called on shutdown, before the server waits for connections)."""
-        self._closed = True
-        loop = self._loop
-        if loop is None or loop.is_closed():
-            return
-        try:
-            running = asyncio.get_running_loop()
-        except RuntimeError:
-            running = None
-        if running is loop:
-            self._deliver(None)
-        else:
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(self._deliver, None)
 
     async def subscribe(self) -> AsyncIterator[tuple[int, str, dict[str, Any]] | None]:
         """Yield events as they come; ``None`` every :data:`KEEPALIVE_S` of silence; ends on :meth:`close`."""

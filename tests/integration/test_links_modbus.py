@@ -5,10 +5,10 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
+from polling import wait_until
 
 from drivers.base import open_link
 from drivers.errors import LinkConfigError, LinkTimeoutError
@@ -19,15 +19,6 @@ from registration.stillness import assess_stillness
 
 Q_DEG = (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)
 Q = [math.radians(d) for d in Q_DEG]
-DEADLINE_S = 5.0
-
-
-async def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        await asyncio.sleep(0.002)
 
 
 def test_float32_degrees_exact_and_polls_not_lost() -> None:

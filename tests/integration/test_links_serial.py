@@ -6,10 +6,10 @@ import asyncio
 import math
 import sys
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
+from polling import wait_until
 
 from drivers.base import open_link
 from mocks.robot.robot import ScriptedRobot
@@ -19,15 +19,6 @@ from registration.stillness import assess_stillness
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pty pairs are POSIX only")
 
 Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
-DEADLINE_S = 5.0
-
-
-async def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        await asyncio.sleep(0.002)
 
 
 def test_exact_values_rate_and_read_only() -> None:

@@ -9,11 +9,11 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from polling import wait_until
 
 import drivers.simple_message as sm
 from drivers.base import open_link
@@ -23,15 +23,6 @@ from mocks.robot.runner import run_mock_controller
 from registration.stillness import assess_stillness
 
 Q_DEG = (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)
-DEADLINE_S = 5.0
-
-
-async def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        await asyncio.sleep(0.002)
 
 
 def f32(q: tuple[float, ...] | list[float]) -> tuple[float, ...]:
