@@ -303,4 +303,4 @@ def test_cli_refuses_unreachable_controller(capsys: pytest.CaptureFixture[str]) 
     url = f"simple-message://127.0.0.1:{port}"
     assert main(["robot", "joints", "--link", url, "--timeout-s", "0.3"]) == 5
     err = capsys.readouterr().err
-    assert "robot link timeout" in err and "VAL3" in err and "firewall" in err
+    assert "Robot link timeout" in err and "VAL3" in err and "firewall" in err
