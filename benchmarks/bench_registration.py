@@ -36,7 +36,7 @@ def _scene(
     return robot, image, truth
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
     rows = []
     # 1. the fully filled 64-hole grid with an orientation prior 20° off

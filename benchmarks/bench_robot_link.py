@@ -78,7 +78,7 @@ async def _cpu(url: str) -> float:
     return 100.0 * (c1 - c0) / (w1 - w0)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     rows = []
     lat = asyncio.run(_latency("simple-message", DURATION_S))
     q = np.percentile(lat, [50, 99])

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import random
 import subprocess
 import sys
 import tempfile
@@ -80,7 +81,9 @@ async def _load(
         try:
             await _get(reader, writer, request)  # warm-up
             await started.wait()
-            next_t = time.monotonic()
+            # polling clients start at random phases, as independent UIs would (phase-locked clients
+            # would measure a 50-request burst every period instead)
+            next_t = time.monotonic() + (phase.uniform(0.0, period_s) if period_s > 0 else 0.0)
             for _ in range(n_requests):
                 if time.monotonic() > deadline:
                     return
@@ -96,6 +99,7 @@ async def _load(
             writer.close()
 
     started = asyncio.Event()
+    phase = random.Random(0)
     tasks = [asyncio.create_task(client()) for _ in range(n_clients)]
     await asyncio.sleep(0.5)  # every connection open and warmed up
     t0 = time.perf_counter()
