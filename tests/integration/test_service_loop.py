@@ -308,7 +308,12 @@ def test_bad_scan_folder_is_422_and_service_keeps_serving(svc: Service, world: W
 
 def test_robot_moving_during_scan_is_refused(svc: Service, world: World) -> None:
     cur_before = svc.client.get("/registration/current").json()
+    j6_start = svc.robot.joints_rad_at()[5]
     svc.robot.move_to(Q2, duration_s=6.0)  # still moving while the series is exported and settles
+    # The minimum-jerk profile starts slowly: export only once J6 has clearly left the start, so the
+    # stillness window sees motion however fast this machine writes the series.
+    moved_rad = 20 * 5e-4  # 20 × the default stillness.max_deviation_rad
+    wait_for(lambda: abs(svc.robot.joints_rad_at()[5] - j6_start) > moved_rad, "the robot to start moving")
     uid = svc.export(world.scan1, "moving", series_uid="1.2.826.0.1.3680043.8.498.999002")
     scan = svc.wait_scan(uid)
     assert scan["joints"]["still"] is False
