@@ -98,6 +98,10 @@ def farthest_point_order(points_mm: F64, start: int = 0, count: int | None = Non
     return order
 
 
+MIN_BASE_TRIPLES: Final = 2
+"""Fewer eligible triples than this (a small or elongated set) relaxes the edge-length rule."""
+
+
 def choose_base_triples(
     robot_mm: F64, d_robot: F64, image_pair_dist_sorted: F64, pair_tol_mm: float, max_triples: int
 ) -> list[tuple[int, int, int]]:
@@ -105,8 +109,27 @@ def choose_base_triples(
 
     Edge (a, b) is the one with the fewest image pairs of matching length, so
     it gets the ``searchsorted`` look-up; c maximises the triangle area among
-    points whose edges to a and b are long as well.
+    points whose edges to a and b are long as well.  Edges must be at least
+    :data:`MIN_EDGE_FRACTION` of the set's diameter; a set with fewer than
+    :data:`MIN_BASE_TRIPLES` such triples (a few spheres, far apart) is
+    retried with half that fraction, then with none.
     """
+    triples: list[tuple[int, int, int]] = []
+    for fraction in (MIN_EDGE_FRACTION, MIN_EDGE_FRACTION / 2.0, 0.0):
+        triples = _base_triples(robot_mm, d_robot, image_pair_dist_sorted, pair_tol_mm, max_triples, fraction)
+        if len(triples) >= MIN_BASE_TRIPLES:
+            break
+    return triples
+
+
+def _base_triples(
+    robot_mm: F64,
+    d_robot: F64,
+    image_pair_dist_sorted: F64,
+    pair_tol_mm: float,
+    max_triples: int,
+    min_edge_fraction: float,
+) -> list[tuple[int, int, int]]:
     n = len(robot_mm)
     if n < 3:
         return []
@@ -116,7 +139,7 @@ def choose_base_triples(
     lo = np.searchsorted(image_pair_dist_sorted, lengths - pair_tol_mm, side="left")
     hi = np.searchsorted(image_pair_dist_sorted, lengths + pair_tol_mm, side="right")
     rarity = hi - lo
-    eligible = lengths >= MIN_EDGE_FRACTION * diameter
+    eligible = lengths >= min_edge_fraction * diameter
     # rare first, long second
     order = np.lexsort((-lengths, rarity))
     order = order[eligible[order]]
@@ -129,7 +152,7 @@ def choose_base_triples(
             a, b = int(iu[e]), int(ju[e])
             if not allow_reuse and (used[a] or used[b]):
                 continue
-            ok = (d_robot[a] >= MIN_EDGE_FRACTION * diameter) & (d_robot[b] >= MIN_EDGE_FRACTION * diameter)
+            ok = (d_robot[a] >= min_edge_fraction * diameter) & (d_robot[b] >= min_edge_fraction * diameter)
             if not allow_reuse:
                 ok &= ~used
             ok[[a, b]] = False

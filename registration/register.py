@@ -582,24 +582,29 @@ def register_points(
         )
 
     # --- ambiguity: best vs. best distinct runner-up ----------------------------------------------
+    # Every pose is counted at the same fixed gate: ICP's gate adapts to each pose's own residuals,
+    # so a wrong pose refined by ICP would be flattered by its loose matches.
     t_best = best.image_from_robot
+    n_best_fixed = _quick_count(t_best, robot, tree, p.hypothesis_gate_mm)[0]
     runner: _Candidate | None = None
+    runner_key: tuple[int, float] = (-1, 0.0)
     for c in pool:
         if c is best or same_pose(
             t_best, c.image_from_robot, centroid, p.distinct_rotation_deg, p.distinct_translation_mm
         ):
             continue
-        if runner is None or _key(c) > _key(runner):
-            runner = c
-    n_runner = runner.n_matched if runner is not None else 0
+        n_c, rms_c = _quick_count(c.image_from_robot, robot, tree, p.hypothesis_gate_mm)
+        if (n_c, -rms_c) > runner_key:
+            runner, runner_key = c, (n_c, -rms_c)
+    n_runner = max(runner_key[0], 0)
     runner_angle = (
         rotation_difference_deg(t_best[:3, :3], runner.image_from_robot[:3, :3]) if runner else None
     )
-    margin = best.n_matched - n_runner
+    margin = n_best_fixed - n_runner
     if margin < p.min_runner_up_margin:
         assert runner is not None
         raise AmbiguousMatchError(
-            f"ambiguous sphere correspondence: the best pose matches {best.n_matched} spheres and a "
+            f"ambiguous sphere correspondence: the best pose matches {n_best_fixed} spheres and a "
             f"different pose ({runner.source}, rotated {runner_angle:.1f}° from it) matches {n_runner}; "
             f"a margin of {p.min_runner_up_margin} is required. Give an orientation prior "
             "(--prior-rotation, tolerance < 45°), name 4 marks for the pre-registration, or use a phantom "
