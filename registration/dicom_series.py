@@ -1166,6 +1166,24 @@ def _skipped_text(skipped: Sequence[SkippedFile], limit: int = 8) -> str:
     return f"{len(skipped)} file(s) skipped: {shown}{more}"
 
 
+def _checked_geometry(
+    slices: Sequence[SliceHeader], series_uid: str, skipped: Sequence[SkippedFile]
+) -> SeriesGeometry:
+    """:func:`check_series_geometry`, naming this series' skipped files in a refusal (a truncated
+    file of the series shows up as a missing slice; the user needs both facts)."""
+    try:
+        return check_series_geometry(slices, series_uid)
+    except SeriesError as exc:
+        lost = [sk for sk in skipped if sk.series_uid == series_uid]
+        if not lost:
+            raise
+        raise type(exc)(
+            f"{exc} Files of this series that could not be used: {_skipped_text(lost)}.",
+            files=[*exc.files, *(sk.path for sk in lost)],
+            series_uid=series_uid,
+        ) from exc
+
+
 def _select(
     root: Path,
     groups: dict[str, list[SliceHeader]],
@@ -1191,13 +1209,13 @@ def _select(
                 files=[s.path for s in lost],
                 series_uid=series_uid,
             )
-        return series_uid, check_series_geometry(groups[series_uid], series_uid)
+        return series_uid, _checked_geometry(groups[series_uid], series_uid, skipped)
 
     good: list[tuple[str, SeriesGeometry]] = []
     bad: list[tuple[str, SeriesError]] = []
     for uid, hs in groups.items():
         try:
-            good.append((uid, check_series_geometry(hs, uid)))
+            good.append((uid, _checked_geometry(hs, uid, skipped)))
         except SeriesError as exc:
             bad.append((uid, exc))
     for uid, refused in bad:

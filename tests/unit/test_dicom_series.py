@@ -180,6 +180,8 @@ def test_truncated_file_inside_stack_is_a_missing_slice(tmp_path: Path) -> None:
     with pytest.raises(MissingSliceError) as err:
         load_series(tmp_path)
     assert str(paths[1]) in str(err.value) and str(paths[3]) in str(err.value)
+    # the refusal also names the file that caused the gap, and why it was not used
+    assert f"{middle}: truncated" in str(err.value) and middle in err.value.files
 
 
 def test_localizer_is_skipped(tmp_path: Path) -> None:
