@@ -65,6 +65,19 @@ class ServiceContext:
     current_json: tuple[Any, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""
 
+    def current_registration_json(self) -> bytes | None:
+        """The current registration as JSON bytes, encoded once per registration (None if none)."""
+        cur = self.orchestrator.current
+        if cur is None:
+            return None
+        cached = self.current_json
+        if cached is None or cached[0] is not cur:
+            from service.api.models import registration_out
+
+            cached = (cur, registration_out(cur, cur["id"]).model_dump_json().encode())
+            self.current_json = cached
+        return cached[1]
+
     def on_series(self, arrival: SeriesArrival) -> None:
         """Watcher callback (watcher thread): snapshot the joints and record the scan."""
         uid = arrival.series_uid
@@ -208,7 +221,56 @@ def create_app(
     )
     app.state.ctx = ctx
     _install_routes(app)
+    app.add_middleware(CurrentRegistrationFastPath)
     return app
+
+
+class CurrentRegistrationFastPath:
+    """Pure-ASGI fast path for the request the navigation UI polls, ``GET /registration/current``.
+
+    It answers only the plain success case — right token, a current registration exists — with the
+    same pre-encoded JSON the route serves, skipping routing, dependency injection and response
+    validation (about 2× the request rate on 2 cores).  Everything else (no or wrong token, no
+    current registration, other methods or paths) falls through to the FastAPI route, which gives
+    the documented answers and problem details.
+    """
+
+    PATH = "/registration/current"
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] == "http" and scope["method"] == "GET" and scope["path"] == self.PATH:
+            ctx: ServiceContext = scope["app"].state.ctx
+            body = ctx.current_registration_json() if self._authorized(ctx, scope) else None
+            if body is not None:
+                await send(
+                    {
+                        "type": "http.response.start",
+                        "status": 200,
+                        "headers": [
+                            (b"content-type", b"application/json"),
+                            (b"content-length", str(len(body)).encode()),
+                        ],
+                    }
+                )
+                await send({"type": "http.response.body", "body": body})
+                return
+        await self.app(scope, receive, send)
+
+    @staticmethod
+    def _authorized(ctx: ServiceContext, scope: Any) -> bool:
+        from service.api.deps import token_ok
+
+        token = ctx.settings.api_token
+        if token is None:
+            return True
+        for name, value in scope["headers"]:
+            if name == b"authorization":
+                scheme, _, credentials = value.decode("latin-1").partition(" ")
+                return scheme.lower() == "bearer" and token_ok(token, credentials.strip())
+        return False
 
 
 def _wait_idle(orch: Orchestrator) -> None:

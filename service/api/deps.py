@@ -31,6 +31,17 @@ CtxDep = Annotated["ServiceContext", Depends(get_ctx)]
 _bearer = HTTPBearer(auto_error=False, description="API token (settings: api_token / OARMREG_API_TOKEN)")
 
 
+def token_ok(settings_token: object, presented: str | None) -> bool:
+    """True if ``presented`` (the Bearer credentials) matches the API token, in constant time
+    (``hmac.compare_digest``); always True when no token is configured (loopback only)."""
+    if settings_token is None:
+        return True
+    if presented is None:
+        return False
+    secret = settings_token.get_secret_value()  # type: ignore[attr-defined]
+    return hmac.compare_digest(presented.encode(), secret.encode())
+
+
 async def require_token(
     request: Request,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
@@ -42,7 +53,7 @@ async def require_token(
         return  # authentication disabled (loopback only; refused by the settings otherwise)
     if credentials is None or credentials.scheme.lower() != "bearer":
         raise AuthError("missing 'Authorization: Bearer <token>' header; the API token is set in api_token")
-    if not hmac.compare_digest(credentials.credentials.encode(), token.get_secret_value().encode()):
+    if not token_ok(token, credentials.credentials):
         raise AuthError("the Bearer token does not match the service's api_token")
 
 

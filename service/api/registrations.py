@@ -41,16 +41,12 @@ async def register(ctx: CtxDep, body: Annotated[RegisterRequest | None, Body()] 
     responses=problem_responses(401, 404),
 )
 async def current(ctx: CtxDep) -> Response:
-    cur = ctx.orchestrator.current
-    if cur is None:
+    # Usually answered by service.app.CurrentRegistrationFastPath; this route documents it and
+    # gives the error answers.  Pre-encoded JSON, re-encoded only when the current one changes.
+    body = ctx.current_registration_json()
+    if body is None:
         raise NoCurrentRegistrationError("no registration has been accepted yet; POST /register after a scan")
-    # The navigation UI polls this: serve pre-encoded JSON, re-encoded only when the current one changes.
-    cached = ctx.current_json
-    if cached is None or cached[0] is not cur:
-        body = registration_out(cur, cur["id"]).model_dump_json().encode()
-        cached = (cur, body)
-        ctx.current_json = cached
-    return Response(cached[1], media_type="application/json")
+    return Response(body, media_type="application/json")
 
 
 @router.get(

@@ -255,6 +255,22 @@ def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
     assert r2.json()["targets_image_mm"] == targets and len(r2.json()["predicted_tre_mm"]) == 2
 
 
+def test_current_registration_fast_path_matches_the_route(svc: Service) -> None:
+    """GET /registration/current is served by a pure-ASGI fast path; it must answer exactly what the
+    FastAPI route and model give, and leave every refusal to the route."""
+    r = svc.client.get("/registration/current")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/json"
+    cur = r.json()
+    assert cur == svc.client.get(f"/registrations/{cur['id']}").json()
+    with httpx.Client(base_url=svc.base_url, timeout=10.0) as anon:
+        assert_problem(anon.get("/registration/current"), 401)
+        bad = {"Authorization": "Bearer wrong-token-xxxxxxxxxxxx"}
+        assert_problem(anon.get("/registration/current", headers=bad), 401)
+        assert_problem(anon.get("/registration/current", headers={"Authorization": f"Basic {TOKEN}"}), 401)
+        prefix = {"Authorization": f"Bearer {TOKEN[:-1]}"}
+        assert_problem(anon.get("/registration/current", headers=prefix), 401)
+
+
 def test_concurrent_register_calls_give_consistent_records(svc: Service) -> None:
     before = {r["id"] for r in svc.client.get("/registrations").json()}
     results: list[httpx.Response] = []
