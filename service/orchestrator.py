@@ -348,6 +348,7 @@ class Orchestrator:
         self, scan: ScanRow, targets_image_mm: list[list[float]] | None
     ) -> tuple[dict[str, Any], NDArray[np.float64]]:
         from registration.frames import apply, invert
+        from registration.quality import predicted_tre_mm
         from registration.register import register_points
 
         timings: dict[str, float] = {}
@@ -369,12 +370,13 @@ class Orchestrator:
             robot_mm, image_mm, params=params, targets_robot_mm=default_targets, phantom=self.phantom
         )
         targets_img: NDArray[np.float64]
+        predicted_tre = np.asarray(res.predicted_tre_mm, dtype=np.float64)
         if targets_image_mm:
+            # the UI's targets are in the image frame; Fitzpatrick's TRE needs them in the frame of the
+            # fiducials, so map them back through the registration just computed
             targets_img = np.asarray(targets_image_mm, dtype=np.float64).reshape(-1, 3)
             targets_robot = apply(invert(res.image_from_robot), targets_img)
-            res = register_points(
-                robot_mm, image_mm, params=params, targets_robot_mm=targets_robot, phantom=self.phantom
-            )
+            predicted_tre = predicted_tre_mm(res.fle_mm, robot_mm[res.robot_indices], targets_robot)
         else:
             targets_img = apply(res.image_from_robot, default_targets)
         timings["register_s"] = time.perf_counter() - t
@@ -389,7 +391,7 @@ class Orchestrator:
             "n_matched": int(res.n_matched),
             "symmetry_margin": int(res.symmetry_margin),
             "rotation_det": float(res.rotation_det),
-            "predicted_tre_mm": [float(v) for v in np.asarray(res.predicted_tre_mm)],
+            "predicted_tre_mm": [float(v) for v in predicted_tre],
             "targets_image_mm": targets_img.tolist(),
             "targets_source": "request"
             if targets_image_mm

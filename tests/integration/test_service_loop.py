@@ -253,6 +253,11 @@ def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
     r2 = svc.client.post("/register", json={"targets_mm": targets})
     assert r2.status_code == 200, r2.text
     assert r2.json()["targets_image_mm"] == targets and len(r2.json()["predicted_tre_mm"]) == 2
+    # the default targets (robot frame), sent back in the image frame, give the same predicted TRE:
+    # the image → robot mapping of the UI's targets is right
+    r3 = svc.client.post("/register", json={"targets_mm": reg["targets_image_mm"]})
+    assert r3.status_code == 200, r3.text
+    np.testing.assert_allclose(r3.json()["predicted_tre_mm"], reg["predicted_tre_mm"], rtol=1e-9)
 
 
 def test_current_registration_fast_path_matches_the_route(svc: Service) -> None:
