@@ -23,6 +23,7 @@ import time
 from typing import Any
 
 from drivers.modbus import RegisterMap, joints_to_registers
+from mocks.robot.faults import QueuedFaults
 from mocks.robot.robot import ScriptedRobot
 
 log = logging.getLogger(__name__)
@@ -46,9 +47,7 @@ class ModbusMockServer:
         self._server: Any = None
         self._resumed = asyncio.Event()
         self._resumed.set()
-        self._nan_frames = 0
-        self._nan_joint = 0
-        self._pending_raw: list[bytes] = []
+        self.faults = QueuedFaults()
         self.joint_frames_sent = 0
         self.bytes_from_clients = 0  # Modbus clients must send requests; counted for symmetry only
         self.write_requests = 0
@@ -93,10 +92,7 @@ class ModbusMockServer:
             self.write_requests += 1
             return None
         await self._resumed.wait()
-        q = list(self.robot.joints_rad_at())
-        if self._nan_frames > 0:
-            q[self._nan_joint] = math.nan
-            self._nan_frames -= 1
+        q = self.faults.joints(self.robot.joints_rad_at())
         rm = self.register_map
         if rm.data_type == "float32" or all(math.isfinite(v) for v in q):
             regs = joints_to_registers(q, rm)
@@ -111,9 +107,8 @@ class ModbusMockServer:
         if not sending:
             self.bytes_from_clients += len(data)
             return data
-        if self._pending_raw:
-            return self._pending_raw.pop(0)
-        return data
+        raw = self.faults.next_raw()
+        return data if raw is None else raw
 
     # ---- faults ---------------------------------------------------------------
 
@@ -124,11 +119,10 @@ class ModbusMockServer:
         self._resumed.set()
 
     def inject_nan(self, n_frames: int = 1, joint: int = 0) -> None:
-        self._nan_frames = n_frames
-        self._nan_joint = joint
+        self.faults.inject_nan(n_frames, joint)
 
     def inject_raw(self, data: bytes) -> None:
-        self._pending_raw.append(bytes(data))
+        self.faults.inject_raw(data)
 
     async def disconnect(self, down_s: float) -> None:
         port = self.port

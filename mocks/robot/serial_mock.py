@@ -19,12 +19,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import os
 import time
 import tty
 
 from drivers.serial_link import encode_joint_line, encode_status_line
+from mocks.robot.faults import QueuedFaults
 from mocks.robot.robot import ScriptedRobot
 
 log = logging.getLogger(__name__)
@@ -57,9 +57,7 @@ class SerialMock:
         self._task: asyncio.Task[None] | None = None
         self._stalled = False
         self._split = False
-        self._pending_raw: list[bytes] = []
-        self._nan_frames = 0
-        self._nan_joint = 0
+        self.faults = QueuedFaults()
         self._bad_checksum_frames = 0
         self._seq = 0
         self.joint_frames_sent = 0
@@ -119,11 +117,10 @@ class SerialMock:
         self.returned_t_s = time.monotonic()
 
     def inject_raw(self, data: bytes) -> None:
-        self._pending_raw.append(bytes(data))
+        self.faults.inject_raw(data)
 
     def inject_nan(self, n_frames: int = 1, joint: int = 0) -> None:
-        self._nan_frames = n_frames
-        self._nan_joint = joint
+        self.faults.inject_nan(n_frames, joint)
 
     def inject_bad_checksum(self, n_frames: int = 1) -> None:
         self._bad_checksum_frames = n_frames
@@ -139,12 +136,9 @@ class SerialMock:
         cycle = 0
         while True:
             if not self._stalled:
-                while self._pending_raw:
-                    await self._write(self._pending_raw.pop(0))
-                q = list(self.robot.joints_rad_at())
-                if self._nan_frames > 0:
-                    q[self._nan_joint] = math.nan
-                    self._nan_frames -= 1
+                for raw in self.faults.take_raw():
+                    await self._write(raw)
+                q = self.faults.joints(self.robot.joints_rad_at())
                 line = encode_joint_line(self._seq, q)
                 if self._bad_checksum_frames > 0:
                     line = line[:-4] + (b"00" if line[-4:-2] != b"00" else b"FF") + b"\r\n"

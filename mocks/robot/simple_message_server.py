@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import socket
 import struct
 import time
@@ -36,6 +35,7 @@ from drivers.simple_message import (
     encode_joint_position,
     encode_status,
 )
+from mocks.robot.faults import QueuedFaults
 from mocks.robot.robot import ScriptedRobot
 
 log = logging.getLogger(__name__)
@@ -86,9 +86,7 @@ class SimpleMessageServer:
         self._writers: set[asyncio.StreamWriter] = set()
         self._stalled = False
         self._split = False
-        self._pending_raw: list[bytes] = []
-        self._nan_frames = 0
-        self._nan_joint = 0
+        self.faults = QueuedFaults()
         self.joint_frames_sent = 0
         self.status_frames_sent = 0
         self.bytes_from_clients = 0
@@ -142,12 +140,11 @@ class SimpleMessageServer:
 
     def inject_raw(self, data: bytes) -> None:
         """Send ``data`` verbatim before the next frame (garbage, an oversized prefix…)."""
-        self._pending_raw.append(bytes(data))
+        self.faults.inject_raw(data)
 
     def inject_nan(self, n_frames: int = 1, joint: int = 0) -> None:
         """Replace joint ``joint`` by NaN in the next ``n_frames`` joint frames."""
-        self._nan_frames = n_frames
-        self._nan_joint = joint
+        self.faults.inject_nan(n_frames, joint)
 
     def set_split_frames(self, enabled: bool) -> None:
         """Write every byte separately (with a short pause) instead of three writes per frame."""
@@ -199,8 +196,8 @@ class SimpleMessageServer:
             if writer.transport.is_closing():
                 return
             if not self._stalled:
-                while self._pending_raw:
-                    await self._write(writer, [self._pending_raw.pop(0)])
+                for raw in self.faults.take_raw():
+                    await self._write(writer, [raw])
                 await self._send_joints(writer)
                 if cycle % self.status_every == 0:
                     st = self.robot.controller_status
@@ -219,10 +216,7 @@ class SimpleMessageServer:
             await asyncio.sleep(max(0.0, delay))
 
     async def _send_joints(self, writer: asyncio.StreamWriter) -> None:
-        q = list(self.robot.joints_rad_at())
-        if self._nan_frames > 0:
-            q[self._nan_joint] = math.nan
-            self._nan_frames -= 1
+        q = self.faults.joints(self.robot.joints_rad_at())
         if self.msg_type == MSG_JOINT_POSITION:
             frame = encode_joint_position(q)
         else:
