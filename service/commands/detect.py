@@ -60,6 +60,12 @@ def run(args: argparse.Namespace) -> int:
     volume = load_series(args.dicom_dir, series_uid=args.series_uid)
     result = detect_spheres(volume, params)
 
+    if args.json_out is not None:
+        doc = result.to_dict(series_uid=volume.series_uid)
+        args.json_out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json_out.with_name(f".{args.json_out.name}.part")
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
+        tmp.replace(args.json_out)
     out = sys.stdout
     out.write(
         f"series {volume.series_uid}: {len(result.spheres)} sphere(s), method {result.method}, "
@@ -81,10 +87,5 @@ def run(args: argparse.Namespace) -> int:
             x, y, z = r.center_image_mm
             out.write(f"  ({x:.1f}, {y:.1f}, {z:.1f}) mm: {r.reason}\n")
     if args.json_out is not None:
-        doc = result.to_dict(series_uid=volume.series_uid)
-        args.json_out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json_out.with_name(f".{args.json_out.name}.part")
-        tmp.write_text(json.dumps(doc, indent=2) + "\n")
-        tmp.replace(args.json_out)
         out.write(f"wrote {args.json_out}\n")
     return 0

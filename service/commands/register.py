@@ -216,9 +216,11 @@ def run(args: argparse.Namespace) -> int:
         timings_s={**timings, **result.timings_s},
         provenance={**provenance, **dict(result.provenance)},
     )
-    sys.stdout.write(summary(result.to_dict()))
+    doc = result.to_dict()
+    if args.json:  # files first: the result must not depend on stdout staying open
+        write_json(args.json, doc)
+    sys.stdout.write(summary(doc))
     if args.json:
-        write_json(args.json, result.to_dict())
         sys.stdout.write(f"written: {args.json}\n")
     return 0
 

@@ -53,6 +53,13 @@ def run(args: argparse.Namespace) -> int:
         write_refusal(args.json, e)
         raise
     out = {**res.to_dict(), "timings_s": timings, "provenance": provenance}
+    if args.histogram:  # files first: the result must not depend on stdout staying open
+        from service.histogram import write_error_histogram
+
+        write_error_histogram(res.errors_mm, args.histogram)
+        out["histogram"] = str(args.histogram)
+    if args.json:
+        write_json(args.json, out)
     sys.stdout.write(
         f"verification: {res.n_expected} expected, {res.n_detected} detected, {res.n_matched} matched "
         f"(gate {res.gate_mm:g} mm)\n"
@@ -60,12 +67,7 @@ def run(args: argparse.Namespace) -> int:
         f"max {res.max_mm:.3f} mm\n"
     )
     if args.histogram:
-        from service.histogram import write_error_histogram
-
-        write_error_histogram(res.errors_mm, args.histogram)
-        out["histogram"] = str(args.histogram)
         sys.stdout.write(f"histogram: {args.histogram}\n")
     if args.json:
-        write_json(args.json, out)
         sys.stdout.write(f"written: {args.json}\n")
     return 0

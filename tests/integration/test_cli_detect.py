@@ -1,0 +1,50 @@
+"""``oarmreg detect`` end to end on a simulated DICOM export (issue #3 item 6)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from mocks.oarm.dicom_export import write_dicom_series
+from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
+from registration.errors import EXIT_INPUT
+from service.cli import main
+
+MATCH_MM = 0.5
+"""A detection within this of a truth centre is that sphere (spheres are ≥ 15 mm apart)."""
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory: pytest.TempPathFactory, phantom):  # type: ignore[no-untyped-def]
+    settings = AcquisitionSettings.preset("demo", rows=256, columns=256, n_views=180)
+    scan = simulate_scan(phantom, demo_pose(), settings)
+    out = tmp_path_factory.mktemp("cli-detect") / "series"
+    write_dicom_series(scan, out, reverse_order=True)
+    return out, scan
+
+
+def test_detect_writes_the_documented_json(export, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    folder, scan = export
+    out = tmp_path / "det.json"
+    assert main(["detect", str(folder), "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "sphere(s)" in text and f"wrote {out}" in text
+    doc = json.loads(out.read_text())
+    assert doc["frame"] == "image" and doc["series_uid"]
+    centres = np.array([s["center_mm"] for s in doc["spheres"]])
+    assert {"center_mm", "radius_mm", "n_slices", "score"} <= set(doc["spheres"][0])
+    # every truth sphere found once, nothing else, centres in LPS mm
+    d, idx = cKDTree(centres).query(scan.spheres_image_mm)
+    assert len(centres) == len(scan.spheres_image_mm) and len(set(idx)) == len(idx)
+    assert d.max() < MATCH_MM and d.mean() < 0.1
+
+
+def test_detect_refuses_a_folder_without_ct(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    (tmp_path / "notes.txt").write_text("not DICOM")
+    assert main(["detect", str(tmp_path)]) == EXIT_INPUT
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no CT image series found" in err and "notes.txt" in err
