@@ -32,7 +32,13 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from registration import __version__
-from registration.correspondence import Hypothesis, find_hypotheses, same_pose
+from registration.correspondence import (
+    DEFAULT_DISTINCT_ROTATION_DEG,
+    DEFAULT_DISTINCT_TRANSLATION_MM,
+    Hypothesis,
+    find_hypotheses,
+    same_pose,
+)
 from registration.errors import (
     AccuracyGateError,
     AmbiguousMatchError,
@@ -89,10 +95,12 @@ class RegistrationParams:
     min_runner_up_margin: int = 3
     """Matched spheres by which the best pose must beat the best distinct runner-up (research §1.6:
     m ≥ 3, so that one or two missed detections cannot flip the answer)."""
-    max_fre_mm: float = 1.0
-    """FRE gate.  Simulated FRE is ≈ 0.1 mm (σ 0.05 mm image, 0.02 mm robot); research §2 measures
-    0.6 mm at σ = 0.25 mm per axis per space; above 1 mm something is wrong (distortion, a sphere
-    that moved, a wrong robot pose), not noise."""
+    max_fre_mm: float = 0.5
+    """FRE gate, the value of ``quality.max_fre_mm`` in configs/oarmreg.toml (one source of truth:
+    service/settings.py takes its default from here).  Simulated FRE is ≈ 0.1 mm (σ 0.05 mm image,
+    0.02 mm robot); the paper's phantom is machined to ±0.02 mm (Bai 2018 §2.1); 0.5 mm leaves room
+    for real-scanner noise while rejecting a one-pitch (15 mm) mismatch or a wrong joint reading.
+    Research §2 measures 0.6 mm at σ = 0.25 mm per axis per space: such data needs a larger gate."""
     pair_distance_tol_mm: float = 1.0
     """Two inter-sphere distances agree when closer than this.  A distance difference has sd ≈ 2σ
     (σ√2 per space for σ per axis); 4 × 2 × σ with σ = 0.1 mm is 0.8 mm, + margin → 1 mm."""
@@ -105,10 +113,10 @@ class RegistrationParams:
     ``min_agreeing_triples`` agree, so the usual scan uses two or three."""
     min_agreeing_triples: int = 2
     """The search stops once the best pose was found from this many independent base triples."""
-    distinct_rotation_deg: float = 5.0
+    distinct_rotation_deg: float = DEFAULT_DISTINCT_ROTATION_DEG
     """Two poses are distinct if their rotations differ by more than this (the grid's symmetries are
-    ≥ 90° apart; 3-point pose noise is ≈ 0.1°)."""
-    distinct_translation_mm: float = 3.0
+    ≥ 90° apart; 3-point pose noise is ≈ 0.1°); also find_hypotheses' default."""
+    distinct_translation_mm: float = DEFAULT_DISTINCT_TRANSLATION_MM
     """... or if the robot centroid lands more than this apart (one pitch is 15 mm)."""
     max_runner_ups: int = 3
     """Distinct runner-up candidates refined by ICP (plus every phantom symmetry twin)."""
