@@ -35,6 +35,7 @@ from registration.detection import (
     threshold_hits,
 )
 from registration.errors import DetectionError
+from registration.mar import reduce_metal_artifacts
 from registration.volume import Volume
 
 F64 = NDArray[np.float64]
@@ -50,7 +51,7 @@ P = DetectionParams()
 def fake_clock(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[float]]:
     """time.perf_counter as seen by registration.detection returns these values in turn."""
     ticks: list[float] = []
-    monkeypatch.setattr(detection.time, "perf_counter", lambda: ticks.pop(0))
+    monkeypatch.setattr("registration.detection.time.perf_counter", lambda: ticks.pop(0))
     yield ticks
 
 
@@ -194,13 +195,12 @@ def test_slice_circles_find_the_sphere_in_its_slices(
     vol = make_volume(centre[None])
     params = DetectionParams(method=method, use_mar=use_mar)
     mar_calls: list[int] = []
-    real_mar = detection.reduce_metal_artifacts
 
     def counting_mar(*args: Any, **kwargs: Any) -> Any:
         mar_calls.append(1)
-        return real_mar(*args, **kwargs)
+        return reduce_metal_artifacts(*args, **kwargs)
 
-    monkeypatch.setattr(detection, "reduce_metal_artifacts", counting_mar)
+    monkeypatch.setattr("registration.detection.reduce_metal_artifacts", counting_mar)
     slices = range(17, 24)
     circles = slice_circles(vol.voxels, slices, centre, params, float(SP[0]), StageTimer(TIMED_STAGES))
     assert len(circles) >= 3 and all(17 <= c.k < 24 for c in circles)
