@@ -129,6 +129,20 @@ def unique_pairs(dist: F64, image_idx: I64) -> tuple[I64, I64]:
     return r, image_idx[r].astype(np.int64)
 
 
+def _final_fit(
+    robot_mm: F64, image_mm: F64, tree: cKDTree, t: F64, gate_mm: float, r_idx: I64, i_idx: I64
+) -> tuple[F64, I64, I64]:
+    """The pairs at the final gate and their least-squares fit (the loop's pairs if fewer than 3)."""
+    mapped = robot_mm @ t[:3, :3].T + t[:3, 3]
+    d, j = tree.query(mapped, distance_upper_bound=gate_mm)
+    r_fin, i_fin = unique_pairs(d, np.minimum(j, len(image_mm) - 1).astype(np.int64))
+    if len(r_fin) < MIN_PAIRS:
+        return t, r_idx, i_idx
+    if not (np.array_equal(r_fin, r_idx) and np.array_equal(i_fin, i_idx)):
+        t = fit_rigid_unchecked(robot_mm[r_fin], image_mm[i_fin])
+    return t, r_fin, i_fin
+
+
 def icp(
     robot_mm: F64,
     image_mm: F64,
@@ -192,14 +206,7 @@ def icp(
             break
         prev_r = r_idx
         gate = new_gate
-    # final pairs at the final gate and their least-squares fit
-    mapped = robot_mm @ t[:3, :3].T + t[:3, 3]
-    d, j = tree.query(mapped, distance_upper_bound=gate)
-    r_fin, i_fin = unique_pairs(d, np.minimum(j, len(image_mm) - 1).astype(np.int64))
-    if len(r_fin) >= MIN_PAIRS:
-        if not (np.array_equal(r_fin, r_idx) and np.array_equal(i_fin, i_idx)):
-            t = fit_rigid_unchecked(robot_mm[r_fin], image_mm[i_fin])
-        r_idx, i_idx = r_fin, i_fin
+    t, r_idx, i_idx = _final_fit(robot_mm, image_mm, tree, t, gate, r_idx, i_idx)
     res = np.asarray(
         np.linalg.norm(robot_mm[r_idx] @ t[:3, :3].T + t[:3, 3] - image_mm[i_idx], axis=1), dtype=np.float64
     )
