@@ -56,6 +56,24 @@ DEFAULT_N_PROBES: Final = 8
 DEFAULT_MAX_SCORED: Final = 48
 """Hypotheses per base triple that are scored on every sphere (the best by probe hits)."""
 
+DEFAULT_DISTINCT_ROTATION_DEG: Final = 5.0
+"""Two poses are distinct if their rotations differ by more than this: the grid's symmetries are
+≥ 90° apart and 3-point pose noise is ≈ 0.1°, so anything from 1° to 45° separates them; 5° is
+the value :class:`registration.register.RegistrationParams` has always used (one source of truth)."""
+
+DEFAULT_DISTINCT_TRANSLATION_MM: Final = 3.0
+"""... or if the robot centroid lands more than this apart (one pitch is 15 mm; pose noise ≪ 1 mm)."""
+
+DEFAULT_MAX_HYPOTHESES: Final = 12
+"""Distinct hypotheses returned at most: the 8 proper symmetries of the full grid plus margin."""
+
+MIN_HYPOTHESIS_INLIERS: Final = 3
+"""A hypothesis with fewer inliers than its own base triple (3 points) is noise and is dropped."""
+
+COLLINEAR_AREA_FRACTION: Final = 1e-6
+"""A base triple whose doubled triangle area is below this × diameter² is collinear (numerical
+zero for mm coordinates: at a 100 mm diameter it is a 0.01 mm² triangle) and is skipped."""
+
 
 @dataclass(frozen=True, eq=False)
 class Hypothesis:
@@ -161,7 +179,7 @@ def _base_triples(
                 continue
             area = np.linalg.norm(np.cross(robot_mm[b] - robot_mm[a], robot_mm[cands] - robot_mm[a]), axis=1)
             c = int(cands[int(np.argmax(area))])
-            if area.max() < 1e-6 * diameter**2:
+            if area.max() < COLLINEAR_AREA_FRACTION * diameter**2:
                 continue  # collinear
             t = (a, b, c)
             if any(set(t) == set(s) for s in triples):
@@ -194,6 +212,120 @@ def same_pose(t_a: F64, t_b: F64, centroid_mm: F64, rotation_deg: float, transla
     return float(np.linalg.norm(pa - pb)) <= translation_mm
 
 
+@dataclass(frozen=True, eq=False)
+class _ImagePairs:
+    """The image's distance matrix and its unordered pairs sorted by length (for ``searchsorted``)."""
+
+    d_image: F64
+    sorted_mm: F64
+    first: I64
+    second: I64
+
+    @classmethod
+    def of(cls, image_mm: F64) -> _ImagePairs:
+        d_image = pairwise_distances(image_mm)
+        iu, ju = np.triu_indices(len(image_mm), 1)
+        pair_d = d_image[iu, ju]
+        order = np.argsort(pair_d)
+        return cls(d_image, pair_d[order], iu[order].astype(np.int64), ju[order].astype(np.int64))
+
+
+def consistent_image_triples(
+    triple: tuple[int, int, int], d_robot: F64, pairs: _ImagePairs, pair_tol_mm: float
+) -> I64:
+    """(K, 3) image index triples (i, j, k) whose three distances match robot triple (a, b, c).
+
+    |ij| matches |ab| (found by ``searchsorted``, both orders of each pair), then |ik| must match
+    |ac| and |jk| must match |bc|, each within ``pair_tol_mm``.
+    """
+    a, b, c = triple
+    lo = int(np.searchsorted(pairs.sorted_mm, d_robot[a, b] - pair_tol_mm, side="left"))
+    hi = int(np.searchsorted(pairs.sorted_mm, d_robot[a, b] + pair_tol_mm, side="right"))
+    if hi <= lo:
+        return np.empty((0, 3), dtype=np.int64)
+    ia = np.concatenate([pairs.first[lo:hi], pairs.second[lo:hi]])
+    ib = np.concatenate([pairs.second[lo:hi], pairs.first[lo:hi]])
+    ok = (np.abs(pairs.d_image[ia] - d_robot[a, c]) < pair_tol_mm) & (
+        np.abs(pairs.d_image[ib] - d_robot[b, c]) < pair_tol_mm
+    )
+    p_idx, k_idx = np.nonzero(ok)
+    return np.stack([ia[p_idx], ib[p_idx], k_idx], axis=1).astype(np.int64)
+
+
+def score_triple_poses(
+    robot_mm: F64,
+    image_mm: F64,
+    triple: tuple[int, int, int],
+    image_triples: I64,
+    tree: cKDTree,
+    *,
+    gate_mm: float,
+    n_probes: int,
+    max_scored: int,
+) -> tuple[F64, I64, F64]:
+    """Poses of one robot triple fitted to each image triple, scored and ranked best first.
+
+    More than ``max_scored`` poses are first pre-filtered on ``n_probes`` far-apart robot spheres
+    outside the triple.  Returns (transforms (H, 4, 4), inlier counts (H,), inlier RMS mm (H,)),
+    ranked by count then RMS, without poses below :data:`MIN_HYPOTHESIS_INLIERS` inliers.
+    """
+    a, b, c = triple
+    transforms = fit_rigid_batch(robot_mm[[a, b, c]], image_mm[image_triples])
+    probe_order = farthest_point_order(robot_mm, start=a, count=n_probes + 3)
+    probes = [int(p) for p in probe_order if p not in (a, b, c)][:n_probes]
+    if len(transforms) > max_scored and probes:
+        hits, _ = _count_inliers(transforms, robot_mm[probes], tree, gate_mm)
+        transforms = transforms[np.argsort(-hits, kind="stable")[:max_scored]]
+    n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
+    rank = np.lexsort((rms, -n_in))
+    rank = rank[n_in[rank] >= MIN_HYPOTHESIS_INLIERS]
+    return transforms[rank], n_in[rank], rms[rank]
+
+
+class PoseClusters:
+    """Distinct poses found so far: a pose close to a cluster (rotation within ``rotation_deg``
+    and robot centroid within ``translation_mm``) adds its base triple to that cluster's support."""
+
+    def __init__(self, centroid_mm: F64, rotation_deg: float, translation_mm: float) -> None:
+        self._centroid = centroid_mm
+        self._cos_min = float(np.cos(np.radians(rotation_deg)))
+        self._translation_mm = translation_mm
+        self.transforms = np.empty((0, 4, 4))
+        self._positions = np.empty((0, 3))  # where each cluster maps the robot centroid
+        self.n_inliers: list[int] = []
+        self.rms_mm: list[float] = []
+        self.triples: list[set[int]] = []
+
+    def add(self, t: F64, n_inliers: int, rms_mm: float, triple_index: int) -> None:
+        pos = t[:3, :3] @ self._centroid + t[:3, 3]
+        if len(self.transforms):
+            # cos of the angle between rotations: (trace(R_k Rᵀ) − 1) / 2
+            cos = (np.einsum("kij,ij->k", self.transforms[:, :3, :3], t[:3, :3]) - 1.0) / 2.0
+            near = (cos >= self._cos_min) & (
+                np.linalg.norm(self._positions - pos, axis=1) <= self._translation_mm
+            )
+            hit = np.flatnonzero(near)
+            if len(hit):
+                self.triples[int(hit[0])].add(triple_index)
+                return
+        self.transforms = np.concatenate([self.transforms, t[None]])
+        self._positions = np.concatenate([self._positions, pos[None]])
+        self.n_inliers.append(int(n_inliers))
+        self.rms_mm.append(float(rms_mm))
+        self.triples.append({triple_index})
+
+    def ranked(self) -> list[int]:
+        """Cluster indices, most inliers first, then lowest RMS."""
+        return sorted(
+            range(len(self.n_inliers)), key=lambda i: (self.n_inliers[i], -self.rms_mm[i]), reverse=True
+        )
+
+    def best_support(self) -> int:
+        """Base triples that produced the best cluster (0 if none)."""
+        ranked = self.ranked()
+        return len(self.triples[ranked[0]]) if ranked else 0
+
+
 def find_hypotheses(
     robot_mm: F64,
     image_mm: F64,
@@ -202,9 +334,9 @@ def find_hypotheses(
     gate_mm: float,
     max_base_triples: int = 12,
     min_agreeing: int = 2,
-    distinct_rotation_deg: float = 3.0,
-    distinct_translation_mm: float = 3.0,
-    max_hypotheses: int = 12,
+    distinct_rotation_deg: float = DEFAULT_DISTINCT_ROTATION_DEG,
+    distinct_translation_mm: float = DEFAULT_DISTINCT_TRANSLATION_MM,
+    max_hypotheses: int = DEFAULT_MAX_HYPOTHESES,
     n_probes: int = DEFAULT_N_PROBES,
     max_scored: int = DEFAULT_MAX_SCORED,
     tree: cKDTree | None = None,
@@ -236,94 +368,44 @@ def find_hypotheses(
         Sorted by inlier count (descending) then RMS; empty if no consistent
         triple exists.  Each pose has det R = +1.
     """
-    n, m = len(robot_mm), len(image_mm)
-    if n < 3 or m < 3:
+    if len(robot_mm) < 3 or len(image_mm) < 3:
         return []
     if tree is None:
         tree = cKDTree(image_mm)
     d_robot = pairwise_distances(robot_mm)
-    d_image = pairwise_distances(image_mm)
-    iu, ju = np.triu_indices(m, 1)
-    pair_d = d_image[iu, ju]
-    order = np.argsort(pair_d)
-    pair_sorted = pair_d[order]
-    pi_sorted, pj_sorted = iu[order], ju[order]
-    triples = choose_base_triples(robot_mm, d_robot, pair_sorted, pair_tol_mm, max_base_triples)
-    centroid = robot_mm.mean(axis=0)
-    cos_min = float(np.cos(np.radians(distinct_rotation_deg)))
-    # clusters of equivalent poses, as arrays for vectorised comparison
-    cl_t = np.empty((0, 4, 4))
-    cl_pos = np.empty((0, 3))  # where each cluster maps the robot centroid
-    cl_n: list[int] = []
-    cl_rms: list[float] = []
-    cl_triples: list[set[int]] = []
-
-    for t_idx, (a, b, c) in enumerate(triples):
-        lo = int(np.searchsorted(pair_sorted, d_robot[a, b] - pair_tol_mm, side="left"))
-        hi = int(np.searchsorted(pair_sorted, d_robot[a, b] + pair_tol_mm, side="right"))
-        if hi <= lo:
+    pairs = _ImagePairs.of(image_mm)
+    triples = choose_base_triples(robot_mm, d_robot, pairs.sorted_mm, pair_tol_mm, max_base_triples)
+    clusters = PoseClusters(robot_mm.mean(axis=0), distinct_rotation_deg, distinct_translation_mm)
+    for t_idx, triple in enumerate(triples):
+        image_triples = consistent_image_triples(triple, d_robot, pairs, pair_tol_mm)
+        if len(image_triples) == 0:
             continue
-        ia = np.concatenate([pi_sorted[lo:hi], pj_sorted[lo:hi]])
-        ib = np.concatenate([pj_sorted[lo:hi], pi_sorted[lo:hi]])
-        ok = (np.abs(d_image[ia] - d_robot[a, c]) < pair_tol_mm) & (
-            np.abs(d_image[ib] - d_robot[b, c]) < pair_tol_mm
+        transforms, n_in, rms = score_triple_poses(
+            robot_mm,
+            image_mm,
+            triple,
+            image_triples,
+            tree,
+            gate_mm=gate_mm,
+            n_probes=n_probes,
+            max_scored=max_scored,
         )
-        p_idx, k_idx = np.nonzero(ok)
-        if len(p_idx) == 0:
-            continue
-        img_triples = np.stack([ia[p_idx], ib[p_idx], k_idx], axis=1)
-        transforms = fit_rigid_batch(robot_mm[[a, b, c]], image_mm[img_triples])
-        # probe pre-filter: far-apart spheres outside the triple
-        probe_order = farthest_point_order(robot_mm, start=a, count=n_probes + 3)
-        probes = [int(p) for p in probe_order if p not in (a, b, c)][:n_probes]
-        if len(transforms) > max_scored and probes:
-            hits, _ = _count_inliers(transforms, robot_mm[probes], tree, gate_mm)
-            keep = np.argsort(-hits, kind="stable")[:max_scored]
-            transforms = transforms[keep]
-        n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
-        rank = np.lexsort((rms, -n_in))
-        rank = rank[n_in[rank] >= 3]
-        for r in rank:
-            t = transforms[r]
-            pos = t[:3, :3] @ centroid + t[:3, 3]
-            if len(cl_t):
-                # cos of the angle between rotations: (trace(R_k Rᵀ) − 1) / 2
-                cos = (np.einsum("kij,ij->k", cl_t[:, :3, :3], t[:3, :3]) - 1.0) / 2.0
-                near = (cos >= cos_min) & (np.linalg.norm(cl_pos - pos, axis=1) <= distinct_translation_mm)
-                hit = np.flatnonzero(near)
-            else:
-                hit = np.empty(0, dtype=np.int64)
-            if len(hit):
-                cl_triples[int(hit[0])].add(t_idx)
-                continue
-            cl_t = np.concatenate([cl_t, t[None]])
-            cl_pos = np.concatenate([cl_pos, pos[None]])
-            cl_n.append(int(n_in[r]))
-            cl_rms.append(float(rms[r]))
-            cl_triples.append({t_idx})
-        if cl_n:
-            best_i = max(range(len(cl_n)), key=lambda i: (cl_n[i], -cl_rms[i]))
-            if len(cl_triples[best_i]) >= min_agreeing:
-                log.debug(
-                    "correspondence: best pose confirmed by %d base triples after %d",
-                    len(cl_triples[best_i]),
-                    t_idx + 1,
-                )
-                break
-
-    ranked = sorted(range(len(cl_n)), key=lambda i: (cl_n[i], -cl_rms[i]), reverse=True)
+        for t, n_t, rms_t in zip(transforms, n_in, rms, strict=True):
+            clusters.add(t, int(n_t), float(rms_t), t_idx)
+        if clusters.best_support() >= min_agreeing:
+            log.debug(
+                "correspondence: best pose confirmed by %d base triples after %d",
+                clusters.best_support(),
+                t_idx + 1,
+            )
+            break
     return [
         Hypothesis(
-            image_from_robot=cl_t[i].copy(),
-            n_inliers=cl_n[i],
-            rms_mm=cl_rms[i],
-            support=len(cl_triples[i]),
-            base_triples=tuple(triples[k] for k in sorted(cl_triples[i])),
+            image_from_robot=clusters.transforms[i].copy(),
+            n_inliers=clusters.n_inliers[i],
+            rms_mm=clusters.rms_mm[i],
+            support=len(clusters.triples[i]),
+            base_triples=tuple(triples[k] for k in sorted(clusters.triples[i])),
         )
-        for i in ranked[:max_hypotheses]
+        for i in clusters.ranked()[:max_hypotheses]
     ]
-
-
-def _key(h: object) -> tuple[int, float]:
-    assert isinstance(h, Hypothesis)
-    return (h.n_inliers, -h.rms_mm)

@@ -31,6 +31,8 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -52,6 +54,10 @@ METHODS: Final = ("subvoxel", "paper")
 
 AIR_HU: Final = -1000.0
 """Padding outside a circular FOV is stored at or below air (−1024 HU for RescaleIntercept −1024)."""
+
+FOV_CORNER_PX: Final = 3
+"""Side of the corner blocks tested for constant padding: 9 equal pixels do not happen by chance in
+a noisy reconstruction, and a 3-pixel corner is inside the padding of any circular FOV."""
 
 _GROUP_CELL_VOXELS: Final = (4, 8, 8)
 """(k, j, i) size of the coarse cells used to group threshold hits: ~3.3 mm, far below the 15 mm pitch."""
@@ -111,6 +117,15 @@ class DetectionParams:
         needs ≥ 2 for its radius fit).
     patch_half_mm : float
         Half-size of the square slice patch used for MAR and circles.
+    min_patch_half_px : int
+        The patch is at least this many pixels each side of the centre (a coarse grid still gives
+        the circle finder a 9 × 9 patch: a 2.5 mm sphere with blooming spans ≥ 3 pixels).
+    crop_margin_mm : float
+        Margin around a group of threshold hits when its components are labelled: more than a
+        voxel of blooming on each side, far below the 15 mm pitch (neighbours stay out).
+    background_shell_mm : float
+        ``subvoxel``: thickness of the shell outside the weighting ball whose median is the local
+        background (1.5 mm holds enough voxels at 0.4–0.8 mm spacing and stays on the phantom).
     mar, circles : MarParams, CircleParams
     """
 
@@ -127,6 +142,9 @@ class DetectionParams:
     centroid_iterations: int = 3
     min_circle_slices: int = 1
     patch_half_mm: float = 6.0
+    min_patch_half_px: int = 4
+    crop_margin_mm: float = 2.0
+    background_shell_mm: float = 1.5
     mar: MarParams = field(default_factory=MarParams)
     circles: CircleParams = field(default_factory=CircleParams)
 
@@ -279,7 +297,8 @@ def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
     """
     k = vox.shape[0] // 2
     sl = vox[k]
-    corners = [sl[:3, :3], sl[:3, -3:], sl[-3:, :3], sl[-3:, -3:]]
+    n = FOV_CORNER_PX
+    corners = [sl[:n, :n], sl[:n, -n:], sl[-n:, :n], sl[-n:, -n:]]
     v0 = corners[0].flat[0]
     if not all(bool(np.all(c == v0)) for c in corners):
         return None
@@ -298,10 +317,10 @@ def _subvoxel_centre(
 
     Returns (centre (i, j, k), background HU, peak HU).  The ball has radius
     ``radius + bloom`` mm; the background is the median of the shell between
-    that radius and 1.5 mm farther out.
+    that radius and ``background_shell_mm`` farther out.
     """
     r_ball = params.radius_mm + params.bloom_mm
-    r_shell = r_ball + 1.5
+    r_shell = r_ball + params.background_shell_mm
     half = np.ceil(r_shell / spacing).astype(int) + 1  # (i, j, k) voxels
     shape = vox.shape  # (k, j, i)
     centre = start_ijk.astype(np.float64).copy()
@@ -389,6 +408,331 @@ def _paper_depth(circles: list[_SliceCircle], radius_mm: float, dz_mm: float) ->
     return float(np.mean(zs))
 
 
+# ----------------------------------------------------------------------------- steps
+
+
+class StageTimer:
+    """Seconds per named stage: ``with timer.stage("mar_s"): ...`` adds that block's time.
+
+    ``stages`` are created at 0.0 up front (so a stage that never ran still reports 0 s) and keep
+    their order in :attr:`seconds`.
+    """
+
+    def __init__(self, stages: tuple[str, ...] = ()) -> None:
+        self.seconds: dict[str, float] = dict.fromkeys(stages, 0.0)
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+TIMED_STAGES: Final = ("threshold_s", "group_s", "components_s", "mar_s", "circles_s", "centres_s")
+"""The stages :func:`detect_spheres` reports (plus ``total_s``)."""
+
+
+def _checked_spacing(volume: Volume) -> F64:
+    """The voxel spacing (i, j, k) mm of a 3-D volume; DetectionError otherwise."""
+    vox = volume.voxels
+    if vox.ndim != 3 or min(vox.shape) < 1:
+        raise DetectionError(
+            f"series {volume.series_uid or '(no UID)'}: expected a 3-D volume, got shape {vox.shape}"
+        )
+    spacing = volume.spacing_mm
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise DetectionError(
+            f"series {volume.series_uid or '(no UID)'}: voxel spacing {spacing.tolist()} mm is not positive"
+        )
+    return spacing
+
+
+def threshold_hits(vox: NDArray[Any], threshold_hu: float) -> tuple[NDArray[np.intp], float]:
+    """Flat indices of voxels ≥ the threshold (one pass, no float copy) and the threshold as compared.
+
+    For an integer volume the threshold is rounded up to the stored type; one above its maximum
+    gives no hits.
+    """
+    integer = np.issubdtype(vox.dtype, np.integer)
+    thr_cast = float(np.ceil(threshold_hu)) if integer else float(threshold_hu)
+    if integer and thr_cast > np.iinfo(vox.dtype).max:
+        return np.zeros(0, dtype=np.intp), thr_cast
+    return np.flatnonzero(vox >= np.asarray(thr_cast).astype(vox.dtype)), thr_cast
+
+
+def find_blobs(
+    vox: NDArray[Any],
+    boxes: list[tuple[slice, slice, slice]],
+    threshold_hu: float,
+    spacing: F64,
+    crop_margin_mm: float,
+) -> list[_Blob]:
+    """Connected (26-neighbour) above-threshold components inside each group's crop, measured and
+    sorted by (k, j, i) of their bounding box."""
+    shape = (vox.shape[0], vox.shape[1], vox.shape[2])
+    margin = tuple(math.ceil(crop_margin_mm / s) + 1 for s in (spacing[2], spacing[1], spacing[0]))
+    blobs: list[_Blob] = []
+    for box in boxes:
+        crop_box = _expand(box, (margin[0], margin[1], margin[2]), shape)
+        crop = vox[crop_box]
+        labels, _ = ndimage.label(crop >= threshold_hu, structure=np.ones((3, 3, 3), dtype=bool))
+        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+            if sl is not None:
+                blobs.append(_measure_component(crop, labels[sl] == lab, sl, crop_box, spacing))
+    blobs.sort(key=lambda b: (b.box[0].start, b.box[1].start, b.box[2].start))
+    return blobs
+
+
+def _measure_component(
+    crop: NDArray[Any],
+    sub: NDArray[np.bool_],
+    sl: tuple[slice, ...],
+    crop_box: tuple[slice, slice, slice],
+    spacing: F64,
+) -> _Blob:
+    kk, jj, ii = np.nonzero(sub)
+    off = (
+        crop_box[0].start + sl[0].start,
+        crop_box[1].start + sl[1].start,
+        crop_box[2].start + sl[2].start,
+    )
+    full_box = (
+        slice(off[0], off[0] + sub.shape[0]),
+        slice(off[1], off[1] + sub.shape[1]),
+        slice(off[2], off[2] + sub.shape[2]),
+    )
+    return _Blob(
+        box=full_box,
+        n_voxels=int(sub.sum()),
+        peak_hu=float(crop[sl][sub].max()),
+        centroid_voxel=np.array([ii.mean() + off[2], jj.mean() + off[1], kk.mean() + off[0]]),
+        extent_mm=np.array(sub.shape[::-1], dtype=np.float64) * spacing,
+    )
+
+
+@dataclass(frozen=True)
+class SizeLimits:
+    """What a sphere-sized blob may measure, from the nominal diameter, blooming and voxel size."""
+
+    voxel_mm3: float
+    v_nominal_mm3: float
+    v_max_mm3: float
+    ext_min_mm: float
+    ext_max_mm: float
+
+    @classmethod
+    def of(cls, params: DetectionParams, spacing: F64) -> SizeLimits:
+        r = params.radius_mm
+        return cls(
+            voxel_mm3=float(np.prod(spacing)),
+            v_nominal_mm3=4.0 / 3.0 * math.pi * r**3,
+            v_max_mm3=4.0 / 3.0 * math.pi * (r + params.bloom_mm) ** 3,
+            ext_min_mm=params.min_extent_fraction * params.sphere_diameter_mm,
+            # blooming on both sides, plus one voxel each side for the quantised extent of the blob
+            ext_max_mm=params.sphere_diameter_mm + 2.0 * params.bloom_mm + 2.0 * float(spacing.max()),
+        )
+
+
+def blob_reject_reason(b: _Blob, limits: SizeLimits, params: DetectionParams) -> str | None:
+    """Why a blob is not a sphere by size or brightness (rod, wrong size, bone, streak), or None."""
+    size = " × ".join(f"{e:.1f}" for e in b.extent_mm)
+    n_sl = b.box[0].stop - b.box[0].start
+    if b.extent_mm.max() > limits.ext_max_mm:
+        return (
+            f"elongated or oversized metal ({size} mm over {n_sl} slices, sphere ≤ "
+            f"{limits.ext_max_mm:.1f} mm with blooming): connecting rod or other hardware"
+        )
+    vol_mm3 = b.n_voxels * limits.voxel_mm3
+    if vol_mm3 > limits.v_max_mm3:
+        return (
+            f"blob volume {vol_mm3:.1f} mm³ > {limits.v_max_mm3:.1f} mm³ "
+            f"(Ø{params.sphere_diameter_mm} mm sphere with blooming): wrong size"
+        )
+    if b.peak_hu < params.min_peak_hu:
+        return (
+            f"not bright enough for metal (peak {b.peak_hu:.0f} HU < {params.min_peak_hu:.0f} HU): "
+            "bone edge or streak crossing"
+        )
+    if b.extent_mm.min() < limits.ext_min_mm or vol_mm3 < params.min_volume_fraction * limits.v_nominal_mm3:
+        return (
+            f"too small ({size} mm, {vol_mm3:.2f} mm³; a Ø{params.sphere_diameter_mm} mm sphere is "
+            f"≥ {limits.ext_min_mm:.2f} mm across): streak crossing or noise"
+        )
+    return None
+
+
+def edge_reject_reason(
+    centre_ijk: F64, shape: tuple[int, int, int], spacing: F64, radius_mm: float
+) -> str | None:
+    """Why a sphere is cut by the edge of the sampled volume (voxel centres 0 … n−1), or None.
+
+    Blooming may touch the first/last slice, the nominal sphere itself may not.
+    """
+    last = np.array([shape[2] - 1, shape[1] - 1, shape[0] - 1])
+    room_mm = np.minimum(centre_ijk, last - centre_ijk) * spacing
+    if float(room_mm.min()) < radius_mm:
+        return (
+            f"cut by the edge of the volume (first/last slice or matrix edge): centre "
+            f"{float(room_mm.min()):.2f} mm from the edge < sphere radius {radius_mm} mm"
+        )
+    return None
+
+
+def fov_reject_reason(
+    centre_ijk: F64, fov_radius_mm: float | None, shape: tuple[int, int, int], spacing: F64, radius_mm: float
+) -> str | None:
+    """Why a sphere is cut by the circular field of view (centred on the matrix), or None."""
+    if fov_radius_mm is None:
+        return None
+    fov_centre = np.array([(shape[2] - 1) / 2.0, (shape[1] - 1) / 2.0])
+    off_axis_mm = float(np.hypot(*((centre_ijk[:2] - fov_centre) * spacing[:2])))
+    if off_axis_mm + radius_mm > fov_radius_mm:
+        return (
+            f"cut by the circular field of view: {off_axis_mm:.1f} mm off axis + radius {radius_mm} mm "
+            f"> FOV radius {fov_radius_mm:.1f} mm"
+        )
+    return None
+
+
+def slice_circles(
+    vox: NDArray[Any],
+    k_range: range,
+    centre_ijk: F64,
+    params: DetectionParams,
+    pixel_mm: float,
+    timer: StageTimer,
+) -> list[_SliceCircle]:
+    """The accepted circle nearest the 3-D centre in each slice of ``k_range`` (MAR as configured).
+
+    With ``paper`` + MAR every patch is MAR-filtered first (Bai 2018); otherwise MAR runs only on a
+    patch whose raw cross-section fails the circle test.
+    """
+    shape = vox.shape
+    half_px = max(math.ceil(params.patch_half_mm / pixel_mm), params.min_patch_half_px)
+    ci, cj = float(centre_ijk[0]), float(centre_ijk[1])
+    j0, j1 = max(round(cj) - half_px, 0), min(round(cj) + half_px + 1, shape[1])
+    i0, i1 = max(round(ci) - half_px, 0), min(round(ci) + half_px + 1, shape[2])
+    r_app_px = (params.radius_mm + params.bloom_mm) / pixel_mm
+    mar_every_patch = params.use_mar and params.method == "paper"
+
+    def circle(patch: NDArray[np.float32], k: int) -> _SliceCircle | None:
+        with timer.stage("circles_s"):
+            return _circle_near(patch, k, (i0, j0), (ci, cj), r_app_px, pixel_mm, params.circles)
+
+    circles: list[_SliceCircle] = []
+    for k in k_range:
+        patch = np.asarray(vox[k, j0:j1, i0:i1], dtype=np.float32)
+        best = None if mar_every_patch else circle(patch, k)
+        if best is None and params.use_mar:
+            with timer.stage("mar_s"):
+                patch = reduce_metal_artifacts(patch, pixel_mm, params.mar).patch
+            best = circle(patch, k)
+        if best is not None:
+            circles.append(best)
+    return circles
+
+
+CentreEstimator = Callable[[list[_SliceCircle], F64, float, float], tuple[F64 | None, str]]
+"""(circles, subvoxel centre (i, j, k), fitted radius mm, slice spacing mm) → (centre or None, why not)."""
+
+
+def _subvoxel_estimate(
+    circles: list[_SliceCircle], centre_sv: F64, radius_fit_mm: float, dz_mm: float
+) -> tuple[F64 | None, str]:
+    """The 3-D sub-voxel centre on the raw volume; the circles are only its cross-check."""
+    return centre_sv, ""
+
+
+def _paper_estimate(
+    circles: list[_SliceCircle], centre_sv: F64, radius_fit_mm: float, dz_mm: float
+) -> tuple[F64 | None, str]:
+    """Bai 2018: in-plane mean of the circle centres, depth by Pythagoras with the fitted radius."""
+    if len({c.k for c in circles}) < 2 or not math.isfinite(radius_fit_mm) or radius_fit_mm <= 0:
+        return None, (
+            f"paper method: {len(circles)} circle slice(s), the per-slice radii do not fit a sphere "
+            "(r_i² + z_i² = c + 2·z0·z_i needs ≥ 2 slices); try --method subvoxel"
+        )
+    k_c = _paper_depth(circles, radius_fit_mm, dz_mm)
+    return np.array([np.mean([c.i for c in circles]), np.mean([c.j for c in circles]), k_c]), ""
+
+
+CENTRE_ESTIMATORS: Final[Mapping[str, CentreEstimator]] = {
+    "subvoxel": _subvoxel_estimate,
+    "paper": _paper_estimate,
+}
+"""The centre estimator of each :data:`METHODS` entry."""
+
+
+def sphere_score(
+    circles: list[_SliceCircle], centre_sv: F64, spacing: F64, n_slices: int, radius_mm: float
+) -> float:
+    """Fraction of the blob's slices with a circle × (1 − in-plane circle/centre disagreement / radius)."""
+    inplane_mm = math.hypot(
+        (np.mean([c.i for c in circles]) - centre_sv[0]) * spacing[0],
+        (np.mean([c.j for c in circles]) - centre_sv[1]) * spacing[1],
+    )
+    frac = len(circles) / n_slices
+    return float(np.clip(frac, 0.0, 1.0) * max(0.0, 1.0 - inplane_mm / radius_mm))
+
+
+@dataclass(frozen=True)
+class _Scan:
+    """What every blob's measurement needs from the volume (internal)."""
+
+    volume: Volume
+    spacing: F64
+    pixel_mm: float
+    dz_mm: float
+    fov_radius_mm: float | None
+
+
+def _measure_sphere(
+    b: _Blob, scan: _Scan, limits: SizeLimits, params: DetectionParams, timer: StageTimer
+) -> DetectedSphere | str:
+    """The sphere a blob is, or the reason it is rejected."""
+    reason = blob_reject_reason(b, limits, params)
+    if reason is not None:
+        return reason
+    vox, spacing, r = scan.volume.voxels, scan.spacing, params.radius_mm
+    shape = (vox.shape[0], vox.shape[1], vox.shape[2])
+    with timer.stage("centres_s"):
+        centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params)
+    reason = edge_reject_reason(centre_sv, shape, spacing, r) or fov_reject_reason(
+        centre_sv, scan.fov_radius_mm, shape, spacing, r
+    )
+    if reason is not None:
+        return reason
+    circles = slice_circles(
+        vox, range(b.box[0].start, b.box[0].stop), centre_sv, params, scan.pixel_mm, timer
+    )
+    if len(circles) < params.min_circle_slices:
+        return (
+            f"{len(circles)} slice(s) with a circular cross-section (need {params.min_circle_slices}): "
+            "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
+        )
+    radius_fit, _ = _fit_radius(circles, scan.dz_mm)
+    centre, reason = CENTRE_ESTIMATORS[params.method](circles, centre_sv, radius_fit, scan.dz_mm)
+    if centre is None:
+        return reason
+    log.debug(
+        "sphere at voxel %s: bg %.0f HU, peak %.0f HU, %d circles, R_fit %.2f mm",
+        centre,
+        bg,
+        peak,
+        len(circles),
+        radius_fit,
+    )
+    return DetectedSphere(
+        center_image_mm=scan.volume.voxel_to_image(centre).astype(np.float64),
+        radius_mm=float(radius_fit),
+        n_slices=len(circles),
+        score=sphere_score(circles, centre_sv, spacing, b.box[0].stop - b.box[0].start, r),
+        center_voxel=centre.astype(np.float64),
+    )
+
+
 # ----------------------------------------------------------------------------- main entry
 
 
@@ -415,214 +759,33 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
         If the volume is not 3-D or has a degenerate geometry.
     """
     t_start = time.perf_counter()
-    timings: dict[str, float] = {}
+    timer = StageTimer(TIMED_STAGES)
+    spacing = _checked_spacing(volume)  # (i, j, k) mm
     vox = volume.voxels
-    if vox.ndim != 3 or min(vox.shape) < 1:
-        raise DetectionError(
-            f"series {volume.series_uid or '(no UID)'}: expected a 3-D volume, got shape {vox.shape}"
-        )
-    spacing = volume.spacing_mm  # (i, j, k) mm
-    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
-        raise DetectionError(
-            f"series {volume.series_uid or '(no UID)'}: voxel spacing {spacing.tolist()} mm is not positive"
-        )
-    shape = volume.shape  # (k, j, i)
-    pixel_mm = float(0.5 * (spacing[0] + spacing[1]))
-    dz_mm = float(spacing[2])
-
-    # 1. candidates: one threshold pass over the whole volume, no float copy
-    thr = params.candidate_threshold_hu
-    thr_cast = np.ceil(thr) if np.issubdtype(vox.dtype, np.integer) else thr
-    if np.issubdtype(vox.dtype, np.integer) and thr_cast > np.iinfo(vox.dtype).max:
-        flat = np.zeros(0, dtype=np.intp)
-    else:
-        flat = np.flatnonzero(vox >= np.asarray(thr_cast).astype(vox.dtype))
-    timings["threshold_s"] = time.perf_counter() - t_start
-    t = time.perf_counter()
-    boxes = _group_hits(flat, shape) if len(flat) else []
-    timings["group_s"] = time.perf_counter() - t
-
-    # 2. components inside each group's crop
-    t = time.perf_counter()
-    r = params.radius_mm
-    margin = tuple(math.ceil(2.0 / s) + 1 for s in (spacing[2], spacing[1], spacing[0]))
-    blobs: list[_Blob] = []
-    for box in boxes:
-        crop_box = _expand(box, (margin[0], margin[1], margin[2]), shape)
-        crop = vox[crop_box]
-        mask = crop >= thr_cast
-        labels, _ = ndimage.label(mask, structure=np.ones((3, 3, 3), dtype=bool))
-        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
-            if sl is None:
-                continue
-            sub = labels[sl] == lab
-            kk, jj, ii = np.nonzero(sub)
-            off = (
-                crop_box[0].start + sl[0].start,
-                crop_box[1].start + sl[1].start,
-                crop_box[2].start + sl[2].start,
-            )
-            full_box = (
-                slice(off[0], off[0] + sub.shape[0]),
-                slice(off[1], off[1] + sub.shape[1]),
-                slice(off[2], off[2] + sub.shape[2]),
-            )
-            vals = crop[sl][sub]
-            blobs.append(
-                _Blob(
-                    box=full_box,
-                    n_voxels=int(sub.sum()),
-                    peak_hu=float(vals.max()),
-                    centroid_voxel=np.array([ii.mean() + off[2], jj.mean() + off[1], kk.mean() + off[0]]),
-                    extent_mm=np.array(sub.shape[::-1], dtype=np.float64) * spacing,
-                )
-            )
-    blobs.sort(key=lambda b: (b.box[0].start, b.box[1].start, b.box[2].start))
-    timings["components_s"] = time.perf_counter() - t
-
-    fov_radius_mm = _circular_fov_radius_mm(vox, spacing)
-    fov_centre = np.array([(shape[2] - 1) / 2.0, (shape[1] - 1) / 2.0])
+    with timer.stage("threshold_s"):
+        flat, thr_cast = threshold_hits(vox, params.candidate_threshold_hu)
+    with timer.stage("group_s"):
+        boxes = _group_hits(flat, volume.shape) if len(flat) else []
+    with timer.stage("components_s"):
+        blobs = find_blobs(vox, boxes, thr_cast, spacing, params.crop_margin_mm)
+    scan = _Scan(
+        volume,
+        spacing,
+        pixel_mm=float(0.5 * (spacing[0] + spacing[1])),
+        dz_mm=float(spacing[2]),
+        fov_radius_mm=_circular_fov_radius_mm(vox, spacing),
+    )
+    limits = SizeLimits.of(params, spacing)
     spheres: list[DetectedSphere] = []
     rejections: list[Rejection] = []
-    t_mar = t_circ = t_cent = 0.0
-    voxel_mm3 = float(np.prod(spacing))
-    v_nominal = 4.0 / 3.0 * math.pi * r**3
-    v_max = 4.0 / 3.0 * math.pi * (r + params.bloom_mm) ** 3
-    ext_min = params.min_extent_fraction * params.sphere_diameter_mm
-    # blooming on both sides, plus one voxel each side for the quantised extent of the blob
-    ext_max = params.sphere_diameter_mm + 2.0 * params.bloom_mm + 2.0 * float(spacing.max())
-    half_px = max(math.ceil(params.patch_half_mm / pixel_mm), 4)
-
     for b in blobs:
-        where = tuple(float(v) for v in volume.voxel_to_image(b.centroid_voxel))
-        pos = (where[0], where[1], where[2])
-
-        def reject(reason: str, pos: tuple[float, float, float] = pos) -> None:
-            rejections.append(Rejection(pos, reason))
-
-        size = " × ".join(f"{e:.1f}" for e in b.extent_mm)
-        n_sl = b.box[0].stop - b.box[0].start
-        if b.extent_mm.max() > ext_max:
-            reject(
-                f"elongated or oversized metal ({size} mm over {n_sl} slices, sphere ≤ {ext_max:.1f} mm "
-                "with blooming): connecting rod or other hardware"
-            )
-            continue
-        vol_mm3 = b.n_voxels * voxel_mm3
-        if vol_mm3 > v_max:
-            reject(
-                f"blob volume {vol_mm3:.1f} mm³ > {v_max:.1f} mm³ "
-                f"(Ø{params.sphere_diameter_mm} mm sphere with blooming): wrong size"
-            )
-            continue
-        if b.peak_hu < params.min_peak_hu:
-            reject(
-                f"not bright enough for metal (peak {b.peak_hu:.0f} HU < {params.min_peak_hu:.0f} HU): "
-                "bone edge or streak crossing"
-            )
-            continue
-        if b.extent_mm.min() < ext_min or vol_mm3 < params.min_volume_fraction * v_nominal:
-            reject(
-                f"too small ({size} mm, {vol_mm3:.2f} mm³; a Ø{params.sphere_diameter_mm} mm sphere is "
-                f"≥ {ext_min:.2f} mm across): streak crossing or noise"
-            )
-            continue
-        # 3-D sub-voxel centre on the raw volume (also the centre the circles are checked against)
-        t = time.perf_counter()
-        centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params)
-        t_cent += time.perf_counter() - t
-        # fully inside: the nominal sphere must lie inside the sampled volume (voxel centres 0 … n−1);
-        # blooming may touch the first/last slice, the sphere itself may not
-        room_mm = (
-            np.minimum(centre_sv, np.array([shape[2] - 1, shape[1] - 1, shape[0] - 1]) - centre_sv) * spacing
-        )
-        if float(room_mm.min()) < r:
-            reject(
-                f"cut by the edge of the volume (first/last slice or matrix edge): centre "
-                f"{float(room_mm.min()):.2f} mm from the edge < sphere radius {r} mm"
-            )
-            continue
-
-        if fov_radius_mm is not None:
-            off_axis_mm = float(np.hypot(*((centre_sv[:2] - fov_centre) * spacing[:2])))
-            if off_axis_mm + r > fov_radius_mm:
-                reject(
-                    f"cut by the circular field of view: {off_axis_mm:.1f} mm off axis + radius {r} mm "
-                    f"> FOV radius {fov_radius_mm:.1f} mm"
-                )
-                continue
-
-        # per-slice MAR + circles
-        circles: list[_SliceCircle] = []
-        ci, cj = float(centre_sv[0]), float(centre_sv[1])
-        j0 = max(round(cj) - half_px, 0)
-        j1 = min(round(cj) + half_px + 1, shape[1])
-        i0 = max(round(ci) - half_px, 0)
-        i1 = min(round(ci) + half_px + 1, shape[2])
-        r_app_px = (r + params.bloom_mm) / pixel_mm
-        mar_every_patch = params.use_mar and params.method == "paper"
-        for k in range(b.box[0].start, b.box[0].stop):
-            patch = np.asarray(vox[k, j0:j1, i0:i1], dtype=np.float32)
-            best: _SliceCircle | None = None
-            if not mar_every_patch:
-                t = time.perf_counter()
-                best = _circle_near(patch, k, (i0, j0), (ci, cj), r_app_px, pixel_mm, params.circles)
-                t_circ += time.perf_counter() - t
-            if best is None and params.use_mar:
-                t = time.perf_counter()
-                patch = reduce_metal_artifacts(patch, pixel_mm, params.mar).patch
-                t_mar += time.perf_counter() - t
-                t = time.perf_counter()
-                best = _circle_near(patch, k, (i0, j0), (ci, cj), r_app_px, pixel_mm, params.circles)
-                t_circ += time.perf_counter() - t
-            if best is not None:
-                circles.append(best)
-
-        if len(circles) < params.min_circle_slices:
-            reject(
-                f"{len(circles)} slice(s) with a circular cross-section (need {params.min_circle_slices}): "
-                "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
-            )
-            continue
-        radius_fit, _ = _fit_radius(circles, dz_mm)
-        if params.method == "paper":
-            if len({c.k for c in circles}) < 2 or not math.isfinite(radius_fit) or radius_fit <= 0:
-                reject(
-                    f"paper method: {len(circles)} circle slice(s), the per-slice radii do not fit a sphere "
-                    "(r_i² + z_i² = c + 2·z0·z_i needs ≥ 2 slices); try --method subvoxel"
-                )
-                continue
-            k_c = _paper_depth(circles, radius_fit, dz_mm)
-            centre = np.array([np.mean([c.i for c in circles]), np.mean([c.j for c in circles]), k_c])
+        found = _measure_sphere(b, scan, limits, params, timer)
+        if isinstance(found, DetectedSphere):
+            spheres.append(found)
         else:
-            centre = centre_sv
-        inplane_mm = math.hypot(
-            (np.mean([c.i for c in circles]) - centre_sv[0]) * spacing[0],
-            (np.mean([c.j for c in circles]) - centre_sv[1]) * spacing[1],
-        )
-        frac = len(circles) / n_sl
-        score = float(np.clip(frac, 0.0, 1.0) * max(0.0, 1.0 - inplane_mm / r))
-        spheres.append(
-            DetectedSphere(
-                center_image_mm=volume.voxel_to_image(centre).astype(np.float64),
-                radius_mm=float(radius_fit),
-                n_slices=len(circles),
-                score=score,
-                center_voxel=centre.astype(np.float64),
-            )
-        )
-        log.debug(
-            "sphere at voxel %s: bg %.0f HU, peak %.0f HU, %d circles, R_fit %.2f mm",
-            centre,
-            bg,
-            peak,
-            len(circles),
-            radius_fit,
-        )
-
-    timings["mar_s"] = t_mar
-    timings["circles_s"] = t_circ
-    timings["centres_s"] = t_cent
+            where = volume.voxel_to_image(b.centroid_voxel)
+            rejections.append(Rejection((float(where[0]), float(where[1]), float(where[2])), found))
+    timings = dict(timer.seconds)
     timings["total_s"] = time.perf_counter() - t_start
     log.info(
         "series %s: %d spheres, %d rejected, method %s, %.3f s",

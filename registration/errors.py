@@ -109,3 +109,15 @@ class AccuracyGateError(RegistrationError):
 
     exit_code = EXIT_ACCURACY
     title = "Accuracy gate failed"
+
+
+class TooFewWithinGateError(TooFewSpheresError):
+    """The best pose has no distinct runner-up but too few spheres within the fixed gate (loose fit)."""
+
+    title = "Too few spheres within the gate"
+
+
+class ImproperRotationError(RegistrationError):
+    """The registered rotation is not proper (det R ≠ +1): an internal fault, refused, never stored."""
+
+    title = "Improper rotation"

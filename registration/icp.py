@@ -53,6 +53,13 @@ detection jitter is never trimmed; spurious blobs further than this from a spher
 ROBUST_RMS_PER_MEDIAN: Final = 1.7321 / 1.5382
 """RMS / median of the Maxwell (χ, 3 dof) distribution: √3 σ over 1.5382 σ."""
 
+MIN_PAIRS: Final = 3
+"""A rigid fit needs 3 non-collinear pairs; with fewer the loop stops (the caller refuses it)."""
+
+GATE_MIN_KEEP_FRACTION: Final = 0.5
+"""The gate shrinks by at most this factor per iteration (7.5 mm → 0.3 mm in ~5 steps), so pairs
+that are right but still far from the start pose are not cut off before the pose has moved."""
+
 MAX_ITERATIONS: Final = 50
 """Besl & McKay converge in a handful of steps here; 50 is a safety bound (VTK's default)."""
 
@@ -122,6 +129,20 @@ def unique_pairs(dist: F64, image_idx: I64) -> tuple[I64, I64]:
     return r, image_idx[r].astype(np.int64)
 
 
+def _final_fit(
+    robot_mm: F64, image_mm: F64, tree: cKDTree, t: F64, gate_mm: float, r_idx: I64, i_idx: I64
+) -> tuple[F64, I64, I64]:
+    """The pairs at the final gate and their least-squares fit (the loop's pairs if fewer than 3)."""
+    mapped = robot_mm @ t[:3, :3].T + t[:3, 3]
+    d, j = tree.query(mapped, distance_upper_bound=gate_mm)
+    r_fin, i_fin = unique_pairs(d, np.minimum(j, len(image_mm) - 1).astype(np.int64))
+    if len(r_fin) < MIN_PAIRS:
+        return t, r_idx, i_idx
+    if not (np.array_equal(r_fin, r_idx) and np.array_equal(i_fin, i_idx)):
+        t = fit_rigid_unchecked(robot_mm[r_fin], image_mm[i_fin])
+    return t, r_fin, i_fin
+
+
 def icp(
     robot_mm: F64,
     image_mm: F64,
@@ -150,7 +171,7 @@ def icp(
     Returns
     -------
     IcpResult
-        With fewer than 3 pairs at any step the loop stops and returns the
+        With fewer than :data:`MIN_PAIRS` pairs at any step the loop stops and returns the
         pairs it has (the caller refuses such a result).
     """
     if tree is None:
@@ -166,7 +187,7 @@ def icp(
         mapped = robot_mm @ t[:3, :3].T + t[:3, 3]
         d, j = tree.query(mapped, distance_upper_bound=gate)
         r_idx, i_idx = unique_pairs(d, np.minimum(j, len(image_mm) - 1).astype(np.int64))
-        if len(r_idx) < 3:
+        if len(r_idx) < MIN_PAIRS:
             log.debug("icp: only %d pairs within %.2f mm at iteration %d", len(r_idx), gate, it)
             break
         t_new = fit_rigid_unchecked(robot_mm[r_idx], image_mm[i_idx])
@@ -177,7 +198,7 @@ def icp(
         # so RMS ≈ 1.126 × median; unlike the plain RMS it is not inflated by the few outliers
         # (spurious blobs 2-4 mm from a missing sphere) that the gate is meant to trim
         rms = ROBUST_RMS_PER_MEDIAN * float(np.median(res))
-        new_gate = max(gate_floor_mm, min(gate, max(gate_sigma_factor * rms, gate / 2.0)))
+        new_gate = max(gate_floor_mm, min(gate, max(gate_sigma_factor * rms, GATE_MIN_KEEP_FRACTION * gate)))
         same_pairs = prev_r is not None and np.array_equal(prev_r, r_idx)
         t = t_new
         if change < tol_mm and new_gate >= gate and same_pairs:
@@ -185,14 +206,7 @@ def icp(
             break
         prev_r = r_idx
         gate = new_gate
-    # final pairs at the final gate and their least-squares fit
-    mapped = robot_mm @ t[:3, :3].T + t[:3, 3]
-    d, j = tree.query(mapped, distance_upper_bound=gate)
-    r_fin, i_fin = unique_pairs(d, np.minimum(j, len(image_mm) - 1).astype(np.int64))
-    if len(r_fin) >= 3:
-        if not (np.array_equal(r_fin, r_idx) and np.array_equal(i_fin, i_idx)):
-            t = fit_rigid_unchecked(robot_mm[r_fin], image_mm[i_fin])
-        r_idx, i_idx = r_fin, i_fin
+    t, r_idx, i_idx = _final_fit(robot_mm, image_mm, tree, t, gate, r_idx, i_idx)
     res = np.asarray(
         np.linalg.norm(robot_mm[r_idx] @ t[:3, :3].T + t[:3, 3] - image_mm[i_idx], axis=1), dtype=np.float64
     )

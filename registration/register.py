@@ -32,20 +32,29 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from registration import __version__
-from registration.correspondence import Hypothesis, find_hypotheses, same_pose
+from registration.correspondence import (
+    DEFAULT_DISTINCT_ROTATION_DEG,
+    DEFAULT_DISTINCT_TRANSLATION_MM,
+    Hypothesis,
+    find_hypotheses,
+    same_pose,
+)
 from registration.errors import (
     AccuracyGateError,
     AmbiguousMatchError,
     ConfigError,
+    ImproperRotationError,
     MirroredInputError,
     OarmRegError,
     RegistrationError,
     TooFewSpheresError,
+    TooFewWithinGateError,
 )
 from registration.icp import IcpResult, icp
 from registration.phantom import Phantom
 from registration.prereg import PreregResult, preregister
 from registration.quality import (
+    Conditioning,
     check_configuration,
     fle_from_fre,
     predicted_tre_mm,
@@ -63,6 +72,14 @@ MAX_PRIOR_TOLERANCE_DEG: Final = 45.0
 PHANTOM_FIT_MAX_RMS_MM: Final = 1.0
 """The robot points must match the phantom's CAD centres within this RMS (mm) for the phantom's
 symmetry twins to be tried; otherwise the robot points are not this phantom's."""
+
+
+PRIOR_ROTATION_TOL: Final = 1e-3
+"""An orientation prior is a rotation if RᵀR = I and det R = 1 within this: a matrix written with 4
+decimals (a hand-typed prior) passes, a scaled or sheared one does not."""
+
+DET_TOL: Final = 1e-9
+"""det R of the result must be 1 within this: Kabsch with the determinant fix gives 1 to rounding."""
 
 
 class PointSetError(OarmRegError):
@@ -89,10 +106,12 @@ class RegistrationParams:
     min_runner_up_margin: int = 3
     """Matched spheres by which the best pose must beat the best distinct runner-up (research §1.6:
     m ≥ 3, so that one or two missed detections cannot flip the answer)."""
-    max_fre_mm: float = 1.0
-    """FRE gate.  Simulated FRE is ≈ 0.1 mm (σ 0.05 mm image, 0.02 mm robot); research §2 measures
-    0.6 mm at σ = 0.25 mm per axis per space; above 1 mm something is wrong (distortion, a sphere
-    that moved, a wrong robot pose), not noise."""
+    max_fre_mm: float = 0.5
+    """FRE gate, the value of ``quality.max_fre_mm`` in configs/oarmreg.toml (one source of truth:
+    service/settings.py takes its default from here).  Simulated FRE is ≈ 0.1 mm (σ 0.05 mm image,
+    0.02 mm robot); the paper's phantom is machined to ±0.02 mm (Bai 2018 §2.1); 0.5 mm leaves room
+    for real-scanner noise while rejecting a one-pitch (15 mm) mismatch or a wrong joint reading.
+    Research §2 measures 0.6 mm at σ = 0.25 mm per axis per space: such data needs a larger gate."""
     pair_distance_tol_mm: float = 1.0
     """Two inter-sphere distances agree when closer than this.  A distance difference has sd ≈ 2σ
     (σ√2 per space for σ per axis); 4 × 2 × σ with σ = 0.1 mm is 0.8 mm, + margin → 1 mm."""
@@ -105,13 +124,20 @@ class RegistrationParams:
     ``min_agreeing_triples`` agree, so the usual scan uses two or three."""
     min_agreeing_triples: int = 2
     """The search stops once the best pose was found from this many independent base triples."""
-    distinct_rotation_deg: float = 5.0
+    distinct_rotation_deg: float = DEFAULT_DISTINCT_ROTATION_DEG
     """Two poses are distinct if their rotations differ by more than this (the grid's symmetries are
-    ≥ 90° apart; 3-point pose noise is ≈ 0.1°)."""
-    distinct_translation_mm: float = 3.0
+    ≥ 90° apart; 3-point pose noise is ≈ 0.1°); also find_hypotheses' default."""
+    distinct_translation_mm: float = DEFAULT_DISTINCT_TRANSLATION_MM
     """... or if the robot centroid lands more than this apart (one pitch is 15 mm)."""
     max_runner_ups: int = 3
-    """Distinct runner-up candidates refined by ICP (plus every phantom symmetry twin)."""
+    """Distinct runner-up candidates refined by ICP (plus ``max_refined_twins``)."""
+    max_refined_twins: int = 8
+    """Further poses refined by ICP on top of ``max_runner_ups``: room for every phantom symmetry twin
+    (a 70 × 70 × 80 mm cuboid has 8 proper symmetries, design.md §4)."""
+    threat_margin_factor: int = 2
+    """A competing pose is refined by ICP only if its unrefined count comes within this ×
+    ``min_runner_up_margin`` of the best; one further behind cannot threaten the answer (ICP adds a
+    sphere or two to a 3-point pose's count, not 2 × 3), and its count still bounds the runner-up."""
     icp_gate_start_mm: float = 7.5
     """Half the 15 mm hole pitch (research §1.7)."""
     icp_gate_sigma_factor: float = 3.0
@@ -257,7 +283,10 @@ def _as_rotation(prior: ArrayLike) -> F64:
         m = m[:3, :3]
     if m.shape != (3, 3) or not np.all(np.isfinite(m)):
         raise ConfigError(f"orientation prior: expected a 3 × 3 rotation (or 4 × 4 transform), got {m.shape}")
-    if np.max(np.abs(m.T @ m - np.eye(3))) > 1e-3 or abs(np.linalg.det(m) - 1.0) > 1e-3:
+    if (
+        np.max(np.abs(m.T @ m - np.eye(3))) > PRIOR_ROTATION_TOL
+        or abs(np.linalg.det(m) - 1.0) > PRIOR_ROTATION_TOL
+    ):
         raise ConfigError(
             f"orientation prior is not a proper rotation (det = {np.linalg.det(m):.4f}); give the "
             "expected rotation of image_from_robot"
@@ -375,6 +404,429 @@ def _best_mirrored(robot_mm: F64, image_mm: F64, p: RegistrationParams) -> int:
     return max(hyps[0].n_inliers, _quick_count(refined, robot_mm, tree, p.hypothesis_gate_mm)[0])
 
 
+# ----------------------------------------------------------------------------- the steps
+# register_points runs these in order; each refuses with its own typed error.
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationInputs:
+    """The validated inputs of :func:`register_points`."""
+
+    robot: F64
+    image: F64
+    targets: F64
+    prior: F64 | None
+    prior_tolerance_deg: float
+    prereg_pairs: tuple[tuple[int, int], ...] | None
+
+    @property
+    def n(self) -> int:
+        return len(self.robot)
+
+    @property
+    def m(self) -> int:
+        return len(self.image)
+
+
+def _prereg_pairs(pairs_in: Sequence[tuple[int, int]], n: int, m: int) -> tuple[tuple[int, int], ...]:
+    pairs = tuple((int(a), int(b)) for a, b in pairs_in)
+    if len(pairs) != 4:
+        raise PointSetError(f"pre-registration needs exactly 4 (robot, image) index pairs, got {len(pairs)}")
+    ri = [a for a, _ in pairs]
+    ii = [b for _, b in pairs]
+    if min(ri) < 0 or max(ri) >= n or min(ii) < 0 or max(ii) >= m:
+        raise PointSetError(
+            f"pre-registration pairs {list(pairs)}: robot indices must be in 0..{n - 1}, "
+            f"image indices in 0..{m - 1}"
+        )
+    if len(set(ri)) != 4 or len(set(ii)) != 4:
+        raise PointSetError(f"pre-registration pairs {list(pairs)}: each sphere may be named only once")
+    return pairs
+
+
+def validate_inputs(
+    robot_mm: ArrayLike,
+    image_mm: ArrayLike,
+    params: RegistrationParams,
+    *,
+    targets_robot_mm: ArrayLike | None = None,
+    orientation_prior: ArrayLike | None = None,
+    prior_tolerance_deg: float = 30.0,
+    prereg_pairs: Sequence[tuple[int, int]] | None = None,
+) -> RegistrationInputs:
+    """Step 1: arrays, robot configuration, detection count, prior and pre-registration marks.
+
+    Raises PointSetError, DegenerateConfigurationError, TooFewSpheresError (< 3 detections) or
+    ConfigError (prior not a rotation, tolerance not below 45°).
+    """
+    p = params
+    robot = _as_points(robot_mm, "robot points")
+    image = _as_points(image_mm, "image points")
+    n, m = len(robot), len(image)
+    targets = (
+        np.empty((0, 3))
+        if targets_robot_mm is None
+        else _as_points(np.reshape(targets_robot_mm, (-1, 3)), "targets")
+    )
+    check_configuration(
+        robot,
+        "robot points",
+        min_collinear_ratio=p.min_collinear_ratio,
+        min_coplanar_ratio=p.min_coplanar_ratio,
+    )
+    if m < 3:
+        raise TooFewSpheresError(
+            f"{m} sphere(s) detected, {n} expected: a registration needs at least {p.min_matched} matched "
+            "spheres. Check that the phantom is inside the scanned volume and the detection threshold"
+        )
+    prior = None if orientation_prior is None else _as_rotation(orientation_prior)
+    if not 0.0 < prior_tolerance_deg < MAX_PRIOR_TOLERANCE_DEG:
+        raise ConfigError(
+            f"orientation prior tolerance must be in (0, {MAX_PRIOR_TOLERANCE_DEG:g})°, got "
+            f"{prior_tolerance_deg:g}°: the hole grid repeats every 90°"
+        )
+    pairs = None if prereg_pairs is None else _prereg_pairs(prereg_pairs, n, m)
+    return RegistrationInputs(robot, image, targets, prior, float(prior_tolerance_deg), pairs)
+
+
+@dataclass
+class CandidatePool:
+    """Every pose that competed, and the best of them (None if no consistent triple exists)."""
+
+    best: _Candidate | None
+    pool: list[_Candidate]
+    hyps_all: list[Hypothesis]
+    """Hypotheses of any orientation (the mirror check and the prior refusal look at them)."""
+    hyps: list[Hypothesis]
+    """Hypotheses within the prior's tolerance."""
+    prereg: PreregResult | None
+    prior: F64 | None
+    """The given prior, or the pre-registration's rotation when none was given."""
+
+
+def within_prior(t: F64, prior: F64 | None, tolerance_deg: float) -> bool:
+    """True if pose ``t``'s rotation is within ``tolerance_deg`` of ``prior`` (always, without one)."""
+    return prior is None or rotation_difference_deg(t[:3, :3], prior) <= tolerance_deg
+
+
+def _competitors(
+    best: _Candidate,
+    hyps: list[Hypothesis],
+    skip_first: bool,
+    inp: RegistrationInputs,
+    prior: F64 | None,
+    tree: cKDTree,
+    p: RegistrationParams,
+    phantom: Phantom | None,
+) -> list[tuple[str, F64, int, float]]:
+    """(source, pose, count, rms) of every pose competing with ``best``, most spheres first."""
+    others: list[tuple[str, F64, int, float]] = [
+        (f"candidate {k}", h.image_from_robot, h.n_inliers, h.rms_mm)
+        for k, h in enumerate(hyps)
+        if k > 0 or not skip_first
+    ]
+    for name, twin in _twins(best.image_from_robot, inp.robot, phantom):
+        if within_prior(twin, prior, inp.prior_tolerance_deg):
+            n_q, rms_q = _quick_count(twin, inp.robot, tree, p.hypothesis_gate_mm)
+            others.append((name, twin, n_q, rms_q))
+    others.sort(key=lambda o: (o[2], -o[3]), reverse=True)
+    return others
+
+
+def _compete(
+    best: _Candidate,
+    others: list[tuple[str, F64, int, float]],
+    inp: RegistrationInputs,
+    tree: cKDTree,
+    p: RegistrationParams,
+    *,
+    best_is_fixed: bool,
+) -> tuple[_Candidate, list[_Candidate]]:
+    """Refine the poses that threaten ``best`` by ICP, count the rest; return (best, the competitors).
+
+    A pose is refined only if it comes within ``threat_margin_factor × min_runner_up_margin`` of the
+    best (at most ``max_runner_ups + max_refined_twins`` of them).  ``best_is_fixed``: the named
+    pre-registration marks define the pose, the others only compete as runner-ups.
+    """
+    pool: list[_Candidate] = []
+    n_refined = 0
+    for name, t_o, n_o, rms_o in others:
+        threat = n_o + p.threat_margin_factor * p.min_runner_up_margin >= best.n_matched
+        if threat and n_refined < p.max_runner_ups + p.max_refined_twins:
+            n_refined += 1
+            cand = _refined(name, _refine(inp.robot, inp.image, tree, t_o, p))
+        else:
+            cand = _Candidate(name, t_o, n_o, rms_o)
+        pool.append(cand)
+        if not best_is_fixed and _key(cand) > _key(best):
+            best = cand
+    return best, pool
+
+
+def candidate_pool(
+    inp: RegistrationInputs,
+    tree: cKDTree,
+    p: RegistrationParams,
+    phantom: Phantom | None,
+    timings: dict[str, float],
+) -> CandidatePool:
+    """Step 2: pre-registration (paper eq. 7) if marks are given, the click-free hypotheses, the
+    phantom's symmetry twins, and ICP on the best and on every pose that threatens it.
+
+    Raises DegenerateConfigurationError (coplanar marks) from the pre-registration.
+    """
+    prereg: PreregResult | None = None
+    pool: list[_Candidate] = []
+    prior = inp.prior
+    if inp.prereg_pairs is not None:
+        t0 = time.perf_counter()
+        ri = [a for a, _ in inp.prereg_pairs]
+        ii = [b for _, b in inp.prereg_pairs]
+        prereg = preregister(inp.robot[ri], inp.image[ii])
+        pool.append(
+            _refined("pre-registration", _refine(inp.robot, inp.image, tree, prereg.image_from_robot, p))
+        )
+        timings["prereg_s"] = time.perf_counter() - t0
+        if prior is None:
+            prior = prereg.image_from_robot[:3, :3]
+
+    t0 = time.perf_counter()
+    hyps_all = _hypotheses(inp.robot, inp.image, tree, p)
+    hyps = [h for h in hyps_all if within_prior(h.image_from_robot, prior, inp.prior_tolerance_deg)]
+    timings["correspondence_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    best: _Candidate | None = None
+    if prereg is not None:
+        best = pool[0]
+    elif hyps:
+        best = _refined("candidate 0", _refine(inp.robot, inp.image, tree, hyps[0].image_from_robot, p))
+        pool.append(best)
+    if best is not None:
+        others = _competitors(best, hyps, prereg is None, inp, prior, tree, p, phantom)
+        best, competitors = _compete(best, others, inp, tree, p, best_is_fixed=prereg is not None)
+        pool.extend(competitors)
+    timings["icp_s"] = time.perf_counter() - t0
+    return CandidatePool(best, pool, hyps_all, hyps, prereg, prior)
+
+
+def check_mirror(inp: RegistrationInputs, cands: CandidatePool, tree: cKDTree, p: RegistrationParams) -> bool:
+    """Step 3: refuse a mirrored input; True if the mirrored problem was tried.
+
+    Handedness is independent of the prior: the best proper pose of any orientation is compared.
+    Both sides are counted at the fixed hypothesis gate, not at ICP's self-adapted one: a proper fit
+    of mirrored data is loose, and a gate grown from its own residuals would flatter it.  The proper
+    problem "fails" when it would be refused for too few spheres; then a mirrored problem that
+    succeeds is reported as such even without the full margin (issue #4 item 4).
+
+    Raises MirroredInputError.
+    """
+    n, m = inp.n, inp.m
+    best = cands.best
+    n_best = max(
+        _quick_count(best.image_from_robot, inp.robot, tree, p.hypothesis_gate_mm)[0]
+        if best is not None
+        else 0,
+        cands.hyps_all[0].n_inliers if cands.hyps_all else 0,
+    )
+    proper_fails = best is None or best.n_matched < p.min_matched
+    if not (proper_fails or n_best + p.min_runner_up_margin <= min(n, m)):
+        return False
+    n_mirror = _best_mirrored(inp.robot, inp.image, p)
+    if (
+        (n_mirror >= n_best + p.min_runner_up_margin or (proper_fails and n_mirror > n_best))
+        and n_mirror >= p.min_matched
+        and n_mirror >= p.mirror_min_fraction * min(n, m)
+    ):
+        raise MirroredInputError(
+            f"the image point set matches the robot points only as a mirror image ({n_mirror} of {n} "
+            f"spheres match the mirrored image, {n_best} the image as given): check slice order / "
+            "ImageOrientationPatient / a flipped axis in the export"
+        )
+    return True
+
+
+def check_enough_matched(
+    inp: RegistrationInputs, cands: CandidatePool, p: RegistrationParams
+) -> tuple[_Candidate, IcpResult]:
+    """Step 4: the best pose must be ICP-refined and match ``min_matched`` spheres.
+
+    Raises PriorMismatchError (a pose outside the prior would have matched) or TooFewSpheresError.
+    """
+    best = cands.best
+    if best is not None and best.result is not None and best.n_matched >= p.min_matched:
+        return best, best.result
+    n, m = inp.n, inp.m
+    n_matched = 0 if best is None else best.n_matched
+    if cands.prior is not None and cands.hyps_all and not cands.hyps:
+        top = cands.hyps_all[0]
+        angle = rotation_difference_deg(top.image_from_robot[:3, :3], cands.prior)
+        if top.n_inliers >= p.min_matched:
+            raise PriorMismatchError(
+                f"no pose within {inp.prior_tolerance_deg:g}° of the orientation prior explains the "
+                "detections; "
+                f"the best pose ({top.n_inliers} of {n} spheres) is {angle:.1f}° away from the prior. "
+                "Check the prior rotation (it is image_from_robot's rotation) or the "
+                "pre-registration marks"
+            )
+    raise TooFewSpheresError(
+        f"only {n_matched} sphere(s) matched ({n} expected, {m} detected, {p.min_matched} needed). "
+        "Check that the robot points belong to this scan (same phantom, same pose), that the phantom "
+        "is inside the scanned volume, and the detection result"
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class RunnerUp:
+    """The best pose against the best *distinct* runner-up, both counted at the fixed gate."""
+
+    n_best: int
+    candidate: _Candidate | None
+    n_matched: int
+    rotation_deg: float | None
+
+    @property
+    def margin(self) -> int:
+        return self.n_best - self.n_matched
+
+
+def find_runner_up(
+    best: _Candidate, pool: Sequence[_Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
+) -> RunnerUp:
+    """The best pose of ``pool`` that is distinct from ``best`` (same_pose), by count at the fixed gate.
+
+    Every pose is counted at the same fixed gate: ICP's gate adapts to each pose's own residuals,
+    so a wrong pose refined by ICP would be flattered by its loose matches.
+    """
+    t_best = best.image_from_robot
+    n_best = _quick_count(t_best, robot, tree, p.hypothesis_gate_mm)[0]
+    centroid = robot.mean(axis=0)
+    runner: _Candidate | None = None
+    runner_key: tuple[int, float] = (-1, 0.0)
+    for c in pool:
+        if c is best or same_pose(
+            t_best, c.image_from_robot, centroid, p.distinct_rotation_deg, p.distinct_translation_mm
+        ):
+            continue
+        n_c, rms_c = _quick_count(c.image_from_robot, robot, tree, p.hypothesis_gate_mm)
+        if (n_c, -rms_c) > runner_key:
+            runner, runner_key = c, (n_c, -rms_c)
+    angle = rotation_difference_deg(t_best[:3, :3], runner.image_from_robot[:3, :3]) if runner else None
+    return RunnerUp(n_best, runner, max(runner_key[0], 0), angle)
+
+
+def check_runner_up(
+    best: _Candidate, pool: Sequence[_Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
+) -> RunnerUp:
+    """Step 5: the best pose must beat the best distinct runner-up by ``min_runner_up_margin``.
+
+    Raises AmbiguousMatchError, or TooFewWithinGateError when there is no runner-up at all but the
+    best pose itself has fewer than the margin's spheres within the fixed gate (a loose ICP fit).
+    """
+    ru = find_runner_up(best, pool, robot, tree, p)
+    if ru.margin >= p.min_runner_up_margin:
+        return ru
+    if ru.candidate is None:
+        raise TooFewWithinGateError(
+            f"the best pose matched {best.n_matched} spheres by ICP but only {ru.n_best} lie within "
+            f"{p.hypothesis_gate_mm:g} mm of a detection (a margin of {p.min_runner_up_margin} is "
+            "required): the fit is loose. Check the detection and that the robot points belong to this scan"
+        )
+    raise AmbiguousMatchError(
+        f"ambiguous sphere correspondence: the best pose matches {ru.n_best} spheres and a "
+        f"different pose ({ru.candidate.source}, rotated {ru.rotation_deg:.1f}° from it) matches "
+        f"{ru.n_matched}; a margin of {p.min_runner_up_margin} is required. Give an orientation prior "
+        "(--prior-rotation, tolerance < 45°), name 4 marks for the pre-registration, or use a phantom "
+        "with an asymmetric filled pattern"
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class QualityFigures:
+    """design.md §5 figures of the accepted pose."""
+
+    conditioning: Conditioning
+    rotation_det: float
+    fre_mm: float
+    fle_mm: float
+    predicted_tre_mm: F64
+
+
+def quality_figures(
+    r: IcpResult, image_from_robot: F64, inp: RegistrationInputs, p: RegistrationParams
+) -> QualityFigures:
+    """Step 6: conditioning of the matched spheres, det R, FRE, FLE, predicted TRE; the FRE gate.
+
+    Raises DegenerateConfigurationError, ImproperRotationError or AccuracyGateError.
+    """
+    matched = inp.robot[r.robot_indices]
+    cond = check_configuration(
+        matched,
+        "matched spheres",
+        min_collinear_ratio=p.min_collinear_ratio,
+        min_coplanar_ratio=p.min_coplanar_ratio,
+    )
+    det = float(np.linalg.det(image_from_robot[:3, :3]))
+    if not abs(det - 1.0) < DET_TOL:
+        raise ImproperRotationError(
+            f"det(R) = {det}: the registration produced a reflection or a scaled rotation, which the "
+            "determinant fix must prevent; report this input as a bug"
+        )
+    fre = float(np.sqrt(np.mean(r.residuals_mm**2)))
+    fle = fle_from_fre(fre, r.n_matched)
+    tre = predicted_tre_mm(fle, matched, inp.targets) if len(inp.targets) else np.empty(0)
+    if fre > p.max_fre_mm:
+        raise AccuracyGateError(
+            f"FRE {fre:.3f} mm over {r.n_matched} matched spheres exceeds the gate of {p.max_fre_mm:g} mm "
+            f"(largest residual {float(np.max(r.residuals_mm)):.3f} mm at robot sphere "
+            f"{int(r.robot_indices[int(np.argmax(r.residuals_mm))])}). Check that the robot did not move "
+            "during the scan, the robot points' pose, and the detection"
+        )
+    return QualityFigures(cond, det, fre, fle, np.asarray(tre, dtype=np.float64))
+
+
+def _result(
+    inp: RegistrationInputs,
+    cands: CandidatePool,
+    best: _Candidate,
+    r: IcpResult,
+    ru: RunnerUp,
+    q: QualityFigures,
+    mirror_checked: bool,
+    timings: dict[str, float],
+) -> RegistrationResult:
+    t_best = best.image_from_robot
+    return RegistrationResult(
+        image_from_robot=t_best,
+        fre_mm=q.fre_mm,
+        fle_mm=q.fle_mm,
+        robot_indices=r.robot_indices,
+        image_indices=r.image_indices,
+        residuals_mm=r.residuals_mm,
+        n_expected=inp.n,
+        n_detected=inp.m,
+        n_matched=r.n_matched,
+        predicted_tre_mm=q.predicted_tre_mm,
+        symmetry_margin=int(ru.margin),
+        rotation_det=q.rotation_det,
+        timings_s=timings,
+        robot_mm=inp.robot,
+        image_mm=inp.image,
+        targets_robot_mm=inp.targets,
+        runner_up_matched=int(ru.n_matched),
+        runner_up_rotation_deg=ru.rotation_deg,
+        runner_up_source=ru.candidate.source if ru.candidate else "",
+        method="prereg+icp" if cands.prereg is not None else "triples+icp",
+        n_icp_iterations=r.n_iterations,
+        collinearity=q.conditioning.collinearity,
+        planarity=q.conditioning.planarity,
+        prior_angle_deg=None if cands.prior is None else rotation_difference_deg(t_best[:3, :3], cands.prior),
+        prereg=cands.prereg,
+        mirror_checked=mirror_checked,
+        provenance={"software": f"oarmreg {__version__}"},
+    )
+
+
 def register_points(
     robot_mm: ArrayLike,
     image_mm: ArrayLike,
@@ -435,241 +887,33 @@ def register_points(
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    p = params
-    robot = _as_points(robot_mm, "robot points")
-    image = _as_points(image_mm, "image points")
-    n, m = len(robot), len(image)
-    targets = (
-        np.empty((0, 3))
-        if targets_robot_mm is None
-        else _as_points(np.reshape(targets_robot_mm, (-1, 3)), "targets")
+    inp = validate_inputs(
+        robot_mm,
+        image_mm,
+        params,
+        targets_robot_mm=targets_robot_mm,
+        orientation_prior=orientation_prior,
+        prior_tolerance_deg=prior_tolerance_deg,
+        prereg_pairs=prereg_pairs,
     )
-    check_configuration(
-        robot,
-        "robot points",
-        min_collinear_ratio=p.min_collinear_ratio,
-        min_coplanar_ratio=p.min_coplanar_ratio,
-    )
-    if m < 3:
-        raise TooFewSpheresError(
-            f"{m} sphere(s) detected, {n} expected: a registration needs at least {p.min_matched} matched "
-            "spheres. Check that the phantom is inside the scanned volume and the detection threshold"
-        )
-    prior: F64 | None = None
-    if orientation_prior is not None:
-        prior = _as_rotation(orientation_prior)
-    if not 0.0 < prior_tolerance_deg < MAX_PRIOR_TOLERANCE_DEG:
-        raise ConfigError(
-            f"orientation prior tolerance must be in (0, {MAX_PRIOR_TOLERANCE_DEG:g})°, got "
-            f"{prior_tolerance_deg:g}°: the hole grid repeats every 90°"
-        )
-    tree = cKDTree(image)
-
-    # --- pre-registration (paper eq. 7) ----------------------------------------------------------
-    prereg: PreregResult | None = None
-    pool: list[_Candidate] = []
-    if prereg_pairs is not None:
-        pairs = [(int(a), int(b)) for a, b in prereg_pairs]
-        if len(pairs) != 4:
-            raise PointSetError(
-                f"pre-registration needs exactly 4 (robot, image) index pairs, got {len(pairs)}"
-            )
-        ri = [a for a, _ in pairs]
-        ii = [b for _, b in pairs]
-        if min(ri) < 0 or max(ri) >= n or min(ii) < 0 or max(ii) >= m:
-            raise PointSetError(
-                f"pre-registration pairs {pairs}: robot indices must be in 0..{n - 1}, "
-                f"image indices in 0..{m - 1}"
-            )
-        if len(set(ri)) != 4 or len(set(ii)) != 4:
-            raise PointSetError(f"pre-registration pairs {pairs}: each sphere may be named only once")
-        t0 = time.perf_counter()
-        prereg = preregister(robot[ri], image[ii])
-        pool.append(_refined("pre-registration", _refine(robot, image, tree, prereg.image_from_robot, p)))
-        timings["prereg_s"] = time.perf_counter() - t0
-        if prior is None:
-            prior = prereg.image_from_robot[:3, :3]
-
-    def within_prior(t: F64) -> bool:
-        return prior is None or rotation_difference_deg(t[:3, :3], prior) <= prior_tolerance_deg
-
-    # --- global correspondence --------------------------------------------------------------------
+    tree = cKDTree(inp.image)
+    cands = candidate_pool(inp, tree, params, phantom, timings)
     t0 = time.perf_counter()
-    hyps_all = _hypotheses(robot, image, tree, p)
-    hyps = [h for h in hyps_all if within_prior(h.image_from_robot)]
-    timings["correspondence_s"] = time.perf_counter() - t0
-
-    # Refine the best candidate by ICP; every other pose (remaining candidates, phantom twins) is
-    # first counted as is and refined only if it comes within 2 × margin of the best: a pose that
-    # far behind cannot threaten the answer, and its count still bounds the runner-up.
-    t0 = time.perf_counter()
-    centroid = robot.mean(axis=0)
-    best: _Candidate | None = None
-    if prereg is not None:
-        best = pool[0]  # the named marks define the pose; candidates only compete as runner-ups
-    elif hyps:
-        best = _refined("candidate 0", _refine(robot, image, tree, hyps[0].image_from_robot, p))
-        pool.append(best)
-    if best is not None:
-        others: list[tuple[str, F64, int, float]] = [
-            (f"candidate {k}", h.image_from_robot, h.n_inliers, h.rms_mm)
-            for k, h in enumerate(hyps)
-            if k > 0 or prereg is not None
-        ]
-        for name, twin in _twins(best.image_from_robot, robot, phantom):
-            if within_prior(twin):
-                n_q, rms_q = _quick_count(twin, robot, tree, p.hypothesis_gate_mm)
-                others.append((name, twin, n_q, rms_q))
-        others.sort(key=lambda o: (o[2], -o[3]), reverse=True)
-        n_refined = 0
-        for name, t_o, n_o, rms_o in others:
-            threat = n_o + 2 * p.min_runner_up_margin >= best.n_matched
-            if threat and n_refined < p.max_runner_ups + 8:
-                n_refined += 1
-                cand = _refined(name, _refine(robot, image, tree, t_o, p))
-            else:
-                cand = _Candidate(name, t_o, n_o, rms_o)
-            pool.append(cand)
-            if prereg is None and _key(cand) > _key(best):
-                best = cand
-    timings["icp_s"] = time.perf_counter() - t0
-
-    # --- mirrored input -----------------------------------------------------------------------
-    t0 = time.perf_counter()
-    # Handedness is independent of the prior: compare with the best proper pose of any orientation.
-    # Both sides are counted at the fixed hypothesis gate, not at ICP's self-adapted one: a proper
-    # fit of mirrored data is loose, and a gate grown from its own residuals would flatter it.
-    n_best = max(
-        _quick_count(best.image_from_robot, robot, tree, p.hypothesis_gate_mm)[0] if best is not None else 0,
-        hyps_all[0].n_inliers if hyps_all else 0,
-    )
-    # The proper problem "fails" when it would be refused for too few spheres; then a mirrored
-    # problem that succeeds is reported as such even without the full margin (issue #4 item 4).
-    proper_fails = best is None or best.n_matched < p.min_matched
-    mirror_checked = False
-    if proper_fails or n_best + p.min_runner_up_margin <= min(n, m):
-        mirror_checked = True
-        n_mirror = _best_mirrored(robot, image, p)
-        if (
-            (n_mirror >= n_best + p.min_runner_up_margin or (proper_fails and n_mirror > n_best))
-            and n_mirror >= p.min_matched
-            and n_mirror >= p.mirror_min_fraction * min(n, m)
-        ):
-            raise MirroredInputError(
-                f"the image point set matches the robot points only as a mirror image ({n_mirror} of {n} "
-                f"spheres match the mirrored image, {n_best} the image as given): check slice order / "
-                "ImageOrientationPatient / a flipped axis in the export"
-            )
+    mirror_checked = check_mirror(inp, cands, tree, params)
     timings["mirror_check_s"] = time.perf_counter() - t0
-
-    if best is None or best.result is None or best.n_matched < p.min_matched:
-        n_matched = 0 if best is None else best.n_matched
-        if prior is not None and hyps_all and not hyps:
-            top = hyps_all[0]
-            angle = rotation_difference_deg(top.image_from_robot[:3, :3], prior)
-            if top.n_inliers >= p.min_matched:
-                raise PriorMismatchError(
-                    f"no pose within {prior_tolerance_deg:g}° of the orientation prior explains the "
-                    "detections; "
-                    f"the best pose ({top.n_inliers} of {n} spheres) is {angle:.1f}° away from the prior. "
-                    "Check the prior rotation (it is image_from_robot's rotation) or the "
-                    "pre-registration marks"
-                )
-        raise TooFewSpheresError(
-            f"only {n_matched} sphere(s) matched ({n} expected, {m} detected, {p.min_matched} needed). "
-            "Check that the robot points belong to this scan (same phantom, same pose), that the phantom "
-            "is inside the scanned volume, and the detection result"
-        )
-
-    # --- ambiguity: best vs. best distinct runner-up ----------------------------------------------
-    # Every pose is counted at the same fixed gate: ICP's gate adapts to each pose's own residuals,
-    # so a wrong pose refined by ICP would be flattered by its loose matches.
-    t_best = best.image_from_robot
-    n_best_fixed = _quick_count(t_best, robot, tree, p.hypothesis_gate_mm)[0]
-    runner: _Candidate | None = None
-    runner_key: tuple[int, float] = (-1, 0.0)
-    for c in pool:
-        if c is best or same_pose(
-            t_best, c.image_from_robot, centroid, p.distinct_rotation_deg, p.distinct_translation_mm
-        ):
-            continue
-        n_c, rms_c = _quick_count(c.image_from_robot, robot, tree, p.hypothesis_gate_mm)
-        if (n_c, -rms_c) > runner_key:
-            runner, runner_key = c, (n_c, -rms_c)
-    n_runner = max(runner_key[0], 0)
-    runner_angle = (
-        rotation_difference_deg(t_best[:3, :3], runner.image_from_robot[:3, :3]) if runner else None
-    )
-    margin = n_best_fixed - n_runner
-    if margin < p.min_runner_up_margin:
-        assert runner is not None
-        raise AmbiguousMatchError(
-            f"ambiguous sphere correspondence: the best pose matches {n_best_fixed} spheres and a "
-            f"different pose ({runner.source}, rotated {runner_angle:.1f}° from it) matches {n_runner}; "
-            f"a margin of {p.min_runner_up_margin} is required. Give an orientation prior "
-            "(--prior-rotation, tolerance < 45°), name 4 marks for the pre-registration, or use a phantom "
-            "with an asymmetric filled pattern"
-        )
-
-    # --- quality -----------------------------------------------------------------------------------
+    best, r = check_enough_matched(inp, cands, params)
+    ru = check_runner_up(best, cands.pool, inp.robot, tree, params)
     t0 = time.perf_counter()
-    r = best.result
-    assert r is not None
-    cond = check_configuration(
-        robot[r.robot_indices],
-        "matched spheres",
-        min_collinear_ratio=p.min_collinear_ratio,
-        min_coplanar_ratio=p.min_coplanar_ratio,
-    )
-    det = float(np.linalg.det(t_best[:3, :3]))
-    assert abs(det - 1.0) < 1e-9, f"det(R) = {det}: the determinant fix must prevent this"
-    fre = float(np.sqrt(np.mean(r.residuals_mm**2)))
-    fle = fle_from_fre(fre, r.n_matched)
-    tre = predicted_tre_mm(fle, robot[r.robot_indices], targets) if len(targets) else np.empty(0)
-    if fre > p.max_fre_mm:
-        raise AccuracyGateError(
-            f"FRE {fre:.3f} mm over {r.n_matched} matched spheres exceeds the gate of {p.max_fre_mm:g} mm "
-            f"(largest residual {float(np.max(r.residuals_mm)):.3f} mm at robot sphere "
-            f"{int(r.robot_indices[int(np.argmax(r.residuals_mm))])}). Check that the robot did not move "
-            "during the scan, the robot points' pose, and the detection"
-        )
+    q = quality_figures(r, best.image_from_robot, inp, params)
     timings["quality_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     log.info(
         "registered %d/%d spheres (%d detected): FRE %.3f mm, FLE %.3f mm, margin %d",
         r.n_matched,
-        n,
-        m,
-        fre,
-        fle,
-        margin,
+        inp.n,
+        inp.m,
+        q.fre_mm,
+        q.fle_mm,
+        ru.margin,
     )
-    return RegistrationResult(
-        image_from_robot=t_best,
-        fre_mm=fre,
-        fle_mm=fle,
-        robot_indices=r.robot_indices,
-        image_indices=r.image_indices,
-        residuals_mm=r.residuals_mm,
-        n_expected=n,
-        n_detected=m,
-        n_matched=r.n_matched,
-        predicted_tre_mm=np.asarray(tre, dtype=np.float64),
-        symmetry_margin=int(margin),
-        rotation_det=det,
-        timings_s=timings,
-        robot_mm=robot,
-        image_mm=image,
-        targets_robot_mm=targets,
-        runner_up_matched=int(n_runner),
-        runner_up_rotation_deg=runner_angle,
-        runner_up_source=runner.source if runner else "",
-        method="prereg+icp" if prereg is not None else "triples+icp",
-        n_icp_iterations=r.n_iterations,
-        collinearity=cond.collinearity,
-        planarity=cond.planarity,
-        prior_angle_deg=None if prior is None else rotation_difference_deg(t_best[:3, :3], prior),
-        prereg=prereg,
-        mirror_checked=mirror_checked,
-        provenance={"software": f"oarmreg {__version__}"},
-    )
+    return _result(inp, cands, best, r, ru, q, mirror_checked, timings)

@@ -24,8 +24,10 @@ DEFAULT_MAX_DEVIATION_RAD = 0.0005
 ≈ 0.34 mm, the order of the registration error budget (nominal-model error ≈ 0.3 mm,
 research/staubli-link.md §3.1 item 4); encoder noise of a standing arm is far below it."""
 
-DEFAULT_MAX_GAP_S = 0.1
-"""5 frame periods at 50 Hz: a longer hole in the history means the link was not watching."""
+DEFAULT_MAX_GAP_S = 0.25
+"""12 frame periods at 50 Hz: a longer hole in the history means the link was not watching; 0.25 s
+(not 5 periods) tolerates scheduling hiccups of a loaded service PC.  The value of
+``stillness.max_gap_s`` in configs/oarmreg.toml; service/settings.py takes its default from here."""
 
 DEFAULT_WINDOW_S = 2.0
 """Default window for a manual capture; the service uses the scan's acquisition interval."""

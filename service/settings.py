@@ -46,6 +46,11 @@ from pydantic_settings import (
 )
 
 from registration.errors import ConfigError
+from registration.register import RegistrationParams
+from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
+
+_REG_DEFAULTS = RegistrationParams()
+"""The registration dataclass carries the defaults (one source of truth, configs/oarmreg.toml agrees)."""
 
 REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEFAULT_PHANTOM_FILE = REPO_CONFIGS / "phantoms" / "bai2018_cube.toml"
@@ -102,9 +107,9 @@ class RobotSettings(_Section):
 
 
 class QualitySettings(_Section):
-    max_fre_mm: float = Field(default=0.5, gt=0, le=5.0)
-    min_matched_spheres: int = Field(default=6, ge=4, le=64)
-    min_symmetry_margin: int = Field(default=3, ge=1, le=64)
+    max_fre_mm: float = Field(default=_REG_DEFAULTS.max_fre_mm, gt=0, le=5.0)
+    min_matched_spheres: int = Field(default=_REG_DEFAULTS.min_matched, ge=4, le=64)
+    min_symmetry_margin: int = Field(default=_REG_DEFAULTS.min_runner_up_margin, ge=1, le=64)
     max_verification_error_mm: float = Field(default=1.0, gt=0, le=10.0)
     default_target_distance_mm: float = Field(default=150.0, ge=0, le=1000)
 
@@ -112,8 +117,8 @@ class QualitySettings(_Section):
 class StillnessSettings(_Section):
     # ≤ 100 s: the links keep 120 s of joint history (drivers.base.HISTORY_S)
     window_s: float = Field(default=60.0, gt=0, le=100)
-    max_deviation_rad: float = Field(default=5e-4, gt=0, le=0.1)
-    max_gap_s: float = Field(default=0.25, gt=0, le=60)
+    max_deviation_rad: float = Field(default=DEFAULT_MAX_DEVIATION_RAD, gt=0, le=0.1)
+    max_gap_s: float = Field(default=DEFAULT_MAX_GAP_S, gt=0, le=60)
 
     @model_validator(mode="after")
     def _gap_inside_window(self) -> StillnessSettings:
