@@ -316,4 +316,3 @@ def pack_transform(
         header_version=header_version,
         message_id=message_id,
     )
-
