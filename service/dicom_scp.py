@@ -326,12 +326,14 @@ class StorageScp:
         calling = str(prim.calling_ae_title).strip() if prim is not None else ""
         peer = str(assoc.requestor.address)
         if not self._peer_allowed(peer):
-            assoc.acse.send_reject(0x01, 0x01, 0x01)
+            assoc.acse.send_reject(0x01, 0x01, 0x01)  # rejected-permanent, service user, no reason
+            assoc.kill()  # as pynetdicom's own ACSE does: lets the DUL flush the A-ASSOCIATE-RJ
             self._refuse(
                 ScpRefusal("peer", f"peer {peer} not in dicom.allowed_peer_addresses", calling, peer)
             )
         elif self._allowed_aets and calling not in self._allowed_aets:
             assoc.acse.send_reject(0x01, 0x01, 0x03)  # calling AE title not recognised
+            assoc.kill()
             self._refuse(ScpRefusal(
                 "calling_ae", f"calling AE title {calling!r} not in dicom.allowed_calling_ae_titles "
                 f"{sorted(self._allowed_aets)}", calling, peer,
