@@ -100,7 +100,7 @@ def test_structure_identity_item_references_and_comments() -> None:
         "050607.890000",
     )
     assert all(
-        len(v) <= 16
+        len(str(v)) <= 16
         for v in robot.MatrixRegistrationSequence[0].MatrixSequence[0].FrameOfReferenceTransformationMatrix
     )
     assert ds.PatientID == "P1" and ds.StudyInstanceUID == "1.2.3"
