@@ -344,10 +344,13 @@ class StorageScp:
         state = _AssocState(str(assoc.requestor.ae_title).strip(), str(assoc.requestor.address))
         with self._lock:
             self._assocs[id(assoc)] = state
-        for cx in assoc.rejected_contexts:
-            sop = UID(cx.abstract_syntax or "")
+        names = sorted(
+            {UID(cx.abstract_syntax or "").name or str(cx.abstract_syntax) for cx in assoc.rejected_contexts}
+        )
+        if names:  # one report per association (storescu, for one, proposes ~120 classes)
+            shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
             self._refuse(ScpRefusal(
-                "context", f"presentation context {sop.name or sop} refused: only CT Image Storage and "
+                "context", f"presentation context(s) refused: {shown}; only CT Image Storage and "
                 "Enhanced CT Image Storage are accepted", state.calling_ae, state.peer,
             ))  # fmt: skip
 
