@@ -1,0 +1,466 @@
+"""DICOM Storage SCP: the O-arm pushes its CT series here (issue #12, design §10).
+
+A pynetdicom AE that answers C-ECHO and accepts C-STORE of **CT Image Storage** and
+**Enhanced CT Image Storage** only (no MR or other context is offered, so an MR series is
+refused at association negotiation), in Implicit / Explicit VR Little Endian, JPEG Lossless
+SV1, JPEG-LS lossless and JPEG 2000 lossless.
+
+Each instance is written as received (``event.encoded_dataset()``, no decode / re-encode)
+and atomically (temp file in the same directory + fsync + rename + directory fsync) to
+``intake/<StudyInstanceUID>/<SeriesInstanceUID>/<SOPInstanceUID>.dcm``.  A re-sent identical
+instance changes nothing; a re-sent *different* instance with the same SOP Instance UID
+replaces the old file atomically and is logged.  Instances are not decoded beyond the
+attributes checked below (decode-as-they-arrive is left to the loader).
+
+C-STORE statuses (PS3.4 Annex B.2.3):
+
+``0x0000``  stored (or identical copy already stored)
+``0xA700``  out of resources: the write failed (ENOSPC, EIO…); nothing half-written is left
+``0xA900``  dataset does not match the SOP class: SOP Class / Instance UID differ from the
+            request, Modality is not CT, a required attribute is missing, or a UID is malformed
+``0xC210``  cannot understand: the dataset could not be decoded
+
+Callbacks run on pynetdicom's association threads: keep them short and thread-safe.
+``on_series_released(series_dir, instance_count, calling_ae)`` per series touched by an
+association that was released normally (``instance_count`` = ``.dcm`` files now in the
+folder); ``on_association_aborted(series_dirs, reason)`` when an association aborts
+(its stored instances stay, but the series may be incomplete); ``on_refused(refusal)`` for
+every refusal (peer address, calling AE title, rejected presentation context, dataset,
+disk).
+
+Security: loopback by default.  A non-loopback bind needs at least one allow-list (calling
+AE titles and/or peer addresses); DICOM has no authentication here (no TLS configured).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import ipaddress
+import logging
+import os
+import re
+import threading
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, cast
+
+from pydicom.uid import (
+    UID,
+    CTImageStorage,
+    EnhancedCTImageStorage,
+    ExplicitVRLittleEndian,
+    ImplicitVRLittleEndian,
+    JPEG2000Lossless,
+    JPEGLosslessSV1,
+    JPEGLSLossless,
+)
+from pynetdicom import AE, evt
+from pynetdicom.dimse_primitives import C_STORE
+
+from registration.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+TRANSFER_SYNTAXES: tuple[UID, ...] = (
+    ImplicitVRLittleEndian,
+    ExplicitVRLittleEndian,
+    JPEGLosslessSV1,
+    JPEGLSLossless,
+    JPEG2000Lossless,
+)
+STORAGE_CLASSES: tuple[UID, ...] = (CTImageStorage, EnhancedCTImageStorage)
+VERIFICATION = UID("1.2.840.10008.1.1")
+
+STATUS_SUCCESS = 0x0000
+STATUS_OUT_OF_RESOURCES = 0xA700
+STATUS_DATASET_MISMATCH = 0xA900
+STATUS_CANNOT_UNDERSTAND = 0xC210
+
+UID_RE = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
+"""PS3.5 §9.1: digits and dots, no leading zeros; at most 64 characters.  Also makes the UID
+safe as a path component."""
+
+_REQUIRED: dict[str, tuple[str, ...]] = {
+    CTImageStorage: (
+        "StudyInstanceUID", "SeriesInstanceUID", "FrameOfReferenceUID", "ImagePositionPatient",
+        "ImageOrientationPatient", "PixelSpacing", "Rows", "Columns", "BitsAllocated", "PixelData",
+    ),
+    EnhancedCTImageStorage: (
+        "StudyInstanceUID", "SeriesInstanceUID", "FrameOfReferenceUID", "NumberOfFrames", "Rows",
+        "Columns", "SharedFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence", "PixelData",
+    ),
+}  # fmt: skip
+"""Type-1 attributes of the CT Image / Enhanced CT Image IODs (PS3.3 A.3, A.38) that the
+loader needs; a dataset lacking one does not match its SOP class."""
+
+
+class DicomScpConfigError(ConfigError):
+    """The DICOM Storage SCP configuration is unsafe or invalid."""
+
+    title = "Invalid DICOM SCP configuration"
+
+
+@dataclass(frozen=True)
+class DicomScpConfig:
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    ae_title: str = "OARMREG"
+    port: int = 11112
+    allowed_calling_ae_titles: tuple[str, ...] = ()
+    """Calling AE titles accepted (empty: any)."""
+    allowed_peer_addresses: tuple[str, ...] = ()
+    """Peer IP addresses or networks (CIDR) accepted (empty: any that can reach the bind)."""
+
+    def __post_init__(self) -> None:
+        if not (0 < len(self.ae_title) <= 16 and self.ae_title.isascii() and self.ae_title.strip()):
+            raise DicomScpConfigError(f"dicom.ae_title must be 1–16 ASCII characters, got {self.ae_title!r}")
+        if not 0 <= self.port <= 65535:
+            raise DicomScpConfigError(f"dicom.port must be 0–65535, got {self.port}")
+        self.networks()
+        if not _is_loopback(self.host) and not (
+            self.allowed_calling_ae_titles or self.allowed_peer_addresses
+        ):
+            raise DicomScpConfigError(
+                f"refusing to accept DICOM on {self.host!r} with both allow-lists empty: set "
+                "dicom.allowed_calling_ae_titles (the O-arm's AE title) and/or "
+                "dicom.allowed_peer_addresses, or bind 127.0.0.1"
+            )
+
+    def networks(self) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+        try:
+            return tuple(ipaddress.ip_network(a, strict=False) for a in self.allowed_peer_addresses)
+        except ValueError as e:
+            raise DicomScpConfigError(f"dicom.allowed_peer_addresses: {e}") from None
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class ScpRefusal:
+    """Why something was refused.  ``kind``: ``peer``, ``calling_ae``, ``context``,
+    ``dataset``, ``disk``."""
+
+    kind: str
+    reason: str
+    calling_ae: str = ""
+    peer: str = ""
+    sop_instance_uid: str = ""
+    status: int | None = None
+
+
+@dataclass(frozen=True)
+class ScpCallbacks:
+    on_series_released: Callable[[Path, int, str], None] | None = None
+    on_association_aborted: Callable[[list[Path], str], None] | None = None
+    on_refused: Callable[[ScpRefusal], None] | None = None
+
+
+# --------------------------------------------------------------------------- writing
+
+
+Writer = Callable[[int, memoryview], int]
+
+
+def atomic_write(path: Path, data: bytes, *, write: Writer = os.write) -> None:
+    """Write ``data`` to ``path`` atomically: a temp file in the same directory, fsync,
+    rename over ``path``, fsync the directory.  On any failure the temp file is removed and
+    ``path`` is untouched.  ``write`` is ``os.write`` (injectable for fault tests)."""
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.part")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            n = write(fd, view)
+            if n <= 0:
+                raise OSError(errno.EIO, f"write returned {n}")
+            view = view[n:]
+        os.fsync(fd)
+    except BaseException:
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    os.close(fd)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(d: Path) -> None:
+    fd = os.open(d, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+# --------------------------------------------------------------------------- the SCP
+
+
+@dataclass
+class _AssocState:
+    calling_ae: str
+    peer: str
+    series: dict[Path, int] = field(default_factory=dict)
+
+
+class StorageScp:
+    """The Storage SCP.  Construct (nothing binds), :meth:`start`, :meth:`stop`.
+
+    Parameters
+    ----------
+    config : DicomScpConfig
+    intake_dir : Path
+        Root of ``<Study>/<Series>/<SOP>.dcm``; created if missing.
+    callbacks : ScpCallbacks
+    write : callable
+        ``os.write``-like function used by :func:`atomic_write` (fault injection in tests).
+    """
+
+    def __init__(
+        self,
+        config: DicomScpConfig,
+        intake_dir: Path,
+        callbacks: ScpCallbacks | None = None,
+        *,
+        write: Writer = os.write,
+    ) -> None:
+        self.config = config
+        self.intake_dir = Path(intake_dir)
+        self.callbacks = callbacks or ScpCallbacks()
+        self._write = write
+        self._networks = config.networks()
+        self._allowed_aets = {a.strip() for a in config.allowed_calling_ae_titles}
+        self._lock = threading.Lock()
+        self._assocs: dict[int, _AssocState] = {}
+        self._server: Any = None
+        self.counters: dict[str, int] = {
+            "stored": 0, "duplicates": 0, "replaced": 0, "refused": 0, "echoes": 0,
+            "released": 0, "aborted": 0, "bytes": 0,
+        }  # fmt: skip
+
+    @property
+    def port(self) -> int:
+        if self._server is None:
+            raise RuntimeError("the DICOM SCP is not started")
+        return int(self._server.server_address[1])
+
+    def start(self) -> None:
+        """Bind and serve in pynetdicom's threads (returns at once)."""
+        self.intake_dir.mkdir(parents=True, exist_ok=True)
+        ae = AE(ae_title=self.config.ae_title)
+        for sop in STORAGE_CLASSES:
+            ae.add_supported_context(sop, list(TRANSFER_SYNTAXES))
+        ae.add_supported_context(VERIFICATION)
+        handlers: list[Any] = [
+            (evt.EVT_REQUESTED, self._on_requested),
+            (evt.EVT_ACCEPTED, self._on_accepted),
+            (evt.EVT_C_ECHO, self._on_echo),
+            (evt.EVT_C_STORE, self._on_store),
+            (evt.EVT_RELEASED, self._on_released),
+            (evt.EVT_ABORTED, self._on_aborted),
+        ]
+        try:
+            self._server = ae.start_server(
+                (self.config.host, self.config.port), block=False, evt_handlers=handlers
+            )
+        except OSError as e:
+            raise DicomScpConfigError(
+                f"cannot listen for DICOM on {self.config.host}:{self.config.port} ({e}); "
+                "is another SCP (storescp, a PACS) using the port?"
+            ) from None
+        log.info("DICOM Storage SCP %s on %s:%d → %s", self.config.ae_title, self.config.host,
+                 self.port, self.intake_dir)  # fmt: skip
+
+    def stop(self) -> None:
+        if self._server is not None:
+            self._server.shutdown()
+            self._server = None
+
+    def __enter__(self) -> StorageScp:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ---- negotiation ----------------------------------------------------------
+
+    def _refuse(self, refusal: ScpRefusal) -> None:
+        with self._lock:
+            self.counters["refused"] += 1
+        log.warning("DICOM SCP refused (%s) from %s %s: %s", refusal.kind, refusal.calling_ae,
+                    refusal.peer, refusal.reason)  # fmt: skip
+        if self.callbacks.on_refused is not None:
+            try:
+                self.callbacks.on_refused(refusal)
+            except Exception:
+                log.exception("DICOM SCP: on_refused callback failed")
+
+    def _peer_allowed(self, host: str) -> bool:
+        if not self._networks:
+            return True
+        try:
+            ip = ipaddress.ip_address(host)
+        except ValueError:
+            return False
+        return any(ip in n for n in self._networks)
+
+    def _on_requested(self, event: evt.Event) -> None:
+        assoc = event.assoc
+        prim = assoc.requestor.primitive
+        calling = str(prim.calling_ae_title).strip() if prim is not None else ""
+        peer = str(assoc.requestor.address)
+        if not self._peer_allowed(peer):
+            assoc.acse.send_reject(0x01, 0x01, 0x01)  # rejected-permanent, service user, no reason
+            assoc.kill()  # as pynetdicom's own ACSE does: lets the DUL flush the A-ASSOCIATE-RJ
+            self._refuse(
+                ScpRefusal("peer", f"peer {peer} not in dicom.allowed_peer_addresses", calling, peer)
+            )
+        elif self._allowed_aets and calling not in self._allowed_aets:
+            assoc.acse.send_reject(0x01, 0x01, 0x03)  # calling AE title not recognised
+            assoc.kill()
+            self._refuse(ScpRefusal(
+                "calling_ae", f"calling AE title {calling!r} not in dicom.allowed_calling_ae_titles "
+                f"{sorted(self._allowed_aets)}", calling, peer,
+            ))  # fmt: skip
+
+    def _on_accepted(self, event: evt.Event) -> None:
+        assoc = event.assoc
+        state = _AssocState(str(assoc.requestor.ae_title).strip(), str(assoc.requestor.address))
+        with self._lock:
+            self._assocs[id(assoc)] = state
+        names = sorted(
+            {UID(cx.abstract_syntax or "").name or str(cx.abstract_syntax) for cx in assoc.rejected_contexts}
+        )
+        if names:  # one report per association (storescu, for one, proposes ~120 classes)
+            shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+            self._refuse(ScpRefusal(
+                "context", f"presentation context(s) refused: {shown}; only CT Image Storage and "
+                "Enhanced CT Image Storage are accepted", state.calling_ae, state.peer,
+            ))  # fmt: skip
+
+    def _on_echo(self, event: evt.Event) -> int:
+        with self._lock:
+            self.counters["echoes"] += 1
+        return STATUS_SUCCESS
+
+    # ---- storage ---------------------------------------------------------------
+
+    def _on_store(self, event: evt.Event) -> int:
+        assoc = event.assoc
+        with self._lock:
+            state = self._assocs.get(id(assoc)) or _AssocState("", "")
+        sop = str(cast(C_STORE, event.request).AffectedSOPInstanceUID or "")
+        status, reason, target = self._check(event, sop)
+        if target is None:
+            self._refuse(ScpRefusal("dataset", reason, state.calling_ae, state.peer, sop, status))
+            return status
+        data = event.encoded_dataset(include_meta=True)
+        try:
+            outcome = self._store(target, data, event.encoded_dataset(include_meta=False))
+        except OSError as e:
+            reason = f"cannot write {target} ({e.strerror or e}); check free space on {self.intake_dir}"
+            self._refuse(
+                ScpRefusal("disk", reason, state.calling_ae, state.peer, sop, STATUS_OUT_OF_RESOURCES)
+            )
+            return STATUS_OUT_OF_RESOURCES
+        with self._lock:
+            self.counters[outcome] += 1
+            self.counters["bytes"] += len(data) if outcome != "duplicates" else 0
+            state.series[target.parent] = state.series.get(target.parent, 0) + 1
+        return STATUS_SUCCESS
+
+    def _check(self, event: evt.Event, sop: str) -> tuple[int, str, Path | None]:
+        """``(status, reason, target path or None)`` for one C-STORE request."""
+        try:
+            ds = event.dataset
+            cls = str(ds.get("SOPClassUID", ""))
+            inst = str(ds.get("SOPInstanceUID", ""))
+            modality = str(ds.get("Modality", ""))
+            missing = [k for k in _REQUIRED.get(cls, ()) if k not in ds or ds[k].is_empty]
+            study, series = str(ds.get("StudyInstanceUID", "")), str(ds.get("SeriesInstanceUID", ""))
+        except Exception as e:
+            return (
+                STATUS_CANNOT_UNDERSTAND,
+                f"dataset {sop} cannot be decoded ({type(e).__name__}: {e})",
+                None,
+            )
+        req_cls = str(cast(C_STORE, event.request).AffectedSOPClassUID or "")
+        if cls != req_cls or inst != sop:
+            why = f"dataset says SOP Class {cls!r} / Instance {inst!r}, the request {req_cls!r} / {sop!r}"
+        elif modality != "CT":
+            why = f"Modality is {modality!r}, a CT image needs 'CT'"
+        elif missing:
+            why = f"required attribute(s) missing or empty: {', '.join(missing)}"
+        elif not all(UID_RE.match(u) and len(u) <= 64 for u in (study, series, sop)):
+            why = f"malformed UID among Study {study!r}, Series {series!r}, SOP {sop!r}"
+        else:
+            return STATUS_SUCCESS, "", self.intake_dir / study / series / f"{sop}.dcm"
+        return STATUS_DATASET_MISMATCH, f"{UID(req_cls).name or req_cls} {sop}: {why}", None
+
+    def _store(self, target: Path, data: bytes, dataset_part: bytes) -> str:
+        """Write one instance; returns the counter to bump (stored / duplicates / replaced)."""
+        target.parent.mkdir(parents=True, exist_ok=True)
+        outcome = "stored"
+        if target.exists():
+            if target.read_bytes().endswith(dataset_part):
+                return "duplicates"
+            log.warning("DICOM SCP: %s re-sent with different content; replacing", target.name)
+            outcome = "replaced"
+        atomic_write(target, data, write=self._write)
+        return outcome
+
+    # ---- end of association -------------------------------------------------------
+
+    def _pop(self, event: evt.Event) -> _AssocState | None:
+        with self._lock:
+            return self._assocs.pop(id(event.assoc), None)
+
+    def _on_released(self, event: evt.Event) -> None:
+        state = self._pop(event)
+        if state is None:
+            return
+        with self._lock:
+            self.counters["released"] += 1
+        for series_dir in sorted(state.series):
+            n = sum(1 for _ in series_dir.glob("*.dcm"))
+            log.info("DICOM SCP: series %s released by %s with %d instance(s) on disk",
+                     series_dir.name, state.calling_ae, n)  # fmt: skip
+            if self.callbacks.on_series_released is not None:
+                try:
+                    self.callbacks.on_series_released(series_dir, n, state.calling_ae)
+                except Exception:
+                    log.exception("DICOM SCP: on_series_released callback failed")
+
+    def _on_aborted(self, event: evt.Event) -> None:
+        state = self._pop(event)
+        if state is None:  # rejected or never established
+            return
+        with self._lock:
+            self.counters["aborted"] += 1
+        kind = "A-P-ABORT (network or protocol)" if event.assoc.acse.is_aborted("a-p-abort") else "A-ABORT"
+        reason = (
+            f"association from {state.calling_ae} {state.peer} aborted ({kind}); series may be incomplete"
+        )
+        dirs = sorted(state.series)
+        log.warning("DICOM SCP: %s; %d series touched", reason, len(dirs))
+        if self.callbacks.on_association_aborted is not None:
+            try:
+                self.callbacks.on_association_aborted(dirs, reason)
+            except Exception:
+                log.exception("DICOM SCP: on_association_aborted callback failed")

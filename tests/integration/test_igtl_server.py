@@ -1,0 +1,329 @@
+"""OpenIGTLink server against pyigtl's client (an independent peer) and raw sockets, over
+loopback (issue #12).  Every server binds port 0."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pyigtl
+import pytest
+from polling import wait_until
+
+from drivers.base import open_link
+from mocks.robot.robot import ScriptedRobot
+from mocks.robot.runner import run_mock_controller
+from registration.kinematics import RobotModel
+from service.igtl import wire
+from service.igtl.server import (
+    RAS_FROM_LPS,
+    IgtlConfigError,
+    IgtlServer,
+    IgtlServerConfig,
+    IgtlStateSource,
+    JointView,
+    Refusal,
+    RegistrationState,
+    RegistrationView,
+)
+
+RX_TIMEOUT_S = 5.0
+
+
+def rigid(rx_deg: float, rz_deg: float, t: Sequence[float]) -> np.ndarray:
+    a, c = math.radians(rx_deg), math.radians(rz_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
+    m = np.eye(4)
+    m[:3, :3] = rz @ rx
+    m[:3, 3] = t
+    return m
+
+
+IMAGE_FROM_ROBOT = rigid(23.0, -71.0, [-412.25, 233.5, -80.125])
+REG = RegistrationView(IMAGE_FROM_ROBOT, "reg-0007", fre_mm=0.4123, tre_pred_mm=0.61)
+
+
+@dataclass
+class Holder:
+    """A scripted state source the tests mutate."""
+
+    reg: RegistrationState
+    joints: JointView | None = None
+
+    def source(self, fk: Callable[[Sequence[float]], np.ndarray] | None = None, tcp: Any = None) -> Any:
+        return IgtlStateSource(
+            registration=lambda: self.reg,
+            joints=lambda: self.joints,
+            robot_from_tool0=fk or (lambda q: rigid(0.0, math.degrees(q[0]), [q[1], 0.0, 0.0])),
+            tool0_from_tcp=np.eye(4) if tcp is None else tcp,
+        )
+
+
+def assert_transform_close(got: np.ndarray, want: np.ndarray) -> None:
+    np.testing.assert_allclose(got[:3, :3], want[:3, :3], atol=1e-6)
+    np.testing.assert_allclose(got[:3, 3], want[:3, 3], atol=1e-4)
+
+
+async def receive(client: pyigtl.OpenIGTLinkClient, device: str, pred: Callable[[Any], bool]) -> Any:
+    """The first message from ``device`` satisfying ``pred`` (deadline, no sleeps)."""
+    deadline = time.monotonic() + RX_TIMEOUT_S
+    while time.monotonic() < deadline:
+        msg = await asyncio.to_thread(client.wait_for_message, device, 0.5)
+        if msg is not None and pred(msg):
+            return msg
+    raise AssertionError(f"no {device} message satisfying the condition within {RX_TIMEOUT_S} s")
+
+
+def status_is(s: str) -> Callable[[Any], bool]:
+    return lambda m: m.metadata.get("TransformStatus") == s
+
+
+async def started(holder: Holder, **cfg: Any) -> IgtlServer:
+    server = IgtlServer(IgtlServerConfig(port=0, **cfg), holder.source())
+    await server.start()
+    return server
+
+
+def pyigtl_client(port: int) -> pyigtl.OpenIGTLinkClient:
+    return pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
+
+
+def test_registration_sent_in_ras_with_figures() -> None:
+    async def main() -> None:
+        server = await started(Holder(RegistrationState(REG)))
+        client = pyigtl_client(server.port)
+        try:
+            msg = await receive(client, "RobotToImage", status_is("OK"))
+        finally:
+            client.stop()
+            await server.stop()
+        # The documented matrix: ras_from_robot = diag(-1,-1,1,1) @ image_from_robot(LPS).
+        assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+        assert msg.header_version == 2
+        assert msg.metadata["RegistrationId"] == "reg-0007"
+        assert float(msg.metadata["FRE_mm"]) == pytest.approx(0.4123)
+        assert float(msg.metadata["TRE_pred_mm"]) == pytest.approx(0.61)
+        assert msg.metadata["ImageFrame"] == "RAS"
+
+    asyncio.run(main())
+
+
+def test_invalid_until_current_then_refusal_keeps_previous_ok() -> None:
+    holder = Holder(RegistrationState(None))
+
+    async def main() -> None:
+        server = await started(holder)
+        client = pyigtl_client(server.port)
+        try:
+            msg = await receive(client, "RobotToImage", lambda m: True)
+            assert msg.metadata["TransformStatus"] == "INVALID"
+            assert "no current registration" in msg.metadata["Reason"]
+            tool = await receive(client, "ToolToImage", lambda m: True)
+            assert tool.metadata["TransformStatus"] == "INVALID"
+            holder.reg = RegistrationState(REG)
+            server.notify()
+            msg = await receive(client, "RobotToImage", status_is("OK"))
+            assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+            holder.reg = RegistrationState(REG, Refusal("reg-0008", "ambiguous: symmetry margin 0.3 < 2"))
+            msg = await receive(client, "RobotToImage", lambda m: "LastRefusal" in m.metadata)
+        finally:
+            client.stop()
+            await server.stop()
+        assert msg.metadata["TransformStatus"] == "OK"
+        assert msg.metadata["RegistrationId"] == "reg-0007"
+        assert msg.metadata["LastRefusal"].startswith("reg-0008: ambiguous")
+        assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+
+    asyncio.run(main())
+
+
+def test_two_pyigtl_clients_both_receive_on_connect_and_on_change() -> None:
+    holder = Holder(RegistrationState(REG))
+
+    async def main() -> None:
+        server = await started(holder)
+        clients = [pyigtl_client(server.port), pyigtl_client(server.port)]
+        try:
+            for c in clients:
+                await receive(c, "RobotToImage", status_is("OK"))
+            await wait_until(lambda: server.client_count == 2, "two clients")
+            other = RegistrationView(rigid(5.0, 10.0, [1.0, 2.0, 3.0]), "reg-0009", fre_mm=0.3)
+            holder.reg = RegistrationState(other)
+            for c in clients:
+                msg = await receive(
+                    c, "RobotToImage", lambda m: m.metadata.get("RegistrationId") == "reg-0009"
+                )
+                assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ other.image_from_robot)
+        finally:
+            for c in clients:
+                c.stop()
+            await server.stop()
+        assert server.counters["connects"] == 2
+
+    asyncio.run(main())
+
+
+def test_tool_to_image_follows_mock_controller_joints_and_goes_invalid_when_stale() -> None:
+    model = RobotModel.load("tx60")
+    tool0_from_tcp = rigid(0.0, 0.0, [0.0, 0.0, 150.0])
+    q1 = [math.radians(d) for d in (10, -20, 95, 5, 30, 45)]
+    q2 = [math.radians(d) for d in (-35, 15, 80, -10, 60, 120)]
+    robot = ScriptedRobot(q1)
+
+    def expected(q: Sequence[float]) -> np.ndarray:
+        q32 = [float(v) for v in np.asarray(q, dtype=np.float32)]  # what the link delivers
+        return RAS_FROM_LPS @ IMAGE_FROM_ROBOT @ model.robot_from_tool0(q32) @ tool0_from_tcp
+
+    async def main() -> None:
+        with run_mock_controller("simple-message", robot) as mock:
+            async with open_link(mock.url, stale_after_s=0.2) as link:
+
+                def joints() -> JointView | None:
+                    s, h = link.latest(), link.health()
+                    return None if s is None else JointView(s.joints_rad, s.t_s, h.state, h.reason)
+
+                src = IgtlStateSource(
+                    lambda: RegistrationState(REG), joints, model.robot_from_tool0, tool0_from_tcp
+                )
+                server = IgtlServer(IgtlServerConfig(port=0), src)
+                await server.start()
+                client = pyigtl_client(server.port)
+                try:
+
+                    def close_to(want: np.ndarray) -> Callable[[Any], bool]:
+                        return lambda m: status_is("OK")(m) and np.allclose(m.matrix, want, atol=1e-4)
+
+                    await receive(client, "ToolToImage", close_to(expected(q1)))
+                    robot.hold(q2)
+                    msg = await receive(client, "ToolToImage", close_to(expected(q2)))
+                    assert_transform_close(np.asarray(msg.matrix), expected(q2))
+                    mock.stall()
+                    msg = await receive(client, "ToolToImage", status_is("INVALID"))
+                    assert "stale" in msg.metadata["Reason"] or "old" in msg.metadata["Reason"]
+                    mock.resume()
+                    await receive(client, "ToolToImage", status_is("OK"))
+                finally:
+                    client.stop()
+                    await server.stop()
+
+    asyncio.run(main())
+
+
+class ChangingJoints:
+    """A joint source with a new sample on every call (drives ToolToImage at the poll rate)."""
+
+    def __call__(self) -> JointView:
+        t = time.monotonic()
+        return JointView((t % 1.0, 0.0), t, "connected")
+
+
+async def read_ids(reader: asyncio.StreamReader, ids: list[int], arrivals: list[float]) -> None:
+    while True:
+        head = wire.unpack_header(await reader.readexactly(wire.HEADER_SIZE))
+        msg = wire.unpack_body(head, await reader.readexactly(head.body_size))
+        ids.append(msg.message_id)
+        arrivals.append(time.monotonic())
+
+
+def test_client_that_never_reads_does_not_delay_the_others_and_is_disconnected() -> None:
+    holder = Holder(RegistrationState(REG))
+    cfg = IgtlServerConfig(
+        port=0, poll_period_s=0.005, client_queue_max=32, client_buffer_bytes=1024,
+        socket_send_buffer_bytes=16 * 1024, slow_client_timeout_s=0.5,
+    )  # fmt: skip
+
+    async def main() -> None:
+        src = IgtlStateSource(lambda: holder.reg, ChangingJoints(), holder.source().robot_from_tool0)
+        server = IgtlServer(cfg, src)
+        await server.start()
+        ids: list[int] = []
+        arrivals: list[float] = []
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        fast = asyncio.create_task(read_ids(reader, ids, arrivals))
+        stuck = socket.socket()
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stuck.connect(("127.0.0.1", server.port))  # never reads
+        try:
+            await wait_until(lambda: server.client_count == 2, "both clients connected")
+            n_before = len(ids)
+            t0 = time.monotonic()
+            await wait_until(lambda: server.counters["slow_disconnects"] >= 1, "the stuck client cut", 15.0)
+            t1 = time.monotonic()
+            n_during = len(ids) - n_before
+            await wait_until(lambda: len(ids) > n_before + n_during + 10, "more messages after the cut")
+        finally:
+            fast.cancel()
+            writer.close()
+            stuck.close()
+            await server.stop()
+        gaps = np.diff([a for a in arrivals if t0 <= a <= t1])
+        print(f"\nstuck client cut after {t1 - t0:.2f} s; fast client got {n_during} messages meanwhile, "
+              f"median gap {statistics.median(gaps) * 1e3:.1f} ms, max {gaps.max() * 1e3:.1f} ms; "
+              f"dropped for the stuck one: {server.counters['dropped']}")  # fmt: skip
+        assert ids == list(range(1, len(ids) + 1)), "the reading client lost or reordered messages"
+        assert n_during > 20, f"only {n_during} messages reached the reading client while the other was stuck"
+        assert server.counters["dropped"] > 0  # the stuck client's queue overflowed, oldest dropped
+        assert server.client_count == 0
+
+    asyncio.run(main())
+
+
+def test_peer_not_on_allow_list_is_closed_and_listed_peer_served() -> None:
+    async def main() -> None:
+        server = await started(Holder(RegistrationState(REG)), allowed_peer_addresses=("127.0.0.2",))
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", server.port)  # from 127.0.0.1
+            assert await reader.read(1) == b""
+            writer.close()
+            await wait_until(lambda: server.counters["refused_peers"] == 1, "the refusal counted")
+            reader, writer = await asyncio.open_connection(
+                "127.0.0.1", server.port, local_addr=("127.0.0.2", 0)
+            )
+            head = wire.unpack_header(await reader.readexactly(wire.HEADER_SIZE))
+            assert head.device_name in ("RobotToImage", "ToolToImage")
+            writer.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.10.5", "::"])
+def test_non_loopback_bind_without_allow_list_refuses_to_start(host: str) -> None:
+    with pytest.raises(IgtlConfigError, match="allowed_peer_addresses"):
+        IgtlServerConfig(host=host)
+    IgtlServerConfig(host=host, allowed_peer_addresses=("10.0.0.0/24",))  # explicit list: fine
+
+
+def test_bad_allow_list_entry_and_long_device_name_refused() -> None:
+    with pytest.raises(IgtlConfigError, match="allowed_peer_addresses"):
+        IgtlServerConfig(allowed_peer_addresses=("not-an-ip",))
+    with pytest.raises(IgtlConfigError, match="20"):
+        IgtlServerConfig(tool_device="StylusTipToImageRASFrame")
+
+
+def test_failing_callbacks_give_invalid_not_a_dead_server() -> None:
+    def boom() -> RegistrationState:
+        raise RuntimeError("database is locked")
+
+    async def main() -> None:
+        src = IgtlStateSource(boom, lambda: None, lambda q: np.eye(4))
+        server = IgtlServer(IgtlServerConfig(port=0), src)
+        await server.start()
+        client = pyigtl_client(server.port)
+        try:
+            msg = await receive(client, "RobotToImage", lambda m: True)
+        finally:
+            client.stop()
+            await server.stop()
+        assert msg.metadata["TransformStatus"] == "INVALID"
+
+    asyncio.run(main())
