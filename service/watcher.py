@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.errors import DicomSeriesError, OarmRegError
+from registration.volume import Volume
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ class SeriesArrival:
     last_change_t_s: float
     first_seen_at: datetime
     n_files: int
-    volume: Any = None
+    volume: Volume | None = None
     error: str = ""
     duplicate: bool = False
     preexisting: bool = False

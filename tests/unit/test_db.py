@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from service.db import MIGRATIONS, Database
 
 from registration.errors import ConfigError
-from service.db import MIGRATIONS, Database
 
 
 @pytest.fixture
