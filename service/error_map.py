@@ -46,7 +46,7 @@ class ErrorClass:
     title: str
 
 
-ERROR_MAP: dict[type[Exception], ErrorClass] = {
+ERROR_MAP: dict[type, ErrorClass] = {
     OarmRegError: ErrorClass(422, EXIT_INPUT, "Invalid input"),
     ConfigError: ErrorClass(422, EXIT_CONFIG, "Configuration error"),
     RegistrationError: ErrorClass(409, EXIT_REFUSED, "Registration refused"),
@@ -66,7 +66,7 @@ FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)
 def classify(exc: BaseException) -> ErrorClass | None:
     """The entry of the nearest ancestor of ``type(exc)`` in :data:`ERROR_MAP`, or None (not ours)."""
     for cls in type(exc).__mro__:
-        entry = ERROR_MAP.get(cls)  # type: ignore[call-overload]
+        entry = ERROR_MAP.get(cls)
         if entry is not None:
             return entry
     return None

@@ -14,7 +14,7 @@ from pydantic import AliasChoices, AliasPath, BaseModel, ConfigDict, Field, comp
 
 from service.records import RegistrationRecord, ScanRecord, VerificationRecord
 
-EXAMPLE_MATRIX = [
+EXAMPLE_MATRIX: list[Any] = [
     [0.0, -1.0, 0.0, 412.5],
     [1.0, 0.0, 0.0, -35.2],
     [0.0, 0.0, 1.0, -610.0],
