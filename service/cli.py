@@ -1,7 +1,7 @@
 """The ``oarmreg`` command line.
 
 ``main(argv=None) -> int`` is callable from tests.  Exit codes: see
-:mod:`registration.errors` (0 ok, 2 usage, 3 configuration, 4 input data,
+:mod:`service.error_map` (0 ok, 2 usage, 3 configuration, 4 input data,
 5 robot link, 6 registration refused, 7 accuracy gate).
 """
 
@@ -14,9 +14,8 @@ import os
 import sys
 from collections.abc import Sequence
 
-from drivers.errors import RobotLinkError
 from registration import __version__
-from registration.errors import OarmRegError
+from service.error_map import FAMILIES, exit_code_of, title_of
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +63,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args._run(args))
-    except (OarmRegError, RobotLinkError) as e:
-        print(f"oarmreg {args.command}: {e.title}: {e}", file=sys.stderr)  # noqa: T201
-        return int(e.exit_code)
+    except FAMILIES as e:
+        print(f"oarmreg {args.command}: {title_of(e)}: {e}", file=sys.stderr)  # noqa: T201
+        return exit_code_of(e)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do

@@ -57,7 +57,7 @@ def write_error_histogram(
     if bin_width_mm is None:
         bin_width_mm = nice_bin_width_mm(max_mm)
     top = max(max_mm, bin_width_mm)
-    bins = np.arange(0.0, top + bin_width_mm, bin_width_mm)
+    bins = [float(b) for b in np.arange(0.0, top + bin_width_mm, bin_width_mm)]
     ax.hist(e, bins=bins, color="#4a7ab5", edgecolor="black", linewidth=0.6)
     if len(e):
         mean = float(e.mean())

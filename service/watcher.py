@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.errors import DicomSeriesError, OarmRegError
+from registration.volume import Volume
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ class SeriesArrival:
     last_change_t_s: float
     first_seen_at: datetime
     n_files: int
-    volume: Any = None
+    volume: Volume | None = None
     error: str = ""
     duplicate: bool = False
     preexisting: bool = False
@@ -324,7 +325,7 @@ class SeriesWatcher:
         log.warning("watcher: %s; retrying %s after the next quiet period", why, folder)
 
     def _process(self, folder: Path, st: _DirState) -> None:
-        from registration.dicom_series import list_series, load_series
+        from registration.dicom_series import list_series
 
         before = st.snapshot
         try:
@@ -349,66 +350,69 @@ class SeriesWatcher:
             return
         retry = False
         for summary in summaries:
-            uid = _series_uid(summary)
-            arrival_kw: dict[str, Any] = {
-                "series_uid": uid,
-                "folder": folder,
-                "first_seen_t_s": st.first_seen_t_s,
-                "last_change_t_s": st.changed_t_s,
-                "first_seen_at": st.first_seen_at,
-                "n_files": _n_files(summary),
-                "preexisting": st.preexisting,
-            }
-            if self.is_known(uid):
-                log.info(
-                    "watcher: series %s in %s is already recorded (re-export); not reloaded", uid, folder
-                )
-                with self._lock:
-                    self.stats.duplicates += 1
-                retry |= not self._deliver(SeriesArrival(**arrival_kw, duplicate=True))
-                continue
-            problem = str(getattr(summary, "problem", "") or "")
-            if problem:
-                if snapshot_dir(folder)[0] != before:
-                    self._retry_later(folder, st, f"files of series {uid} in {folder} changed while listing")
-                    return
-                log.warning("watcher: series %s in %s is not usable: %s", uid, folder, problem)
-                with self._lock:
-                    self.stats.invalid += 1
-                retry |= not self._deliver(SeriesArrival(**arrival_kw, error=problem))
-                continue
-            try:
-                volume = load_series(folder, series_uid=uid)
-            except (OarmRegError, OSError) as e:
-                if snapshot_dir(folder)[0] != before or isinstance(e, FileNotFoundError):
-                    self._retry_later(
-                        folder, st, f"files of series {uid} in {folder} changed while loading ({e})"
-                    )
-                    return
-                log.warning("watcher: series %s in %s is not usable: %s", uid, folder, e)
-                with self._lock:
-                    self.stats.invalid += 1
-                retry |= not self._deliver(SeriesArrival(**arrival_kw, error=str(e)))
-                continue
-            if snapshot_dir(folder)[0] != before:
-                self._retry_later(folder, st, f"files of series {uid} in {folder} changed while loading")
-                return
-            log.info(
-                "watcher: series %s complete in %s (%d slices, first seen %.2f s ago)",
-                uid,
-                folder,
-                volume.shape[0],
-                time.monotonic() - st.first_seen_t_s,
-            )
-            with self._lock:
-                self.stats.series_recorded += 1
-            retry |= not self._deliver(SeriesArrival(**arrival_kw, volume=volume))
+            outcome = self._process_series(folder, st, summary, before)
+            if outcome is None:
+                return  # the folder changed: retried after the next quiet period
+            retry |= not outcome
         if retry:
             with self._lock:
                 why = self.stats.last_error
             self._retry_later(folder, st, f"recording a series from {folder} failed ({why})")
         else:
             st.processed = before
+
+    def _process_series(
+        self, folder: Path, st: _DirState, summary: Any, before: frozenset[tuple[str, int, int]]
+    ) -> bool | None:
+        """Load and deliver one series of ``folder``: True if recorded, False if recording failed,
+        None if the folder changed meanwhile (a retry is already scheduled)."""
+        from registration.dicom_series import load_series
+
+        uid = _series_uid(summary)
+        arrival_kw: dict[str, Any] = {
+            "series_uid": uid,
+            "folder": folder,
+            "first_seen_t_s": st.first_seen_t_s,
+            "last_change_t_s": st.changed_t_s,
+            "first_seen_at": st.first_seen_at,
+            "n_files": _n_files(summary),
+            "preexisting": st.preexisting,
+        }
+        if self.is_known(uid):
+            log.info("watcher: series %s in %s is already recorded (re-export); not reloaded", uid, folder)
+            with self._lock:
+                self.stats.duplicates += 1
+            return self._deliver(SeriesArrival(**arrival_kw, duplicate=True))
+        problem = str(getattr(summary, "problem", "") or "")
+        if problem:
+            if snapshot_dir(folder)[0] != before:
+                self._retry_later(folder, st, f"files of series {uid} in {folder} changed while listing")
+                return None
+            log.warning("watcher: series %s in %s is not usable: %s", uid, folder, problem)
+            with self._lock:
+                self.stats.invalid += 1
+            return self._deliver(SeriesArrival(**arrival_kw, error=problem))
+        try:
+            volume = load_series(folder, series_uid=uid)
+        except (OarmRegError, OSError) as e:
+            if snapshot_dir(folder)[0] != before or isinstance(e, FileNotFoundError):
+                why = f"files of series {uid} in {folder} changed while loading ({e})"
+                self._retry_later(folder, st, why)
+                return None
+            log.warning("watcher: series %s in %s is not usable: %s", uid, folder, e)
+            with self._lock:
+                self.stats.invalid += 1
+            return self._deliver(SeriesArrival(**arrival_kw, error=str(e)))
+        if snapshot_dir(folder)[0] != before:
+            self._retry_later(folder, st, f"files of series {uid} in {folder} changed while loading")
+            return None
+        log.info(
+            "watcher: series %s complete in %s (%d slices, first seen %.2f s ago)",
+            uid, folder, volume.shape[0], time.monotonic() - st.first_seen_t_s,
+        )  # fmt: skip
+        with self._lock:
+            self.stats.series_recorded += 1
+        return self._deliver(SeriesArrival(**arrival_kw, volume=volume))
 
     def _deliver(self, arrival: SeriesArrival) -> bool:
         try:

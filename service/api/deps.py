@@ -3,42 +3,34 @@
 from __future__ import annotations
 
 import hmac
-from typing import TYPE_CHECKING, Annotated, ClassVar
+from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import SecretStr
 
-from registration.errors import OarmRegError
-
-if TYPE_CHECKING:
-    from service.app import ServiceContext
-
-
-class AuthError(OarmRegError):
-    """Missing or wrong Bearer token (answered 401 with ``WWW-Authenticate: Bearer``)."""
-
-    http_status = 401
-    title = "Unauthorized"
-    headers: ClassVar[dict[str, str]] = {"WWW-Authenticate": 'Bearer realm="oarmreg"'}
+from service.context import ServiceContext
+from service.errors import AuthError
 
 
 async def get_ctx(request: Request) -> ServiceContext:
-    return request.app.state.ctx  # type: ignore[no-any-return]
+    ctx: ServiceContext = request.app.state.ctx
+    return ctx
 
 
-CtxDep = Annotated["ServiceContext", Depends(get_ctx)]
+CtxDep = Annotated[ServiceContext, Depends(get_ctx)]
 
 _bearer = HTTPBearer(auto_error=False, description="API token (settings: api_token / OARMREG_API_TOKEN)")
 
 
-def token_ok(settings_token: object, presented: str | None) -> bool:
+def token_ok(settings_token: SecretStr | None, presented: str | None) -> bool:
     """True if ``presented`` (the Bearer credentials) matches the API token, in constant time
     (``hmac.compare_digest``); always True when no token is configured (loopback only)."""
     if settings_token is None:
         return True
     if presented is None:
         return False
-    secret = settings_token.get_secret_value()  # type: ignore[attr-defined]
+    secret = settings_token.get_secret_value()
     return hmac.compare_digest(presented.encode(), secret.encode())
 
 

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AliasChoices, AliasPath, BaseModel, ConfigDict, Field, computed_field, field_validator
 
-EXAMPLE_MATRIX = [
+from service.records import RegistrationRecord, ScanRecord, VerificationRecord
+
+EXAMPLE_MATRIX: list[Any] = [
     [0.0, -1.0, 0.0, 412.5],
     [1.0, 0.0, 0.0, -35.2],
     [0.0, 0.0, 1.0, -610.0],
@@ -24,7 +26,12 @@ Point3 = list[float]
 
 
 class _Out(BaseModel):
-    model_config = ConfigDict(extra="ignore")
+    model_config = ConfigDict(extra="ignore", from_attributes=True)
+
+
+def _from(parent: str, name: str) -> AliasChoices:
+    """Read field ``name`` from the record's ``parent`` attribute (e.g. ``figures.fle_mm``)."""
+    return AliasChoices(name, AliasPath(parent, name))
 
 
 # ---- requests ------------------------------------------------------------------------------
@@ -142,17 +149,21 @@ class ScanOut(_Out):
     rows: int
     columns: int
     image_from_voxel: Matrix4 | None = Field(
-        default=None, description="(i, j, k, 1) → LPS mm, 4 × 4 row-major."
+        default=None,
+        description="(i, j, k, 1) → LPS mm, 4 × 4 row-major.",
+        validation_alias=_from("geometry", "image_from_voxel"),
     )
     spacing_mm: list[float] | None = Field(
-        default=None, description="Voxel size along (column, row, slice), mm."
+        default=None,
+        description="Voxel size along (column, row, slice), mm.",
+        validation_alias=_from("geometry", "spacing_mm"),
     )
     status: str = Field(description="complete | invalid")
     reason: str
     seen_count: int = Field(
         description="How often the series was exported (re-exports are deduplicated by UID)."
     )
-    joints: JointSnapshotOut | None
+    joints: JointSnapshotOut | None = Field(validation_alias=AliasChoices("joints", "snapshot"))
 
 
 class SphereResidual(_Out):
@@ -203,25 +214,35 @@ class RegistrationOut(_Out):
     fre_mm: float | None = Field(
         default=None, description="RMS residual over the matched spheres (not an accuracy figure)."
     )
-    fle_mm: float | None = Field(default=None, description="FLE implied by FRE: FRE·√(N/(N−2)).")
-    n_expected: int | None = None
-    n_detected: int | None = None
-    n_matched: int | None = None
-    spheres: list[SphereResidual] = []
-    predicted_tre_mm: list[float] = Field([], description="Fitzpatrick's predicted TRE at targets_image_mm.")
-    targets_image_mm: list[Point3] = []
-    targets_source: str = ""
-    symmetry_margin: int | None = Field(
-        default=None, description="Matched spheres, best minus runner-up hypothesis."
+    fle_mm: float | None = Field(
+        default=None,
+        description="FLE implied by FRE: FRE·√(N/(N−2)).",
+        validation_alias=_from("figures", "fle_mm"),
     )
-    rotation_det: float | None = None
+    n_expected: int | None = Field(default=None, validation_alias=_from("figures", "n_expected"))
+    n_detected: int | None = Field(default=None, validation_alias=_from("figures", "n_detected"))
+    n_matched: int | None = Field(default=None, validation_alias=_from("figures", "n_matched"))
+    spheres: list[SphereResidual] = Field([], validation_alias=_from("figures", "spheres"))
+    predicted_tre_mm: list[float] = Field(
+        [],
+        description="Fitzpatrick's predicted TRE at targets_image_mm.",
+        validation_alias=_from("figures", "predicted_tre_mm"),
+    )
+    targets_image_mm: list[Point3] = Field([], validation_alias=AliasPath("figures", "targets_image_mm"))
+    targets_source: str = Field("", validation_alias=_from("figures", "targets_source"))
+    symmetry_margin: int | None = Field(
+        default=None,
+        description="Matched spheres, best minus runner-up hypothesis.",
+        validation_alias=_from("figures", "symmetry_margin"),
+    )
+    rotation_det: float | None = Field(default=None, validation_alias=_from("figures", "rotation_det"))
     joints_rad: list[float] | None = None
     joints_received_at: str | None = None
     config_hash: str
     software_version: str
     duration_s: float | None = None
-    provenance: dict[str, Any] = {}
-    timings_s: dict[str, float] = {}
+    provenance: dict[str, Any] = Field({}, validation_alias=_from("figures", "provenance"))
+    timings_s: dict[str, float] = Field({}, validation_alias=_from("figures", "timings_s"))
 
 
 class VerificationError(_Out):
@@ -240,13 +261,18 @@ class VerificationOut(_Out):
     mean_mm: float
     rms_mm: float
     max_mm: float
-    n_expected: int
-    n_detected: int
-    n_matched: int
-    errors: list[VerificationError]
-    histogram_url: str | None
+    n_expected: int = Field(validation_alias=_from("figures", "n_expected"))
+    n_detected: int = Field(validation_alias=_from("figures", "n_detected"))
+    n_matched: int = Field(validation_alias=_from("figures", "n_matched"))
+    errors: list[VerificationError] = Field(validation_alias=_from("figures", "errors"))
+    histogram_path: str | None = Field(default=None, exclude=True)
     config_hash: str
     software_version: str
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def histogram_url(self) -> str | None:
+        return f"/verifications/{self.id}/histogram.png" if self.histogram_path else None
 
 
 class StatusOut(_Out):
@@ -266,94 +292,13 @@ class StatusOut(_Out):
 # ---- converters ----------------------------------------------------------------------------
 
 
-def scan_out(scan: Any) -> ScanOut:
-    geom = scan.geometry or {}
-    return ScanOut(
-        id=scan.id,
-        series_uid=scan.series_uid,
-        frame_of_reference_uid=scan.frame_of_reference_uid,
-        folder=scan.folder,
-        arrived_at=scan.arrived_at,
-        n_files=scan.n_files,
-        n_slices=scan.n_slices,
-        rows=scan.rows,
-        columns=scan.columns,
-        image_from_voxel=geom.get("image_from_voxel"),
-        spacing_mm=geom.get("spacing_mm"),
-        status=scan.status,
-        reason=scan.reason,
-        seen_count=scan.seen_count,
-        joints=JointSnapshotOut(**scan.snapshot) if scan.snapshot else None,
-    )
+def scan_out(scan: ScanRecord) -> ScanOut:
+    return ScanOut.model_validate(scan, from_attributes=True)
 
 
-def registration_out(rec: dict[str, Any], current_id: int | None = None) -> RegistrationOut:
-    fig = rec.get("figures") or {}
-    is_current = rec.get("is_current", False) if current_id is None else rec["id"] == current_id
-    return RegistrationOut(
-        **{
-            k: rec.get(k)
-            for k in (
-                "id",
-                "status",
-                "reason",
-                "problem_title",
-                "scan_id",
-                "series_uid",
-                "created_at",
-                "image_from_robot",
-                "fre_mm",
-                "joints_rad",
-                "joints_received_at",
-                "config_hash",
-                "software_version",
-                "duration_s",
-            )
-        },
-        is_current=bool(is_current),
-        **{
-            k: fig[k]
-            for k in (
-                "fle_mm",
-                "n_expected",
-                "n_detected",
-                "n_matched",
-                "spheres",
-                "predicted_tre_mm",
-                "targets_image_mm",
-                "targets_source",
-                "symmetry_margin",
-                "rotation_det",
-                "provenance",
-                "timings_s",
-            )
-            if k in fig
-        },
-    )
+def registration_out(rec: RegistrationRecord) -> RegistrationOut:
+    return RegistrationOut.model_validate(rec, from_attributes=True)
 
 
-def verification_out(rec: dict[str, Any]) -> VerificationOut:
-    fig = rec.get("figures") or {}
-    return VerificationOut(
-        **{
-            k: rec[k]
-            for k in (
-                "id",
-                "created_at",
-                "registration_id",
-                "scan_id",
-                "series_uid",
-                "passed",
-                "mean_mm",
-                "rms_mm",
-                "max_mm",
-                "config_hash",
-                "software_version",
-            )
-        },
-        n_expected=fig.get("n_expected", 0),
-        n_detected=fig.get("n_detected", 0),
-        n_matched=fig.get("n_matched", 0),
-        errors=fig.get("errors", []),
-        histogram_url=f"/verifications/{rec['id']}/histogram.png" if rec.get("histogram_path") else None,
-    )
+def verification_out(rec: VerificationRecord) -> VerificationOut:
+    return VerificationOut.model_validate(rec, from_attributes=True)

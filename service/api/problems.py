@@ -1,7 +1,7 @@
 """Problem details (RFC 9457, ``application/problem+json``) for every error.
 
 One handler maps both exception families (:class:`registration.errors.OarmRegError`,
-:class:`drivers.errors.RobotLinkError`) by their ``http_status`` / ``title``; request
+:class:`drivers.errors.RobotLinkError`) through :mod:`service.error_map`; request
 validation errors become 422 with the offending fields; unknown routes 404; bugs 500.
 """
 
@@ -16,8 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from drivers.errors import RobotLinkError
-from registration.errors import OarmRegError
+from service.error_map import FAMILIES, classify, exit_code_of, title_of
 
 log = logging.getLogger(__name__)
 
@@ -46,17 +45,16 @@ def problem_response(
 
 
 async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
-    status = int(getattr(exc, "http_status", 422))
-    if status < 400:
-        status = 422
+    entry = classify(exc)
+    status = entry.http_status if entry is not None and entry.http_status >= 400 else 422
     return problem_response(
         status,
-        str(getattr(exc, "title", "Error")),
+        title_of(exc),
         str(exc),
         request.url.path,
         type_=TYPE_PREFIX + _kebab(type(exc).__name__),
         headers=getattr(exc, "headers", None),
-        exit_code=getattr(exc, "exit_code", None),
+        exit_code=exit_code_of(exc),
         registration_id=getattr(exc, "registration_id", None),
     )
 
@@ -98,8 +96,8 @@ async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
 
 
 def install(app: FastAPI) -> None:
-    app.add_exception_handler(OarmRegError, _family_handler)
-    app.add_exception_handler(RobotLinkError, _family_handler)
+    for family in FAMILIES:
+        app.add_exception_handler(family, _family_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
     app.add_exception_handler(StarletteHTTPException, _http_handler)
     app.add_exception_handler(Exception, _unexpected_handler)

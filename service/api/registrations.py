@@ -10,7 +10,7 @@ from fastapi import APIRouter, Body, Query, Response
 from service.api.deps import CtxDep
 from service.api.models import RegisterRequest, RegistrationOut, registration_out
 from service.api.problems import problem_responses
-from service.orchestrator import NoCurrentRegistrationError, NotFoundError
+from service.errors import NoCurrentRegistrationError, NotFoundError
 
 router = APIRouter(tags=["registration"])
 
@@ -31,7 +31,7 @@ router = APIRouter(tags=["registration"])
 async def register(ctx: CtxDep, body: Annotated[RegisterRequest | None, Body()] = None) -> RegistrationOut:
     req = body or RegisterRequest()
     rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_mm)
-    return registration_out(rec, rec["id"])
+    return registration_out(rec)
 
 
 @router.get(
@@ -41,7 +41,7 @@ async def register(ctx: CtxDep, body: Annotated[RegisterRequest | None, Body()] 
     responses=problem_responses(401, 404),
 )
 async def current(ctx: CtxDep) -> Response:
-    # Usually answered by service.app.CurrentRegistrationFastPath; this route documents it and
+    # Usually answered by the app's CurrentRegistrationFastPath; this route documents it and
     # gives the error answers.  Pre-encoded JSON, re-encoded only when the current one changes.
     body = ctx.current_registration_json()
     if body is None:
@@ -60,7 +60,7 @@ def list_registrations(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0)] = 0,
 ) -> list[RegistrationOut]:
-    return [registration_out(r) for r in ctx.db.list_registrations(limit, offset)]
+    return [registration_out(r) for r in ctx.db.registrations.list(limit, offset)]
 
 
 @router.get(
@@ -70,7 +70,7 @@ def list_registrations(
     responses=problem_responses(401, 404),
 )
 def get_registration(ctx: CtxDep, registration_id: int) -> RegistrationOut:
-    rec = ctx.db.get_registration(registration_id)
+    rec = ctx.db.registrations.get(registration_id)
     if rec is None:
         raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")
     return registration_out(rec)

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query
 from service.api.deps import CtxDep
 from service.api.models import ScanOut, scan_out
 from service.api.problems import problem_responses
-from service.orchestrator import NotFoundError
+from service.errors import NotFoundError
 
 router = APIRouter(tags=["scans"])
 
@@ -25,7 +25,7 @@ def list_scans(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0)] = 0,
 ) -> list[ScanOut]:
-    return [scan_out(s) for s in ctx.db.list_scans(limit, offset)]
+    return [scan_out(s) for s in ctx.db.scans.list(limit, offset)]
 
 
 @router.get(
@@ -35,7 +35,7 @@ def list_scans(
     responses=problem_responses(401, 404),
 )
 def get_scan(ctx: CtxDep, scan_id: int) -> ScanOut:
-    scan = ctx.db.get_scan(scan_id)
+    scan = ctx.db.scans.get(scan_id)
     if scan is None:
         raise NotFoundError(f"scan {scan_id} does not exist; GET /scans lists the recorded scans")
     return scan_out(scan)

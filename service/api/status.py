@@ -23,7 +23,7 @@ router = APIRouter(tags=["status"])
     responses=problem_responses(401),
 )
 def status(ctx: CtxDep) -> StatusOut:
-    latest = ctx.db.latest_complete_scan()
+    latest = ctx.db.scans.latest_complete()
     cur = ctx.orchestrator.current
     return StatusOut(
         version=__version__,
@@ -33,7 +33,7 @@ def status(ctx: CtxDep) -> StatusOut:
         link=LinkOut(**ctx.capture.health()),
         watcher=ctx.watcher.state() if ctx.watcher is not None else {"mode": "disabled", "running": False},
         latest_scan=scan_out(latest) if latest else None,
-        current_registration=registration_out(cur, cur["id"]) if cur else None,
+        current_registration=registration_out(cur) if cur else None,
         busy=ctx.orchestrator.busy,
         counts=ctx.db.counts(),
         config_hash=ctx.orchestrator.config_hash,

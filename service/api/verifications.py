@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse
 from service.api.deps import CtxDep
 from service.api.models import VerificationOut, VerifyRequest, verification_out
 from service.api.problems import problem_responses
-from service.orchestrator import NotFoundError
+from service.errors import NotFoundError
 
 router = APIRouter(tags=["verification"])
 
@@ -41,7 +41,7 @@ async def verify(ctx: CtxDep, body: Annotated[VerifyRequest | None, Body()] = No
     responses=problem_responses(401, 404),
 )
 def get_verification(ctx: CtxDep, verification_id: int) -> VerificationOut:
-    rec = ctx.db.get_verification(verification_id)
+    rec = ctx.db.verifications.get(verification_id)
     if rec is None:
         raise NotFoundError(f"verification {verification_id} does not exist")
     return verification_out(rec)
@@ -54,7 +54,7 @@ def get_verification(ctx: CtxDep, verification_id: int) -> VerificationOut:
     responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404)},
 )
 def histogram(ctx: CtxDep, verification_id: int) -> FileResponse:
-    rec = ctx.db.get_verification(verification_id)
-    if rec is None or not rec.get("histogram_path") or not Path(rec["histogram_path"]).is_file():
+    rec = ctx.db.verifications.get(verification_id)
+    if rec is None or not rec.histogram_path or not Path(rec.histogram_path).is_file():
         raise NotFoundError(f"verification {verification_id} has no histogram")
-    return FileResponse(rec["histogram_path"], media_type="image/png")
+    return FileResponse(rec.histogram_path, media_type="image/png")

@@ -20,8 +20,18 @@ import secrets
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from registration.kinematics import RobotModel
+    from registration.phantom import Phantom
+    from service.context import ServiceContext
+    from service.settings import Settings
 
 HELP = "run the whole registration loop on a mock robot and a simulated O-arm (≈ 1–2 min)"
 
@@ -117,111 +127,162 @@ def _check(r: Any) -> dict[str, Any]:
     return r.json()  # type: ignore[no-any-return]
 
 
-def run(args: argparse.Namespace) -> int:
-    import httpx
-    import numpy as np
+@dataclass
+class _Demo:
+    """What the two demo steps share."""
 
-    from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
-    from mocks.robot.robot import ScriptedRobot
-    from mocks.robot.runner import run_mock_controller
-    from registration.frames import apply, invert, rotation_angle_deg
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
-    from service.settings import load_settings
+    client: Any
+    robot: Any
+    phantom: Phantom
+    model: RobotModel
+    tool0_from_phantom: NDArray[np.float64]
+    image_from_phantom_1: NDArray[np.float64]
+    hidden_image_from_robot: NDArray[np.float64]
+    watch: Path
+    out: Path
+    preset: str
 
-    t_start = time.perf_counter()
+
+def _output_dir(out_arg: str | None) -> tuple[Path, tempfile.TemporaryDirectory[str] | None]:
+    """The demo's folder (a temporary one without ``--out``); refuses a non-empty watch folder."""
     tmp = None
-    if args.out is None:
+    if out_arg is None:
         tmp = tempfile.TemporaryDirectory(prefix="oarmreg-demo-")
         out = Path(tmp.name)
     else:
-        out = Path(args.out).resolve()
+        out = Path(out_arg).resolve()
         out.mkdir(parents=True, exist_ok=True)
-    watch, data = out / "watch", out / "data"
+    watch = out / "watch"
     if watch.exists() and any(watch.iterdir()):
         from registration.errors import ConfigError
 
         raise ConfigError(f"{watch} is not empty; pass an empty or new --out folder")
+    return out, tmp
+
+
+def _demo_settings(out: Path, token: str, link_url: str) -> Settings:
+    from service.settings import load_settings
+
+    return load_settings(
+        None,
+        {
+            "host": "127.0.0.1",
+            "port": 0,
+            "watch_dir": out / "watch",
+            "data_dir": out / "data",
+            "api_token": token,
+            "robot.link_url": link_url,
+            "stillness.window_s": WINDOW_S,
+            "watcher.quiet_period_s": 1.0,
+            "watcher.poll_interval_s": 0.5,
+        },
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import httpx
+
+    from mocks.oarm.simulator import demo_pose
+    from mocks.robot.robot import ScriptedRobot
+    from mocks.robot.runner import run_mock_controller
+    from registration.frames import invert
+    from service.app import create_app
+    from service.commands.serve import serve_in_thread
+
+    t_start = time.perf_counter()
+    out, tmp = _output_dir(args.out)
     token = secrets.token_urlsafe(24)
     try:
         _err(f"oarmreg demo: output in {out}")
         robot = ScriptedRobot(Q1_RAD)
         with run_mock_controller("simple-message", robot) as mock:
             _err(f"  mock Stäubli controller (simple_message) on {mock.url}")
-            settings = load_settings(
-                None,
-                {
-                    "host": "127.0.0.1",
-                    "port": 0,
-                    "watch_dir": watch,
-                    "data_dir": data,
-                    "api_token": token,
-                    "robot.link_url": mock.url,
-                    "stillness.window_s": WINDOW_S,
-                    "watcher.quiet_period_s": 1.0,
-                    "watcher.poll_interval_s": 0.5,
-                },
-            )
+            settings = _demo_settings(out, token, mock.url)
             app = create_app(settings)
-            ctx = app.state.ctx
-            phantom, model = ctx.phantom, ctx.robot_model
+            ctx: ServiceContext = app.state.ctx
             t0p = settings.robot.tool0_from_phantom.matrix()
             image_from_phantom_1 = demo_pose()
-            robot_from_phantom_1 = model.robot_from_tool0(Q1_RAD) @ t0p
-            hidden_image_from_robot = image_from_phantom_1 @ invert(robot_from_phantom_1)
+            hidden = image_from_phantom_1 @ invert(ctx.robot_model.robot_from_tool0(Q1_RAD) @ t0p)
             with (
                 serve_in_thread(app, "127.0.0.1", 0) as server,
                 httpx.Client(
                     base_url=server.base_url, headers={"Authorization": f"Bearer {token}"}, timeout=300.0
                 ) as client,
             ):
-                _err(f"  service on {server.base_url} (watching {watch})")
-                acq = AcquisitionSettings.preset(args.preset)
-                # ---- scan 1 -----------------------------------------------------------------
-                scan1 = simulate_scan(phantom, image_from_phantom_1, acq, progress=_Progress("O-arm scan 1"))
-                _wait_still(client, robot)
-                exp1 = write_dicom_series(scan1, watch / "scan-1")
-                _err(f"  exported {len(exp1.paths)} slices → {watch / 'scan-1'}; waiting for the service")
-                s1 = _wait_scan(client, exp1.series_uid, WAIT_SCAN_S)
-                _err(
-                    f"  scan {s1['id']} recorded ({s1['n_slices']} slices, robot still: "
-                    f"{s1['joints']['still']})"
+                _err(f"  service on {server.base_url} (watching {settings.watch_dir})")
+                demo = _Demo(
+                    client=client,
+                    robot=robot,
+                    phantom=ctx.phantom,
+                    model=ctx.robot_model,
+                    tool0_from_phantom=t0p,
+                    image_from_phantom_1=image_from_phantom_1,
+                    hidden_image_from_robot=hidden,
+                    watch=settings.watch_dir,
+                    out=out,
+                    preset=args.preset,
                 )
-                _err("  POST /register ...")
-                t = time.perf_counter()
-                reg = _check(client.post("/register", json={}))
-                dt = time.perf_counter() - t
-                m = np.asarray(reg["image_from_robot"])
-                _report_registration(
-                    reg, dt, m, hidden_image_from_robot, model, t0p, apply, rotation_angle_deg
-                )
-                # ---- move, scan 2, verify ---------------------------------------------------
-                q2 = tuple(a + b for a, b in zip(Q1_RAD, Q2_DELTA_RAD, strict=True))
-                _err(f"  moving the robot to {np.round(q2, 3).tolist()} rad ...")
-                robot.move_to(q2, MOVE_DURATION_S)
-                image_from_phantom_2 = hidden_image_from_robot @ model.robot_from_tool0(q2) @ t0p
-                scan2 = simulate_scan(
-                    phantom,
-                    image_from_phantom_2,
-                    AcquisitionSettings.preset(args.preset, seed=1),
-                    progress=_Progress("O-arm scan 2"),
-                )
-                _wait_still(client, robot)
-                exp2 = write_dicom_series(scan2, watch / "scan-2")
-                s2 = _wait_scan(client, exp2.series_uid, WAIT_SCAN_S)
-                _err(f"  scan {s2['id']} recorded; POST /verify ...")
-                ver = _check(client.post("/verify", json={"scan_id": s2["id"]}))
-                png_path = out / "verification-histogram.png"
-                png = client.get(ver["histogram_url"])
-                png.raise_for_status()
-                png_path.write_bytes(png.content)
-                _report_verification(ver, png_path)
-        _out(f"\ndemo finished in {time.perf_counter() - t_start:.0f} s; service data in {data}")
+                _scan_and_register(demo)
+                _move_scan_verify(demo)
+        _out(f"\ndemo finished in {time.perf_counter() - t_start:.0f} s; service data in {settings.data_dir}")
     finally:
         if tmp is not None:
             tmp.cleanup()
     return 0
+
+
+def _scan_and_register(d: _Demo) -> None:
+    """Scan 1 with the robot still at Q1, then ``POST /register``; report against the hidden truth."""
+    import numpy as np
+
+    from mocks.oarm.dicom_export import write_dicom_series
+    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from registration.frames import apply, rotation_angle_deg
+
+    acq = AcquisitionSettings.preset(d.preset)
+    scan1 = simulate_scan(d.phantom, d.image_from_phantom_1, acq, progress=_Progress("O-arm scan 1"))
+    _wait_still(d.client, d.robot)
+    exp1 = write_dicom_series(scan1, d.watch / "scan-1")
+    _err(f"  exported {len(exp1.paths)} slices → {d.watch / 'scan-1'}; waiting for the service")
+    s1 = _wait_scan(d.client, exp1.series_uid, WAIT_SCAN_S)
+    _err(f"  scan {s1['id']} recorded ({s1['n_slices']} slices, robot still: {s1['joints']['still']})")
+    _err("  POST /register ...")
+    t = time.perf_counter()
+    reg = _check(d.client.post("/register", json={}))
+    dt = time.perf_counter() - t
+    m = np.asarray(reg["image_from_robot"])
+    _report_registration(
+        reg, dt, m, d.hidden_image_from_robot, d.model, d.tool0_from_phantom, apply, rotation_angle_deg
+    )
+
+
+def _move_scan_verify(d: _Demo) -> None:
+    """Move the robot, scan 2, ``POST /verify``; save the histogram PNG."""
+    import numpy as np
+
+    from mocks.oarm.dicom_export import write_dicom_series
+    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+
+    q2 = tuple(a + b for a, b in zip(Q1_RAD, Q2_DELTA_RAD, strict=True))
+    _err(f"  moving the robot to {np.round(q2, 3).tolist()} rad ...")
+    d.robot.move_to(q2, MOVE_DURATION_S)
+    image_from_phantom_2 = d.hidden_image_from_robot @ d.model.robot_from_tool0(q2) @ d.tool0_from_phantom
+    scan2 = simulate_scan(
+        d.phantom,
+        image_from_phantom_2,
+        AcquisitionSettings.preset(d.preset, seed=1),
+        progress=_Progress("O-arm scan 2"),
+    )
+    _wait_still(d.client, d.robot)
+    exp2 = write_dicom_series(scan2, d.watch / "scan-2")
+    s2 = _wait_scan(d.client, exp2.series_uid, WAIT_SCAN_S)
+    _err(f"  scan {s2['id']} recorded; POST /verify ...")
+    ver = _check(d.client.post("/verify", json={"scan_id": s2["id"]}))
+    png_path = d.out / "verification-histogram.png"
+    png = d.client.get(ver["histogram_url"])
+    png.raise_for_status()
+    png_path.write_bytes(png.content)
+    _report_verification(ver, png_path)
 
 
 def _report_registration(

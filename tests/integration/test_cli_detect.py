@@ -11,8 +11,8 @@ from scipy.spatial import cKDTree
 
 from mocks.oarm.dicom_export import write_dicom_series
 from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
-from registration.errors import EXIT_INPUT
 from service.cli import main
+from service.error_map import EXIT_INPUT
 
 MATCH_MM = 0.5
 """A detection within this of a truth centre is that sphere (spheres are ≥ 15 mm apart)."""

@@ -7,8 +7,10 @@ refused and visible in /status; restart → current registration restored; missi
 consistent records.
 
 The two small scans are simulated once per module; one service (mock controller, app, uvicorn
-thread) serves the tests of this module in file order (each test states what it relies on).
-No sleeps: every wait polls with a deadline or reads server-sent events.
+thread) serves the tests of this module.  Each test sets up what it needs through fixtures
+(``baseline``: the robot still at Q1 and a current registration of a scan taken there), so any
+one of them passes alone and in any order.  No sleeps: every wait polls with a deadline or
+reads server-sent events.
 """
 
 from __future__ import annotations
@@ -91,13 +93,18 @@ class Service:
     watch: Path
     data: Path
     n_exports: int = 0
+    baseline_scan_id: int | None = None
 
     def export(
         self, scan: Any, name: str, *, series_uid: str | None = None, drop_slice: int | None = None
     ) -> str:
-        """Write ``scan`` as a DICOM series into ``watch/<name>`` (atomically, like the O-arm export)."""
+        """Write ``scan`` as a DICOM series into ``watch/<name>-<n>`` (atomically, like the O-arm export).
+
+        Without ``series_uid`` every export is a new series (a new UID).
+        """
         from mocks.oarm.dicom_export import write_dicom_series
 
+        name = f"{name}-{self.n_exports}"
         staging = self.watch.parent / f"staging-{name}"
         res = write_dicom_series(scan, staging, series_uid=series_uid, write_truth=False)
         if drop_slice is not None:
@@ -127,6 +134,22 @@ class Service:
             )
 
         wait_for(ok, "the robot to be still with joint history covering the stillness window")
+
+    def hold_at(self, joints_rad: tuple[float, ...]) -> None:
+        """Put the robot at ``joints_rad`` (at once if it is elsewhere) and wait until it is still there."""
+        if not np.allclose(self.robot.joints_rad_at(), joints_rad, atol=1e-9) or time.monotonic() < (
+            self.robot.motion_end_t_s()
+        ):
+            self.robot.move_to(joints_rad, duration_s=0.01)
+        self.wait_still()
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """A scan taken with the robot still at Q1 and the current registration made from it."""
+
+    scan_id: int
+    registration: dict[str, Any]
 
 
 def make_settings(watch: Path, data: Path, link_url: str, **kw: Any) -> Any:
@@ -174,6 +197,22 @@ def svc(tmp_path_factory: pytest.TempPathFactory, world: World) -> Iterator[Serv
             yield s
 
 
+@pytest.fixture
+def baseline(svc: Service, world: World) -> Baseline:
+    """The robot still at Q1; a scan taken there (exported once per module); a current registration of it."""
+    svc.hold_at(Q1)
+    if svc.baseline_scan_id is None:
+        scan = svc.wait_scan(svc.export(world.scan1, "baseline"))
+        assert scan["status"] == "complete" and scan["joints"]["still"], scan
+        svc.baseline_scan_id = int(scan["id"])
+    r = svc.client.get("/registration/current")
+    if r.status_code == 200 and r.json()["scan_id"] == svc.baseline_scan_id:
+        return Baseline(svc.baseline_scan_id, r.json())
+    r = svc.client.post("/register", json={"scan_id": svc.baseline_scan_id})
+    assert r.status_code == 200, r.text
+    return Baseline(svc.baseline_scan_id, r.json())
+
+
 def tre_at_targets_mm(world: World, estimated: np.ndarray, joints_rad: Any) -> float:
     """Largest |estimated − true| at 14 points 150 mm from the phantom centre (robot frame)."""
     centre = (world.model.robot_from_tool0(joints_rad) @ world.tool0_from_phantom)[:3, 3]
@@ -212,6 +251,7 @@ def test_missing_or_wrong_token_is_401(svc: Service) -> None:
 
 def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
     """Scan arrives (seen on /events), /register recovers the hidden transform within 0.15 mm TRE."""
+    svc.hold_at(Q1)
     joints = svc.client.get("/robot/joints").json()
     assert np.allclose(joints["joints_rad"], Q1, atol=1e-6)
     events: list[tuple[str, dict[str, Any]]] = []
@@ -260,12 +300,13 @@ def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
     np.testing.assert_allclose(r3.json()["predicted_tre_mm"], reg["predicted_tre_mm"], rtol=1e-9)
 
 
-def test_current_registration_fast_path_matches_the_route(svc: Service) -> None:
+def test_current_registration_fast_path_matches_the_route(svc: Service, baseline: Baseline) -> None:
     """GET /registration/current is served by a pure-ASGI fast path; it must answer exactly what the
     FastAPI route and model give, and leave every refusal to the route."""
     r = svc.client.get("/registration/current")
     assert r.status_code == 200 and r.headers["content-type"] == "application/json"
     cur = r.json()
+    assert cur["id"] == baseline.registration["id"]
     assert cur == svc.client.get(f"/registrations/{cur['id']}").json()
     with httpx.Client(base_url=svc.base_url, timeout=10.0) as anon:
         assert_problem(anon.get("/registration/current"), 401)
@@ -276,14 +317,14 @@ def test_current_registration_fast_path_matches_the_route(svc: Service) -> None:
         assert_problem(anon.get("/registration/current", headers=prefix), 401)
 
 
-def test_concurrent_register_calls_give_consistent_records(svc: Service) -> None:
+def test_concurrent_register_calls_give_consistent_records(svc: Service, baseline: Baseline) -> None:
     before = {r["id"] for r in svc.client.get("/registrations").json()}
     results: list[httpx.Response] = []
     lock = threading.Lock()
 
     def call() -> None:
         with httpx.Client(base_url=svc.base_url, headers=svc.client.headers, timeout=120.0) as c:
-            resp = c.post("/register", json={})
+            resp = c.post("/register", json={"scan_id": baseline.scan_id})
         with lock:
             results.append(resp)
 
@@ -303,8 +344,10 @@ def test_concurrent_register_calls_give_consistent_records(svc: Service) -> None
     assert np.allclose(regs[ids[0]]["image_from_robot"], regs[ids[1]]["image_from_robot"], atol=1e-9)
 
 
-def test_bad_scan_folder_is_422_and_service_keeps_serving(svc: Service, world: World) -> None:
-    cur_before = svc.client.get("/registration/current").json()["id"]
+def test_bad_scan_folder_is_422_and_service_keeps_serving(
+    svc: Service, world: World, baseline: Baseline
+) -> None:
+    cur_before = baseline.registration["id"]
     junk = svc.watch.parent / "staging-junk"
     junk.mkdir()
     (junk / "notes.txt").write_text("not DICOM")
@@ -327,8 +370,8 @@ def test_bad_scan_folder_is_422_and_service_keeps_serving(svc: Service, world: W
     assert all("junk" not in s["folder"] for s in svc.client.get("/scans").json())
 
 
-def test_robot_moving_during_scan_is_refused(svc: Service, world: World) -> None:
-    cur_before = svc.client.get("/registration/current").json()
+def test_robot_moving_during_scan_is_refused(svc: Service, world: World, baseline: Baseline) -> None:
+    cur_before = baseline.registration
     j6_start = svc.robot.joints_rad_at()[5]
     svc.robot.move_to(Q2, duration_s=6.0)  # still moving while the series is exported and settles
     # The minimum-jerk profile starts slowly: export only once J6 has clearly left the start, so the
@@ -346,16 +389,16 @@ def test_robot_moving_during_scan_is_refused(svc: Service, world: World) -> None
     assert cur["id"] == cur_before["id"] and cur["image_from_robot"] == cur_before["image_from_robot"]
 
 
-def test_verify_after_moving_the_robot(svc: Service, world: World) -> None:
-    """Relies on the previous test leaving the robot at Q2."""
-    svc.robot.move_to(Q2, duration_s=0.01)
-    svc.wait_still()
+def test_verify_after_moving_the_robot(svc: Service, world: World, baseline: Baseline) -> None:
+    """The current registration (scan at Q1) predicts the spheres of a newer scan at Q2."""
+    svc.hold_at(Q2)
     uid = svc.export(world.scan2, "scan2")
     scan = svc.wait_scan(uid)
     assert scan["joints"]["still"] is True
     r = svc.client.post("/verify", json={"scan_id": scan["id"]})
     assert r.status_code == 200, r.text
     ver = r.json()
+    assert ver["registration_id"] == baseline.registration["id"]
     assert ver["n_matched"] >= 20 and ver["passed"]
     assert ver["mean_mm"] < TRE_LIMIT_MM and ver["max_mm"] < 0.5
     assert ver["rms_mm"] >= ver["mean_mm"] and len(ver["errors"]) == ver["n_matched"]
@@ -365,11 +408,12 @@ def test_verify_after_moving_the_robot(svc: Service, world: World) -> None:
     assert (svc.data / "histograms").is_dir()
 
 
-def test_restart_restores_current_registration(svc: Service, world: World) -> None:
+def test_restart_restores_current_registration(svc: Service, world: World, baseline: Baseline) -> None:
     from service.app import create_app
     from service.commands.serve import serve_in_thread
 
     cur = svc.client.get("/registration/current").json()
+    assert cur["id"] == baseline.registration["id"]
     n_regs = len(svc.client.get("/registrations").json())
     app2 = create_app(
         make_settings(svc.watch, svc.data, svc.mock.url), phantom=world.phantom, robot_model=world.model

@@ -32,7 +32,8 @@ from registration.dicom_series import (
     load_series,
     read_series_headers,
 )
-from registration.errors import EXIT_INPUT, DicomSeriesError
+from registration.errors import DicomSeriesError
+from service.error_map import EXIT_INPUT, exit_code_of
 
 N = 6  # slices per test series
 SPACING = 0.8  # mm, the factory's default slice step
@@ -243,7 +244,7 @@ def test_only_junk_is_refused_naming_the_files(tmp_path: Path) -> None:
     assert "no CT image series" in msg
     assert "notes.txt" in msg and "not a DICOM" in msg and ".IM0001.dcm.part" in msg
     assert "O-arm export" in msg  # what to do
-    assert err.value.exit_code == EXIT_INPUT and isinstance(err.value, DicomSeriesError)
+    assert exit_code_of(err.value) == EXIT_INPUT and isinstance(err.value, DicomSeriesError)
 
 
 def test_missing_path_is_refused(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from registration import frames
-from registration.errors import EXIT_REFUSED, PointsFileError
+from registration.errors import PointsFileError
 from registration.phantom import Phantom
 from registration.points_io import (
     read_points,
@@ -21,6 +21,7 @@ from registration.points_io import (
     write_targets,
 )
 from service.cli import main
+from service.error_map import EXIT_REFUSED
 
 PTS = [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 20.0, 0.0], [0.0, 0.0, 30.0]]
 

@@ -1,0 +1,50 @@
+"""What the routes need (``request.app.state.ctx``), built by :func:`service.app.create_app`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+from drivers.base import RobotLink
+from registration.kinematics import RobotModel
+from registration.phantom import Phantom
+from service.capture import Capture
+from service.event_bus import EventBus
+from service.orchestrator import Orchestrator
+from service.records import RegistrationRecord
+from service.settings import Settings
+from service.store import Database
+from service.volume_cache import VolumeCache
+from service.watcher import SeriesWatcher
+
+
+@dataclass
+class ServiceContext:
+    """The service's parts; ``db``, ``capture`` and ``orchestrator`` exist once the app has started."""
+
+    settings: Settings
+    bus: EventBus
+    phantom: Phantom
+    robot_model: RobotModel
+    robot_link: RobotLink
+    volumes: VolumeCache = field(default_factory=VolumeCache)
+    db: Database = field(init=False)
+    capture: Capture = field(init=False)
+    orchestrator: Orchestrator = field(init=False)
+    watcher: SeriesWatcher | None = None
+    started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
+    current_json: tuple[RegistrationRecord, bytes] | None = None
+    """(current registration record, its JSON) for GET /registration/current."""
+
+    def current_registration_json(self) -> bytes | None:
+        """The current registration as JSON bytes, encoded once per registration (None if none)."""
+        cur = self.orchestrator.current
+        if cur is None:
+            return None
+        cached = self.current_json
+        if cached is None or cached[0] is not cur:
+            from service.api.models import registration_out
+
+            cached = (cur, registration_out(cur).model_dump_json().encode())
+            self.current_json = cached
+        return cached[1]

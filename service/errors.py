@@ -1,0 +1,40 @@
+"""The service's own errors (their HTTP status and exit code: :mod:`service.error_map`)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from registration.errors import OarmRegError, RegistrationError
+
+
+class NotFoundError(OarmRegError):
+    """No scan, registration or verification with that id."""
+
+    title = "Not found"
+
+
+class NoScanError(OarmRegError):
+    """Nothing to register: no complete scan has arrived."""
+
+    title = "No complete scan"
+
+
+class NoCurrentRegistrationError(RegistrationError):
+    title = "No current registration"
+
+
+class VerificationRefusedError(RegistrationError):
+    title = "Verification refused"
+
+
+class InternalError(OarmRegError):
+    """A bug: the pipeline failed in a way no refusal describes."""
+
+    title = "Internal error"
+
+
+class AuthError(OarmRegError):
+    """Missing or wrong Bearer token (answered 401 with ``WWW-Authenticate: Bearer``)."""
+
+    title = "Unauthorized"
+    headers: ClassVar[dict[str, str]] = {"WWW-Authenticate": 'Bearer realm="oarmreg"'}

@@ -1,0 +1,111 @@
+"""The in-process event bus behind ``GET /events`` (:mod:`service.api.events`).
+
+Event names: ``scan_arrived``, ``scan_invalid``, ``registration_done``, ``registration_refused``,
+``verification_done``, ``link_state``.  :meth:`EventBus.publish` is callable from any thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import logging
+import threading
+from collections import deque
+from collections.abc import AsyncIterator
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+KEEPALIVE_S = 15.0
+"""Comment interval on idle streams (proxies commonly drop connections idle for 30–60 s)."""
+QUEUE_MAX = 256
+"""Events buffered per subscriber; a client that falls further behind loses the oldest."""
+RECENT_MAX = 100
+
+EVENT_NAMES = (
+    "scan_arrived",
+    "scan_invalid",
+    "registration_done",
+    "registration_refused",
+    "verification_done",
+    "link_state",
+)
+
+
+class EventBus:
+    """Fan-out of service events to SSE subscribers.  :meth:`publish` is callable from any thread."""
+
+    def __init__(self) -> None:
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._subs: set[asyncio.Queue[tuple[int, str, dict[str, Any]] | None]] = set()
+        self._seq = itertools.count(1)
+        self._lock = threading.Lock()
+        self._recent: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=RECENT_MAX)
+        self._closed = False
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._closed = False
+
+    def recent(self) -> list[tuple[int, str, dict[str, Any]]]:
+        with self._lock:
+            return list(self._recent)
+
+    def publish(self, event: str, data: dict[str, Any]) -> None:
+        if event not in EVENT_NAMES:
+            raise ValueError(f"unknown event {event!r}; known: {EVENT_NAMES}")
+        with self._lock:
+            item = (next(self._seq), event, data)
+            self._recent.append(item)
+        log.info("event %s %s", event, json.dumps(data)[:300])
+        self._deliver_on_loop(item)
+
+    def _deliver(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
+        for q in list(self._subs):
+            if q.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    q.get_nowait()
+            q.put_nowait(item)
+
+    def close(self) -> None:
+        """End every subscription (called on shutdown, before the server waits for connections)."""
+        self._closed = True
+        self._deliver_on_loop(None)
+
+    def _deliver_on_loop(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
+        """Deliver ``item`` on the server's loop, from that loop or from any other thread."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            self._deliver(item)
+        else:
+            with contextlib.suppress(RuntimeError):  # loop closing
+                loop.call_soon_threadsafe(self._deliver, item)
+
+    async def subscribe(self) -> AsyncIterator[tuple[int, str, dict[str, Any]] | None]:
+        """Yield events as they come; ``None`` every :data:`KEEPALIVE_S` of silence; ends on :meth:`close`."""
+        q: asyncio.Queue[tuple[int, str, dict[str, Any]] | None] = asyncio.Queue(maxsize=QUEUE_MAX)
+        self._subs.add(q)
+        try:
+            while not self._closed:
+                try:
+                    item = await asyncio.wait_for(q.get(), KEEPALIVE_S)
+                except TimeoutError:
+                    yield None
+                    continue
+                if item is None:
+                    return
+                yield item
+        finally:
+            self._subs.discard(q)
+
+    @property
+    def n_subscribers(self) -> int:
+        return len(self._subs)

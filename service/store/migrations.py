@@ -1,0 +1,144 @@
+"""The database schema and its version (``PRAGMA user_version`` = number of applied migrations).
+
+``scans``
+    one row per series UID (a re-export of the same UID updates nothing but ``seen_count``):
+    folder, arrival time, slice count, geometry (``image_from_voxel``), status
+    (``complete`` / ``invalid``) and the reason.
+``joint_snapshots``
+    joints captured at a scan's arrival and the stillness verdict over the window before it.
+``registrations``
+    every POST /register, accepted or refused: ``image_from_robot``, quality figures,
+    provenance (series UID, joints and their timestamp, config hash, software version),
+    status ``accepted`` / ``refused`` + reason.
+``verifications``
+    every POST /verify: per-sphere errors, mean / RMS / max, histogram path.
+``current_registration``
+    a single-row pointer to the registration the service serves.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from pathlib import Path
+
+from registration.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+MIGRATIONS: tuple[str, ...] = (
+    # 1: initial schema
+    """
+    CREATE TABLE scans (
+        id INTEGER PRIMARY KEY,
+        series_uid TEXT NOT NULL UNIQUE,
+        frame_of_reference_uid TEXT NOT NULL DEFAULT '',
+        folder TEXT NOT NULL,
+        arrived_at TEXT NOT NULL,
+        n_files INTEGER NOT NULL DEFAULT 0,
+        n_slices INTEGER NOT NULL DEFAULT 0,
+        rows INTEGER NOT NULL DEFAULT 0,
+        columns INTEGER NOT NULL DEFAULT 0,
+        geometry_json TEXT,
+        status TEXT NOT NULL CHECK (status IN ('complete', 'invalid')),
+        reason TEXT NOT NULL DEFAULT '',
+        seen_count INTEGER NOT NULL DEFAULT 1,
+        updated_at TEXT NOT NULL
+    );
+    CREATE TABLE joint_snapshots (
+        id INTEGER PRIMARY KEY,
+        scan_id INTEGER NOT NULL UNIQUE REFERENCES scans(id) ON DELETE CASCADE,
+        captured_at TEXT NOT NULL,
+        link_url TEXT NOT NULL,
+        link_state TEXT NOT NULL,
+        link_reason TEXT NOT NULL DEFAULT '',
+        joints_json TEXT,
+        joints_received_at TEXT,
+        still INTEGER NOT NULL,
+        max_deviation_rad REAL,
+        covered_s REAL,
+        n_samples INTEGER NOT NULL DEFAULT 0,
+        window_s REAL NOT NULL,
+        stillness_reason TEXT NOT NULL DEFAULT ''
+    );
+    CREATE TABLE registrations (
+        id INTEGER PRIMARY KEY,
+        created_at TEXT NOT NULL,
+        scan_id INTEGER REFERENCES scans(id),
+        series_uid TEXT NOT NULL DEFAULT '',
+        status TEXT NOT NULL CHECK (status IN ('accepted', 'refused')),
+        reason TEXT NOT NULL DEFAULT '',
+        problem_title TEXT NOT NULL DEFAULT '',
+        http_status INTEGER,
+        image_from_robot_json TEXT,
+        fre_mm REAL,
+        figures_json TEXT,
+        targets_image_mm_json TEXT,
+        joints_json TEXT,
+        joints_received_at TEXT,
+        config_hash TEXT NOT NULL,
+        software_version TEXT NOT NULL,
+        duration_s REAL
+    );
+    CREATE INDEX registrations_scan ON registrations(scan_id);
+    CREATE TABLE verifications (
+        id INTEGER PRIMARY KEY,
+        created_at TEXT NOT NULL,
+        registration_id INTEGER NOT NULL REFERENCES registrations(id),
+        scan_id INTEGER NOT NULL REFERENCES scans(id),
+        series_uid TEXT NOT NULL,
+        passed INTEGER NOT NULL,
+        mean_mm REAL NOT NULL,
+        rms_mm REAL NOT NULL,
+        max_mm REAL NOT NULL,
+        figures_json TEXT NOT NULL,
+        histogram_path TEXT,
+        config_hash TEXT NOT NULL,
+        software_version TEXT NOT NULL
+    );
+    CREATE TABLE current_registration (
+        singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
+        registration_id INTEGER NOT NULL REFERENCES registrations(id),
+        set_at TEXT NOT NULL
+    );
+    """,
+)
+
+SCHEMA_VERSION = len(MIGRATIONS)
+"""The schema version this software writes."""
+
+
+def schema_version(conn: sqlite3.Connection) -> int:
+    return int(conn.execute("PRAGMA user_version").fetchone()[0])
+
+
+def migrate(conn: sqlite3.Connection, path: Path) -> None:
+    """Apply the missing migrations, each in its own transaction.
+
+    Raises
+    ------
+    ConfigError
+        The database was written by a newer version of the software.
+    """
+    version = schema_version(conn)
+    if version > SCHEMA_VERSION:
+        raise ConfigError(
+            f"{path}: schema version {version} is newer than this software knows "
+            f"({SCHEMA_VERSION}); upgrade oarmreg or use another data_dir"
+        )
+    for i in range(version, SCHEMA_VERSION):
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            for stmt in split_sql(MIGRATIONS[i]):
+                conn.execute(stmt)
+            conn.execute(f"PRAGMA user_version = {i + 1}")
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        log.info("database %s: migrated to schema version %d", path, i + 1)
+
+
+def split_sql(script: str) -> list[str]:
+    """Split a migration script into statements (no semicolons inside our literals)."""
+    return [s.strip() for s in script.split(";") if s.strip()]

@@ -1,0 +1,120 @@
+"""The ``registrations`` table and the ``current_registration`` pointer."""
+
+from __future__ import annotations
+
+import sqlite3
+from typing import cast
+
+from service.records import (
+    RegistrationFigures,
+    RegistrationRecord,
+    RegistrationStatus,
+    floats,
+    matrix4,
+    points3,
+)
+from service.store.base import Connection, dumps, loads, utc_now
+
+
+class RegistrationStore:
+    """Every registration, accepted or refused, and which one is current."""
+
+    def __init__(self, db: Connection) -> None:
+        self._db = db
+
+    def insert(self, record: RegistrationRecord, *, make_current: bool) -> int:
+        """Store a registration (its ``id`` is ignored); if ``make_current``, point to it (same transaction).
+
+        Raises
+        ------
+        ValueError
+            ``make_current`` for a registration that was not accepted.
+        """
+        now = utc_now()
+        if make_current and record.status != "accepted":
+            raise ValueError("only an accepted registration can be made current")
+        with self._db.transaction() as c:
+            cur = c.execute(
+                "INSERT INTO registrations (created_at, scan_id, series_uid, status, reason, problem_title, "
+                "http_status, image_from_robot_json, fre_mm, figures_json, targets_image_mm_json, "
+                "joints_json, "
+                "joints_received_at, config_hash, software_version, duration_s) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                _values(record),
+            )
+            reg_id = int(cur.lastrowid or 0)
+            if make_current:
+                c.execute(
+                    "INSERT INTO current_registration (singleton, registration_id, set_at) VALUES (1, ?, ?) "
+                    "ON CONFLICT(singleton) DO UPDATE SET registration_id = excluded.registration_id, "
+                    "set_at = excluded.set_at",
+                    (reg_id, now),
+                )
+            return reg_id
+
+    def current_id(self) -> int | None:
+        rows = self._db.query("SELECT registration_id FROM current_registration WHERE singleton = 1")
+        return int(rows[0][0]) if rows else None
+
+    def get(self, reg_id: int) -> RegistrationRecord | None:
+        rows = self._db.query("SELECT * FROM registrations WHERE id = ?", (reg_id,))
+        return _record(rows[0], self.current_id()) if rows else None
+
+    def current(self) -> RegistrationRecord | None:
+        """The registration the service serves (restored from disk after a restart), or None."""
+        cur = self.current_id()
+        return None if cur is None else self.get(cur)
+
+    def list(self, limit: int = 100, offset: int = 0) -> list[RegistrationRecord]:
+        cur = self.current_id()
+        rows = self._db.query(
+            "SELECT * FROM registrations ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset)
+        )
+        return [_record(r, cur) for r in rows]
+
+
+def _values(r: RegistrationRecord) -> tuple[object, ...]:
+    return (
+        r.created_at,
+        r.scan_id,
+        r.series_uid,
+        r.status,
+        r.reason,
+        r.problem_title,
+        r.http_status,
+        dumps(None if r.image_from_robot is None else [list(row) for row in r.image_from_robot]),
+        r.fre_mm,
+        dumps(None if r.figures is None else r.figures.to_json()),
+        dumps(None if r.targets_image_mm is None else [list(p) for p in r.targets_image_mm]),
+        dumps(None if r.joints_rad is None else list(r.joints_rad)),
+        r.joints_received_at,
+        r.config_hash,
+        r.software_version,
+        r.duration_s,
+    )
+
+
+def _record(r: sqlite3.Row, current_id: int | None) -> RegistrationRecord:
+    matrix = loads(r["image_from_robot_json"])
+    figures = loads(r["figures_json"])
+    targets = loads(r["targets_image_mm_json"])
+    return RegistrationRecord(
+        id=int(r["id"]),
+        created_at=r["created_at"],
+        scan_id=r["scan_id"],
+        series_uid=r["series_uid"],
+        status=cast(RegistrationStatus, r["status"]),
+        reason=r["reason"],
+        problem_title=r["problem_title"],
+        http_status=r["http_status"],
+        image_from_robot=None if matrix is None else matrix4(matrix),
+        fre_mm=r["fre_mm"],
+        figures=None if figures is None else RegistrationFigures.from_json(figures),
+        targets_image_mm=None if targets is None else points3(targets),
+        joints_rad=floats(loads(r["joints_json"])),
+        joints_received_at=r["joints_received_at"],
+        config_hash=r["config_hash"],
+        software_version=r["software_version"],
+        duration_s=r["duration_s"],
+        is_current=current_id is not None and int(r["id"]) == current_id,
+    )

@@ -1,0 +1,155 @@
+"""The ``scans`` and ``joint_snapshots`` tables."""
+
+from __future__ import annotations
+
+import sqlite3
+from typing import cast
+
+from service.records import JointSnapshot, NewScan, ScanGeometry, ScanRecord, ScanStatus, floats
+from service.store.base import Connection, dumps, loads, utc_now
+
+_SCAN_COLUMNS = (
+    "frame_of_reference_uid, folder, arrived_at, n_files, n_slices, rows, columns, geometry_json, "
+    "status, reason, updated_at"
+)
+
+
+class ScanStore:
+    """Series the watcher recorded, each with the joint snapshot taken at its arrival."""
+
+    def __init__(self, db: Connection) -> None:
+        self._db = db
+
+    def upsert(self, scan: NewScan) -> tuple[int, bool]:
+        """Record a series; returns ``(scan_id, created)``.
+
+        A series UID seen before with status ``complete`` is a re-export: only
+        ``seen_count`` grows and ``created`` is False.  One seen before as ``invalid``
+        is replaced by the new record (and its new joint snapshot).
+        """
+        now = utc_now()
+        with self._db.transaction() as c:
+            row = c.execute(
+                "SELECT id, status FROM scans WHERE series_uid = ?", (scan.series_uid,)
+            ).fetchone()
+            if row is not None and row["status"] == "complete":
+                c.execute(
+                    "UPDATE scans SET seen_count = seen_count + 1, updated_at = ? WHERE id = ?",
+                    (now, row["id"]),
+                )
+                return int(row["id"]), False
+            values = _scan_values(scan, now)
+            if row is None:
+                cur = c.execute(
+                    f"INSERT INTO scans ({_SCAN_COLUMNS}, series_uid) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (*values, scan.series_uid),
+                )
+                scan_id = int(cur.lastrowid or 0)
+            else:
+                scan_id = int(row["id"])
+                assignments = ", ".join(f"{col.strip()}=?" for col in _SCAN_COLUMNS.split(","))
+                c.execute(
+                    f"UPDATE scans SET {assignments}, seen_count = seen_count + 1 WHERE id = ?",
+                    (*values, scan_id),
+                )
+                c.execute("DELETE FROM joint_snapshots WHERE scan_id = ?", (scan_id,))
+            if scan.snapshot is not None:
+                _insert_snapshot(c, scan_id, scan.snapshot, now)
+            return scan_id, True
+
+    def has_complete(self, series_uid: str) -> bool:
+        rows = self._db.query(
+            "SELECT 1 FROM scans WHERE series_uid = ? AND status = 'complete'", (series_uid,)
+        )
+        return bool(rows)
+
+    def get(self, scan_id: int) -> ScanRecord | None:
+        rows = self._db.query("SELECT * FROM scans WHERE id = ?", (scan_id,))
+        return self._record(rows[0]) if rows else None
+
+    def latest_complete(self) -> ScanRecord | None:
+        rows = self._db.query("SELECT * FROM scans WHERE status = 'complete' ORDER BY id DESC LIMIT 1")
+        return self._record(rows[0]) if rows else None
+
+    def list(self, limit: int = 100, offset: int = 0) -> list[ScanRecord]:
+        rows = self._db.query("SELECT * FROM scans ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset))
+        return [self._record(r) for r in rows]
+
+    def _record(self, r: sqlite3.Row) -> ScanRecord:
+        snaps = self._db.query("SELECT * FROM joint_snapshots WHERE scan_id = ?", (r["id"],))
+        geometry = loads(r["geometry_json"])
+        return ScanRecord(
+            id=int(r["id"]),
+            series_uid=r["series_uid"],
+            frame_of_reference_uid=r["frame_of_reference_uid"],
+            folder=r["folder"],
+            arrived_at=r["arrived_at"],
+            n_files=int(r["n_files"]),
+            n_slices=int(r["n_slices"]),
+            rows=int(r["rows"]),
+            columns=int(r["columns"]),
+            geometry=None if geometry is None else ScanGeometry.from_json(geometry),
+            status=cast(ScanStatus, r["status"]),
+            reason=r["reason"],
+            seen_count=int(r["seen_count"]),
+            updated_at=r["updated_at"],
+            snapshot=_snapshot(snaps[0]) if snaps else None,
+        )
+
+
+def _scan_values(scan: NewScan, now: str) -> tuple[object, ...]:
+    """The values of :data:`_SCAN_COLUMNS`, in order."""
+    return (
+        scan.frame_of_reference_uid,
+        scan.folder,
+        scan.arrived_at or now,
+        scan.n_files,
+        scan.n_slices,
+        scan.rows,
+        scan.columns,
+        dumps(None if scan.geometry is None else scan.geometry.to_json()),
+        scan.status,
+        scan.reason,
+        now,
+    )
+
+
+def _insert_snapshot(c: sqlite3.Connection, scan_id: int, s: JointSnapshot, now: str) -> None:
+    c.execute(
+        "INSERT INTO joint_snapshots (scan_id, captured_at, link_url, link_state, link_reason, "
+        "joints_json, joints_received_at, still, max_deviation_rad, covered_s, n_samples, window_s, "
+        "stillness_reason) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        (
+            scan_id,
+            s.captured_at or now,
+            s.link_url,
+            s.link_state,
+            s.link_reason,
+            dumps(None if s.joints_rad is None else list(s.joints_rad)),
+            s.joints_received_at,
+            int(s.still),
+            s.max_deviation_rad,
+            s.covered_s,
+            s.n_samples,
+            float(s.window_s),
+            s.stillness_reason,
+        ),
+    )
+
+
+def _snapshot(s: sqlite3.Row) -> JointSnapshot:
+    return JointSnapshot(
+        captured_at=s["captured_at"],
+        link_url=s["link_url"],
+        link_state=s["link_state"],
+        link_reason=s["link_reason"],
+        joints_rad=floats(loads(s["joints_json"])),
+        joints_received_at=s["joints_received_at"],
+        still=bool(s["still"]),
+        max_deviation_rad=s["max_deviation_rad"],
+        covered_s=s["covered_s"],
+        n_samples=int(s["n_samples"]),
+        window_s=float(s["window_s"]),
+        stillness_reason=s["stillness_reason"],
+    )

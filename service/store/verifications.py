@@ -1,0 +1,66 @@
+"""The ``verifications`` table."""
+
+from __future__ import annotations
+
+import sqlite3
+
+from service.records import VerificationFigures, VerificationRecord
+from service.store.base import Connection, dumps, loads
+
+
+class VerificationStore:
+    """Every verification of the current registration against a newer scan."""
+
+    def __init__(self, db: Connection) -> None:
+        self._db = db
+
+    def insert(self, record: VerificationRecord) -> int:
+        """Store a verification (its ``id`` is ignored); returns the new id."""
+        with self._db.transaction() as c:
+            cur = c.execute(
+                "INSERT INTO verifications (created_at, registration_id, scan_id, series_uid, passed, "
+                "mean_mm, "
+                "rms_mm, max_mm, figures_json, histogram_path, config_hash, software_version) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    record.created_at,
+                    record.registration_id,
+                    record.scan_id,
+                    record.series_uid,
+                    int(record.passed),
+                    record.mean_mm,
+                    record.rms_mm,
+                    record.max_mm,
+                    dumps(record.figures.to_json()),
+                    record.histogram_path,
+                    record.config_hash,
+                    record.software_version,
+                ),
+            )
+            return int(cur.lastrowid or 0)
+
+    def set_histogram(self, ver_id: int, path: str) -> None:
+        with self._db.transaction() as c:
+            c.execute("UPDATE verifications SET histogram_path = ? WHERE id = ?", (path, ver_id))
+
+    def get(self, ver_id: int) -> VerificationRecord | None:
+        rows = self._db.query("SELECT * FROM verifications WHERE id = ?", (ver_id,))
+        return _record(rows[0]) if rows else None
+
+
+def _record(r: sqlite3.Row) -> VerificationRecord:
+    return VerificationRecord(
+        id=int(r["id"]),
+        created_at=r["created_at"],
+        registration_id=int(r["registration_id"]),
+        scan_id=int(r["scan_id"]),
+        series_uid=r["series_uid"],
+        passed=bool(r["passed"]),
+        mean_mm=float(r["mean_mm"]),
+        rms_mm=float(r["rms_mm"]),
+        max_mm=float(r["max_mm"]),
+        figures=VerificationFigures.from_json(loads(r["figures_json"])),
+        histogram_path=r["histogram_path"],
+        config_hash=r["config_hash"],
+        software_version=r["software_version"],
+    )

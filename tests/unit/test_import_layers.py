@@ -1,0 +1,117 @@
+"""Layering of the packages, checked on the source (``ast``), not by importing anything.
+
+* ``registration/`` is pure: it imports neither ``service`` nor ``drivers`` (design.md §2);
+  ``drivers/`` imports neither ``service`` nor ``registration``.
+* No import cycle among the modules of ``service/`` or of ``drivers/``, counting imports inside
+  functions and ``TYPE_CHECKING`` blocks too: a lazy import hides a cycle, it does not remove it.
+* ``service/api/*`` never imports ``service.app`` (the routes get the context from
+  :mod:`service.context`).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGES = ("registration", "drivers", "service")
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def all_modules() -> dict[str, Path]:
+    return {module_name(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
+
+
+def imports_of(path: Path, known: set[str]) -> set[str]:
+    """Project modules ``path`` imports (``from pkg import submodule`` counts as the submodule)."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:
+                sub = f"{node.module}.{a.name}"
+                out.add(sub if sub in known else node.module)
+    return {m for m in out if m in known}
+
+
+def graph() -> dict[str, set[str]]:
+    mods = all_modules()
+    known = set(mods)
+    return {name: imports_of(path, known) for name, path in mods.items()}
+
+
+def find_cycle(g: dict[str, set[str]], nodes: set[str]) -> list[str] | None:
+    """One import cycle among ``nodes`` (as a list of modules, first = last), or None."""
+    state: dict[str, int] = {}  # 1: on the stack, 2: done
+    stack: list[str] = []
+
+    def visit(n: str) -> list[str] | None:
+        state[n] = 1
+        stack.append(n)
+        for m in sorted(g[n] & nodes):
+            if state.get(m) == 1:
+                return [*stack[stack.index(m) :], m]
+            if m not in state and (found := visit(m)) is not None:
+                return found
+        stack.pop()
+        state[n] = 2
+        return None
+
+    for n in sorted(nodes):
+        if n not in state and (found := visit(n)) is not None:
+            return found
+    return None
+
+
+def in_package(g: dict[str, set[str]], pkg: str) -> Iterator[str]:
+    return (m for m in g if m == pkg or m.startswith(pkg + "."))
+
+
+def test_the_checker_finds_a_cycle() -> None:
+    g = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert find_cycle(g, set(g)) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}, {"a", "b"}) is None
+
+
+DRIVERS_CYCLE = pytest.mark.xfail(
+    strict=True,
+    reason="drivers.base.open_link imports the link modules, which import drivers.base; moving the "
+    "factory into its own module (drivers engineer) fixes it, then drop this marker",
+)
+
+
+@pytest.mark.parametrize("pkg", ["service", pytest.param("drivers", marks=DRIVERS_CYCLE), "registration"])
+def test_no_import_cycle(pkg: str) -> None:
+    g = graph()
+    cycle = find_cycle(g, set(in_package(g, pkg)))
+    assert cycle is None, "import cycle: " + " → ".join(cycle or [])
+
+
+@pytest.mark.parametrize(
+    ("pkg", "forbidden"), [("registration", ("service", "drivers")), ("drivers", ("service", "registration"))]
+)
+def test_lower_layers_do_not_import_upper_ones(pkg: str, forbidden: tuple[str, ...]) -> None:
+    g = graph()
+    bad = sorted(
+        f"{m} imports {dep}"
+        for m in in_package(g, pkg)
+        for dep in g[m]
+        if any(dep == f or dep.startswith(f + ".") for f in forbidden)
+    )
+    assert bad == []
+
+
+def test_api_does_not_import_the_app() -> None:
+    g = graph()
+    bad = sorted(m for m in in_package(g, "service.api") if "service.app" in g[m])
+    assert bad == []
