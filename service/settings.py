@@ -46,9 +46,9 @@ from pydantic_settings import (
 )
 
 from registration.errors import ConfigError
+from registration.resources import default_phantom
 
-REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-DEFAULT_PHANTOM_FILE = REPO_CONFIGS / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM_FILE = default_phantom()
 ENV_PREFIX = "OARMREG_"
 MIN_TOKEN_CHARS = 16
 """Shortest accepted API token (16 chars ≈ 96 bits if random base64; OWASP: ≥ 64 bits of entropy)."""
