@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 sim = pytest.importorskip("mocks.oarm.simulator", reason="needs the O-arm simulator (issue #2)")
+pytestmark = pytest.mark.slow  # two simulated scans and six detections: tens of seconds
 
 from mocks.oarm.dicom_export import write_dicom_series  # noqa: E402
 from registration import frames  # noqa: E402
