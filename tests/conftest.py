@@ -74,9 +74,8 @@ def _assert_nothing_left(
         else:
             threading.Event().wait(LEAK_POLL_S)
     names = [f"{t.name}{' (daemon)' if t.daemon else ''}" for t in threads]
-    assert not threads, f"{what} left threads running: {names}"
     coros = [f"{t.get_name()}: {t.get_coro()!r}" for t in tasks]
-    assert not tasks, f"{what} left asyncio tasks pending: {coros}"
+    assert not (threads or tasks), f"{what} left threads running: {names}; asyncio tasks pending: {coros}"
 
 
 @pytest.fixture(autouse=True, scope="module")
