@@ -19,7 +19,7 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/oarmreg demo --out demo-output
 
-# mypy: which packages are held to --strict is set in pyproject.toml ([tool.mypy]).
+# mypy settings (--strict for all four packages, the pydantic plugin): pyproject.toml [tool.mypy].
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy registration drivers service mocks
