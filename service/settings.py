@@ -47,13 +47,13 @@ from pydantic_settings import (
 
 from registration.errors import ConfigError
 from registration.register import RegistrationParams
+from registration.resources import default_phantom
 from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
 
 _REG_DEFAULTS = RegistrationParams()
 """The registration dataclass carries the defaults (one source of truth, configs/oarmreg.toml agrees)."""
 
-REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-DEFAULT_PHANTOM_FILE = REPO_CONFIGS / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM_FILE = default_phantom()
 ENV_PREFIX = "OARMREG_"
 MIN_TOKEN_CHARS = 16
 """Shortest accepted API token (16 chars ≈ 96 bits if random base64; OWASP: ≥ 64 bits of entropy)."""

@@ -10,9 +10,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from registration.resources import default_phantom
+
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 
 
 def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:

@@ -42,9 +42,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from registration.resources import default_phantom
+
 HELP = "read joint angles from the robot controller, or the sphere centres in the robot frame"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 WATCH_PRINT_HZ = 10.0
 """Human-readable --watch output is throttled to this rate (the link runs at 50 Hz)."""
 

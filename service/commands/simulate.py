@@ -7,9 +7,11 @@ import sys
 import time
 from pathlib import Path
 
+from registration.resources import default_phantom
+
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
