@@ -36,7 +36,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 from urllib.parse import urlsplit
 
-from drivers.base import BaseLink, base_options, parse_query, register_scheme
+from drivers.base import BaseLink, base_options, parse_query
 from drivers.errors import LinkConfigError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -218,7 +218,7 @@ class ModbusLink(BaseLink):
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         started = time.monotonic()
-        while True:
+        while not self._closing.is_set():
             try:
                 rr = await read(rm.start_address, count=rm.register_count, device_id=rm.unit_id)
             except ModbusException as e:
@@ -245,5 +245,3 @@ class ModbusLink(BaseLink):
         if c is not None:
             c.close()
 
-
-register_scheme(ModbusLink.scheme, ModbusLink)
