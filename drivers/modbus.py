@@ -244,4 +244,3 @@ class ModbusLink(BaseLink):
         c, self._client = self._client, None
         if c is not None:
             c.close()
-

@@ -291,4 +291,3 @@ class SerialLink(BaseLink):
             asyncio.get_running_loop().remove_reader(fd)
         if ser is not None:
             ser.close()
-

@@ -416,4 +416,3 @@ class SimpleMessageLink(BaseLink):
         t, self._transport = self._transport, None
         if t is not None:
             t.abort()
-
