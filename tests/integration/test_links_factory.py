@@ -35,7 +35,7 @@ def test_the_table_is_static_and_complete() -> None:
         "modbus": ModbusLink,
         "serial": SerialLink,
     }
-    with pytest.raises(LinkConfigError, match="unknown robot link scheme 'ftp'.*modbus"):
+    with pytest.raises(LinkConfigError, match=r"unknown robot link scheme 'ftp'.*modbus"):
         open_link("ftp://10.0.0.1")
 
 
@@ -45,9 +45,16 @@ def test_old_import_path_still_builds_links() -> None:
     assert type(old_open_link("modbus://10.0.0.1")) is ModbusLink
 
 
-@pytest.mark.parametrize(
-    "first", ["drivers.base", "drivers.simple_message", "drivers.modbus", "drivers.serial_link", "drivers.factory"]
-)
+MODULES = [
+    "drivers.base",
+    "drivers.simple_message",
+    "drivers.modbus",
+    "drivers.serial_link",
+    "drivers.factory",
+]
+
+
+@pytest.mark.parametrize("first", MODULES)
 def test_any_module_imports_first_and_base_imports_no_link_module(first: str) -> None:
     code = (
         f"import sys, {first}\n"

@@ -90,7 +90,9 @@ def test_close_mid_session_200_times(kind: str) -> None:
                     await link.connect()
                 if i % 3 == 2:
                     n = link.counters()["frames_accepted"]
-                    await wait_until(lambda: link.counters()["frames_accepted"] > n + 1, "streaming")
+                    await wait_until(
+                        lambda lk=link, n=n: lk.counters()["frames_accepted"] > n + 1, "streaming"
+                    )
                 await asyncio.wait_for(link.close(), 2 * link.close_timeout_s)
                 assert not link.running, f"close #{i}: the reader thread is still alive"
                 assert link.health().state == "down" and link.health().reason == "closed"
