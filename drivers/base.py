@@ -1,12 +1,15 @@
-"""The one robot-link interface, its shared machinery, and the URL factory.
+"""The one robot-link interface and its shared machinery.
 
 A link reads joint angles from a Stäubli CS8/CS9 controller (design.md §6).
 Every implementation (``simple-message://``, ``modbus://``, ``serial://``)
-shares this module's :class:`BaseLink`: a background task that connects,
-reads, publishes :class:`JointState` samples into a ring buffer, and on any
-failure marks the link *down* with the reason, backs off (capped exponential)
-and reconnects.  Constructors never connect and never start tasks or threads:
-:meth:`BaseLink.connect` is the awaited step that does, with a ``timeout_s``.
+shares this module's :class:`BaseLink`: a reader that connects, reads,
+publishes :class:`JointState` samples into a ring buffer, and on any failure
+marks the link *down* with the reason, backs off (capped exponential) and
+reconnects; that is the service's one reconnect policy.  Constructors never
+connect and never start tasks or threads: :meth:`BaseLink.start` (return at
+once) or :meth:`BaseLink.connect` (await the first frame, with a
+``timeout_s``) does.  The URL factory is :func:`drivers.factory.open_link`;
+this module imports none of the link modules.
 
 Health
 ------
@@ -15,9 +18,13 @@ Health
 ``down``       no transport (never connected, refused, closed, protocol error),
                with the reason.
 
-Threading: a link lives on the event loop that called :meth:`connect`.  The
-read-only accessors (``latest``, ``status``, ``health``, ``history``,
-``counters``) take a lock and may be called from any thread.
+Threading: the reader runs on a thread of its own with its own event loop
+(:mod:`drivers.loop_thread`) and stamps every frame there when its bytes
+arrive, so the caller's loop can block without distorting the history.  The
+awaited methods are called from the caller's loop; the read-only accessors
+(``latest``, ``status``, ``health``, ``history``, ``counters``) take a lock
+and may be called from any thread.  :meth:`BaseLink.close` is bounded by
+``close_timeout_s`` and joins the thread.
 """
 
 from __future__ import annotations
@@ -95,7 +102,9 @@ class JointState:
     joints_rad : tuple of float
         Joint angles J1…J6 in radians, as sent by the controller (no offsets).
     t_s : float
-        ``time.monotonic()`` at receipt (the controllers send no timestamp).
+        ``time.monotonic()`` (s) taken on the link's reader thread when the frame's bytes
+        arrived (the controllers send no timestamp); comparable with ``time.monotonic()``
+        anywhere in the process.
     received_at : datetime
         UTC wall clock at receipt, for provenance.
     source_url : str
