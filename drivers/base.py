@@ -646,7 +646,7 @@ class BaseLink:
             await self._session()
             reason = "closed" if self._closing.is_set() else "peer closed the connection"
         except asyncio.CancelledError:
-            await self._cleanup()
+            await self._safe_cleanup()
             raise
         except ProtocolError as e:
             self._count("protocol_errors")
@@ -658,8 +658,14 @@ class BaseLink:
         except Exception as e:  # a bug must not kill the reader silently
             reason = f"unexpected {type(e).__name__}: {e}"
             log.exception("robot link %s: unexpected error", self.url)
-        await self._cleanup()
+        await self._safe_cleanup()
         return reason
+
+    async def _safe_cleanup(self) -> None:
+        try:
+            await self._cleanup()
+        except Exception:  # a failing close must not end the reader
+            log.exception("robot link %s: closing the transport failed", self.url)
 
 
 # --------------------------------------------------------------------------- factory

@@ -206,6 +206,8 @@ class ModbusLink(BaseLink):
         from pymodbus.exceptions import ModbusException
 
         rm = self.register_map
+        # retries=0, reconnect_delay=0: pymodbus's own retry and reconnect are off, so the
+        # back-off in BaseLink is the only reconnect policy.
         client = AsyncModbusTcpClient(
             self.host, port=self.port, timeout=rm.timeout_s, retries=0, reconnect_delay=0
         )
