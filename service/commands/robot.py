@@ -90,7 +90,7 @@ def _human(state: Any, health: Any) -> str:
 
 
 async def _joints(args: argparse.Namespace) -> int:
-    from drivers.base import open_link
+    from drivers.factory import open_link
 
     link = open_link(args.link)
     await link.connect(timeout_s=args.timeout_s)
@@ -176,8 +176,8 @@ def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
 async def _points(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from drivers.base import open_link
     from drivers.errors import LinkConfigError
+    from drivers.factory import open_link
     from registration.errors import RobotMovedError
     from registration.kinematics import RobotModel, sphere_centres_robot_mm
     from registration.phantom import load_phantom
