@@ -669,15 +669,3 @@ class BaseLink:
 
 
 # --------------------------------------------------------------------------- factory
-
-
-def open_link(url: str, **options: Any) -> BaseLink:
-    """Build (never connect) the link for ``url``: see :func:`drivers.factory.open_link`.
-
-    Kept here so ``from drivers.base import open_link`` keeps working; new code imports
-    :mod:`drivers.factory`.  The import is done at call time: this module never imports the
-    link modules at import time (they import it).
-    """
-    from drivers.factory import open_link as _open_link
-
-    return _open_link(url, **options)

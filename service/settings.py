@@ -84,7 +84,6 @@ class RobotSettings(_Section):
     link_url: str = "simple-message://127.0.0.1:11002"
     model: str = "tx60"
     connect_timeout_s: float = Field(default=5.0, gt=0, le=120)
-    reconnect_interval_s: float = Field(default=2.0, gt=0, le=600)
     tool0_from_phantom: Tool0FromPhantom = Tool0FromPhantom()
 
     @field_validator("link_url")

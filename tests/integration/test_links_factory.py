@@ -39,12 +39,6 @@ def test_the_table_is_static_and_complete() -> None:
         open_link("ftp://10.0.0.1")
 
 
-def test_old_import_path_still_builds_links() -> None:
-    from drivers.base import open_link as old_open_link
-
-    assert type(old_open_link("modbus://10.0.0.1")) is ModbusLink
-
-
 MODULES = [
     "drivers.base",
     "drivers.simple_message",
