@@ -119,6 +119,26 @@ REALISTIC: dict[str, Any] = {
 }
 """Overrides shared by the ``*-realistic`` presets (see :meth:`AcquisitionSettings.preset`)."""
 
+_PRESETS: dict[str, dict[str, Any]] = {
+    "oarm": {},
+    "demo": {"n_slices": 132, "n_views": 240},
+    "small": {
+        "rows": 160,
+        "columns": 160,
+        "pixel_mm": 0.7,
+        "slice_spacing_mm": 1.0,
+        "n_slices": 96,
+        "n_views": 180,
+        "detector_subsamples": 2,
+    },
+}
+for _base in ("oarm", "demo", "small"):
+    _PRESETS[f"{_base}-realistic"] = {**_PRESETS[_base], **REALISTIC}
+_PRESETS["oarm-realistic"]["n_views"] = 196  # 391 views over 360° ≈ 196 parallel views over 180°
+PRESET_NAMES = tuple(_PRESETS)
+"""Slice-wise presets: the legacy ``oarm``, ``demo``, ``small`` and their ``-realistic`` twins."""
+
+
 DEMO_POSE_XYZ_RPY = (4.0, -6.0, 3.0, 12.0, -8.0, 25.0)
 """Default ``image_from_phantom`` (mm, deg; x y z roll pitch yaw) for the CLI and the demo preset."""
 
@@ -201,22 +221,7 @@ class AcquisitionSettings:
         tungsten K edge.  ``oarm-realistic`` samples angles like 391 views over 360°
         (196 parallel views over 180°).  They are the defaults of ``oarmreg simulate``.
         """
-        presets: dict[str, dict[str, Any]] = {
-            "oarm": {},
-            "demo": {"n_slices": 132, "n_views": 240},
-            "small": {
-                "rows": 160,
-                "columns": 160,
-                "pixel_mm": 0.7,
-                "slice_spacing_mm": 1.0,
-                "n_slices": 96,
-                "n_views": 180,
-                "detector_subsamples": 2,
-            },
-        }
-        for base in ("oarm", "demo", "small"):
-            presets[f"{base}-realistic"] = {**presets[base], **REALISTIC}
-        presets["oarm-realistic"]["n_views"] = 196
+        presets = _PRESETS
         if name not in presets:
             raise ConfigError(f"unknown simulator preset {name!r}; choose one of {sorted(presets)}")
         fields = {f.name for f in dataclasses.fields(cls)}
