@@ -294,9 +294,7 @@ def check_symmetry_margin(ph: Phantom, source: Path | str = "<phantom>") -> None
             # Suggest empty holes whose image under this symmetry is also empty:
             # filling one adds a sphere that lands on an empty hole.
             sugg = [
-                ph.hole_ids[i]
-                for i in np.flatnonzero(~ph.filled)
-                if not ph.filled[sym.hole_permutation[i]]
+                ph.hole_ids[i] for i in np.flatnonzero(~ph.filled) if not ph.filled[sym.hole_permutation[i]]
             ]
             raise PhantomDefinitionError(
                 f"{source}: filled pattern is ambiguous under the rotation {sym.describe()}: only "

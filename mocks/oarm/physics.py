@@ -68,7 +68,7 @@ def _element_mu_rho(key: str, energies_kev: NDArray[np.float64]) -> NDArray[np.f
     e = np.asarray(energies_kev, dtype=np.float64)
     if key not in _EDGE_TABLES:
         table = np.log(np.asarray(_MU_RHO_CM2_G[key]))
-        return np.exp(np.interp(np.log(e), np.log(TABLE_ENERGIES_KEV), table))
+        return np.asarray(np.exp(np.interp(np.log(e), np.log(TABLE_ENERGIES_KEV), table)), dtype=np.float64)
     te, tv = (np.asarray(v, dtype=np.float64) for v in _EDGE_TABLES[key])
     out = np.empty_like(e)
     # Split the table at repeated energies (edges) and interpolate each branch on its own side.

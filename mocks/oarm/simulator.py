@@ -355,7 +355,9 @@ class SimulatedScan:
             "sphere_material": self.sphere_material,
             # Per phantom sphere (phantom order): fully imaged (inside the slab and the FOV circle,
             # for cone-beam inside the region reconstructed from untruncated rays).
-            "fully_imaged": [bool(i in set(self.sphere_indices.tolist())) for i in range(self.n_phantom_spheres)],
+            "fully_imaged": [
+                bool(i in set(self.sphere_indices.tolist())) for i in range(self.n_phantom_spheres)
+            ],
             "partial_indices": [int(i) for i in self.partial_indices],
             "nominal_spheres_image_mm": self.nominal_spheres_image_mm.tolist(),
         }
@@ -449,7 +451,9 @@ def _build_scene(
                 # (removed plastic) moves with it, which is exact for a sphere filling its hole.
                 c_actual = actual[int(np.count_nonzero(phantom.filled[:i]))]
                 objs.append(
-                    _Sphere(frames.apply(scanner_from_phantom, c_actual), phantom.sphere_radius_mm, sphere_paths)
+                    _Sphere(
+                        frames.apply(scanner_from_phantom, c_actual), phantom.sphere_radius_mm, sphere_paths
+                    )
                 )
         elif extras.empty_holes:
             # An empty Ø2.5 mm hole, modelled as an air sphere (the drilled cylinder + tip differs by
@@ -1062,9 +1066,9 @@ def _detect(
         # Legacy scatter: a uniform background per view, a fraction of the photons removed.
         scatter = np.float32(s.scatter_fraction) * np.mean(1.0 - trans, axis=2, keepdims=True)
     lam = n0 * (trans + scatter)
-    counts = lam
+    counts: F32 = lam
     if s.noise:
-        counts = lam + np.sqrt(lam) * rng.standard_normal(lam.shape, dtype=np.float32)
+        counts = (lam + np.sqrt(lam) * rng.standard_normal(lam.shape, dtype=np.float32)).astype(np.float32)
         low = lam < 50.0  # Gaussian is poor for small counts: draw those exactly
         if np.any(low):
             counts[low] = rng.poisson(lam[low]).astype(np.float32)
@@ -1085,9 +1089,7 @@ def _detect(
     return wcorr.apply(p)
 
 
-def kernel_scatter(
-    primary: F32, spr: float, fwhm_mm: float, det_mm: float, row_mm: float
-) -> F32:
+def kernel_scatter(primary: F32, spr: float, fwhm_mm: float, det_mm: float, row_mm: float) -> F32:
     """Scatter reaching the detector, by kernel superposition, for views ``primary`` (K, V, D).
 
     Each ray's scatter potential P·ln(1/P) (the photons it lost, weighted by the path that made
@@ -1110,7 +1112,7 @@ def kernel_scatter(
     k_rows, n_views, n_det = primary.shape
     sig_d, sig_k = fwhm_mm / 2.3548 / det_mm, fwhm_mm / 2.3548 / row_mm
     fd, fk = max(1, int(sig_d / 3)), max(1, int(sig_k / 3))
-    pad = int(math.ceil(3 * sig_d / fd)) + 1
+    pad = math.ceil(3 * sig_d / fd) + 1
     small_shape = (max(1, n_det // fd), max(1, k_rows // fk))  # cv2 (width, height)
     out = np.empty_like(primary)
     for v in range(n_views):
@@ -1118,7 +1120,9 @@ def kernel_scatter(
         pot = (p * -np.log(p)).astype(np.float32)
         small = cv2.resize(pot, small_shape, interpolation=cv2.INTER_AREA)
         small = cv2.copyMakeBorder(small, 0, 0, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
-        small = cv2.GaussianBlur(small, (0, 0), sig_d / fd, sigmaY=sig_k / fk, borderType=cv2.BORDER_REPLICATE)
+        small = cv2.GaussianBlur(
+            small, (0, 0), sig_d / fd, sigmaY=sig_k / fk, borderType=cv2.BORDER_REPLICATE
+        )
         spread = cv2.resize(small[:, pad:-pad], (n_det, k_rows), interpolation=cv2.INTER_LINEAR)
         behind = p < 0.98
         denom = float(spread[behind].sum())

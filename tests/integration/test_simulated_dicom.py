@@ -283,7 +283,7 @@ def test_cli_writes_a_series_and_truth(tmp_path: Path, capsys: pytest.CaptureFix
     assert (tmp_path / "s_soft_window.png").exists() and (tmp_path / "s_zoom_bone_window.png").exists()
 
 
-# ---------------------------------------------------------------- issue #11: partial imaging, tungsten carbide
+# ------------------------------------------------------------ issue #11: partial imaging, tungsten carbide
 
 
 def test_phantom_half_outside_the_slab_and_fov(phantom: Any, tmp_path: Path) -> None:

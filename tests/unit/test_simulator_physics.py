@@ -227,7 +227,9 @@ def test_scatter_cups_a_uniform_block() -> None:
     extras = SceneExtras(sphere_material="plastic", empty_holes=False)
     cup = []
     for spr in (0.0, 0.1, 0.3):
-        s = AcquisitionSettings.preset("small", n_slices=6, noise=False, scatter_spr=spr, scatter_fraction=0.0)
+        s = AcquisitionSettings.preset(
+            "small", n_slices=6, noise=False, scatter_spr=spr, scatter_fraction=0.0
+        )
         hu = simulate_scan(ph, np.eye(4), s, extras).hu[3].astype(float)
         centre = hu[75:85, 75:85].mean()
         edge = hu[76:84, 120:124].mean()  # 28–31 mm from the centre; the cube's half width is 35 mm
