@@ -141,12 +141,12 @@ class _Stubborn(BaseLink):
 def test_close_is_bounded_when_the_session_ignores_cancellation(caplog: pytest.LogCaptureFixture) -> None:
     link = _Stubborn("stubborn://x", close_timeout_s=0.4)
 
-    async def main() -> None:
+    async def main(link: _Stubborn) -> None:
         await link.connect(timeout_s=5.0)
         await asyncio.wait_for(link.close(), 5.0)  # would hang forever without the bound
 
     with caplog.at_level(logging.ERROR):
-        asyncio.run(main())
+        asyncio.run(main(link))
     assert not link.running and _link_threads() == []
     assert any("did not stop" in r.getMessage() for r in caplog.records)
     # The abandoned reader task is this test's deliberate worst case: drop it with its closed loop
