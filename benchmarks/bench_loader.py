@@ -11,8 +11,8 @@ intercept 0 (the direct ``readinto`` path) and unsigned with intercept −1024
 
 * the I/O floor ``benchmarks.common.naive_read_series`` (``np.stack`` of
   ``dcmread(p).pixel_array``, no sorting, no rescale),
-* :func:`registration.dicom_series.load_series` (sorting, checks, rescale),
-* :func:`registration.dicom_series.list_series` (header-only, the watcher's call),
+* :func:`registration.dicom.load_series` (sorting, checks, rescale),
+* :func:`registration.dicom.list_series` (header-only, the watcher's call),
 
 and the peak traced memory (tracemalloc) of one ``load_series`` against the
 volume's int16 size.  The files sit in the page cache after the warm-up run,
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import median_time_s, naive_read_series, peak_python_memory_bytes, print_table
-from registration.dicom_series import list_series, load_series
+from registration.dicom import list_series, load_series
 
 
 def synthetic_hu(n_slices: int, rows: int = 512, columns: int = 512, seed: int = 0) -> np.ndarray:

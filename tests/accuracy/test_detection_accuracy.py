@@ -20,7 +20,7 @@ sim = pytest.importorskip("mocks.oarm.simulator", reason="needs the O-arm simula
 from mocks.oarm.dicom_export import write_dicom_series  # noqa: E402
 from registration import frames  # noqa: E402
 from registration.detection import DetectionParams, DetectionResult, detect_spheres  # noqa: E402
-from registration.dicom_series import load_series  # noqa: E402
+from registration.dicom import load_series  # noqa: E402
 
 MAX_MATCH_MM = 1.0
 """A detection within this distance of a truth centre is a hit (spheres are ≥ 15 mm apart)."""
