@@ -102,6 +102,7 @@ def decode_frame(h: SliceHeader) -> NDArray[Any]:
         "pixel_keyword": "PixelData",
         "pixel_vr": h.pixel_vr or ("OW" if h.bits_allocated > 8 else "OB"),
         "transfer_syntax_uid": UID(h.transfer_syntax_uid),
+        "view_only": True,  # native data: no writeable copy, the frame is copied into the volume anyway
     }
     with h.path.open("rb") as f:
         f.seek(h.pixel_offset)  # the decoder reads from a file positioned at the Pixel Data value

@@ -16,6 +16,7 @@ from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from pydicom import dcmread
 
@@ -109,8 +110,9 @@ def scan_folder(root: Path) -> tuple[list[SliceHeader], list[SkippedFile]]:
     paths = _candidate_files(root)
     headers: list[SliceHeader] = []
     skipped: list[SkippedFile] = []
+    memo: dict[tuple[Any, ...], Any] = {}
     for p in paths:
-        result = read_headers(p)
+        result = read_headers(p, memo)
         if isinstance(result, SkippedFile):
             skipped.append(result)
         else:
