@@ -64,30 +64,45 @@ def simulate(out: Path) -> None:
     )
 
 
-def wall_s(cmd: list[str]) -> float:
-    """Wall time of one subprocess run (it must succeed)."""
+def wall_s(cmd: list[str], cwd: Path) -> float:
+    """Wall time of one subprocess run in ``cwd`` (it must succeed)."""
     t0 = time.perf_counter()
-    subprocess.run(cmd, cwd=_repo_root(), check=True, stdout=subprocess.DEVNULL, env=dict(os.environ))
+    subprocess.run(cmd, cwd=cwd, check=True, stdout=subprocess.DEVNULL, env=dict(os.environ))
     return time.perf_counter() - t0
 
 
-def measure(series: Path, repeats: int) -> tuple[list[float], list[float]]:
-    """Alternate detect and floor runs (after one untimed warm-up of each); return both time lists."""
+def measure(series: Path, repeats: int, baseline: Path | None) -> dict[str, list[float]]:
+    """Interleave the runs (after one untimed warm-up of each); wall times per command label.
+
+    ``baseline`` is another checkout of the project (e.g. the main branch): its ``detect`` runs
+    too, from that folder, so "before" and "after" are measured under the same load.
+    """
     detect = [sys.executable, "-m", "service.cli", "detect", str(series)]
-    floor = [sys.executable, "-c", FLOOR_SCRIPT, str(series)]
-    wall_s(detect)
-    wall_s(floor)
-    detect_s, floor_s = [], []
+    runs: dict[str, tuple[list[str], Path]] = {
+        "python -m service.cli detect DIR": (detect, _repo_root()),
+        "minimal pydicom → float32 volume (floor)": (
+            [sys.executable, "-c", FLOOR_SCRIPT, str(series)],
+            _repo_root(),
+        ),
+    }
+    if baseline is not None:
+        runs[f"detect DIR, code in {baseline}"] = (detect, baseline)
+    for cmd, cwd in runs.values():
+        wall_s(cmd, cwd)
+    times: dict[str, list[float]] = {label: [] for label in runs}
     for _ in range(repeats):
-        detect_s.append(wall_s(detect))
-        floor_s.append(wall_s(floor))
-    return detect_s, floor_s
+        for label, (cmd, cwd) in runs.items():
+            times[label].append(wall_s(cmd, cwd))
+    return times
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--series", type=Path, default=None, help="an existing series folder to reuse")
+    parser.add_argument(
+        "--baseline", type=Path, default=None, help="another checkout (e.g. /work/main) to time as 'before'"
+    )
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench_detect_process_") as tmp:
         series = args.series
@@ -95,18 +110,18 @@ def main(argv: list[str] | None = None) -> int:
             series = Path(tmp) / "oarm"
             simulate(series)
         n_files = sum(1 for p in series.iterdir() if p.suffix == ".dcm")
-        detect_s, floor_s = measure(series, args.repeats)
-    d, f = statistics.median(detect_s), statistics.median(floor_s)
+        times = measure(series, args.repeats, args.baseline)
+    med = {label: statistics.median(ts) for label, ts in times.items()}
+    labels = list(times)
+    floor = med[labels[1]]
     print_table(
         f"Whole process, median of {args.repeats} fresh subprocesses ({n_files} files, page cache warm)",
-        ["command", "median (s)", "min (s)", "max (s)"],
-        [
-            ["python -m service.cli detect DIR", d, min(detect_s), max(detect_s)],
-            ["minimal pydicom → float32 volume (floor)", f, min(floor_s), max(floor_s)],
-        ],
+        ["command", "median (s)", "min (s)", "max (s)", "/ floor"],
+        [[label, med[label], min(ts), max(ts), med[label] / floor] for label, ts in times.items()],
     )
-    verdict = "ok" if d / f <= RATIO_LIMIT else "OVER"
-    sys.stdout.write(f"\ndetect / floor = {d / f:.3f} (limit {RATIO_LIMIT}): {verdict}\n")
+    ratio = med[labels[0]] / floor
+    verdict = "ok" if ratio <= RATIO_LIMIT else "OVER"
+    sys.stdout.write(f"\ndetect / floor = {ratio:.3f} (limit {RATIO_LIMIT}): {verdict}\n")
     return 0
 
 
