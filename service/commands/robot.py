@@ -34,7 +34,6 @@ Command-line flags override the file.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import math
 import sys
@@ -74,6 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio  # here, not at module level: the CLI imports every command to build its parser
+
     if args.robot_command == "joints":
         return asyncio.run(_joints(args))
     return asyncio.run(_points(args))
@@ -88,6 +89,8 @@ def _human(state: Any, health: Any) -> str:
 
 
 async def _joints(args: argparse.Namespace) -> int:
+    import asyncio
+
     from drivers.base import open_link
 
     link = open_link(args.link)
@@ -172,6 +175,8 @@ def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
 
 
 async def _points(args: argparse.Namespace) -> int:
+    import asyncio
+
     import numpy as np
 
     from drivers.base import open_link
