@@ -26,6 +26,7 @@ replaced (``registration/dicom_series.py``: PixelData offsets from pydicom's ``R
 from __future__ import annotations
 
 import argparse
+import functools
 import tempfile
 from pathlib import Path
 from typing import Final
@@ -98,10 +99,10 @@ def main(argv: list[str] | None = None) -> int:
             write_case(folder, hu, unsigned=unsigned)
             vol = load_series(folder)
             assert np.array_equal(vol.voxels, hu), "loader returned wrong HU"
-            floor_s, _ = median_time_s(lambda f=folder: naive_read_series(f), repeats=args.repeats)
-            load_s, _ = median_time_s(lambda f=folder: load_series(f), repeats=args.repeats)
-            list_s, _ = median_time_s(lambda f=folder: list_series(f), repeats=args.repeats)
-            peak = peak_python_memory_bytes(lambda f=folder: load_series(f))
+            floor_s, _ = median_time_s(functools.partial(naive_read_series, folder), repeats=args.repeats)
+            load_s, _ = median_time_s(functools.partial(load_series, folder), repeats=args.repeats)
+            list_s, _ = median_time_s(functools.partial(list_series, folder), repeats=args.repeats)
+            peak = peak_python_memory_bytes(functools.partial(load_series, folder))
             rows.append(
                 [
                     f"512x512x{args.slices} {label}",

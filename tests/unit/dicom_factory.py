@@ -16,6 +16,7 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import (
     PYDICOM_IMPLEMENTATION_UID,
+    UID,
     CTImageStorage,
     ExplicitVRLittleEndian,
     generate_uid,
@@ -43,7 +44,7 @@ def ct_dataset(
     if stored.dtype not in (np.int16, np.uint16):
         raise TypeError(f"stored pixels must be int16 or uint16, got {stored.dtype}")
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = sop_class_uid
+    meta.MediaStorageSOPClassUID = UID(sop_class_uid)
     meta.MediaStorageSOPInstanceUID = generate_uid()
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
@@ -131,7 +132,7 @@ def write_series(
         pixels = extra.pop("stored", stored[k])
         ds = ct_dataset(
             pixels,
-            position_mm=positions[k],
+            position_mm=positions[k].tolist(),
             orientation=extra.pop("orientation", orientation),
             pixel_spacing_mm=extra.pop("pixel_spacing_mm", pixel_spacing_mm),
             series_uid=series_uid,

@@ -150,7 +150,7 @@ def test_image_from_voxel_known_answer_for_anisotropic_pixels() -> None:
 def test_check_series_geometry_runs_the_rules_in_order() -> None:
     # both a missing position (rule 1) and a single slice (rule 2): rule 1 is reported
     with pytest.raises(MissingGeometryError):
-        g.check_series_geometry([slice_header(0, position_mm=None)], UID)  # type: ignore[list-item]
+        g.check_series_geometry([slice_header(0, position_mm=None)], UID)
     geometry = g.check_series_geometry(list(reversed(slice_stack(4))), UID)
     assert geometry.slice_spacing_mm == pytest.approx(0.8)
     assert [h.instance_number for h in geometry.slices] == [1, 2, 3, 4]
