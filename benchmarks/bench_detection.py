@@ -136,7 +136,7 @@ def accuracy_sweep(n_scans: int, quick: bool) -> None:
     from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, scan_to_volume, simulate_scan
     from registration import frames
     from registration.detection import DetectionParams, detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
     from registration.phantom import load_phantom
 
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
@@ -246,7 +246,7 @@ def speed() -> None:
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, demo_pose, simulate_scan
     from registration.detection import DetectionParams, detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
     from registration.phantom import load_phantom
 
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")

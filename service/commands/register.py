@@ -95,7 +95,7 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
         )
         return read_points(args.image_points, min_points=0)
     from registration.detection import DetectionParams, detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
 
     t0 = time.perf_counter()
     volume = load_series(args.dicom_dir, series_uid=args.series_uid)

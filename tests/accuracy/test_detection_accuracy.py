@@ -21,7 +21,7 @@ pytestmark = pytest.mark.slow  # two simulated scans and six detections: tens of
 from mocks.oarm.dicom_export import write_dicom_series  # noqa: E402
 from registration import frames  # noqa: E402
 from registration.detection import DetectionParams, DetectionResult, detect_spheres  # noqa: E402
-from registration.dicom_series import load_series  # noqa: E402
+from registration.dicom import load_series  # noqa: E402
 
 MAX_MATCH_MM = 1.0
 """A detection within this distance of a truth centre is a hit (spheres are ≥ 15 mm apart)."""
