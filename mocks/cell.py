@@ -24,8 +24,10 @@ Both take the simulator's ``image_from_robot`` and return the
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
-from typing import Protocol
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -208,3 +210,72 @@ class ExactCell:
     ) -> F64:
         y = as_transform(image_from_robot, "image_from_robot")
         return np.asarray(y @ self.robot_from_tool0_true(joints_rad) @ self.tool0_from_phantom, dtype=np.float64)
+
+
+# ---------------------------------------------------------------- a simulated calibration session
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedPose:
+    """One simulated scan of a session: what the service would see, and the truth behind it."""
+
+    name: str
+    joints_reported_rad: F64
+    detections_image_mm: F64
+    truth_image_from_phantom: F64
+    series_uid: str
+    frame_of_reference_uid: str
+    detect_s: float
+
+
+def set_frame_of_reference(folder: Path, uid: str) -> None:
+    """Rewrite FrameOfReferenceUID (0020,0052) of every ``.dcm`` in ``folder``: one O-arm placement.
+
+    The exporter draws a new UID per series; scans of one calibration session share theirs.
+    """
+    import pydicom
+
+    for path in sorted(Path(folder).glob("*.dcm")):
+        ds = pydicom.dcmread(path)
+        ds.FrameOfReferenceUID = uid
+        ds.save_as(path)
+
+
+def simulate_pose_scan(
+    cell: Cell,
+    image_from_robot: ArrayLike,
+    joints_rad: ArrayLike,
+    phantom: Any,
+    settings: Any,
+    out_dir: Path,
+    rng: np.random.Generator,
+    *,
+    frame_of_reference_uid: str,
+    name: str = "",
+) -> SimulatedPose:
+    """Pose the phantom through ``cell``, simulate the scan, write + reload it as DICOM, detect.
+
+    Returns the reported (noisy) joints, the detections and the true ``image_from_phantom``.
+    """
+    from mocks.oarm.dicom_export import write_dicom_series
+    from mocks.oarm.simulator import simulate_scan
+    from registration.detection import detect_spheres
+    from registration.dicom_series import load_series
+
+    truth = cell.image_from_phantom_true(image_from_robot, joints_rad, rng)
+    reported = cell.reported_joints(joints_rad, rng)
+    scan = simulate_scan(phantom, truth, settings)
+    export = write_dicom_series(scan, out_dir, write_truth=False)
+    set_frame_of_reference(out_dir, frame_of_reference_uid)
+    t0 = time.perf_counter()
+    volume = load_series(out_dir)
+    det = detect_spheres(volume)
+    return SimulatedPose(
+        name=name or out_dir.name,
+        joints_reported_rad=reported,
+        detections_image_mm=det.centres_image_mm,
+        truth_image_from_phantom=truth,
+        series_uid=export.series_uid,
+        frame_of_reference_uid=volume.frame_of_reference_uid,
+        detect_s=time.perf_counter() - t0,
+    )
