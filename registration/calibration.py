@@ -71,6 +71,8 @@ FD_STEP: Final = 1e-6
 """Central-difference step of the Jacobian (rad or mm): truncation ~1e-12, round-off ~1e-10."""
 MAX_ITERATIONS: Final = 60
 """Levenberg–Marquardt iterations at most (a noise-free fit converges in ~10)."""
+MIN_JOINT_SPREAD_DEG: Final = 5.0
+"""A joint whose range over the session's poses is below this is named as not moving."""
 STRUCTURAL_RANK_TOL: Final = 1e-5
 """A candidate column whose normalised residual after projection on the kept ones is below this is
 structurally redundant (exact redundancies leave ~1e-10, genuine parameters ≥ 1e-2)."""
@@ -496,32 +498,38 @@ def check_session(poses: Sequence[MatchedPose], min_poses: int = MIN_POSES) -> N
 
 
 def _motion_advice(weak: Sequence[Parameter], joints_rad: F64, names: Sequence[str]) -> str:
-    """Which motion to add for the weakest direction: joints that barely move and the weak joints."""
+    """Which motion to add: the joints that barely move, else the joints of the weakest direction."""
     spread_deg = np.degrees(np.ptp(joints_rad, axis=0))
-    still = [f"{n} ({s:.1f}°)" for n, s, in zip(names, spread_deg, strict=True) if s < 5.0]
-    moving = [n for n, s in zip(names, spread_deg, strict=True) if s >= 5.0]
+    still = [n for n, s in zip(names, spread_deg, strict=True) if s < MIN_JOINT_SPREAD_DEG]
+    moving = [n for n in names if n not in still]
     parts = []
-    if moving and still and len(moving) <= 2:
-        parts.append(f"the poses differ only in {', '.join(moving)}")
     if still:
-        parts.append(f"joints that barely move across the poses: {', '.join(still)}")
-    weak_joints = sorted({p.group for p in weak if p.group in names})
-    if any(p.group in ("image_from_robot", "tool0_from_phantom") for p in weak) or not weak_joints:
-        parts.append("add poses that rotate the phantom about at least two non-parallel axes by ±45° "
-                     "(move joint_1…joint_5, not only the last wrist joint)")
+        if moving and len(moving) <= 2:
+            parts.append(f"the poses differ only in {', '.join(moving)}")
+        ranges = ", ".join(f"{n} ({s:.1f}°)" for n, s in zip(names, spread_deg, strict=True) if n in still)
+        parts.append(f"joints that barely move across the poses: {ranges}")
+        parts.append(f"add poses that move {', '.join(still)} by ±45° or more")
+    weak_joints = sorted({p.group for p in weak if p.group in names} - set(still))
+    if any(p.group in ("image_from_robot", "tool0_from_phantom") for p in weak) and not still:
+        parts.append("add poses that rotate the phantom about at least two non-parallel axes by ±45° and "
+                     "shift it within the scan volume")
     if weak_joints:
         parts.append(f"add poses that move {', '.join(weak_joints)} (and its neighbours) over a wider range")
     return "; ".join(parts)
 
 
-def _identifiability(jac: F64, params: Sequence[Parameter], rtol: float) -> tuple[int, float, F64, list[Parameter]]:
-    """(rank, condition number, singular values, parameters of the weakest direction)."""
+def _identifiability(
+    jac: F64, params: Sequence[Parameter], rtol: float
+) -> tuple[int, float, F64, list[Parameter], list[Parameter]]:
+    """(rank, condition number, singular values, main parameters of the weakest direction, all
+    parameters by decreasing weight in it)."""
     s, vt = _normalised_svd(jac)
     rank = int(np.sum(s > rtol * s[0]))
     cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     v = np.abs(vt[-1])
-    weak = [params[j] for j in np.argsort(-v) if v[j] >= 0.5 * v.max()]
-    return rank, cond, s, weak
+    order = np.argsort(-v)
+    weak = [params[j] for j in order if v[j] >= 0.5 * v.max()]
+    return rank, cond, s, weak, [params[j] for j in order]
 
 
 def _select_parameters(
@@ -531,11 +539,11 @@ def _select_parameters(
     dropped: list[str] = []
     while True:
         jac = _jacobian(model, data, np.zeros(len(model.params)))
-        rank, cond, s, weak = _identifiability(jac, model.params, params.rank_rtol)
+        rank, cond, s, weak, ranked = _identifiability(jac, model.params, params.rank_rtol)
         if cond <= params.max_condition:
             return model, tuple(dropped), rank, cond, s
-        robot_weak = [p for p in weak if p.group in names]
-        if params.on_weak == "drop" and robot_weak and len(robot_weak) == len(weak):
+        robot_weak = [p for p in ranked if p.group in names]
+        if params.on_weak == "drop" and robot_weak:
             dropped.append(robot_weak[0].name)
             model = _Model(model.y0, model.x0, model.chain, tuple(p for p in model.params if p is not robot_weak[0]))
             continue
@@ -699,7 +707,7 @@ def calibrate(
     fit_data = data.subset(used)
     jac = _jacobian(model, fit_data, values)
     r = _residuals(model, fit_data, values)
-    rank, cond, s, _ = _identifiability(jac, model.params, params.rank_rtol)
+    rank, cond, s, _, _ = _identifiability(jac, model.params, params.rank_rtol)
     t2 = time.perf_counter()
     lopo = _leave_one_out(model, data, values, used, params) if params.leave_one_out else np.full(len(poses), np.nan)
     timings["leave_one_out_s"] = time.perf_counter() - t2
