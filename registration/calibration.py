@@ -187,9 +187,21 @@ class CalibrationResult:
     sphere_residuals_mm: tuple[F64, ...]
     outliers: tuple[str, ...]
     lopo_pose_mean_mm: F64
+    lopo_pose_rms_mm: F64
     timings_s: dict[str, float]
     fit_rms_mm: float
-    provenance: dict[str, Any] = field(default_factory=dict)
+    fle_rms_mm: float
+    """Per-sphere detection error (RMS, 3-D) implied by the residuals, corrected for the fitted DoF."""
+
+    @property
+    def lopo_tre_rms_mm(self) -> float:
+        """Leave-one-pose-out error with the held-out scan's own detection error removed:
+        √(mean LOPO RMS² − FLE²).  It estimates how far the calibrated model's prediction at an
+        unseen pose is from where the spheres really are (not from where they are detected)."""
+        v = self.lopo_pose_rms_mm[np.isfinite(self.lopo_pose_rms_mm)]
+        if not v.size:
+            return float("nan")
+        return math.sqrt(max(float(np.mean(v**2)) - self.fle_rms_mm**2, 0.0))
 
     @property
     def lopo_mean_mm(self) -> float:
@@ -226,15 +238,18 @@ class CalibrationResult:
                     "max_mm": float(m),
                     "sphere_residuals_mm": s.tolist(),
                     "leave_one_out_mean_mm": None if not math.isfinite(lo) else float(lo),
+                    "leave_one_out_rms_mm": None if not math.isfinite(lr) else float(lr),
                 }
-                for n, u, r, m, s, lo in zip(
+                for n, u, r, m, s, lo, lr in zip(
                     self.pose_names, self.used, self.pose_rms_mm, self.pose_max_mm,
-                    self.sphere_residuals_mm, self.lopo_pose_mean_mm, strict=True,
+                    self.sphere_residuals_mm, self.lopo_pose_mean_mm, self.lopo_pose_rms_mm, strict=True,
                 )
             ],
             "outlier_poses": list(self.outliers),
             "leave_one_pose_out_mean_mm": self.lopo_mean_mm,
             "leave_one_pose_out_max_mm": self.lopo_max_mm,
+            "leave_one_pose_out_tre_rms_mm": self.lopo_tre_rms_mm,
+            "fle_rms_mm": self.fle_rms_mm,
             "timings_s": dict(self.timings_s),
             "software": f"oarmreg {__version__}",
         }
@@ -612,9 +627,12 @@ def _outliers(rms_mm: F64, used: NDArray[np.bool_], params: CalibrationParams) -
     return np.asarray(used & (rms_mm > max(params.outlier_factor * med, params.outlier_floor_mm)), dtype=np.bool_)
 
 
-def _leave_one_out(model: _Model, data: _Data, values: F64, used: NDArray[np.bool_], params: CalibrationParams) -> F64:
-    """Mean sphere prediction error (mm) of each used pose from a fit without it (NaN if unused)."""
+def _leave_one_out(
+    model: _Model, data: _Data, values: F64, used: NDArray[np.bool_], params: CalibrationParams
+) -> tuple[F64, F64]:
+    """Mean and RMS sphere prediction error (mm) of each used pose from a fit without it (NaN if unused)."""
     out = np.full(len(used), np.nan)
+    out_rms = np.full(len(used), np.nan)
     idx = np.flatnonzero(used)
     for k in idx:
         keep = used.copy()
@@ -623,8 +641,14 @@ def _leave_one_out(model: _Model, data: _Data, values: F64, used: NDArray[np.boo
         one = np.zeros(len(used), dtype=bool)
         one[k] = True
         held = data.subset(one)
-        out[k] = float(np.linalg.norm(_residuals(model, held, v).reshape(-1, 3), axis=1).mean())
-    return out
+        err = np.linalg.norm(_residuals(model, held, v).reshape(-1, 3), axis=1)
+        out[k], out_rms[k] = float(err.mean()), math.sqrt(float(np.mean(err**2)))
+    return out, out_rms
+
+
+def _fle_rms_mm(r: F64, n_params: int) -> float:
+    """RMS detection error per sphere (3-D) implied by the fit residuals: Σr² / (m − P) × 3."""
+    return math.sqrt(3.0 * float(r @ r) / max(len(r) - n_params, 1))
 
 
 def _std_errors(jac: F64, r: F64) -> F64:
@@ -709,7 +733,8 @@ def calibrate(
     r = _residuals(model, fit_data, values)
     rank, cond, s, _, _ = _identifiability(jac, model.params, params.rank_rtol)
     t2 = time.perf_counter()
-    lopo = _leave_one_out(model, data, values, used, params) if params.leave_one_out else np.full(len(poses), np.nan)
+    nan = np.full(len(poses), np.nan)
+    lopo, lopo_rms = _leave_one_out(model, data, values, used, params) if params.leave_one_out else (nan, nan)
     timings["leave_one_out_s"] = time.perf_counter() - t2
     y, x, cal_chain = model.unpack(values)
     return CalibrationResult(
@@ -717,7 +742,8 @@ def calibrate(
         std_errors=_std_errors(jac, r), rank=rank, condition_number=cond, singular_values=s, dropped=dropped,
         pose_names=tuple(p.name for p in poses), used=used, pose_rms_mm=rms, pose_max_mm=mx,
         sphere_residuals_mm=tuple(per), outliers=tuple(poses[i].name for i in np.flatnonzero(~used)),
-        lopo_pose_mean_mm=lopo, timings_s=timings, fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
+        lopo_pose_mean_mm=lopo, lopo_pose_rms_mm=lopo_rms, timings_s=timings,
+        fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)), fle_rms_mm=_fle_rms_mm(r, len(model.params)),
     )
 
 
