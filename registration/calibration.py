@@ -226,7 +226,7 @@ class CalibrationResult:
             "identification": {
                 "rank": self.rank,
                 "n_parameters": len(self.parameters),
-                "condition_number": self.condition_number,
+                "condition_number": _finite_or_none(self.condition_number),
                 "singular_values": self.singular_values.tolist(),
             },
             "fit_rms_mm": self.fit_rms_mm,
@@ -246,13 +246,18 @@ class CalibrationResult:
                 )
             ],
             "outlier_poses": list(self.outliers),
-            "leave_one_pose_out_mean_mm": self.lopo_mean_mm,
-            "leave_one_pose_out_max_mm": self.lopo_max_mm,
-            "leave_one_pose_out_tre_rms_mm": self.lopo_tre_rms_mm,
+            "leave_one_pose_out_mean_mm": _finite_or_none(self.lopo_mean_mm),
+            "leave_one_pose_out_max_mm": _finite_or_none(self.lopo_max_mm),
+            "leave_one_pose_out_tre_rms_mm": _finite_or_none(self.lopo_tre_rms_mm),
             "fle_rms_mm": self.fle_rms_mm,
             "timings_s": dict(self.timings_s),
             "software": f"oarmreg {__version__}",
         }
+
+
+def _finite_or_none(v: float) -> float | None:
+    """JSON has no NaN / inf: report a figure that was not computed as null."""
+    return float(v) if math.isfinite(v) else None
 
 
 # ---------------------------------------------------------------- parametrisation
