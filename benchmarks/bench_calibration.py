@@ -64,9 +64,7 @@ def bench_settings(**overrides: Any) -> AcquisitionSettings:
 
 
 def volume_of(s: AcquisitionSettings) -> ScanVolume:
-    return ScanVolume(
-        fov_radius_mm=s.fov_radius_mm, half_length_mm=s.n_slices * s.slice_spacing_mm / 2.0
-    )
+    return ScanVolume(fov_radius_mm=s.fov_radius_mm, half_length_mm=s.n_slices * s.slice_spacing_mm / 2.0)
 
 
 @dataclass
@@ -96,8 +94,14 @@ def _session_image_from_robot(cell: TrueCell, q0: F64, rotation_deg: tuple[float
 
 
 def run_session(
-    *, seed: int, n_poses: int, n_held_out: int, settings: AcquisitionSettings, work: Path,
-    params: CalibrationParams = CalibrationParams(), log: Any = None,
+    *,
+    seed: int,
+    n_poses: int,
+    n_held_out: int,
+    settings: AcquisitionSettings,
+    work: Path,
+    params: CalibrationParams | None = None,
+    log: Any = None,
 ) -> Session:
     """The whole session of the module docstring; scans go under ``work``."""
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
@@ -109,33 +113,73 @@ def run_session(
     pts = phantom.centres_phantom_mm
     q0 = np.array(START_JOINTS_RAD)
     y = _session_image_from_robot(cell, q0, (10.0, -5.0, 30.0))
-    first = simulate_pose_scan(cell, y, q0, phantom, settings, work / "reg-0", rng, frame_of_reference_uid=FOR_UID)
-    reg0 = register_points(_nominal_robot_mm(model, rod, pts, first.joints_reported_rad), first.detections_image_mm,
-                           phantom=phantom)
+    first = simulate_pose_scan(
+        cell, y, q0, phantom, settings, work / "reg-0", rng, frame_of_reference_uid=FOR_UID
+    )
+    reg0 = register_points(
+        _nominal_robot_mm(model, rod, pts, first.joints_reported_rad),
+        first.detections_image_mm,
+        phantom=phantom,
+    )
     vol = volume_of(settings)
-    plan = plan_poses(reg0.image_from_robot, chain, rod, pts, first.joints_reported_rad, volume=vol,
-                      params=PlannerParams(n_poses=n_poses))
+    plan = plan_poses(
+        reg0.image_from_robot,
+        chain,
+        rod,
+        pts,
+        first.joints_reported_rad,
+        volume=vol,
+        params=PlannerParams(n_poses=n_poses),
+    )
     scans, matched = [], []
     for i, q in enumerate(plan.joints_rad):
-        s = simulate_pose_scan(cell, y, q, phantom, settings, work / f"pose-{i:02d}", rng, frame_of_reference_uid=FOR_UID)
+        s = simulate_pose_scan(
+            cell, y, q, phantom, settings, work / f"pose-{i:02d}", rng, frame_of_reference_uid=FOR_UID
+        )
         scans.append(s)
-        matched.append(match_pose(s.name, s.joints_reported_rad, s.detections_image_mm,
-                                  _nominal_robot_mm(model, rod, pts, s.joints_reported_rad), phantom=phantom,
-                                  series_uid=s.series_uid, frame_of_reference_uid=s.frame_of_reference_uid))
+        matched.append(
+            match_pose(
+                s.name,
+                s.joints_reported_rad,
+                s.detections_image_mm,
+                _nominal_robot_mm(model, rod, pts, s.joints_reported_rad),
+                phantom=phantom,
+                series_uid=s.series_uid,
+                frame_of_reference_uid=s.frame_of_reference_uid,
+            )
+        )
         if log:
-            log(f"pose {i}: {len(s.detections_image_mm)} detections, {len(matched[-1].sphere_indices)} matched\n")
-    result = calibrate(matched, chain, rod, pts, params)
+            log(
+                f"pose {i}: {len(s.detections_image_mm)} detections, "
+                f"{len(matched[-1].sphere_indices)} matched\n"
+            )
+    result = calibrate(matched, chain, rod, pts, params or CalibrationParams())
     # the O-arm is moved: a new placement, one registration scan at a pose of its own
     y2 = frames.transform_from_xyz_rpy([12.0, -8.0, 5.0], [2.0, -3.0, 4.0]) @ y
-    cand, _, _ = feasible_poses(y2, chain, rod, pts, q0, volume=vol, params=PlannerParams(tilts_deg=(0.0, 20.0, 40.0, 55.0)))
+    cand, _, _ = feasible_poses(
+        y2, chain, rod, pts, q0, volume=vol, params=PlannerParams(tilts_deg=(0.0, 20.0, 40.0, 55.0))
+    )
     reg_q = cand[len(cand) // 2]
-    reg_scan = simulate_pose_scan(cell, y2, reg_q, phantom, settings, work / "moved", rng,
-                                  frame_of_reference_uid=MOVED_FOR_UID)
+    reg_scan = simulate_pose_scan(
+        cell, y2, reg_q, phantom, settings, work / "moved", rng, frame_of_reference_uid=MOVED_FOR_UID
+    )
     planned = {tuple(np.round(q, 6)) for q in plan.joints_rad}
     others = np.array([q for q in cand if tuple(np.round(q, 6)) not in planned])
     pick = np.linspace(0, len(others) - 1, min(n_held_out, len(others))).round().astype(int)
-    return Session(cell, chain, model, rod, phantom, result, matched, scans, others[pick], y2, reg_scan,
-                   plan.predicted_condition_number)
+    return Session(
+        cell,
+        chain,
+        model,
+        rod,
+        phantom,
+        result,
+        matched,
+        scans,
+        others[pick],
+        y2,
+        reg_scan,
+        plan.predicted_condition_number,
+    )
 
 
 def held_out_errors(s: Session, rng: np.random.Generator) -> dict[str, F64]:
@@ -171,8 +215,14 @@ def main(argv: list[str] | None = None) -> int:
     err = sys.stderr
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-calib-") as tmp:
-        s = run_session(seed=args.seed, n_poses=args.poses, n_held_out=args.held_out, settings=bench_settings(),
-                        work=Path(tmp), log=err.write)
+        s = run_session(
+            seed=args.seed,
+            n_poses=args.poses,
+            n_held_out=args.held_out,
+            settings=bench_settings(),
+            work=Path(tmp),
+            log=err.write,
+        )
     sim_s = time.perf_counter() - t0
     e = held_out_errors(s, np.random.default_rng(args.seed + 2000))
     pts = s.phantom.centres_phantom_mm
@@ -187,11 +237,15 @@ def main(argv: list[str] | None = None) -> int:
     cal_rms = math.sqrt(float(np.mean(cal**2)))
     ratio = r.lopo_tre_rms_mm / cal_rms
     print_table(
-        f"Calibration, true cell seed {args.seed}: {args.poses} poses × 28 spheres, {len(s.held_out_rad)} held-out poses",
+        f"Calibration, true cell seed {args.seed}: {args.poses} poses × 28 spheres, "
+        f"{len(s.held_out_rad)} held-out poses",
         ["figure", "value"],
         [
             ("planned condition number", s.plan_condition),
-            ("identification condition number / rank", f"{r.condition_number:.1f} / {r.rank} of {len(r.parameters)}"),
+            (
+                "identification condition number / rank",
+                f"{r.condition_number:.1f} / {r.rank} of {len(r.parameters)}",
+            ),
             ("fit RMS (mm)", r.fit_rms_mm),
             ("outlier poses", ", ".join(r.outliers) or "none"),
             ("held-out mean, calibrated (mm)", float(cal.mean())),
@@ -211,7 +265,12 @@ def main(argv: list[str] | None = None) -> int:
             ("simulation + detection total (s)", sim_s),
         ],
     )
-    ok = float(cal.mean()) <= 0.10 and float(cal.max()) <= 0.25 and 1 / 1.5 <= ratio <= 1.5 and solve_s <= SOLVE_BUDGET_S
+    ok = (
+        float(cal.mean()) <= 0.10
+        and float(cal.max()) <= 0.25
+        and 1 / 1.5 <= ratio <= 1.5
+        and solve_s <= SOLVE_BUDGET_S
+    )
     sys.stdout.write(f"\nissue #10 targets {'met' if ok else 'NOT met'}\n")
     return 0
 

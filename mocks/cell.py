@@ -177,7 +177,9 @@ class TrueCell:
     ) -> F64:
         """The phantom's real pose in the image for the simulator (4 × 4 mm)."""
         y = as_transform(image_from_robot, "image_from_robot")
-        return np.asarray(y @ self.robot_from_tool0_true(joints_rad, rng) @ self.tool0_from_phantom, dtype=np.float64)
+        return np.asarray(
+            y @ self.robot_from_tool0_true(joints_rad, rng) @ self.tool0_from_phantom, dtype=np.float64
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,7 +211,9 @@ class ExactCell:
         self, image_from_robot: ArrayLike, joints_rad: ArrayLike, rng: np.random.Generator | None = None
     ) -> F64:
         y = as_transform(image_from_robot, "image_from_robot")
-        return np.asarray(y @ self.robot_from_tool0_true(joints_rad) @ self.tool0_from_phantom, dtype=np.float64)
+        return np.asarray(
+            y @ self.robot_from_tool0_true(joints_rad) @ self.tool0_from_phantom, dtype=np.float64
+        )
 
 
 # ---------------------------------------------------------------- a simulated calibration session

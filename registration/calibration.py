@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Final, Literal
 
 import numpy as np
@@ -241,8 +241,14 @@ class CalibrationResult:
                     "leave_one_out_rms_mm": None if not math.isfinite(lr) else float(lr),
                 }
                 for n, u, r, m, s, lo, lr in zip(
-                    self.pose_names, self.used, self.pose_rms_mm, self.pose_max_mm,
-                    self.sphere_residuals_mm, self.lopo_pose_mean_mm, self.lopo_pose_rms_mm, strict=True,
+                    self.pose_names,
+                    self.used,
+                    self.pose_rms_mm,
+                    self.pose_max_mm,
+                    self.sphere_residuals_mm,
+                    self.lopo_pose_mean_mm,
+                    self.lopo_pose_rms_mm,
+                    strict=True,
                 )
             ],
             "outlier_poses": list(self.outliers),
@@ -285,8 +291,12 @@ def _dir_name(d: F64) -> str:
 def parameter_candidates(chain: SerialChain) -> list[Parameter]:
     """Every candidate, in selection priority: Y (6), X (6), offsets, tilts, shifts, slides."""
     e = np.eye(3)
-    out = [Parameter(f"{g} {k} {n}", g, k, tuple(e[j])) for g in ("image_from_robot", "tool0_from_phantom")
-           for k in ("rot", "trans") for j, n in enumerate("xyz")]  # type: ignore[arg-type]
+    out = [
+        Parameter(f"{g} {k} {n}", g, k, tuple(e[j]))
+        for g in ("image_from_robot", "tool0_from_phantom")
+        for k in ("rot", "trans")
+        for j, n in enumerate("xyz")
+    ]
     names, axes = chain.joint_names, chain.axes
     out += [Parameter(f"{names[i]} offset", names[i], "rot", tuple(axes[i])) for i in range(len(names))]
     for i, name in enumerate(names):
@@ -295,7 +305,10 @@ def parameter_candidates(chain: SerialChain) -> list[Parameter]:
     for i, name in enumerate(names):
         u, w = _perpendicular_pair(axes[i])
         out += [Parameter(f"{name} origin shift {_dir_name(d)}", name, "trans", tuple(d)) for d in (u, w)]
-    out += [Parameter(f"{n} origin slide {_dir_name(axes[i])}", n, "trans", tuple(axes[i])) for i, n in enumerate(names)]
+    out += [
+        Parameter(f"{n} origin slide {_dir_name(axes[i])}", n, "trans", tuple(axes[i]))
+        for i, n in enumerate(names)
+    ]
     return out
 
 
@@ -331,14 +344,21 @@ class _Model:
         eye = np.eye(4)
         y = self.y0 @ c.get("image_from_robot", eye)
         x = self.x0 @ c.get("tool0_from_phantom", eye)
-        m = np.stack([mi @ c.get(n, eye) for mi, n in zip(self.chain.parent_from_joint, self.chain.joint_names, strict=True)])
+        m = np.stack(
+            [
+                mi @ c.get(n, eye)
+                for mi, n in zip(self.chain.parent_from_joint, self.chain.joint_names, strict=True)
+            ]
+        )
         return y, x, self.chain.with_origins(m)
 
     def predict(self, values: F64, joints_rad: F64, pts_phantom_mm: F64, pose_of: I64) -> F64:
         y, x, chain = self.unpack(values)
         t = y @ chain.robot_from_tool0_batch(joints_rad) @ x
         tp = t[pose_of]
-        return np.asarray(np.einsum("lij,lj->li", tp[:, :3, :3], pts_phantom_mm) + tp[:, :3, 3], dtype=np.float64)
+        return np.asarray(
+            np.einsum("lij,lj->li", tp[:, :3, :3], pts_phantom_mm) + tp[:, :3, 3], dtype=np.float64
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -351,8 +371,12 @@ class _Data:
     def subset(self, keep: NDArray[np.bool_]) -> _Data:
         new_index = np.cumsum(keep) - 1
         rows = keep[self.pose_of]
-        return _Data(self.joints_rad[keep], self.pts_phantom_mm[rows], self.meas_image_mm[rows],
-                     new_index[self.pose_of[rows]].astype(np.int64))
+        return _Data(
+            self.joints_rad[keep],
+            self.pts_phantom_mm[rows],
+            self.meas_image_mm[rows],
+            new_index[self.pose_of[rows]].astype(np.int64),
+        )
 
 
 def _residuals(model: _Model, data: _Data, values: F64) -> F64:
@@ -366,7 +390,9 @@ def _jacobian_fd(model: _Model, data: _Data, values: F64) -> F64:
     for j in range(len(values)):
         step = np.zeros_like(values)
         step[j] = FD_STEP
-        cols.append((_residuals(model, data, values + step) - _residuals(model, data, values - step)) / (2 * FD_STEP))
+        cols.append(
+            (_residuals(model, data, values + step) - _residuals(model, data, values - step)) / (2 * FD_STEP)
+        )
     return np.stack(cols, axis=1)
 
 
@@ -467,7 +493,10 @@ def shah_ax_yb(a: Sequence[F64], b: Sequence[F64]) -> tuple[F64, F64]:
     x, y : ndarray, shape (4, 4)
     """
     eye = np.eye(3)
-    rows = [np.hstack([np.kron(eye, ai[:3, :3]), -np.kron(bi[:3, :3].T, eye)]) for ai, bi in zip(a, b, strict=True)]
+    rows = [
+        np.hstack([np.kron(eye, ai[:3, :3]), -np.kron(bi[:3, :3].T, eye)])
+        for ai, bi in zip(a, b, strict=True)
+    ]
     _, _, vt = np.linalg.svd(np.vstack(rows))
     v = vt[-1]
     vx, vy = v[:9].reshape(3, 3, order="F"), v[9:].reshape(3, 3, order="F")
@@ -481,7 +510,9 @@ def shah_ax_yb(a: Sequence[F64], b: Sequence[F64]) -> tuple[F64, F64]:
     return make_transform(rx, t[:3]), make_transform(ry, t[3:])
 
 
-def _initial_estimate(poses: Sequence[MatchedPose], chain: SerialChain, centres_phantom_mm: F64) -> tuple[F64, F64]:
+def _initial_estimate(
+    poses: Sequence[MatchedPose], chain: SerialChain, centres_phantom_mm: F64
+) -> tuple[F64, F64]:
     """(image_from_robot, tool0_from_phantom) from per-pose rigid fits and Shah with nominal FK."""
     robot_from_tool0 = chain.robot_from_tool0_batch(np.stack([p.joints_rad for p in poses]))
     image_from_phantom = [fit_rigid(centres_phantom_mm[p.sphere_indices], p.centres_image_mm) for p in poses]
@@ -531,8 +562,10 @@ def _motion_advice(weak: Sequence[Parameter], joints_rad: F64, names: Sequence[s
         parts.append(f"add poses that move {', '.join(still)} by ±45° or more")
     weak_joints = sorted({p.group for p in weak if p.group in names} - set(still))
     if any(p.group in ("image_from_robot", "tool0_from_phantom") for p in weak) and not still:
-        parts.append("add poses that rotate the phantom about at least two non-parallel axes by ±45° and "
-                     "shift it within the scan volume")
+        parts.append(
+            "add poses that rotate the phantom about at least two non-parallel axes by ±45° and "
+            "shift it within the scan volume"
+        )
     if weak_joints:
         parts.append(f"add poses that move {', '.join(weak_joints)} (and its neighbours) over a wider range")
     return "; ".join(parts)
@@ -565,7 +598,9 @@ def _select_parameters(
         robot_weak = [p for p in ranked if p.group in names]
         if params.on_weak == "drop" and robot_weak:
             dropped.append(robot_weak[0].name)
-            model = _Model(model.y0, model.x0, model.chain, tuple(p for p in model.params if p is not robot_weak[0]))
+            model = _Model(
+                model.y0, model.x0, model.chain, tuple(p for p in model.params if p is not robot_weak[0])
+            )
             continue
         raise NotIdentifiableError(
             f"the {len(data.joints_rad)} poses do not identify the requested '{params.parameter_set}' "
@@ -629,7 +664,9 @@ def _per_pose(model: _Model, data: _Data, values: F64, n_poses: int) -> tuple[F6
 
 def _outliers(rms_mm: F64, used: NDArray[np.bool_], params: CalibrationParams) -> NDArray[np.bool_]:
     med = float(np.median(rms_mm[used]))
-    return np.asarray(used & (rms_mm > max(params.outlier_factor * med, params.outlier_floor_mm)), dtype=np.bool_)
+    return np.asarray(
+        used & (rms_mm > max(params.outlier_factor * med, params.outlier_floor_mm)), dtype=np.bool_
+    )
 
 
 def _leave_one_out(
@@ -661,14 +698,16 @@ def _std_errors(jac: F64, r: F64) -> F64:
     dof = max(jac.shape[0] - jac.shape[1], 1)
     s2 = float(r @ r) / dof
     cov = np.linalg.pinv(np.einsum("ij,ik->jk", jac, jac)) * s2
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return np.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), dtype=np.float64)
 
 
 def _stack(poses: Sequence[MatchedPose], centres_phantom_mm: F64) -> _Data:
     for p in poses:
         if len(p.sphere_indices) != len(p.centres_image_mm) or len(p.sphere_indices) < 3:
-            raise CalibrationError(f"scan {p.name}: needs ≥ 3 matched spheres paired with centres, "
-                                   f"got {len(p.sphere_indices)} indices / {len(p.centres_image_mm)} centres")
+            raise CalibrationError(
+                f"scan {p.name}: needs ≥ 3 matched spheres paired with centres, "
+                f"got {len(p.sphere_indices)} indices / {len(p.centres_image_mm)} centres"
+            )
     return _Data(
         np.stack([np.asarray(p.joints_rad, dtype=np.float64) for p in poses]),
         np.concatenate([centres_phantom_mm[p.sphere_indices] for p in poses]),
@@ -723,7 +762,7 @@ def calibrate(
     rms, mx, per = _per_pose(model, data, values, len(poses))
     flagged = _outliers(rms, used, params)
     if flagged.any():
-        names = [f"{poses[i].name} (RMS {rms[i]:.3f} mm)" for i in np.flatnonzero(flagged)]
+        names = [f"{poses[int(i)].name} (RMS {rms[i]:.3f} mm)" for i in np.flatnonzero(flagged)]
         if params.outliers == "refuse" or int((~flagged).sum()) < params.min_poses:
             raise OutlierPoseError(
                 f"scans inconsistent with the others (robot moved during the scan, wrong joints or a wrong "
@@ -743,12 +782,27 @@ def calibrate(
     timings["leave_one_out_s"] = time.perf_counter() - t2
     y, x, cal_chain = model.unpack(values)
     return CalibrationResult(
-        image_from_robot=y, tool0_from_phantom=x, chain=cal_chain, parameters=model.params, values=values,
-        std_errors=_std_errors(jac, r), rank=rank, condition_number=cond, singular_values=s, dropped=dropped,
-        pose_names=tuple(p.name for p in poses), used=used, pose_rms_mm=rms, pose_max_mm=mx,
-        sphere_residuals_mm=tuple(per), outliers=tuple(poses[i].name for i in np.flatnonzero(~used)),
-        lopo_pose_mean_mm=lopo, lopo_pose_rms_mm=lopo_rms, timings_s=timings,
-        fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)), fle_rms_mm=_fle_rms_mm(r, len(model.params)),
+        image_from_robot=y,
+        tool0_from_phantom=x,
+        chain=cal_chain,
+        parameters=model.params,
+        values=values,
+        std_errors=_std_errors(jac, r),
+        rank=rank,
+        condition_number=cond,
+        singular_values=s,
+        dropped=dropped,
+        pose_names=tuple(p.name for p in poses),
+        used=used,
+        pose_rms_mm=rms,
+        pose_max_mm=mx,
+        sphere_residuals_mm=tuple(per),
+        outliers=tuple(poses[int(i)].name for i in np.flatnonzero(~used)),
+        lopo_pose_mean_mm=lopo,
+        lopo_pose_rms_mm=lopo_rms,
+        timings_s=timings,
+        fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
+        fle_rms_mm=_fle_rms_mm(r, len(model.params)),
     )
 
 
@@ -785,8 +839,12 @@ def match_pose(
     )
 
 
-def predict_image_mm(result: CalibrationResult, joints_rad: ArrayLike, centres_phantom_mm: ArrayLike,
-                     image_from_robot: ArrayLike | None = None) -> F64:
+def predict_image_mm(
+    result: CalibrationResult,
+    joints_rad: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    image_from_robot: ArrayLike | None = None,
+) -> F64:
     """Sphere centres (image mm) the calibration predicts at ``joints_rad`` (optionally another Y)."""
     y = result.image_from_robot if image_from_robot is None else as_transform(image_from_robot)
     t = y @ result.chain.robot_from_tool0(joints_rad) @ result.tool0_from_phantom

@@ -107,10 +107,19 @@ class PosePlan:
             "predicted_condition_number": self.predicted_condition_number,
             "n_candidates": self.n_candidates,
             "poses": [
-                {"joints_rad": [float(v) for v in q], "tilt_deg": float(t), "inside_margin_mm": float(m),
-                 "max_joint_step_from_previous_rad": float(s)}
-                for q, t, m, s in zip(self.joints_rad, self.tilt_deg, self.inside_margin_mm,
-                                      self.max_joint_step_rad, strict=True)
+                {
+                    "joints_rad": [float(v) for v in q],
+                    "tilt_deg": float(t),
+                    "inside_margin_mm": float(m),
+                    "max_joint_step_from_previous_rad": float(s),
+                }
+                for q, t, m, s in zip(
+                    self.joints_rad,
+                    self.tilt_deg,
+                    self.inside_margin_mm,
+                    self.max_joint_step_rad,
+                    strict=True,
+                )
             ],
         }
 
@@ -128,7 +137,9 @@ def _pose_error(chain: SerialChain, q: F64, target: F64) -> F64:
     return np.concatenate([t[:, :3, 3] - target[:, :3, 3], IK_ROTATION_WEIGHT_MM * rot], axis=1)
 
 
-def solve_ik(chain: SerialChain, robot_from_tool0: F64, seeds_rad: F64, iterations: int = 40) -> tuple[F64, F64]:
+def solve_ik(
+    chain: SerialChain, robot_from_tool0: F64, seeds_rad: F64, iterations: int = 40
+) -> tuple[F64, F64]:
     """Damped-Newton IK for C targets (C, 4, 4) from C seeds (C, n) → (joints (C, n), error (C,))."""
     q = np.array(seeds_rad, dtype=np.float64)
     n = chain.n_joints
@@ -136,7 +147,9 @@ def solve_ik(chain: SerialChain, robot_from_tool0: F64, seeds_rad: F64, iteratio
     for _ in range(iterations):
         r = _pose_error(chain, q, robot_from_tool0)
         probes = q[:, None, :] + h * np.eye(n)[None]
-        rp = _pose_error(chain, probes.reshape(-1, n), np.repeat(robot_from_tool0, n, axis=0)).reshape(len(q), n, 6)
+        rp = _pose_error(chain, probes.reshape(-1, n), np.repeat(robot_from_tool0, n, axis=0)).reshape(
+            len(q), n, 6
+        )
         jac = np.swapaxes((rp - r[:, None, :]) / h, 1, 2)  # (C, 6, n)
         jt = np.swapaxes(jac, 1, 2)
         lhs = jt @ jac + 1e-6 * np.eye(n)
@@ -151,9 +164,12 @@ def _candidate_targets(image_from_phantom_0: F64, volume: ScanVolume, p: Planner
     r0 = image_from_phantom_0[:3, :3]
     shifts = np.vstack([np.zeros(3), p.shift_mm * np.eye(3), -p.shift_mm * np.eye(3)])
     centre = np.asarray(volume.centre_image_mm)
-    out, tilts = [], []
+    out: list[F64] = []
+    tilts: list[float] = []
     for tilt in p.tilts_deg:
-        azimuths = [0.0] if tilt == 0.0 else [2 * math.pi * k / p.tilt_azimuths for k in range(p.tilt_azimuths)]
+        azimuths = (
+            [0.0] if tilt == 0.0 else [2 * math.pi * k / p.tilt_azimuths for k in range(p.tilt_azimuths)]
+        )
         for az in azimuths:
             axis_ph = np.array([math.cos(az), math.sin(az), 0.0])
             r_tilt = rotation_about(axis_ph, np.array([math.radians(tilt)]))[0]
@@ -177,7 +193,9 @@ def _information(chain: SerialChain, y: F64, x: F64, pts: F64, q: F64, parameter
     params = minimal_parameter_set(chain, parameter_set)
     model = _Model(y, x, chain, params)
     n_pts = len(pts)
-    data = _Data(q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n_pts, 3)), np.repeat(np.arange(len(q)), n_pts))
+    data = _Data(
+        q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n_pts, 3)), np.repeat(np.arange(len(q)), n_pts)
+    )
     jac = _jacobian(model, data, np.zeros(len(params))).reshape(len(q), n_pts * 3, len(params))
     return np.asarray(np.einsum("cij,cik->cjk", jac, jac), dtype=np.float64)
 
@@ -266,7 +284,9 @@ def feasible_poses(
     q0 = np.asarray(start_joints_rad, dtype=np.float64).reshape(-1)
     targets_img, tilts = _candidate_targets(y @ chain.robot_from_tool0(q0) @ x, volume, params)
     targets = invert(y) @ targets_img @ invert(x)
-    seeds = np.concatenate([np.repeat(q0[None], len(targets), 0), np.repeat(_wrist_flip(q0)[None], len(targets), 0)])
+    seeds = np.concatenate(
+        [np.repeat(q0[None], len(targets), 0), np.repeat(_wrist_flip(q0)[None], len(targets), 0)]
+    )
     q, err = solve_ik(chain, np.concatenate([targets, targets]), seeds)
     tilts = np.concatenate([tilts, tilts])
     margin = math.radians(params.joint_margin_deg)
@@ -325,7 +345,14 @@ def _unique(q: F64, idx: NDArray[np.intp]) -> NDArray[np.intp]:
     return np.array(keep, dtype=np.intp)
 
 
-def predicted_centres_image_mm(image_from_robot: F64, chain: SerialChain, tool0_from_phantom: F64,
-                               centres_phantom_mm: F64, joints_rad: F64) -> F64:
+def predicted_centres_image_mm(
+    image_from_robot: F64,
+    chain: SerialChain,
+    tool0_from_phantom: F64,
+    centres_phantom_mm: F64,
+    joints_rad: F64,
+) -> F64:
     """Sphere centres (image mm) at ``joints_rad`` by ``chain`` (for checks and tests)."""
-    return apply(image_from_robot @ chain.robot_from_tool0(joints_rad) @ tool0_from_phantom, centres_phantom_mm)
+    return apply(
+        image_from_robot @ chain.robot_from_tool0(joints_rad) @ tool0_from_phantom, centres_phantom_mm
+    )

@@ -98,10 +98,14 @@ class SerialChain:
             raise KinematicsError(f"expected {self.n_joints} finite joint values, got {q.tolist()}")
         return np.asarray(self.robot_from_tool0_batch(q[None, :])[0], dtype=np.float64)
 
-    def with_origins(self, parent_from_joint: ArrayLike, last_from_tool0: ArrayLike | None = None) -> SerialChain:
+    def with_origins(
+        self, parent_from_joint: ArrayLike, last_from_tool0: ArrayLike | None = None
+    ) -> SerialChain:
         """The same chain with other joint origins (mm) and optionally another tool0 placement."""
         m = np.asarray(parent_from_joint, dtype=np.float64).reshape(self.n_joints, 4, 4)
-        tool = self.last_from_tool0 if last_from_tool0 is None else np.asarray(last_from_tool0, dtype=np.float64)
+        tool = (
+            self.last_from_tool0 if last_from_tool0 is None else np.asarray(last_from_tool0, dtype=np.float64)
+        )
         return replace(self, parent_from_joint=m.copy(), last_from_tool0=tool.copy())
 
 
@@ -122,11 +126,15 @@ def _chain_joints(root: ET.Element, path: Path) -> list[ET.Element]:
     chain: list[ET.Element] = []
     link = TOOL_LINK
     while link != ROOT_LINK:
-        j = by_child.get(link)
-        if j is None:
-            raise ConfigError(f"robot URDF {path}: no joint chain from {ROOT_LINK!r} to {TOOL_LINK!r} ({link!r})")
-        chain.append(j)
-        parent = j.find("parent")
+        found = by_child.get(link)
+        if found is None:
+            raise ConfigError(
+                f"robot URDF {path}: no joint chain from {ROOT_LINK!r} to {TOOL_LINK!r} ({link!r})"
+            )
+        chain.append(found)
+        if len(chain) > len(by_child):
+            raise ConfigError(f"robot URDF {path}: the joints form a loop above {link!r}")
+        parent = found.find("parent")
         link = "" if parent is None else parent.get("link", "")
     return chain[::-1]
 
@@ -157,9 +165,15 @@ def read_chain(urdf_path: str | Path) -> SerialChain:
         if kind == "fixed":
             continue
         if kind != "revolute":
-            raise ConfigError(f"robot URDF {path}: joint {j.get('name')!r} is {kind!r}; only revolute supported")
+            raise ConfigError(
+                f"robot URDF {path}: joint {j.get('name')!r} is {kind!r}; only revolute supported"
+            )
         ax_el = j.find("axis")
-        axis = np.array([1.0, 0.0, 0.0]) if ax_el is None else np.array([float(v) for v in ax_el.get("xyz", "1 0 0").split()])
+        axis = (
+            np.array([1.0, 0.0, 0.0])
+            if ax_el is None
+            else np.array([float(v) for v in ax_el.get("xyz", "1 0 0").split()])
+        )
         lim = j.find("limit")
         names.append(str(j.get("name")))
         placements.append(pending)

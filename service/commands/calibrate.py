@@ -32,29 +32,59 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
     run_p = sub.add_parser("run", help="calibrate from the scans listed in POSES.json")
     run_p.add_argument("poses", type=Path, metavar="POSES.json")
-    run_p.add_argument("--out", type=Path, required=True, metavar="CALDIR", help="folder for robot.urdf + calibration.json")
-    run_p.add_argument("--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)")
-    run_p.add_argument("--robot", help="tx60, tx2_60 or a URDF path (default: POSES.json robot_model, else tx60)")
-    run_p.add_argument("--parameter-set", choices=("full", "offsets", "hand-eye"), default="full",
-                       help="what to estimate besides rod and O-arm placement (default: %(default)s)")
-    run_p.add_argument("--max-condition", type=float, default=100.0,
-                       help="refuse above this identification condition number (default 100, Schroer et al.)")
-    run_p.add_argument("--drop-weak", action="store_true",
-                       help="drop robot parameters the poses do not excite instead of refusing")
+    run_p.add_argument(
+        "--out", type=Path, required=True, metavar="CALDIR", help="folder for robot.urdf + calibration.json"
+    )
+    run_p.add_argument(
+        "--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)"
+    )
+    run_p.add_argument(
+        "--robot", help="tx60, tx2_60 or a URDF path (default: POSES.json robot_model, else tx60)"
+    )
+    run_p.add_argument(
+        "--parameter-set",
+        choices=("full", "offsets", "hand-eye"),
+        default="full",
+        help="what to estimate besides rod and O-arm placement (default: %(default)s)",
+    )
+    run_p.add_argument(
+        "--max-condition",
+        type=float,
+        default=100.0,
+        help="refuse above this identification condition number (default 100, Schroer et al.)",
+    )
+    run_p.add_argument(
+        "--drop-weak",
+        action="store_true",
+        help="drop robot parameters the poses do not excite instead of refusing",
+    )
     run_p.add_argument("--method", help="sphere detection method (default: detection's)")
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
     plan_p.add_argument("--n", type=int, default=10, help="number of poses (default %(default)s, at least 6)")
     plan_p.add_argument("--json", type=Path, required=True, metavar="OUT.json")
-    plan_p.add_argument("--joints", type=Path, metavar="JOINTS.json",
-                        help='joints of the registration scan, {"joints_rad": [...]} (default: from REG.json)')
+    plan_p.add_argument(
+        "--joints",
+        type=Path,
+        metavar="JOINTS.json",
+        help='joints of the registration scan, {"joints_rad": [...]} (default: from REG.json)',
+    )
     plan_p.add_argument("--robot", help="tx60, tx2_60 or a URDF path (default: REG.json's, else tx60)")
     plan_p.add_argument("--phantom", type=Path, default=DEFAULT_PHANTOM)
-    plan_p.add_argument("--calibration", type=Path, metavar="CALDIR", help="plan with this calibration's model and rod")
-    plan_p.add_argument("--fov-radius-mm", type=float, default=106.24, help="scan FOV radius (default: O-arm 212 mm FOV)")
-    plan_p.add_argument("--half-length-mm", type=float, default=79.97, help="half the axial coverage (default: O-arm 160 mm)")
-    plan_p.add_argument("--volume-centre-mm", metavar="X,Y,Z",
-                        help="volume centre in the image frame (default: the phantom centre at the registration)")
+    plan_p.add_argument(
+        "--calibration", type=Path, metavar="CALDIR", help="plan with this calibration's model and rod"
+    )
+    plan_p.add_argument(
+        "--fov-radius-mm", type=float, default=106.24, help="scan FOV radius (default: O-arm 212 mm FOV)"
+    )
+    plan_p.add_argument(
+        "--half-length-mm", type=float, default=79.97, help="half the axial coverage (default: O-arm 160 mm)"
+    )
+    plan_p.add_argument(
+        "--volume-centre-mm",
+        metavar="X,Y,Z",
+        help="volume centre in the image frame (default: the phantom centre at the registration)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,7 +106,10 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
     obj = _load_json(path)
     poses = obj.get("poses") if isinstance(obj, dict) else None
     if not isinstance(poses, list) or not poses:
-        raise _config_error(f'{path}: expected {{"robot_model": ..., "poses": [{{"scan_dir": ..., "joints_rad": [...]}}, ...]}}')
+        raise _config_error(
+            f'{path}: expected {{"robot_model": ..., '
+            '"poses": [{"scan_dir": ..., "joints_rad": [...]}, ...]}'
+        )
     out = []
     for i, p in enumerate(poses):
         if not isinstance(p, dict) or "scan_dir" not in p or "joints_rad" not in p:
@@ -84,7 +117,9 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
         joints = p["joints_rad"]
         if not isinstance(joints, list) or not all(isinstance(v, int | float) for v in joints):
             raise _config_error(f"{path}: poses[{i}].joints_rad must be a list of numbers (radians)")
-        out.append((str(p["scan_dir"]), (path.parent / str(p["scan_dir"])).resolve(), [float(v) for v in joints]))
+        out.append(
+            (str(p["scan_dir"]), (path.parent / str(p["scan_dir"])).resolve(), [float(v) for v in joints])
+        )
     model = obj.get("robot_model")
     return (str(model) if model is not None else None), out
 
@@ -100,8 +135,15 @@ def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, 
     det = detect_spheres(volume, dparams)
     q = ctx["model"].check_joints(joints)
     robot_mm = sphere_centres_robot_mm(ctx["model"], q, ctx["rod"], ctx["phantom"].centres_phantom_mm)
-    return match_pose(name, q, det.centres_image_mm, robot_mm, phantom=ctx["phantom"],
-                      series_uid=volume.series_uid, frame_of_reference_uid=volume.frame_of_reference_uid)
+    return match_pose(
+        name,
+        q,
+        det.centres_image_mm,
+        robot_mm,
+        phantom=ctx["phantom"],
+        series_uid=volume.series_uid,
+        frame_of_reference_uid=volume.frame_of_reference_uid,
+    )
 
 
 def config_hash(*parts: bytes) -> str:
@@ -127,17 +169,24 @@ def run_calibration(args: argparse.Namespace) -> int:
     rod = default_tool0_from_phantom()
     ctx = {"model": model, "rod": rod, "phantom": phantom, "method": args.method}
     matched = [_detect_pose(d, q, name, ctx) for name, d, q in poses]
-    params = CalibrationParams(parameter_set=args.parameter_set, max_condition=args.max_condition,
-                               on_weak="drop" if args.drop_weak else "refuse")
+    params = CalibrationParams(
+        parameter_set=args.parameter_set,
+        max_condition=args.max_condition,
+        on_weak="drop" if args.drop_weak else "refuse",
+    )
     result = calibrate(matched, read_chain(model.urdf_path), rod, phantom.centres_phantom_mm, params)
     created = datetime.now(UTC).isoformat(timespec="seconds")
-    chash = config_hash(model.urdf_path.read_bytes(), Path(args.phantom).read_bytes(),
-                        json.dumps(dataclasses.asdict(params), sort_keys=True).encode())
+    chash = config_hash(
+        model.urdf_path.read_bytes(),
+        Path(args.phantom).read_bytes(),
+        json.dumps(dataclasses.asdict(params), sort_keys=True).encode(),
+    )
     cal_id = f"cal-{created.replace(':', '').replace('-', '')[:15]}-{chash[:8]}"
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     write_calibrated_urdf(
-        result.chain, out / URDF_FILE,
+        result.chain,
+        out / URDF_FILE,
         comment=f"oarmreg calibration {cal_id} ({created}): {int(result.used.sum())} poses, "
         f"FrameOfReferenceUID {matched[0].frame_of_reference_uid}, leave-one-pose-out mean "
         f"{result.lopo_mean_mm:.3f} mm; corrected joint origins of {model.urdf_path.name} "
@@ -145,12 +194,19 @@ def run_calibration(args: argparse.Namespace) -> int:
     )
     doc = result.to_dict()
     doc["provenance"] = {
-        "calibration_id": cal_id, "created_utc": created, "software": f"oarmreg {__version__}",
-        "config_sha256": chash, "robot_model": model.name, "nominal_urdf": str(model.urdf_path),
-        "phantom": phantom.name, "params": dataclasses.asdict(params),
+        "calibration_id": cal_id,
+        "created_utc": created,
+        "software": f"oarmreg {__version__}",
+        "config_sha256": chash,
+        "robot_model": model.name,
+        "nominal_urdf": str(model.urdf_path),
+        "phantom": phantom.name,
+        "params": dataclasses.asdict(params),
         "frame_of_reference_uid": matched[0].frame_of_reference_uid,
-        "scans": [{"name": m.name, "series_uid": m.series_uid, "scan_dir": str(d), "joints_rad": q}
-                  for m, (_, d, q) in zip(matched, poses, strict=True)],
+        "scans": [
+            {"name": m.name, "series_uid": m.series_uid, "scan_dir": str(d), "joints_rad": q}
+            for m, (_, d, q) in zip(matched, poses, strict=True)
+        ],
     }
     doc["robot_urdf"] = URDF_FILE
     write_json(out / CALIBRATION_FILE, doc)
@@ -161,11 +217,15 @@ def run_calibration(args: argparse.Namespace) -> int:
 
 def summary(d: dict[str, Any]) -> str:
     ident = d["identification"]
+    n_used = sum(p["used"] for p in d["poses"])
     lines = [
-        f"calibration {d['provenance']['calibration_id']}: {sum(p['used'] for p in d['poses'])} of {len(d['poses'])} poses used",
-        f"identification: rank {ident['rank']} of {ident['n_parameters']}, condition number {ident['condition_number']:.1f}",
-        f"fit RMS {d['fit_rms_mm']:.3f} mm; leave-one-pose-out mean {_fmt(d['leave_one_pose_out_mean_mm'])} mm, "
-        f"max {_fmt(d['leave_one_pose_out_max_mm'])} mm (TRE estimate {_fmt(d['leave_one_pose_out_tre_rms_mm'])} mm RMS)",
+        f"calibration {d['provenance']['calibration_id']}: {n_used} of {len(d['poses'])} poses used",
+        f"identification: rank {ident['rank']} of {ident['n_parameters']}, "
+        f"condition number {_fmt(ident['condition_number'])}",
+        f"fit RMS {d['fit_rms_mm']:.3f} mm; "
+        f"leave-one-pose-out mean {_fmt(d['leave_one_pose_out_mean_mm'])} mm, "
+        f"max {_fmt(d['leave_one_pose_out_max_mm'])} mm "
+        f"(TRE estimate {_fmt(d['leave_one_pose_out_tre_rms_mm'])} mm RMS)",
     ]
     if d["outlier_poses"]:
         lines.append(f"outlier poses excluded: {', '.join(d['outlier_poses'])}")
@@ -192,7 +252,9 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
         raise ConfigError(f"{caldir}: no {CALIBRATION_FILE}; run `oarmreg calibrate run` to create it")
     doc = _load_json(path)
     try:
-        rod = as_transform(np.asarray(doc["tool0_from_phantom"], dtype=np.float64), f"{path}: tool0_from_phantom")
+        rod = as_transform(
+            np.asarray(doc["tool0_from_phantom"], dtype=np.float64), f"{path}: tool0_from_phantom"
+        )
     except (KeyError, TypeError, ValueError, NotRigidError) as e:
         raise ConfigError(f'{path}: needs "tool0_from_phantom" as a rigid 4 × 4 nested list ({e})') from None
     model = RobotModel.load(Path(caldir) / str(doc.get("robot_urdf", URDF_FILE)))
@@ -211,16 +273,27 @@ def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any
         raise _config_error(f'{args.joints}: expected {{"joints_rad": [6 numbers]}}')
     if args.calibration is not None:
         model, rod, doc = load_calibration(args.calibration)
-        provenance["calibration"] = {"dir": str(args.calibration), **{k: doc.get("provenance", {}).get(k)
-                                     for k in ("calibration_id", "config_sha256", "created_utc")}}
+        provenance["calibration"] = {
+            "dir": str(args.calibration),
+            **{
+                k: doc.get("provenance", {}).get(k)
+                for k in ("calibration_id", "config_sha256", "created_utc")
+            },
+        }
     else:
         model = RobotModel.load(args.robot or obj.get("robot_model") or "tx60")
         rod = default_tool0_from_phantom()
         provenance["calibration"] = None
     phantom_path = args.phantom if args.phantom and args.phantom.lower() != "none" else str(DEFAULT_PHANTOM)
     q = model.check_joints(joints)
-    provenance.update({"joints_rad": [float(v) for v in q], "robot_model": model.name,
-                       "robot_urdf": str(model.urdf_path), "tool0_from_phantom": rod.tolist()})
+    provenance.update(
+        {
+            "joints_rad": [float(v) for v in q],
+            "robot_model": model.name,
+            "robot_urdf": str(model.urdf_path),
+            "tool0_from_phantom": rod.tolist(),
+        }
+    )
     return sphere_centres_robot_mm(model, q, rod, load_phantom(phantom_path).centres_phantom_mm)
 
 
@@ -240,12 +313,17 @@ def run_plan(args: argparse.Namespace) -> int:
     prov = _load_json(args.registration).get("provenance", {}) or {}
     joints = _load_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
     if not isinstance(joints, list):
-        raise _config_error(f"{args.registration}: no joints_rad in its provenance; register with "
-                            "`oarmreg register --joints JOINTS.json` or pass --joints JOINTS.json")
+        raise _config_error(
+            f"{args.registration}: no joints_rad in its provenance; register with "
+            "`oarmreg register --joints JOINTS.json` or pass --joints JOINTS.json"
+        )
     if args.calibration:
         model, rod, _ = load_calibration(args.calibration)
     else:
-        model, rod = RobotModel.load(args.robot or prov.get("robot_model") or "tx60"), default_tool0_from_phantom()
+        model, rod = (
+            RobotModel.load(args.robot or prov.get("robot_model") or "tx60"),
+            default_tool0_from_phantom(),
+        )
     chain = read_chain(model.urdf_path)
     q0 = model.check_joints(joints)
     pts = load_phantom(args.phantom).centres_phantom_mm
@@ -253,13 +331,25 @@ def run_plan(args: argparse.Namespace) -> int:
         centre = [float(v) for v in args.volume_centre_mm.split(",")]
     else:
         centre = frames.apply(y @ chain.robot_from_tool0(q0) @ rod, np.zeros(3)).tolist()
-    volume = ScanVolume(centre_image_mm=(centre[0], centre[1], centre[2]), fov_radius_mm=args.fov_radius_mm,
-                        half_length_mm=args.half_length_mm)
+    volume = ScanVolume(
+        centre_image_mm=(centre[0], centre[1], centre[2]),
+        fov_radius_mm=args.fov_radius_mm,
+        half_length_mm=args.half_length_mm,
+    )
     plan = plan_poses(y, chain, rod, pts, q0, volume=volume, params=PlannerParams(n_poses=args.n))
-    doc = {"robot_model": model.name, "registration": str(args.registration), "volume": {
-        "centre_image_mm": list(volume.centre_image_mm), "fov_radius_mm": volume.fov_radius_mm,
-        "half_length_mm": volume.half_length_mm}, **plan.to_dict()}
+    doc = {
+        "robot_model": model.name,
+        "registration": str(args.registration),
+        "volume": {
+            "centre_image_mm": list(volume.centre_image_mm),
+            "fov_radius_mm": volume.fov_radius_mm,
+            "half_length_mm": volume.half_length_mm,
+        },
+        **plan.to_dict(),
+    }
     write_json(args.json, doc)
-    sys.stdout.write(f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates; predicted "
-                     f"identification condition number {plan.predicted_condition_number:.1f}\nwritten: {args.json}\n")
+    sys.stdout.write(
+        f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates; predicted "
+        f"identification condition number {plan.predicted_condition_number:.1f}\nwritten: {args.json}\n"
+    )
     return 0

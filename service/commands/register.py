@@ -58,7 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="CALDIR",
         help="with --joints: use this calibration's robot.urdf and tool0_from_phantom (default: nominal)",
     )
-    parser.add_argument("--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)")
+    parser.add_argument(
+        "--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)"
+    )
     parser.add_argument(
         "--targets",
         type=Path,
@@ -202,7 +204,9 @@ def run(args: argparse.Namespace) -> int:
         if (args.robot_points is None) == (args.joints is None):
             from registration.errors import PointsFileError
 
-            raise PointsFileError("give either --robot-points FILE.json or --joints JOINTS.json (exactly one)")
+            raise PointsFileError(
+                "give either --robot-points FILE.json or --joints JOINTS.json (exactly one)"
+            )
         if args.joints is not None:
             from service.commands.calibrate import robot_points_from_joints
 

@@ -82,29 +82,64 @@ def outcome(phantom: Any, tmp_path_factory: pytest.TempPathFactory) -> Outcome:
     y = frames.transform_from_xyz_rpy([1.0, -2.0, 3.0], [10.0, -5.0, 30.0]) @ frames.invert(
         cell.robot_from_tool0_true(START_JOINTS_RAD) @ cell.tool0_from_phantom
     )
-    first = simulate_pose_scan(cell, y, START_JOINTS_RAD, phantom, s, work / "start", rng, frame_of_reference_uid=FOR_UID)
+    first = simulate_pose_scan(
+        cell, y, START_JOINTS_RAD, phantom, s, work / "start", rng, frame_of_reference_uid=FOR_UID
+    )
     nominal_mm = frames.apply(model.robot_from_tool0(first.joints_reported_rad) @ rod, pts)
     reg0 = register_points(nominal_mm, first.detections_image_mm, phantom=phantom)
-    plan = plan_poses(reg0.image_from_robot, chain, rod, pts, first.joints_reported_rad, volume=volume,
-                      params=PlannerParams(n_poses=N_POSES, shift_mm=18.0))
+    plan = plan_poses(
+        reg0.image_from_robot,
+        chain,
+        rod,
+        pts,
+        first.joints_reported_rad,
+        volume=volume,
+        params=PlannerParams(n_poses=N_POSES, shift_mm=18.0),
+    )
     scans, entries = [], []
     for i, q in enumerate(plan.joints_rad):
-        scans.append(simulate_pose_scan(cell, y, q, phantom, s, work / f"pose-{i:02d}" / "dicom", rng,
-                                        frame_of_reference_uid=FOR_UID))
-        entries.append({"scan_dir": f"pose-{i:02d}/dicom", "joints_rad": scans[-1].joints_reported_rad.tolist()})
+        scans.append(
+            simulate_pose_scan(
+                cell, y, q, phantom, s, work / f"pose-{i:02d}" / "dicom", rng, frame_of_reference_uid=FOR_UID
+            )
+        )
+        entries.append(
+            {"scan_dir": f"pose-{i:02d}/dicom", "joints_rad": scans[-1].joints_reported_rad.tolist()}
+        )
     poses_file = _write_json(work / "POSES.json", {"robot_model": "tx60", "poses": entries})
     caldir = work / "cal"
     assert main(["calibrate", "run", str(poses_file), "--out", str(caldir), "--drop-weak"]) == 0
     # the O-arm is moved; one registration scan at a pose of its own
     y2 = frames.transform_from_xyz_rpy([8.0, -6.0, 4.0], [2.0, -3.0, 4.0]) @ y
-    cand, _, _ = feasible_poses(y2, chain, rod, pts, START_JOINTS_RAD, volume=volume,
-                                params=PlannerParams(tilts_deg=(0.0, 20.0, 40.0), shift_mm=10.0))
-    moved = simulate_pose_scan(cell, y2, cand[len(cand) // 2], phantom, s, work / "moved", rng,
-                               frame_of_reference_uid=FOR_UID + ".1")
+    cand, _, _ = feasible_poses(
+        y2,
+        chain,
+        rod,
+        pts,
+        START_JOINTS_RAD,
+        volume=volume,
+        params=PlannerParams(tilts_deg=(0.0, 20.0, 40.0), shift_mm=10.0),
+    )
+    moved = simulate_pose_scan(
+        cell, y2, cand[len(cand) // 2], phantom, s, work / "moved", rng, frame_of_reference_uid=FOR_UID + ".1"
+    )
     joints_file = _write_json(work / "JOINTS.json", {"joints_rad": moved.joints_reported_rad.tolist()})
     reg_cal, reg_nom = work / "reg-cal.json", work / "reg-nom.json"
-    assert main(["register", str(work / "moved"), "--joints", str(joints_file), "--calibration", str(caldir),
-                 "--json", str(reg_cal)]) == 0
+    assert (
+        main(
+            [
+                "register",
+                str(work / "moved"),
+                "--joints",
+                str(joints_file),
+                "--calibration",
+                str(caldir),
+                "--json",
+                str(reg_cal),
+            ]
+        )
+        == 0
+    )
     assert main(["register", str(work / "moved"), "--joints", str(joints_file), "--json", str(reg_nom)]) == 0
     y_cal = np.array(json.loads(reg_cal.read_text())["image_from_robot"])
     y_nom = np.array(json.loads(reg_nom.read_text())["image_from_robot"])
@@ -118,8 +153,14 @@ def outcome(phantom: Any, tmp_path_factory: pytest.TempPathFactory) -> Outcome:
     for q in held:
         truth = frames.apply(cell.image_from_phantom_true(y2, q, rng), pts)
         q_rep = cell.reported_joints(q, rng)
-        cal_err.append(np.linalg.norm(frames.apply(y_cal @ cal_model.robot_from_tool0(q_rep) @ cal_rod, pts) - truth, axis=1))
-        nom_err.append(np.linalg.norm(frames.apply(y_nom @ model.robot_from_tool0(q_rep) @ rod, pts) - truth, axis=1))
+        cal_err.append(
+            np.linalg.norm(
+                frames.apply(y_cal @ cal_model.robot_from_tool0(q_rep) @ cal_rod, pts) - truth, axis=1
+            )
+        )
+        nom_err.append(
+            np.linalg.norm(frames.apply(y_nom @ model.robot_from_tool0(q_rep) @ rod, pts) - truth, axis=1)
+        )
     return Outcome(np.concatenate(cal_err), np.concatenate(nom_err), calibration, caldir, scans)
 
 
@@ -150,6 +191,8 @@ def test_calibration_files_carry_figures_and_provenance(outcome: Outcome) -> Non
     assert prov["frame_of_reference_uid"] == FOR_UID
     assert len(prov["config_sha256"]) == 64 and prov["software"].startswith("oarmreg ")
     assert c["identification"]["condition_number"] <= 100.0
-    assert c["dropped_parameters"], "the small volume cannot excite every parameter; the drop must be reported"
+    assert c["dropped_parameters"], (
+        "the small volume cannot excite every parameter; the drop must be reported"
+    )
     assert all(p["std_error"] > 0 for p in c["parameters"])
     assert prov["calibration_id"] in (outcome.caldir / "robot.urdf").read_text(encoding="utf-8")

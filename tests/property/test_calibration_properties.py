@@ -82,7 +82,8 @@ def test_noise_free_errors_are_recovered_at_held_out_poses(
     # errors up to 0.3 mm / 0.03° per axis and 0.03° offsets (2.5 × the σ), rod ≤ 1 mm / 0.6°
     m = np.stack(
         [
-            mi @ _motion(e, math.radians(0.03), 0.3)
+            mi
+            @ _motion(e, math.radians(0.03), 0.3)
             @ frames.make_transform(rotation_about(a, np.array([math.radians(0.03) * d]))[0], np.zeros(3))
             for mi, e, a, d in zip(NOMINAL.parent_from_joint, errors, NOMINAL.axes, offs, strict=True)
         ]
@@ -93,7 +94,11 @@ def test_noise_free_errors_are_recovered_at_held_out_poses(
     obs = []
     for i, p in enumerate(poses):
         q = BASE_JOINTS_RAD + TEMPLATE_RAD[i] + POSE_JITTER_RAD * np.asarray(p)
-        obs.append(MatchedPose(f"p{i}", q, np.arange(len(PTS)), frames.apply(y @ true.robot_from_tool0(q) @ rod, PTS)))
+        obs.append(
+            MatchedPose(
+                f"p{i}", q, np.arange(len(PTS)), frames.apply(y @ true.robot_from_tool0(q) @ rod, PTS)
+            )
+        )
     result = calibrate(obs, NOMINAL, default_tool0_from_phantom(), PTS, LOOSE)
     for h in held:
         q = BASE_JOINTS_RAD + np.asarray(h) * [1.5, 1.0, 0.8, 2.5, 1.2, 2.5]  # anywhere within the limits

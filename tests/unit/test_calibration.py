@@ -70,16 +70,24 @@ def true_chain(nominal: SerialChain, origin_errors: F64, offsets_rad: F64) -> Se
     """Nominal chain with origin errors (n, 6: rotvec rad, translation mm) and zero offsets."""
     m = np.stack(
         [
-            mi @ _motion(e[:3], e[3:]) @ frames.make_transform(rotation_about(a, np.array([d]))[0], np.zeros(3))
-            for mi, e, a, d in zip(nominal.parent_from_joint, origin_errors, nominal.axes, offsets_rad, strict=True)
+            mi
+            @ _motion(e[:3], e[3:])
+            @ frames.make_transform(rotation_about(a, np.array([d]))[0], np.zeros(3))
+            for mi, e, a, d in zip(
+                nominal.parent_from_joint, origin_errors, nominal.axes, offsets_rad, strict=True
+            )
         ]
     )
     return nominal.with_origins(m)
 
 
-def observe(chain: SerialChain, y: F64, rod: F64, pts: F64, joints: F64, name: str, for_uid: str = "") -> MatchedPose:
+def observe(
+    chain: SerialChain, y: F64, rod: F64, pts: F64, joints: F64, name: str, for_uid: str = ""
+) -> MatchedPose:
     a = y @ chain.robot_from_tool0(joints) @ rod
-    return MatchedPose(name, joints, np.arange(len(pts)), frames.apply(a, pts), frame_of_reference_uid=for_uid)
+    return MatchedPose(
+        name, joints, np.arange(len(pts)), frames.apply(a, pts), frame_of_reference_uid=for_uid
+    )
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +111,10 @@ def truth(nominal: SerialChain) -> tuple[SerialChain, F64]:
 
 
 def session(true: SerialChain, rod: F64, pts: F64, offsets: F64 = POSE_OFFSETS_RAD[:10]) -> list[MatchedPose]:
-    return [observe(true, IMAGE_FROM_ROBOT, rod, pts, BASE_JOINTS_RAD + o, f"pose-{i:02d}") for i, o in enumerate(offsets)]
+    return [
+        observe(true, IMAGE_FROM_ROBOT, rod, pts, BASE_JOINTS_RAD + o, f"pose-{i:02d}")
+        for i, o in enumerate(offsets)
+    ]
 
 
 def held_out_error_mm(result: Any, true: SerialChain, rod: F64, pts: F64) -> float:
@@ -146,7 +157,9 @@ def test_shah_solves_ax_yb_exactly(nominal: SerialChain) -> None:
     np.testing.assert_allclose(y_est, y, atol=1e-8)
 
 
-def test_noise_free_errors_are_recovered_at_held_out_poses(nominal: SerialChain, truth: Any, pts: F64) -> None:
+def test_noise_free_errors_are_recovered_at_held_out_poses(
+    nominal: SerialChain, truth: Any, pts: F64
+) -> None:
     true, rod = truth
     result = calibrate(session(true, rod, pts), nominal, default_tool0_from_phantom(), pts)
     assert result.rank == 30 and result.condition_number <= 100.0
@@ -154,14 +167,19 @@ def test_noise_free_errors_are_recovered_at_held_out_poses(nominal: SerialChain,
     assert held_out_error_mm(result, true, rod, pts) <= EXACT_MM
     assert result.lopo_max_mm <= EXACT_MM
     # the nominal model is ≥ 0.5 mm off at the same poses: the test can fail
-    nominal_result = calibrate(session(true, rod, pts), nominal, default_tool0_from_phantom(), pts,
-                               CalibrationParams(parameter_set="hand-eye"))
+    nominal_result = calibrate(
+        session(true, rod, pts),
+        nominal,
+        default_tool0_from_phantom(),
+        pts,
+        CalibrationParams(parameter_set="hand-eye"),
+    )
     assert held_out_error_mm(nominal_result, true, rod, pts) >= 0.05
 
 
 def test_fewer_than_six_poses_are_refused(nominal: SerialChain, truth: Any, pts: F64) -> None:
     true, rod = truth
-    with pytest.raises(TooFewPosesError, match="at least 6 scans.*got 5"):
+    with pytest.raises(TooFewPosesError, match=r"at least 6 scans.*got 5"):
         calibrate(session(true, rod, pts, POSE_OFFSETS_RAD[:5]), nominal, rod, pts)
 
 
@@ -183,29 +201,45 @@ def test_narrow_wrist_motion_is_refused_or_dropped(nominal: SerialChain, truth: 
     true, rod = truth
     offsets = POSE_OFFSETS_RAD[:10].copy()
     offsets[:, 3:5] *= 0.02  # J4, J5 barely move
-    with pytest.raises(NotIdentifiableError, match="condition number .* > 100"):
+    with pytest.raises(NotIdentifiableError, match=r"condition number .* > 100"):
         calibrate(session(true, rod, pts, offsets), nominal, rod, pts)
-    dropped = calibrate(session(true, rod, pts, offsets), nominal, rod, pts, CalibrationParams(on_weak="drop"))
+    dropped = calibrate(
+        session(true, rod, pts, offsets), nominal, rod, pts, CalibrationParams(on_weak="drop")
+    )
     assert dropped.dropped, "weak robot parameters must be dropped"
     assert dropped.condition_number <= 100.0 * 1.05  # at the start ≤ 100; re-evaluated at the solution
     assert len(dropped.parameters) == 30 - len(dropped.dropped)
 
 
-def test_scans_from_two_oarm_placements_are_refused_naming_them(nominal: SerialChain, truth: Any, pts: F64) -> None:
+def test_scans_from_two_oarm_placements_are_refused_naming_them(
+    nominal: SerialChain, truth: Any, pts: F64
+) -> None:
     true, rod = truth
     poses = [
-        observe(true, IMAGE_FROM_ROBOT, rod, pts, BASE_JOINTS_RAD + o, f"pose-{i:02d}", "1.2.3" if i != 4 else "1.2.4")
+        observe(
+            true,
+            IMAGE_FROM_ROBOT,
+            rod,
+            pts,
+            BASE_JOINTS_RAD + o,
+            f"pose-{i:02d}",
+            "1.2.3" if i != 4 else "1.2.4",
+        )
         for i, o in enumerate(POSE_OFFSETS_RAD[:8])
     ]
     with pytest.raises(SessionMismatchError, match=r"FrameOfReferenceUID 1\.2\.4: pose-04"):
         calibrate(poses, nominal, rod, pts)
 
 
-def test_a_pose_with_the_robot_moved_is_flagged_and_excluded(nominal: SerialChain, truth: Any, pts: F64) -> None:
+def test_a_pose_with_the_robot_moved_is_flagged_and_excluded(
+    nominal: SerialChain, truth: Any, pts: F64
+) -> None:
     true, rod = truth
     poses = session(true, rod, pts, POSE_OFFSETS_RAD[:11])
     bad = poses[6]
-    moved = frames.apply(_motion(np.radians([0.0, 0.3, 0.0]), np.array([1.0, 0.0, -0.5])), bad.centres_image_mm)
+    moved = frames.apply(
+        _motion(np.radians([0.0, 0.3, 0.0]), np.array([1.0, 0.0, -0.5])), bad.centres_image_mm
+    )
     poses[6] = MatchedPose(bad.name, bad.joints_rad, bad.sphere_indices, moved)
     result = calibrate(poses, nominal, rod, pts)
     assert result.outliers == ("pose-06",)
@@ -221,7 +255,12 @@ def test_noise_gives_honest_standard_errors_and_lopo(nominal: SerialChain, truth
     sigma_mm = 0.03
     gen = np.random.default_rng(7)  # measurement noise only; the geometry is fixed above
     poses = [
-        MatchedPose(p.name, p.joints_rad, p.sphere_indices, p.centres_image_mm + gen.normal(0.0, sigma_mm, p.centres_image_mm.shape))
+        MatchedPose(
+            p.name,
+            p.joints_rad,
+            p.sphere_indices,
+            p.centres_image_mm + gen.normal(0.0, sigma_mm, p.centres_image_mm.shape),
+        )
         for p in session(true, rod, pts, POSE_OFFSETS_RAD)
     ]
     result = calibrate(poses, nominal, rod, pts)

@@ -45,7 +45,9 @@ def _perturbed(name: str):  # type: ignore[no-untyped-def]
     for i in range(chain.n_joints):
         axis = np.array([math.sin(i + 1.0), math.cos(2.0 * i), 0.3 * i + 0.1])
         axis /= np.linalg.norm(axis)
-        m[i] = m[i] @ frames.make_transform(rotation_about(axis, np.array([1e-3 * (i + 1)]))[0], [0.1 * i, -0.2, 0.05 * i])
+        m[i] = m[i] @ frames.make_transform(
+            rotation_about(axis, np.array([1e-3 * (i + 1)]))[0], [0.1 * i, -0.2, 0.05 * i]
+        )
     tool = chain.last_from_tool0 @ frames.transform_from_xyz_rpy([0.3, -0.1, 0.2], [0.05, -0.02, 0.1])
     return chain.with_origins(m, tool)
 
@@ -65,7 +67,9 @@ def test_written_urdf_loads_back_to_the_same_fk(name: str, tmp_path: Path) -> No
 
 def test_written_urdf_keeps_links_joints_and_names_the_calibration(tmp_path: Path) -> None:
     nominal_path = RobotModel.load("tx60").urdf_path
-    path = write_calibrated_urdf(_perturbed("tx60"), tmp_path / "robot.urdf", comment="calibration 2026-12-01 abc")
+    path = write_calibrated_urdf(
+        _perturbed("tx60"), tmp_path / "robot.urdf", comment="calibration 2026-12-01 abc"
+    )
     text = path.read_text(encoding="utf-8")
     assert "<!-- calibration 2026-12-01 abc -->" in text
     a, b = ET.parse(nominal_path).getroot(), ET.parse(path).getroot()
@@ -78,13 +82,15 @@ def test_written_urdf_keeps_links_joints_and_names_the_calibration(tmp_path: Pat
             ea, eb = ja.find(tag), jb.find(tag)
             assert (ea is None) == (eb is None) and (ea is None or ea.attrib == eb.attrib)  # type: ignore[union-attr]
     # the mounting-surface joint before joint_1 is untouched
-    base = [j for j in b.iter("joint") if j.get("name") == "base-base_link"][0]
+    base = next(j for j in b.iter("joint") if j.get("name") == "base-base_link")
     assert base.find("origin").get("xyz") == "0 0 -0.375"  # type: ignore[union-attr]
 
 
 def test_chain_without_tool0_is_a_config_error(tmp_path: Path) -> None:
     bad = tmp_path / "bad.urdf"
-    bad.write_text('<robot name="x"><link name="base"/><link name="a"/>'
-                   '<joint name="j" type="revolute"><parent link="base"/><child link="a"/></joint></robot>')
+    bad.write_text(
+        '<robot name="x"><link name="base"/><link name="a"/>'
+        '<joint name="j" type="revolute"><parent link="base"/><child link="a"/></joint></robot>'
+    )
     with pytest.raises(ConfigError, match="no joint chain from 'base' to 'tool0'"):
         read_chain(bad)
