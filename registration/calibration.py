@@ -24,10 +24,13 @@ fixed priority (offsets first, then axis tilts, axis shifts, slides) and
 :func:`minimal_parameter_set` keeps, in that order, every one that adds rank
 to the identification Jacobian at generic configurations — FIGAROH's QR
 selection (research note §1), done greedily so the kept set is readable.
-For the TX60 it is: offsets of J2–J5 (4); J2 origin tilt about x, J2 shift
-along x (2); J3–J5 origin tilt about the two axes ⟂ a_i and shift along them,
-minus what is absorbed by the parallel J2/J3 pair (see
-:func:`minimal_parameter_set`'s output in ``calibration.json``), 18 in all.
+For the TX60 (and TX2-60) it is, 18 in all: the zero offsets of J2–J5 (4);
+origin tilts J2 x, J3 x and z, J4 x, J5 x, J6 x and y (7); origin shifts J2 x,
+J3 z, J4 x and y, J5 x and z, J6 y (7).  (Frames of the URDF: J1, J4, J6 turn
+about z, J2, J3, J5 about y.)  J1's origin and offset and J6's offset are
+absorbed by Y and X; parallel J2/J3 cost the shift of J3 along x.  Plain DH
+would be singular for that parallel pair (research note §1); these local
+origin corrections are not.
 ``"offsets"`` fits X, Y and the joint offsets only (research note §1,
 "joint-offset-only model"); ``"hand-eye"`` fits X and Y only.
 
@@ -716,6 +719,27 @@ def _stack(poses: Sequence[MatchedPose], centres_phantom_mm: F64) -> _Data:
     )
 
 
+def _fit_without_outliers(
+    model: _Model, data: _Data, poses: Sequence[MatchedPose], params: CalibrationParams
+) -> tuple[F64, NDArray[np.bool_], tuple[F64, F64, list[F64]]]:
+    """Fit all poses; flag poses whose RMS residual stands out, then refit without them (or refuse)."""
+    values = _fit(model, data, np.zeros(len(model.params)), params)
+    used = np.ones(len(poses), dtype=bool)
+    rms, mx, per = _per_pose(model, data, values, len(poses))
+    flagged = _outliers(rms, used, params)
+    if flagged.any():
+        names = [f"{poses[int(i)].name} (RMS {rms[i]:.3f} mm)" for i in np.flatnonzero(flagged)]
+        if params.outliers == "refuse" or int((~flagged).sum()) < params.min_poses:
+            raise OutlierPoseError(
+                "scans inconsistent with the others (robot moved during the scan, wrong joints or a wrong "
+                f"sphere match): {', '.join(names)}; median pose RMS {np.median(rms):.3f} mm. Rescan them"
+            )
+        used = ~flagged
+        values = _fit(model, data.subset(used), values, params)
+        rms, mx, per = _per_pose(model, data, values, len(poses))
+    return values, used, (rms, mx, per)
+
+
 def calibrate(
     poses: Sequence[MatchedPose],
     chain: SerialChain,
@@ -757,25 +781,19 @@ def calibrate(
     model, dropped, rank, cond, s = _select_parameters(model, data, params, chain.joint_names)
     timings = {"start_s": time.perf_counter() - t0}
     t1 = time.perf_counter()
-    values = _fit(model, data, np.zeros(len(model.params)), params)
-    used = np.ones(len(poses), dtype=bool)
-    rms, mx, per = _per_pose(model, data, values, len(poses))
-    flagged = _outliers(rms, used, params)
-    if flagged.any():
-        names = [f"{poses[int(i)].name} (RMS {rms[i]:.3f} mm)" for i in np.flatnonzero(flagged)]
-        if params.outliers == "refuse" or int((~flagged).sum()) < params.min_poses:
-            raise OutlierPoseError(
-                f"scans inconsistent with the others (robot moved during the scan, wrong joints or a wrong "
-                f"sphere match): {', '.join(names)}; median pose RMS {np.median(rms):.3f} mm. Rescan them"
-            )
-        used = ~flagged
-        values = _fit(model, data.subset(used), values, params)
-        rms, mx, per = _per_pose(model, data, values, len(poses))
+    values, used, (rms, mx, per) = _fit_without_outliers(model, data, poses, params)
     timings["solve_s"] = time.perf_counter() - t1
     fit_data = data.subset(used)
     jac = _jacobian(model, fit_data, values)
     r = _residuals(model, fit_data, values)
-    rank, cond, s, _, _ = _identifiability(jac, model.params, params.rank_rtol)
+    rank, cond, s, weak, _ = _identifiability(jac, model.params, params.rank_rtol)
+    if not used.all() and cond > params.max_condition and params.on_weak == "refuse":
+        excluded = ", ".join(p.name for p, u in zip(poses, used, strict=True) if not u)
+        advice = _motion_advice(weak, fit_data.joints_rad, chain.joint_names)
+        raise NotIdentifiableError(
+            f"without the outlier scans {excluded} the remaining poses no longer identify the parameters "
+            f"(condition number {cond:.3g} > {params.max_condition:g}); rescan them. {advice}"
+        )
     t2 = time.perf_counter()
     nan = np.full(len(poses), np.nan)
     lopo, lopo_rms = _leave_one_out(model, data, values, used, params) if params.leave_one_out else (nan, nan)
