@@ -188,6 +188,8 @@ class CalibrationResult:
     pose_rms_mm: F64
     pose_max_mm: F64
     sphere_residuals_mm: tuple[F64, ...]
+    sphere_indices: tuple[I64, ...]
+    """Phantom sphere index of each entry of ``sphere_residuals_mm``, per pose."""
     outliers: tuple[str, ...]
     lopo_pose_mean_mm: F64
     lopo_pose_rms_mm: F64
@@ -239,15 +241,17 @@ class CalibrationResult:
                     "used": bool(u),
                     "rms_mm": float(r),
                     "max_mm": float(m),
+                    "sphere_indices": [int(i) for i in k],
                     "sphere_residuals_mm": s.tolist(),
                     "leave_one_out_mean_mm": None if not math.isfinite(lo) else float(lo),
                     "leave_one_out_rms_mm": None if not math.isfinite(lr) else float(lr),
                 }
-                for n, u, r, m, s, lo, lr in zip(
+                for n, u, r, m, k, s, lo, lr in zip(
                     self.pose_names,
                     self.used,
                     self.pose_rms_mm,
                     self.pose_max_mm,
+                    self.sphere_indices,
                     self.sphere_residuals_mm,
                     self.lopo_pose_mean_mm,
                     self.lopo_pose_rms_mm,
@@ -815,6 +819,7 @@ def calibrate(
         pose_rms_mm=rms,
         pose_max_mm=mx,
         sphere_residuals_mm=tuple(per),
+        sphere_indices=tuple(np.asarray(p.sphere_indices, dtype=np.int64) for p in poses),
         outliers=tuple(poses[int(i)].name for i in np.flatnonzero(~used)),
         lopo_pose_mean_mm=lopo,
         lopo_pose_rms_mm=lopo_rms,

@@ -7,6 +7,7 @@ representable by the calibration's parameters), the true rod the nominal one mov
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
@@ -166,6 +167,10 @@ def test_noise_free_errors_are_recovered_at_held_out_poses(
     assert result.fit_rms_mm < 1e-7
     assert held_out_error_mm(result, true, rod, pts) <= EXACT_MM
     assert result.lopo_max_mm <= EXACT_MM
+    doc = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    assert doc["identification"]["rank"] == 30 and len(doc["parameters"]) == 30
+    assert doc["poses"][3]["sphere_indices"] == list(range(len(pts)))
+    assert max(doc["poses"][3]["sphere_residuals_mm"]) < 1e-7
     # the nominal model is ≥ 0.5 mm off at the same poses: the test can fail
     nominal_result = calibrate(
         session(true, rod, pts),
