@@ -197,6 +197,15 @@ class CalibrationResult:
     fit_rms_mm: float
     fle_rms_mm: float
     """Per-sphere detection error (RMS, 3-D) implied by the residuals, corrected for the fitted DoF."""
+    registration_tre_rms_mm: float
+    """Fitzpatrick's RMS TRE over the phantom's spheres of a one-scan registration with this FLE and
+    all spheres (1998 eq. 46): what re-registering after the O-arm moved adds."""
+
+    @property
+    def predicted_held_out_rms_mm(self) -> float:
+        """Expected RMS sphere-centre error at an unseen pose after a one-scan registration with the
+        calibrated model: √(LOPO TRE² + registration TRE²)."""
+        return math.sqrt(self.lopo_tre_rms_mm**2 + self.registration_tre_rms_mm**2)
 
     @property
     def lopo_tre_rms_mm(self) -> float:
@@ -263,6 +272,8 @@ class CalibrationResult:
             "leave_one_pose_out_max_mm": _finite_or_none(self.lopo_max_mm),
             "leave_one_pose_out_tre_rms_mm": _finite_or_none(self.lopo_tre_rms_mm),
             "fle_rms_mm": self.fle_rms_mm,
+            "registration_tre_rms_mm": self.registration_tre_rms_mm,
+            "predicted_held_out_rms_mm": _finite_or_none(self.predicted_held_out_rms_mm),
             "timings_s": dict(self.timings_s),
             "software": f"oarmreg {__version__}",
         }
@@ -700,6 +711,13 @@ def _fle_rms_mm(r: F64, n_params: int) -> float:
     return math.sqrt(3.0 * float(r @ r) / max(len(r) - n_params, 1))
 
 
+def _registration_tre_rms_mm(fle_rms_mm: float, centres_phantom_mm: F64) -> float:
+    from registration.quality import predicted_tre_mm
+
+    tre = predicted_tre_mm(fle_rms_mm, centres_phantom_mm, centres_phantom_mm)
+    return math.sqrt(float(np.mean(np.asarray(tre) ** 2)))
+
+
 def _std_errors(jac: F64, r: F64) -> F64:
     """Standard errors from σ² (JᵀJ)⁻¹, σ² = Σr² / (m − P)."""
     dof = max(jac.shape[0] - jac.shape[1], 1)
@@ -826,6 +844,7 @@ def calibrate(
         timings_s=timings,
         fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
         fle_rms_mm=_fle_rms_mm(r, len(model.params)),
+        registration_tre_rms_mm=_registration_tre_rms_mm(_fle_rms_mm(r, len(model.params)), pts),
     )
 
 

@@ -226,6 +226,8 @@ def summary(d: dict[str, Any]) -> str:
         f"leave-one-pose-out mean {_fmt(d['leave_one_pose_out_mean_mm'])} mm, "
         f"max {_fmt(d['leave_one_pose_out_max_mm'])} mm "
         f"(TRE estimate {_fmt(d['leave_one_pose_out_tre_rms_mm'])} mm RMS)",
+        f"predicted error at unseen poses after a one-scan registration: "
+        f"{_fmt(d['predicted_held_out_rms_mm'])} mm RMS",
     ]
     if d["outlier_poses"]:
         lines.append(f"outlier poses excluded: {', '.join(d['outlier_poses'])}")
