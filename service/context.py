@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
@@ -12,6 +13,7 @@ from service.capture import Capture
 from service.event_bus import EventBus
 from service.orchestrator import Orchestrator
 from service.records import RegistrationRecord
+from service.security import TicketBook
 from service.settings import Settings
 from service.store import Database
 from service.volume_cache import VolumeCache
@@ -32,6 +34,9 @@ class ServiceContext:
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
     watcher: SeriesWatcher | None = None
+    db_watch_task: asyncio.Task[None] | None = None
+    tickets: TicketBook = field(default_factory=TicketBook)
+    """Single-use tickets for GET /events?ticket= (service.security)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""
