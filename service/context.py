@@ -13,9 +13,9 @@ from service.capture import Capture
 from service.event_bus import EventBus
 from service.orchestrator import Orchestrator
 from service.records import RegistrationRecord
-from service.security import TicketBook
 from service.settings import Settings
 from service.store import Database
+from service.tickets import TicketBook
 from service.volume_cache import VolumeCache
 from service.watcher import SeriesWatcher
 

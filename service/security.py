@@ -33,8 +33,6 @@ import hashlib
 import hmac
 import json
 import logging
-import secrets
-import time
 from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs
 
@@ -51,8 +49,6 @@ TYPE_PREFIX = "urn:oarmreg:problem:"
 MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 PUBLIC_PATHS = frozenset({"/health"})
 EVENTS_PATH = "/events"
-MAX_OUTSTANDING_TICKETS = 1000
-"""Tickets minted and not yet used or expired; more are refused (429) — a client loop gone wrong."""
 PRINCIPAL_NO_AUTH = "none-loopback-only"
 """The audit principal when authentication is off (``api.auth = "none-loopback-only"``)."""
 
@@ -74,39 +70,6 @@ class Refusal(Exception):
         self.detail = detail
         self.kind = kind
         self.headers = headers
-
-
-class TicketBook:
-    """Single-use, short-lived tickets for ``GET /events?ticket=`` (used on the event loop only)."""
-
-    def __init__(self) -> None:
-        self._tickets: dict[str, tuple[float, str]] = {}
-
-    def mint(self, principal: str, ttl_s: float) -> str:
-        """A new ticket for ``principal``, valid for ``ttl_s`` seconds, usable once.
-
-        Raises
-        ------
-        Refusal
-            429 when :data:`MAX_OUTSTANDING_TICKETS` are outstanding.
-        """
-        now = time.monotonic()
-        self._tickets = {k: v for k, v in self._tickets.items() if v[0] > now}
-        if len(self._tickets) >= MAX_OUTSTANDING_TICKETS:
-            raise Refusal(
-                429, "Too many tickets", f"{MAX_OUTSTANDING_TICKETS} event tickets are outstanding; use "
-                "them or let them expire before asking for more", "too-many-tickets",
-            )  # fmt: skip
-        ticket = secrets.token_urlsafe(24)
-        self._tickets[ticket] = (now + ttl_s, principal)
-        return ticket
-
-    def redeem(self, ticket: str) -> str | None:
-        """The ticket's principal if it is known and unexpired (it is used up either way), else None."""
-        entry = self._tickets.pop(ticket, None)
-        if entry is None or entry[0] <= time.monotonic():
-            return None
-        return entry[1]
 
 
 def _header(scope: Scope, name: bytes) -> str | None:

@@ -22,7 +22,8 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from service.api.deps import CtxDep, PrincipalDep
 from service.api.models import EventTicketOut
 from service.api.problems import problem_response, problem_responses
-from service.security import EVENTS_PATH, Refusal
+from service.security import EVENTS_PATH
+from service.tickets import MAX_OUTSTANDING_TICKETS
 
 
 def format_sse(item: tuple[int, str, dict[str, Any]] | None) -> str:
@@ -80,8 +81,10 @@ async def event_ticket(
     request: Request, ctx: CtxDep, principal: PrincipalDep
 ) -> EventTicketOut | JSONResponse:
     ttl_s = ctx.settings.api.event_ticket_ttl_s
-    try:
-        ticket = ctx.tickets.mint(principal, ttl_s)
-    except Refusal as r:
-        return problem_response(r.status, r.title, r.detail, request.url.path)
+    ticket = ctx.tickets.mint(principal, ttl_s)
+    if ticket is None:
+        return problem_response(
+            429, "Too many tickets", f"{MAX_OUTSTANDING_TICKETS} event tickets are outstanding; use them or "
+            "let them expire before asking for more", request.url.path,
+        )  # fmt: skip
     return EventTicketOut(ticket=ticket, expires_in_s=ttl_s, url=f"{EVENTS_PATH}?ticket={ticket}")

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import IO
 
 from registration.errors import ConfigError
+from service.store.migrations import SCHEMA_VERSION
 
 log = logging.getLogger(__name__)
 
@@ -95,10 +96,11 @@ def verify_existing(conn: sqlite3.Connection, path: Path) -> None:
         quoted = "; ".join(rows[:MAX_CHECK_MESSAGES]) + (" …" if len(rows) > MAX_CHECK_MESSAGES else "")
         raise unusable(path, f"PRAGMA quick_check found damage ({quoted})")
     app_id = int(conn.execute("PRAGMA application_id").fetchone()[0])
-    if app_id == APPLICATION_ID:
-        _check_identity_row(conn, path)
-        return
     version = int(conn.execute("PRAGMA user_version").fetchone()[0])
+    if app_id == APPLICATION_ID:
+        if version <= SCHEMA_VERSION:  # a newer schema is refused by migrate(), naming the versions
+            _check_identity_row(conn, path)
+        return
     tables = {str(r[0]) for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     if app_id == 0 and version >= 1 and tables >= OUR_TABLES:
         log.info("database %s: an oarmreg database from before application_id; stamping it", path)
