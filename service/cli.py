@@ -28,6 +28,8 @@ COMMANDS: dict[str, str] = {
     "mock": "service.commands.mock",
     "serve": "service.commands.serve",
     "demo": "service.commands.demo",
+    "backup": "service.commands.backup",
+    "restore": "service.commands.restore",
 }
 
 
