@@ -233,11 +233,6 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _refuse_unsafe(self) -> Settings:
-        if not is_loopback(self.host) and self.api_token is None:
-            raise ValueError(
-                f"host: binding {self.host!r} exposes the API beyond this machine; set api_token "
-                f"(env {ENV_PREFIX}API_TOKEN) or bind 127.0.0.1"
-            )
         if self.api.auth == "none-loopback-only" and not is_loopback(self.host):
             raise ValueError(
                 f"api.auth: 'none-loopback-only' cannot be used with host {self.host!r}; bind 127.0.0.1 "
@@ -247,6 +242,11 @@ class Settings(BaseSettings):
             raise ValueError(
                 "api.auth is 'none-loopback-only' but api_token is set; choose one: api.auth = 'token' "
                 f"(env {ENV_PREFIX}API__AUTH) or an empty api_token"
+            )
+        if not is_loopback(self.host) and self.api_token is None:
+            raise ValueError(
+                f"host: binding {self.host!r} exposes the API beyond this machine; set api_token "
+                f"(env {ENV_PREFIX}API_TOKEN) or bind 127.0.0.1"
             )
         if self.quality.min_symmetry_margin > self.quality.min_matched_spheres:
             raise ValueError(

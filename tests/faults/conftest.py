@@ -124,3 +124,6 @@ def mock_robot(joints_rad: tuple[float, ...] = Q_STILL) -> Iterator[Any]:
 
     with run_mock_controller("simple-message", ScriptedRobot(joints_rad)) as mock:
         yield mock
+
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
