@@ -29,6 +29,8 @@ COMMANDS: dict[str, str] = {
     "serve": "service.commands.serve",
     "demo": "service.commands.demo",
     "calibrate": "service.commands.calibrate",
+    "backup": "service.commands.backup",
+    "restore": "service.commands.restore",
 }
 
 

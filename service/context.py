@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
@@ -14,6 +15,7 @@ from service.orchestrator import Orchestrator
 from service.records import RegistrationRecord
 from service.settings import Settings
 from service.store import Database
+from service.tickets import TicketBook
 from service.volume_cache import VolumeCache
 from service.watcher import SeriesWatcher
 
@@ -32,6 +34,9 @@ class ServiceContext:
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
     watcher: SeriesWatcher | None = None
+    db_watch_task: asyncio.Task[None] | None = None
+    tickets: TicketBook = field(default_factory=TicketBook)
+    """Single-use tickets for GET /events?ticket= (service.security)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.resources import default_phantom
+from service.commands.argtypes import float_below, positive_float, positive_int
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
 
@@ -71,13 +72,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--prior-rotation",
+        type=prior_rotation_arg,
         metavar="RX,RY,RZ|FILE.json",
         help="expected rotation of image_from_robot: roll,pitch,yaw in degrees (URDF xyz convention) or a "
         'JSON file with "image_from_robot" (4 × 4) or "rotation" (3 × 3)',
     )
     parser.add_argument(
         "--prior-tolerance-deg",
-        type=float,
+        type=float_below(45.0),
         default=30.0,
         help="discard poses further than this from the prior (must be < 45; default 30)",
     )
@@ -92,8 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="phantom TOML whose symmetry twins are checked explicitly "
         "('none' to skip; default: %(default)s)",
     )
-    parser.add_argument("--max-fre-mm", type=float, help="override the FRE gate (mm)")
-    parser.add_argument("--min-margin", type=int, help="override the symmetry margin (matched spheres)")
+    parser.add_argument("--max-fre-mm", type=positive_float, help="override the FRE gate (mm, > 0)")
+    parser.add_argument(
+        "--min-margin", type=positive_int, help="override the symmetry margin (matched spheres, ≥ 1)"
+    )
 
 
 def sha256_of(path: Path) -> str:
@@ -133,6 +137,17 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
         }
     )
     return det.centres_image_mm
+
+
+def prior_rotation_arg(text: str) -> str:
+    """argparse type of ``--prior-rotation``: parse it now so a bad value names the flag (exit 2)."""
+    from registration.errors import OarmRegError
+
+    try:
+        parse_prior(text)
+    except OarmRegError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix(f"--prior-rotation {text!r}: ")) from None
+    return text
 
 
 def parse_prior(text: str | None) -> Any:

@@ -14,6 +14,11 @@
     every POST /verify: per-sphere errors, mean / RMS / max, histogram path.
 ``current_registration``
     a single-row pointer to the registration the service serves.
+``oarmreg_identity`` (2)
+    a single row naming the application, a random database id, its creation time and the schema
+    version (kept equal to ``user_version``; :mod:`service.store.integrity`).
+``audit_log`` (2)
+    who (``principal``: a 12-hex hash of the token, never the token) did what to which record.
 """
 
 from __future__ import annotations
@@ -100,6 +105,28 @@ MIGRATIONS: tuple[str, ...] = (
         singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
         registration_id INTEGER NOT NULL REFERENCES registrations(id),
         set_at TEXT NOT NULL
+    );
+    """,
+    # 2: identity row and audit log (issue #13)
+    """
+    CREATE TABLE oarmreg_identity (
+        singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
+        application TEXT NOT NULL CHECK (application = 'oarmreg'),
+        database_id TEXT NOT NULL,
+        created_at TEXT NOT NULL,
+        schema_version INTEGER NOT NULL
+    );
+    INSERT INTO oarmreg_identity (singleton, application, database_id, created_at, schema_version)
+        VALUES (1, 'oarmreg', lower(hex(randomblob(16))), strftime('%Y-%m-%dT%H:%M:%fZ', 'now'), 2);
+    CREATE TABLE audit_log (
+        id INTEGER PRIMARY KEY,
+        at TEXT NOT NULL,
+        principal TEXT NOT NULL,
+        action TEXT NOT NULL,
+        target TEXT NOT NULL,
+        target_id INTEGER,
+        outcome TEXT NOT NULL,
+        detail TEXT NOT NULL DEFAULT ''
     );
     """,
 )
