@@ -350,6 +350,52 @@ def _support_mask(
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class _BallWeights:
+    """Centroid weights of the voxels in the ball around a centre (internal).
+
+    ``w`` (k, j, i) crop of weights (0 outside the ball / support), ``ijk`` the crop's index
+    grids (i, j, k) broadcastable to it, ``bg_hu`` and ``peak_hu`` of the crop.
+    """
+
+    w: NDArray[np.float64]
+    ijk: tuple[F64, F64, F64]
+    bg_hu: float
+    peak_hu: float
+
+
+def _ball_weights(
+    vox: NDArray[Any], centre_ijk: F64, spacing: F64, params: DetectionParams, support: Support | None
+) -> _BallWeights:
+    """Weights ``HU − (background + margin)`` (≥ 0) of the voxels within ``radius + bloom`` mm of
+    ``centre_ijk``; the background is the median of the ``background_shell_mm`` shell outside."""
+    r_ball = params.radius_mm + params.bloom_mm
+    r_shell = r_ball + params.background_shell_mm
+    half = np.ceil(r_shell / spacing).astype(int) + 1  # (i, j, k) voxels
+    shape = vox.shape  # (k, j, i)
+    c = np.rint(centre_ijk).astype(int)
+    lo = np.maximum(c - half, 0)
+    hi = np.minimum(c + half + 1, (shape[2], shape[1], shape[0]))
+    crop = np.asarray(vox[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]], dtype=np.float64)
+    ii = np.arange(lo[0], hi[0], dtype=np.float64)[None, None, :]
+    jj = np.arange(lo[1], hi[1], dtype=np.float64)[None, :, None]
+    kk = np.arange(lo[2], hi[2], dtype=np.float64)[:, None, None]
+    d2 = (
+        ((ii - centre_ijk[0]) * spacing[0]) ** 2
+        + ((jj - centre_ijk[1]) * spacing[1]) ** 2
+        + ((kk - centre_ijk[2]) * spacing[2]) ** 2
+    )
+    ball = d2 <= r_ball**2
+    shell = (d2 > r_ball**2) & (d2 <= r_shell**2)
+    bg = float(np.median(crop[shell])) if shell.any() else float(np.median(crop))
+    peak = float(crop[ball].max()) if ball.any() else float(crop.max())
+    level = bg + max(params.centroid_margin_hu, params.centroid_margin_fraction * (peak - bg))
+    if support is not None:
+        ball = ball & _support_mask(lo, hi, support)
+    w = np.where(ball, np.clip(crop - level, 0.0, None), 0.0)
+    return _BallWeights(w, (ii, jj, kk), bg, peak)
+
+
 def _subvoxel_centre(
     vox: NDArray[Any],
     start_ijk: F64,
@@ -366,47 +412,106 @@ def _subvoxel_centre(
     ``radius + bloom`` mm; the background is the median of the shell between
     that radius and ``background_shell_mm`` farther out.
     """
-    r_ball = params.radius_mm + params.bloom_mm
-    r_shell = r_ball + params.background_shell_mm
-    half = np.ceil(r_shell / spacing).astype(int) + 1  # (i, j, k) voxels
-    shape = vox.shape  # (k, j, i)
     centre = start_ijk.astype(np.float64).copy()
     bg = peak = math.nan
     for _ in range(max(1, params.centroid_iterations)):
-        c = np.rint(centre).astype(int)
-        lo = np.maximum(c - half, 0)
-        hi = np.minimum(c + half + 1, (shape[2], shape[1], shape[0]))
-        crop = np.asarray(vox[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]], dtype=np.float64)
-        ii = np.arange(lo[0], hi[0], dtype=np.float64)[None, None, :]
-        jj = np.arange(lo[1], hi[1], dtype=np.float64)[None, :, None]
-        kk = np.arange(lo[2], hi[2], dtype=np.float64)[:, None, None]
-        d2 = (
-            ((ii - centre[0]) * spacing[0]) ** 2
-            + ((jj - centre[1]) * spacing[1]) ** 2
-            + ((kk - centre[2]) * spacing[2]) ** 2
-        )
-        ball = d2 <= r_ball**2
-        shell = (d2 > r_ball**2) & (d2 <= r_shell**2)
-        bg = float(np.median(crop[shell])) if shell.any() else float(np.median(crop))
-        peak = float(crop[ball].max()) if ball.any() else float(crop.max())
-        level = bg + max(params.centroid_margin_hu, params.centroid_margin_fraction * (peak - bg))
-        if support is not None:
-            ball = ball & _support_mask(lo, hi, support)
-        w = np.where(ball, np.clip(crop - level, 0.0, None), 0.0)
-        total = float(w.sum())
+        bw = _ball_weights(vox, centre, spacing, params, support)
+        bg, peak = bw.bg_hu, bw.peak_hu
+        total = float(bw.w.sum())
         if total <= 0.0:
             break
-        centre = (
-            np.array(
-                [
-                    float((w.sum(axis=(0, 1)) * ii.ravel()).sum()),
-                    float((w.sum(axis=(0, 2)) * jj.ravel()).sum()),
-                    float((w.sum(axis=(1, 2)) * kk.ravel()).sum()),
-                ]
-            )
-            / total
-        )
+        centre = np.array([float((bw.w * g).sum()) / total for g in bw.ijk])
     return centre, bg, peak
+
+
+EDGE_WINDOW_ITERATIONS: Final = 8
+"""Re-centrings of the symmetric window near an edge; each halves the remaining offset or better
+(measured on spheres 0–2 mm inside the slab end: converged to < 0.01 mm after 5)."""
+
+
+def _symmetric_position(
+    w: F64, t_mm: F64, c_mm: float, edge_mm: float, step_mm: float, r_ball_mm: float
+) -> float:
+    """Centroid along a direction of the weights inside a window symmetric about the estimate.
+
+    The window ``|t − c| ≤ h`` has ``h = min(r_ball, edge + step/2 − c)``: it never reaches past
+    the last sample (which covers up to ``edge + step/2``), so what the edge cut off on one side is
+    trimmed from the other and a symmetric blurred ball is located without bias.  Voxels are
+    intervals of ``step_mm`` along the direction, counted by the fraction inside the window.
+    ``w`` (V,) weights and ``t_mm`` (V,) positions along the direction (mm, edge at ``edge_mm``,
+    data at t < edge).  Returns the centre along the direction (mm); beyond the edge if the ball is.
+    """
+    c = c_mm
+    for _ in range(EDGE_WINDOW_ITERATIONS):
+        h = min(r_ball_mm, edge_mm + 0.5 * step_mm - c)
+        if h <= 0.0:
+            return c
+        m = w * np.clip((h - np.abs(t_mm - c)) / step_mm + 0.5, 0.0, 1.0)
+        total = float(m.sum())
+        if total <= 0.0:
+            return c
+        c = float((m * t_mm).sum()) / total
+    return c
+
+
+def _boundaries(
+    centre_ijk: F64, shape: tuple[int, int, int], spacing: F64, fov_radius_mm: float | None
+) -> list[tuple[F64, float, float]]:
+    """(unit direction (i, j, k) in mm space, edge position along it mm, voxel step mm) of every
+    boundary of the imaged region: both slab ends, the matrix edges and the circular FOV."""
+    last = np.array([shape[2] - 1, shape[1] - 1, shape[0] - 1], dtype=np.float64)
+    out: list[tuple[F64, float, float]] = []
+    for ax in range(3):
+        e = np.zeros(3)
+        e[ax] = 1.0
+        out.append((-e, 0.0, float(spacing[ax])))
+        out.append((e, float(last[ax] * spacing[ax]), float(spacing[ax])))
+    if fov_radius_mm is not None:
+        fov_c = np.array([last[0] / 2.0, last[1] / 2.0, 0.0]) * spacing
+        off = centre_ijk * spacing - fov_c
+        off[2] = 0.0
+        rho = float(np.hypot(off[0], off[1]))
+        if rho > 0.0:
+            u = off / rho
+            out.append((u, fov_radius_mm + float(u @ fov_c), float(0.5 * (spacing[0] + spacing[1]))))
+    return out
+
+
+def edge_refined_centre(
+    vox: NDArray[Any],
+    centre_ijk: F64,
+    spacing: F64,
+    params: DetectionParams,
+    fov_radius_mm: float | None,
+    support: Support | None = None,
+) -> tuple[F64, str | None]:
+    """The centre of a sphere near an edge of the imaged region, and why it is cut (or None).
+
+    Near a slab end, matrix edge or the FOV circle the centroid is pulled inwards: a sphere cut by
+    the edge (its centre outside, or less than a radius inside) shows only its inner part, and the
+    bloom halo of a whole sphere close to it is cut too.  Along each such boundary the centre is
+    re-measured with :func:`_symmetric_position`, and the sphere is cut if that centre is less than
+    the nominal radius from the edge (the simulator's and the registration's "fully imaged").
+    """
+    r_ball = params.radius_mm + params.bloom_mm
+    centre = centre_ijk.astype(np.float64).copy()
+    shape = (vox.shape[0], vox.shape[1], vox.shape[2])
+    for u, edge_mm, step_mm in _boundaries(centre, shape, spacing, fov_radius_mm):
+        t_c = float(u @ (centre * spacing))
+        if edge_mm - t_c > r_ball + step_mm:
+            continue
+        bw = _ball_weights(vox, centre, spacing, params, support)
+        t = sum(float(u[a] * spacing[a]) * bw.ijk[a] for a in range(3))
+        w, t_all = np.broadcast_arrays(bw.w, t)
+        c = _symmetric_position(w.ravel(), t_all.ravel(), t_c, edge_mm, step_mm, r_ball)
+        if edge_mm - c < params.radius_mm:
+            return centre, (
+                f"cut by the edge of the imaged region (slab end, matrix edge or FOV circle): centre "
+                f"re-measured symmetrically {edge_mm - c:.2f} mm inside the edge < sphere radius "
+                f"{params.radius_mm} mm"
+            )
+        centre = centre + (c - t_c) * u / spacing
+    return centre, None
 
 
 @dataclass(frozen=True)
@@ -896,7 +1001,10 @@ def _measure_sphere(
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     with timer.stage("centres_s"):
         centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params, b.support)
-    reason = edge_reject_reason(centre_sv, shape, spacing, r) or fov_reject_reason(
+        centre_sv, reason = edge_refined_centre(
+            vox, centre_sv, spacing, params, scan.fov_radius_mm, b.support
+        )
+    reason = reason or edge_reject_reason(centre_sv, shape, spacing, r) or fov_reject_reason(
         centre_sv, scan.fov_radius_mm, shape, spacing, r
     )
     if reason is not None:
