@@ -290,8 +290,8 @@ def speed() -> None:
 HARD_CONDITIONS: list[dict[str, Any]] = [
     # issue #11 Done-when: beam (parallel / cone) × material × scatter × dose × partial FOV × rod /
     # vertebra.  "x_mm" shifts the phantom off axis and "slices" cuts the slab, so fewer spheres are
-    # fully imaged.  Cone-beam scans use RTK's FDK (mocks/oarm/cbct.py) at the O-arm voxel size on
-    # a 256² × 96 grid; that simulator models no rod, vertebra or body.
+    # fully imaged.  Cone-beam scans (mocks/oarm/cbct.py, numpy FDK) use the O-arm voxel size on
+    # a 256² × 96 grid with 180 views.
     dict(name="steel spr0.1 1e4", phantom="bai2018_cube", material="steel", spr=0.1, photons=1e4),
     dict(
         name="steel spr0.3 1e3 rod+vert",
@@ -356,12 +356,14 @@ HARD_CONDITIONS: list[dict[str, Any]] = [
         photons=1e3,
     ),
     dict(
-        name="CB steel spr0.2 1e5",
+        name="CB steel spr0.3 1e5 rod+vert",
         beam="cone",
         phantom="bai2018_cube",
         material="steel",
-        spr=0.2,
+        spr=0.3,
         photons=1e5,
+        rod=True,
+        vertebra=True,
     ),
 ]
 
