@@ -498,16 +498,17 @@ def _symmetric_position(
 
 def _boundaries(
     centre_ijk: F64, shape: tuple[int, int, int], spacing: F64, fov_radius_mm: float | None
-) -> list[tuple[F64, float, float]]:
-    """(unit direction (i, j, k) in mm space, edge position along it mm, voxel step mm) of every
-    boundary of the imaged region: both slab ends, the matrix edges and the circular FOV."""
+) -> list[tuple[str, F64, float, float]]:
+    """(name, unit direction (i, j, k) in mm space, edge position along it mm, voxel step mm) of
+    every boundary of the imaged region: both slab ends, the matrix edges and the circular FOV."""
     last = np.array([shape[2] - 1, shape[1] - 1, shape[0] - 1], dtype=np.float64)
-    out: list[tuple[F64, float, float]] = []
+    names = ("edge of the volume (matrix edge)",) * 2 + ("edge of the volume (first/last slice)",)
+    out: list[tuple[str, F64, float, float]] = []
     for ax in range(3):
         e = np.zeros(3)
         e[ax] = 1.0
-        out.append((-e, 0.0, float(spacing[ax])))
-        out.append((e, float(last[ax] * spacing[ax]), float(spacing[ax])))
+        out.append((names[ax], -e, 0.0, float(spacing[ax])))
+        out.append((names[ax], e, float(last[ax] * spacing[ax]), float(spacing[ax])))
     if fov_radius_mm is not None:
         fov_c = np.array([last[0] / 2.0, last[1] / 2.0, 0.0]) * spacing
         off = centre_ijk * spacing - fov_c
@@ -515,7 +516,8 @@ def _boundaries(
         rho = float(np.hypot(off[0], off[1]))
         if rho > 0.0:
             u = off / rho
-            out.append((u, fov_radius_mm + float(u @ fov_c), float(0.5 * (spacing[0] + spacing[1]))))
+            step = float(0.5 * (spacing[0] + spacing[1]))
+            out.append(("circular field of view", u, fov_radius_mm + float(u @ fov_c), step))
     return out
 
 
@@ -538,7 +540,7 @@ def edge_refined_centre(
     r_ball = params.radius_mm + params.bloom_mm
     centre = centre_ijk.astype(np.float64).copy()
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
-    for u, edge_mm, step_mm in _boundaries(centre, shape, spacing, fov_radius_mm):
+    for name, u, edge_mm, step_mm in _boundaries(centre, shape, spacing, fov_radius_mm):
         t_c = float(u @ (centre * spacing))
         if edge_mm - t_c > r_ball + step_mm:
             continue
@@ -548,9 +550,8 @@ def edge_refined_centre(
         c = _symmetric_position(w.ravel(), t_all.ravel(), t_c, edge_mm, step_mm, r_ball)
         if edge_mm - c < params.radius_mm:
             return centre, (
-                f"cut by the edge of the imaged region (slab end, matrix edge or FOV circle): centre "
-                f"re-measured symmetrically {edge_mm - c:.2f} mm inside the edge < sphere radius "
-                f"{params.radius_mm} mm"
+                f"cut by the {name}: centre re-measured symmetrically {edge_mm - c:.2f} mm inside "
+                f"it < sphere radius {params.radius_mm} mm"
             )
         centre = centre + (c - t_c) * u / spacing
     return centre, None
