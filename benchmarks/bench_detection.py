@@ -471,7 +471,9 @@ def _hard_outcome(phantom: Any, scan: Any, centres: np.ndarray) -> tuple[str, fl
     return ("wrong" if mismatched or too_far else "answered"), float(tre.max())
 
 
-def hard_sweep(n_scans: int, cache_dir: Path | None = None, method: str = "subvoxel") -> None:
+def hard_sweep(
+    n_scans: int, cache_dir: Path | None = None, method: str = "subvoxel", background_model: str = "linear"
+) -> None:
     """Issue #11 conditions: spheres found / expected, false positives, FLE, TRE, registration outcome."""
     from mocks.oarm.simulator import scan_to_volume
     from registration.detection import DetectionParams, detect_spheres
@@ -482,7 +484,11 @@ def hard_sweep(n_scans: int, cache_dir: Path | None = None, method: str = "subvo
         phantom, scan = _cached_hard_scan(cond, n, cache_dir)
         res = detect_spheres(
             scan_to_volume(scan),
-            DetectionParams(method=method, sphere_diameter_mm=phantom.sphere_diameter_mm),
+            DetectionParams(
+                method=method,
+                sphere_diameter_mm=phantom.sphere_diameter_mm,
+                background_model=background_model,
+            ),
         )
         err, miss, fp = _match(res.centres_image_mm, scan.spheres_image_mm)
         row = rows.setdefault(
@@ -499,7 +505,7 @@ def hard_sweep(n_scans: int, cache_dir: Path | None = None, method: str = "subvo
         if outcome != "refused":
             row["tre"].append(tre)
     print_table(
-        f"Hard-scan sweep ({n_scans} scans, 256² × 0.415 × 0.833 mm; method {method})",
+        f"Hard-scan sweep ({n_scans} scans, 256² × 0.415 × 0.833 mm; {method}, {background_model} bg)",
         [
             "condition",
             "scans",
@@ -543,13 +549,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--hard", type=int, default=0, help="issue #11 hard-scan sweep over this many scans")
     ap.add_argument("--cache-dir", type=Path, default=None, help="pickle the hard scans here and reuse them")
     ap.add_argument("--method", default="subvoxel", help="centre estimator of the hard sweep")
+    ap.add_argument("--background-model", default="linear", help="background under a sphere (hard sweep)")
     args = ap.parse_args(argv)
     if not args.skip_speed:
         speed()
     if not args.skip_sweep:
         accuracy_sweep(args.scans, args.quick)
     if args.hard:
-        hard_sweep(args.hard, args.cache_dir, args.method)
+        hard_sweep(args.hard, args.cache_dir, args.method, args.background_model)
 
 
 if __name__ == "__main__":
