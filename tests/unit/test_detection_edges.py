@@ -13,10 +13,13 @@ from scipy import ndimage
 from test_detection import SHAPE, SPACING, _add_sphere, make_volume
 
 from registration.detection import (
+    MAX_CORE_AXIS_RATIO,
     DetectedSphere,
     DetectionParams,
+    _ball_weights,
     _separate,
     _subvoxel_centre,
+    core_axis_ratio,
     detect_spheres,
     edge_refined_centre,
 )
@@ -132,3 +135,18 @@ def test_separation_keeps_spheres_one_pitch_apart() -> None:
     spheres = [_sphere(0.0, 3, 0.8), _sphere(15.0, 3, 0.8)]
     kept, dropped = _separate(spheres, min_separation_mm=7.5)
     assert len(kept) == 2 and dropped == []
+
+
+def test_core_axis_ratio_separates_a_sphere_from_a_streak_line() -> None:
+    """A sphere's centroid weights are round (ratio ≈ 1); a bright 1-voxel line (a cone-beam
+    streak that passed the size and peak tests measured 8.2) is far above the 4.0 limit."""
+    truth = np.array([48.3, 47.6, 20.4])
+    p = DetectionParams()
+    sphere = make_volume(truth[None]).voxels
+    bw = _ball_weights(sphere, truth, SP, p, None)
+    assert core_axis_ratio(bw, SP) < 1.5
+    line = np.full(SHAPE, 100, dtype=np.int16)
+    jj = np.arange(40, 56)
+    line[20, jj, jj] = 3071  # a diagonal in-plane line, 9.4 mm long
+    bw_line = _ball_weights(line, np.array([48.0, 48.0, 20.0]), SP, p, None)
+    assert core_axis_ratio(bw_line, SP) > 2 * MAX_CORE_AXIS_RATIO
