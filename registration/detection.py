@@ -189,6 +189,11 @@ class DetectionParams:
                 f"unknown background model {self.background_model!r}: expected one of "
                 + ", ".join(BACKGROUND_MODELS)
             )
+        if not 0.0 <= self.min_separation_mm <= 1000.0:
+            raise DetectionError(
+                f"min_separation_mm {self.min_separation_mm} is implausible: expected 0 … 1000 mm "
+                "(half the phantom's hole pitch, 7.5 mm for Bai 2018; 0 turns the rule off)"
+            )
         if self.method not in METHODS:
             raise DetectionError(
                 f"unknown detection method {self.method!r}: expected one of {', '.join(METHODS)}"

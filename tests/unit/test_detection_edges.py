@@ -118,6 +118,11 @@ def test_unknown_background_model_is_refused() -> None:
         DetectionParams(background_model="median")
 
 
+def test_negative_min_separation_is_refused() -> None:
+    with pytest.raises(DetectionError, match="min_separation_mm"):
+        DetectionParams(min_separation_mm=-1.0)
+
+
 def _sphere(x_mm: float, n_slices: int, score: float) -> DetectedSphere:
     c = np.array([x_mm, 0.0, 0.0])
     return DetectedSphere(center_image_mm=c, radius_mm=1.3, n_slices=n_slices, score=score, center_voxel=c)
