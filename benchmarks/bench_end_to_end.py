@@ -13,7 +13,8 @@ kinematic sphere centres plus σ = 0.02 mm per axis of robot noise (the arm's FL
 TRE at each of 14 targets 150 mm from the phantom centre (robot frame: ±x, ±y, ±z and the 8
 diagonals) is ``|image_from_robot_est @ t − image_from_robot_true @ t|``.
 
-Run: ``PYTHONPATH=. python -m benchmarks.bench_end_to_end --scans 12 [--preset demo|oarm]``
+Run: ``PYTHONPATH=. python -m benchmarks.bench_end_to_end --scans 12 [--preset demo|oarm|demo-realistic]
+[--phantom wc_rows40 --material tungsten_carbide --scatter-spr 0.3]``
 (≈ 15–25 s per demo-preset scan on one core).
 """
 
@@ -26,6 +27,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,7 +38,7 @@ from benchmarks.common import print_table
 from mocks.oarm.dicom_export import write_dicom_series
 from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, image_from_scanner, simulate_scan
 from registration import frames
-from registration.detection import detect_spheres
+from registration.detection import DetectionParams, detect_spheres
 from registration.dicom import load_series
 from registration.errors import RegistrationError
 from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
@@ -66,7 +68,14 @@ Q_SPREAD_DEG = (30.0, 20.0, 20.0, 30.0, 25.0, 90.0)
 """Uniform ± spread of each joint around :data:`Q_HOME_RAD`: a TX60 holding the phantom out in
 front of it, wrist well away from its limits and from the J5 = 0 singularity."""
 MAX_TILT_DEG = 30.0
-AXIAL_COVERAGE_MM = {"demo": 132 * 0.833, "oarm": 192 * 0.833}
+AXIAL_COVERAGE_MM = {
+    "demo": 132 * 0.833,
+    "oarm": 192 * 0.833,
+    "demo-realistic": 132 * 0.833,
+    "oarm-realistic": 192 * 0.833,
+}
+"""Slab length (mm) per simulator preset; the ``-realistic`` twins add kernel scatter, the 0.8 mm
+PSF and realistic angular sampling (issue #11 hard conditions)."""
 """Axial coverage of each preset; the slice count is derived so a finer spacing covers the same."""
 ORIENTATIONS = ("axial", "axial", "axial-flipped", "axial-rot90", "oblique")
 
@@ -117,7 +126,12 @@ class CaseResult:
 
 
 def make_case(
-    rng: np.random.Generator, index: int, preset: str, model: RobotModel, tool0_from_phantom: F64
+    rng: np.random.Generator,
+    index: int,
+    preset: str,
+    model: RobotModel,
+    tool0_from_phantom: F64,
+    hard: dict[str, Any] | None = None,
 ) -> CaseSpec:
     """Draw one case: joints, hidden pose, acquisition settings, scene extras and export options."""
     spread = np.radians(Q_SPREAD_DEG)
@@ -136,6 +150,7 @@ def make_case(
         photons_per_ray=float(10.0 ** rng.uniform(4.0, 5.0)),
         orientation=orientation,
         seed=int(rng.integers(2**31)),
+        **({} if hard is None or hard.get("scatter_spr") is None else {"scatter_spr": hard["scatter_spr"]}),
     )
     # Phantom pose in the scanner frame: any spin about the scanner axis, a tilt ≤ 30° about a
     # random horizontal axis, centre within a few mm of the isocentre.
@@ -149,7 +164,11 @@ def make_case(
     image_from_phantom = image_from_scanner(orientation) @ scanner_from_phantom
     robot_from_phantom = model.robot_from_tool0(q) @ tool0_from_phantom
     image_from_robot = image_from_phantom @ frames.invert(robot_from_phantom)
-    extras = SceneExtras(rod=bool(rng.random() < 0.4), vertebra=bool(rng.random() < 0.4))
+    extras = SceneExtras(
+        rod=bool(rng.random() < 0.4),
+        vertebra=bool(rng.random() < 0.4),
+        sphere_material=None if hard is None else hard.get("material"),
+    )
     return CaseSpec(
         index=index,
         joints_rad=q,
@@ -180,7 +199,9 @@ def run_case(
     out = work_dir / f"case-{spec.index:02d}"
     write_dicom_series(scan, out, reverse_order=spec.reverse_order, unsigned=spec.unsigned)
     volume = load_series(out)
-    det = detect_spheres(volume).centres_image_mm
+    det = detect_spheres(
+        volume, DetectionParams(sphere_diameter_mm=phantom.sphere_diameter_mm)
+    ).centres_image_mm
     robot_true = sphere_centres_robot_mm(
         model, spec.joints_rad, tool0_from_phantom, phantom.centres_phantom_mm
     )
@@ -318,15 +339,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scans", type=int, default=12, help="number of simulated scans (default 12)")
     ap.add_argument("--preset", choices=sorted(AXIAL_COVERAGE_MM), default="demo")
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--phantom", default="bai2018_cube", help="configs/phantoms/<name>.toml")
+    ap.add_argument("--material", default=None, help="sphere material (default: the phantom's)")
+    ap.add_argument("--scatter-spr", type=float, default=None, help="scatter-to-primary (default: preset's)")
     args = ap.parse_args(argv)
-    phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
+    phantom = load_phantom(REPO / "configs" / "phantoms" / f"{args.phantom}.toml")
+    hard = {"material": args.material, "scatter_spr": args.scatter_spr}
     model = RobotModel.load("tx60")
     rod = default_tool0_from_phantom()
     rng = np.random.default_rng(args.seed)
     results: list[CaseResult] = []
     with tempfile.TemporaryDirectory(prefix="oarmreg-e2e-") as tmp:
         for i in range(args.scans):
-            spec = make_case(rng, i, args.preset, model, rod)
+            spec = make_case(rng, i, args.preset, model, rod, hard)
             r = run_case(spec, phantom, model, rod, Path(tmp), np.random.default_rng([args.seed, i]))
             results.append(r)
             sys.stderr.write(
@@ -336,7 +361,9 @@ def main(argv: list[str] | None = None) -> int:
             )
             sys.stderr.flush()
     print_table(
-        f"End to end, {args.preset} preset, {args.scans} scans (seed {args.seed}), targets "
+        f"End to end, {args.preset} preset, {args.phantom} ({args.material or 'its material'}, SPR "
+        f"{args.scatter_spr if args.scatter_spr is not None else 'preset'}), {args.scans} scans "
+        f"(seed {args.seed}), targets "
         f"{TARGET_DISTANCE_MM:g} mm from the phantom centre, robot FLE σ = {ROBOT_SIGMA_MM} mm/axis",
         CASE_HEADER,
         [_case_row(r) for r in results],

@@ -98,6 +98,11 @@ class ConeBeamSettings:
     orientation: str = "axial"
     roi_centre_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     preset_name: str = "custom-cbct"
+    monochromatic_kev: float | None = None
+    """Validation only: one photon energy (keV) instead of the spectrum, so no beam hardening."""
+    reconstructor: str = "numpy"
+    """``numpy``: :func:`fdk_numpy` (RTK's FDK re-implemented, validated against it, no RTK needed);
+    ``rtk``: RTK's own ``FDKConeBeamReconstructionFilter`` (needs itk-rtk, slow on CPU)."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -109,6 +114,12 @@ class ConeBeamSettings:
             problems.append("lag_fraction must be in [0, 1) and scatter_spr in [0, 2]")
         if self.orientation not in ORIENTATIONS:
             problems.append(f"orientation {self.orientation!r} not one of {sorted(ORIENTATIONS)}")
+        if self.reconstructor not in ("numpy", "rtk"):
+            problems.append(f"reconstructor must be 'numpy' or 'rtk', got {self.reconstructor!r}")
+        if self.reconstructor == "numpy" and abs(self.arc_deg - 360.0) > 1e-9:
+            problems.append("the numpy FDK needs a full 360° orbit (no Parker short-scan weights)")
+        if self.monochromatic_kev is not None and not 30.0 <= self.monochromatic_kev <= 150.0:
+            problems.append(f"monochromatic_kev={self.monochromatic_kev} outside the 30–150 keV tables")
         if problems:
             raise ConfigError("invalid cone-beam settings: " + "; ".join(problems))
 
@@ -177,6 +188,23 @@ class _Ball:
     paths: tuple[tuple[int, float], ...]
 
 
+@dataclass
+class _Box3:
+    centre_rtk_mm: F64
+    axes: F64  # box axes as columns (RTK frame)
+    half_mm: F64
+    paths: tuple[tuple[int, float], ...]
+
+
+@dataclass
+class _Cylinder3:
+    start_rtk_mm: F64
+    axis: F64  # unit
+    length_mm: float
+    radius_mm: float
+    paths: tuple[tuple[int, float], ...]
+
+
 def _sphere_chords(o: F64, d: F64, b: _Ball) -> F64:
     """Chord (mm) of rays o + t·d (d unit, shapes (3,), (..., 3)) through a ball."""
     oc = b.centre_rtk_mm - o
@@ -185,30 +213,70 @@ def _sphere_chords(o: F64, d: F64, b: _Ball) -> F64:
     return np.asarray(2.0 * np.sqrt(np.clip(b.radius_mm**2 - dist2, 0.0, None)))
 
 
-def _box_chords(o: F64, d: F64, centre: F64, axes: F64, half: F64) -> F64:
-    """Chord (mm) of rays o + t·d (d unit) through a box (axes as columns), by the slab method."""
-    ol = (o - centre) @ axes  # (3,)
-    dl = d @ axes  # (..., 3)
+def _box_chords(o: F64, d: F64, box: _Box3) -> F64:
+    """Chord (mm) of rays o + t·d (d unit) through a box, by the slab method."""
+    ol = (o - box.centre_rtk_mm) @ box.axes  # (3,)
+    dl = d @ box.axes  # (..., 3)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / np.where(np.abs(dl) < 1e-12, 1e-12, dl)
-        t1, t2 = (-half - ol) * inv, (half - ol) * inv
+        t1, t2 = (-box.half_mm - ol) * inv, (box.half_mm - ol) * inv
     tmin = np.max(np.minimum(t1, t2), axis=-1)
     tmax = np.min(np.maximum(t1, t2), axis=-1)
     return np.asarray(np.clip(tmax - tmin, 0.0, None))
 
 
+def _cylinder_chords(o: F64, d: F64, cyl: _Cylinder3) -> F64:
+    """Chord (mm) of rays o + t·d (d unit) through a finite solid cylinder (side and end caps)."""
+    w = o - cyl.start_rtk_mm
+    wa = float(w @ cyl.axis)
+    da = d @ cyl.axis
+    w_perp = w - wa * cyl.axis
+    d_perp = d - da[..., None] * cyl.axis
+    a = np.maximum(np.einsum("...i,...i->...", d_perp, d_perp), 1e-18)
+    b = d_perp @ w_perp
+    c = float(w_perp @ w_perp) - cyl.radius_mm**2
+    root = np.sqrt(np.clip(b * b - a * c, 0.0, None))
+    t_in, t_out = (-b - root) / a, (-b + root) / a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / np.where(np.abs(da) < 1e-12, 1e-12, da)
+        s1, s2 = -wa * inv, (cyl.length_mm - wa) * inv
+    lo = np.maximum(t_in, np.minimum(s1, s2))
+    hi = np.minimum(t_out, np.maximum(s1, s2))
+    return np.asarray(np.where(b * b - a * c > 0, np.clip(hi - lo, 0.0, None), 0.0))
+
+
 @dataclass
 class _Scene:
-    box_centre: F64
-    box_axes: F64
-    box_half: F64
-    box_paths: tuple[tuple[int, float], ...]
+    boxes: list[_Box3]
+    cylinders: list[_Cylinder3]
     balls: list[_Ball]
 
+    def corner_points_rtk_mm(self) -> F64:
+        """Points whose projections bound the projections of the boxes and cylinders."""
+        pts = []
+        signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+        for bx in self.boxes:
+            pts.append(bx.centre_rtk_mm + (signs * bx.half_mm) @ bx.axes.T)
+        for cy in self.cylinders:
+            end = cy.start_rtk_mm + cy.axis * cy.length_mm
+            for e in (cy.start_rtk_mm, end):
+                pts.append(e + signs * cy.radius_mm)  # the caps' bounding cubes
+        return np.concatenate(pts) if pts else np.zeros((0, 3))
 
-def _build(phantom: Phantom, rtk_from_phantom: F64, extras: SceneExtras) -> _Scene:
+
+def _build(phantom: Phantom, rtk_from_phantom: F64, extras: SceneExtras, rtk_from_image: F64) -> _Scene:
+    """The cube, its spheres and empty holes, and the optional rod and vertebra, in the RTK frame.
+
+    As in :func:`mocks.oarm.simulator._build_scene`: the rod (steel) leaves the cube's +z face along
+    the phantom's z axis; the vertebra is a cortical box with a cancellous core, offset in the image
+    frame.  The water body is not modelled here (its 600 mm axial extent would need the long-object
+    problem's extra rows).
+    """
+    if extras.body:
+        raise ConfigError("the cone-beam simulator does not model the water body (SceneExtras.body)")
     slot = {m: i for i, m in enumerate(physics.SCENE_MATERIALS)}
-    pl, sp = slot["plastic"], slot["sphere"]
+    pl, sp, st = slot["plastic"], slot["sphere"], slot["steel"]
+    r = rtk_from_phantom[:3, :3]
     metal = extras.material_for(phantom) != "plastic"
     actual = extras.actual_centres_phantom_mm(phantom)
     balls: list[_Ball] = []
@@ -221,13 +289,28 @@ def _build(phantom: Phantom, rtk_from_phantom: F64, extras: SceneExtras) -> _Sce
             n_filled += 1
         elif extras.empty_holes:
             balls.append(_Ball(frames.apply(rtk_from_phantom, c), phantom.sphere_radius_mm, ((pl, -1.0),)))
-    return _Scene(
-        rtk_from_phantom[:3, 3].copy(),
-        rtk_from_phantom[:3, :3].copy(),
-        phantom.size_mm / 2.0,
-        ((pl, 1.0),),
-        balls,
-    )
+    boxes = [_Box3(rtk_from_phantom[:3, 3].copy(), r.copy(), phantom.size_mm / 2.0, ((pl, 1.0),))]
+    cylinders = []
+    if extras.rod:
+        start = frames.apply(rtk_from_phantom, np.array([0.0, 0.0, phantom.size_mm[2] / 2.0]))
+        cylinders.append(
+            _Cylinder3(
+                start, r[:, 2].copy(), extras.rod_length_mm, extras.rod_diameter_mm / 2.0, ((st, 1.0),)
+            )
+        )
+    if extras.vertebra:
+        image_from_phantom = frames.invert(rtk_from_image) @ rtk_from_phantom
+        centre = frames.apply(
+            rtk_from_image, image_from_phantom[:3, 3] + np.asarray(extras.vertebra_offset_image_mm)
+        )
+        rot = rtk_from_image[:3, :3].copy()
+        half = np.asarray(extras.vertebra_size_mm, dtype=np.float64) / 2.0
+        cb, cc = slot["bone_cortical"], slot["bone_cancellous"]
+        boxes.append(_Box3(centre, rot, half, ((cb, 1.0),)))
+        inner = half - extras.cortical_shell_mm
+        if np.all(inner > 0):
+            boxes.append(_Box3(centre, rot, inner, ((cc, 1.0), (cb, -1.0))))
+    return _Scene(boxes, cylinders, balls)
 
 
 def _rays(s: ConeBeamSettings, theta: float, u_mm: F64, v_mm: F64) -> tuple[F64, F64]:
@@ -239,51 +322,77 @@ def _rays(s: ConeBeamSettings, theta: float, u_mm: F64, v_mm: F64) -> tuple[F64,
     return src, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
+def _add_extended(paths: F32, scene: _Scene, src: F64, d: F64) -> None:
+    """Add the boxes' and cylinders' signed chords to ``paths`` (n_slots, ...)."""
+    for bx in scene.boxes:
+        chord = _box_chords(src, d, bx).astype(np.float32)
+        for slot, sign in bx.paths:
+            paths[slot] += np.float32(sign) * chord
+    for cy in scene.cylinders:
+        chord = _cylinder_chords(src, d, cy).astype(np.float32)
+        for slot, sign in cy.paths:
+            paths[slot] += np.float32(sign) * chord
+
+
+def _pixel_window(s: ConeBeamSettings, theta: float, pts: F64, margin_mm: float) -> tuple[int, int, int, int]:
+    """Detector columns [c0, e0) and rows [c1, e1) covering the projections of ``pts`` ± margin."""
+    h = np.c_[pts, np.ones(len(pts))] @ projection_matrix(s, theta).T
+    u, v = h[:, 0] / h[:, 2], h[:, 1] / h[:, 2]
+    p = s.det_pitch_mm
+    c0 = max(0, math.floor((u.min() - margin_mm) / p + (s.det_cols - 1) / 2))
+    c1 = max(0, math.floor((v.min() - margin_mm) / p + (s.det_rows - 1) / 2))
+    e0 = min(s.det_cols, math.ceil((u.max() + margin_mm) / p + (s.det_cols - 1) / 2) + 1)
+    e1 = min(s.det_rows, math.ceil((v.max() + margin_mm) / p + (s.det_rows - 1) / 2) + 1)
+    return c0, e0, c1, e1
+
+
 def project_view(
     s: ConeBeamSettings, scene: _Scene, theta: float, mu: F32, weights: F64, n_slots: int
 ) -> F32:
-    """Noise-free transmitted intensity (det_rows, det_cols) of one view (sub-ray averaged near balls)."""
+    """Noise-free transmitted intensity (det_rows, det_cols) of one view (sub-ray averaged near balls).
+
+    Only the pixels inside the projected bounding box of the extended objects are traced (the rest
+    see air and transmit 1); around each ball (its projected disc plus 1.5 pixels) ``subrays`` ×
+    ``subrays`` rays per pixel go through every object.
+    """
     from mocks.oarm.simulator import polychromatic_transmission
 
     p = s.det_pitch_mm
     u = (np.arange(s.det_cols) - (s.det_cols - 1) / 2.0) * p
     v = (np.arange(s.det_rows) - (s.det_rows - 1) / 2.0) * p
-    uu, vv = np.meshgrid(u, v)
-    src, d = _rays(s, theta, uu, vv)
-    paths = np.zeros((n_slots, s.det_rows, s.det_cols), np.float32)
-    for slot, sign in scene.box_paths:
-        paths[slot] += sign * _box_chords(src, d, scene.box_centre, scene.box_axes, scene.box_half)
-    trans = polychromatic_transmission(paths, mu, weights)
-    pm = projection_matrix(s, theta)
+    trans = np.ones((s.det_rows, s.det_cols), np.float32)
+    corners = scene.corner_points_rtk_mm()
+    if len(corners):
+        c0, e0, c1, e1 = _pixel_window(s, theta, corners, p)
+        if e0 > c0 and e1 > c1:
+            uu, vv = np.meshgrid(u[c0:e0], v[c1:e1])
+            src, d = _rays(s, theta, uu, vv)
+            paths = np.zeros((n_slots, *uu.shape), np.float32)
+            _add_extended(paths, scene, src, d)
+            trans[c1:e1, c0:e0] = polychromatic_transmission(paths, mu, weights)
     ns = s.subrays
     offs = ((np.arange(ns) + 0.5) / ns - 0.5) * p
     for b in scene.balls:
-        h = pm @ np.append(b.centre_rtk_mm, 1.0)
-        uc, vc = h[0] / h[2], h[1] / h[2]
+        h = projection_matrix(s, theta) @ np.append(b.centre_rtk_mm, 1.0)
         rad = b.radius_mm * s.sdd_mm / max(abs(h[2]) - b.radius_mm, 1.0) + 1.5 * p
-        c0, c1 = (
-            max(0, math.floor((x - rad) / p + (n - 1) / 2)) for x, n in ((uc, s.det_cols), (vc, s.det_rows))
-        )
-        e0 = min(s.det_cols, math.ceil((uc + rad) / p + (s.det_cols - 1) / 2) + 1)
-        e1 = min(s.det_rows, math.ceil((vc + rad) / p + (s.det_rows - 1) / 2) + 1)
+        c0, e0, c1, e1 = _pixel_window(s, theta, b.centre_rtk_mm[None], rad)
         if e0 <= c0 or e1 <= c1:
             continue
         # Sub-rays across each pixel of the window, through every object near it.
-        su = (u[c0:e0, None] + offs[None, :]).ravel()
-        sv = (v[c1:e1, None] + offs[None, :]).ravel()
-        suu, svv = np.meshgrid(su, sv)
-        _, sd = _rays(s, theta, suu, svv)
+        suu, svv = np.meshgrid(
+            (u[c0:e0, None] + offs[None, :]).ravel(), (v[c1:e1, None] + offs[None, :]).ravel()
+        )
+        src, sd = _rays(s, theta, suu, svv)
         sp = np.zeros((n_slots, *suu.shape), np.float32)
-        for slot, sign in scene.box_paths:
-            sp[slot] += sign * _box_chords(src, sd, scene.box_centre, scene.box_axes, scene.box_half)
+        _add_extended(sp, scene, src, sd)
         for other in scene.balls:
             if (
                 np.linalg.norm(other.centre_rtk_mm - b.centre_rtk_mm)
                 < 2 * rad / s.magnification + 2 * other.radius_mm
             ):
-                chord = _sphere_chords(src, sd, other)
+                chord = _sphere_chords(src, sd, other).astype(np.float32)
                 for slot, sign in other.paths:
-                    sp[slot] += np.float32(sign) * chord.astype(np.float32)
+                    sp[slot] += np.float32(sign) * chord
         st = polychromatic_transmission(sp, mu, weights)
         trans[c1:e1, c0:e0] = st.reshape(e1 - c1, ns, e0 - c0, ns).mean(axis=(1, 3))
     return trans
@@ -354,6 +463,170 @@ def fdk_rtk(
     return np.asarray(itk.array_from_image(fdk.GetOutput()), dtype=np.float32)
 
 
+# --- FDK (Feldkamp, Davis, Kress 1984) with RTK's conventions, in numpy + OpenCV -----------------
+
+BP_SLICE_CHUNK = 16
+"""Slices back-projected per OpenCV remap call (bounded by remap's 32767-row map limit)."""
+
+
+def ramp_kernel_fft(n_cols: int, pitch_mm: float) -> tuple[NDArray[np.complex128], int]:
+    """FFT of RTK's spatial ramp kernel (Kak & Slaney eq. 3.61; ``FFTRampImageFilter``, no window).
+
+    h(0) = 1/(4Δ), h(n odd) = −1/(n²π²Δ), h(n even ≠ 0) = 0 (Δ = detector pitch, the spacing not
+    squared as RTK does: the convolution is a plain sum), on a zero-padded length of the next power
+    of two ≥ 2·n_cols so the circular convolution equals the linear one over the panel.
+    """
+    n_pad = 1 << (2 * n_cols - 1).bit_length()
+    h = np.zeros(n_pad)
+    h[0] = 1.0 / (4.0 * pitch_mm)
+    odd = np.arange(1, n_pad // 2, 2)
+    h[odd] = -1.0 / (odd * math.pi) ** 2 / pitch_mm
+    h[n_pad - odd] = h[odd]
+    return np.fft.rfft(h), n_pad
+
+
+def filter_projections(line_integrals: F32, s: ConeBeamSettings) -> F32:
+    """FDK pre-weighting and ramp filtering of (V, rows, cols) line integrals, in place.
+
+    RTK's ``FDKWeightProjectionFilter``: p · cos γ · Δθ · SDD / (2 SID) with cos γ = SDD /
+    √(SDD² + u² + v²) and Δθ the angular gap (2π/V on a full, uniform orbit; Rit & Clackdoyle,
+    CT meeting 2014, for the SDD / SID factor); then the ramp of :func:`ramp_kernel_fft` along u.
+    """
+    from scipy import fft as sfft
+
+    p = s.det_pitch_mm
+    u = (np.arange(s.det_cols) - (s.det_cols - 1) / 2.0) * p
+    v = (np.arange(s.det_rows) - (s.det_rows - 1) / 2.0) * p
+    cos_g = s.sdd_mm / np.sqrt(s.sdd_mm**2 + u[None, :] ** 2 + v[:, None] ** 2)
+    gap = 2.0 * math.pi / s.n_views
+    weight = (cos_g * gap * s.sdd_mm / (2.0 * s.sid_mm)).astype(np.float32)
+    kernel, n_pad = ramp_kernel_fft(s.det_cols, p)
+    for i in range(line_integrals.shape[0]):
+        spec = sfft.rfft(line_integrals[i] * weight, n=n_pad, axis=-1, workers=-1)
+        spec *= kernel[None, :]
+        line_integrals[i] = sfft.irfft(spec, n=n_pad, axis=-1, workers=-1)[:, : s.det_cols]
+    return line_integrals
+
+
+def fov_radius_rtk_mm(s: ConeBeamSettings) -> float:
+    """Radius (mm) of the cylinder about the orbit axis that every view's panel sees in u."""
+    half_u = (s.det_cols - 1) / 2.0 * s.det_pitch_mm
+    return s.sid_mm * math.sin(math.atan2(half_u, s.sdd_mm))
+
+
+def backproject(
+    filtered: F32,
+    s: ConeBeamSettings,
+    xz_rtk_mm: F64,
+    y_rtk_mm: F64,
+) -> F32:
+    """Voxel-driven FDK back-projection (RTK's ``FDKBackProjectionImageFilter``): (n_y, n_xz).
+
+    Each voxel (x, y, z) takes, from each filtered view, the bilinear value at its projection under
+    :func:`projection_matrix`, weighted by (SID / (SID − z_rot))² (RTK normalises the matrix so the
+    weight is 1 at the isocentre).  On a circular orbit about y the column u and the weight depend
+    on (x, z) only and the row is v = y · SDD / (SID − z_rot), so u and the weight are computed once
+    per view and column; OpenCV's ``remap`` (exact float bilinear) does the gathers in chunks of
+    :data:`BP_SLICE_CHUNK` slices.  Samples outside the panel contribute 0.
+    """
+    import cv2
+
+    p = s.det_pitch_mm
+    u0 = -(s.det_cols - 1) / 2.0 * p
+    v0 = -(s.det_rows - 1) / 2.0 * p
+    n = xz_rtk_mm.shape[0]
+    width = 512
+    m_rows = -(-n // width)
+    pad = m_rows * width - n
+    x = np.pad(xz_rtk_mm[:, 0], (0, pad))
+    z = np.pad(xz_rtk_mm[:, 1], (0, pad))
+    out = np.zeros((len(y_rtk_mm), m_rows * width), np.float32)
+    y32 = np.asarray(y_rtk_mm, np.float32)
+    for i in range(s.n_views):
+        theta = math.radians(i * s.arc_deg / s.n_views)
+        c, sn = math.cos(theta), math.sin(theta)
+        depth = s.sid_mm - (sn * x + c * z)
+        mag = s.sdd_mm / depth
+        map_u = (((c * x - sn * z) * mag - u0) / p).astype(np.float32).reshape(m_rows, width)
+        vscale = (mag / p).astype(np.float32)
+        weight = ((s.sid_mm / depth) ** 2).astype(np.float32)
+        view = np.ascontiguousarray(filtered[i])
+        for k0 in range(0, len(y32), BP_SLICE_CHUNK):
+            yk = y32[k0 : k0 + BP_SLICE_CHUNK]
+            map_v = np.multiply.outer(yk, vscale)
+            map_v -= np.float32(v0 / p)
+            samples = np.asarray(
+                cv2.remap(
+                    view,
+                    np.tile(map_u, (len(yk), 1)),
+                    map_v.reshape(len(yk) * m_rows, width),
+                    cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0.0,
+                ),
+                dtype=np.float32,
+            ).reshape(len(yk), -1)
+            samples *= weight
+            out[k0 : k0 + len(yk)] += samples
+    return out[:, :n]
+
+
+def _fov_mask(
+    s: ConeBeamSettings,
+    voxel_origin_rtk_mm: F64,
+    shape_xyz: tuple[int, int, int] | None = None,
+    spacing_xyz_mm: tuple[float, float, float] | None = None,
+) -> tuple[F64, F64, F64, NDArray[np.bool_]]:
+    """Grid x, z ([z, x]) and y coordinates (RTK frame, mm) and the [z, x] mask outside the FOV."""
+    nx, ny, nz = shape_xyz or (s.columns, s.n_slices, s.rows)
+    sx, sy, sz = spacing_xyz_mm or (s.pixel_mm, s.slice_spacing_mm, s.pixel_mm)
+    xs = voxel_origin_rtk_mm[0] + np.arange(nx) * sx
+    ys = voxel_origin_rtk_mm[1] + np.arange(ny) * sy
+    zs = voxel_origin_rtk_mm[2] + np.arange(nz) * sz
+    zz, xx = np.meshgrid(zs, xs, indexing="ij")
+    return xx, zz, ys, np.hypot(xx, zz) > fov_radius_rtk_mm(s)
+
+
+def fdk_numpy(
+    line_integrals: F32,
+    s: ConeBeamSettings,
+    voxel_origin_rtk_mm: F64,
+    shape_xyz: tuple[int, int, int],
+    spacing_xyz_mm: tuple[float, float, float],
+) -> F32:
+    """FDK as :func:`fdk_rtk` (same grid arguments, array [z, y, x] in 1/mm) without RTK.
+
+    ``line_integrals`` is filtered in place (:func:`filter_projections`), then
+    :func:`backproject_grid`.
+    """
+    if abs(s.arc_deg - 360.0) > 1e-9:
+        raise ConfigError("fdk_numpy handles full 360° orbits only (no Parker short-scan weights)")
+    return backproject_grid(
+        filter_projections(line_integrals, s), s, voxel_origin_rtk_mm, shape_xyz, spacing_xyz_mm
+    )
+
+
+def backproject_grid(
+    filtered: F32,
+    s: ConeBeamSettings,
+    voxel_origin_rtk_mm: F64,
+    shape_xyz: tuple[int, int, int],
+    spacing_xyz_mm: tuple[float, float, float],
+) -> F32:
+    """Back-project filtered views onto an RTK-frame grid ([z, y, x], 1/mm).
+
+    Only voxels inside the cylinder every view sees (:func:`fov_radius_rtk_mm`) are reconstructed;
+    the others are returned as 0 (air).  One set of filtered views serves any number of grids.
+    """
+    xx, zz, ys, outside = _fov_mask(s, voxel_origin_rtk_mm, shape_xyz, spacing_xyz_mm)
+    keep = ~outside
+    vol = np.zeros((zz.shape[0], len(ys), zz.shape[1]), np.float32)
+    if np.any(keep):
+        vals = backproject(filtered, s, np.stack([xx[keep], zz[keep]], axis=1), ys)
+        vol.transpose(0, 2, 1)[keep] = vals.T
+    return vol
+
+
 def fully_imaged(
     centres_rtk_mm: F64, radius_mm: float, s: ConeBeamSettings, grid_half_rtk_mm: F64, grid_centre_rtk_mm: F64
 ) -> NDArray[np.bool_]:
@@ -371,59 +644,17 @@ def fully_imaged(
     return np.asarray(inside, dtype=bool)
 
 
-def simulate_cbct(
-    phantom: Phantom,
-    image_from_phantom: NDArray[Any],
-    settings: ConeBeamSettings,
-    extras: SceneExtras | None = None,
-) -> SimulatedScan:
-    """Cone-beam scan of ``phantom`` at ``image_from_phantom``, reconstructed by RTK's FDK.
+def _spectrum(s: ConeBeamSettings) -> physics.Spectrum:
+    """The polychromatic spectrum, or one line at ``monochromatic_kev`` (validation: no hardening)."""
+    if s.monochromatic_kev is not None:
+        return physics.Spectrum(np.array([float(s.monochromatic_kev)]), np.array([1.0]))
+    return physics.kramers_spectrum(s.kvp, s.filter_al_mm, s.energy_bin_edges_kev)
 
-    Returns a :class:`~mocks.oarm.simulator.SimulatedScan` (``settings`` is the
-    :class:`ConeBeamSettings`); its truth lists the spheres fully inside the grid and imaged by
-    untruncated rays in every view.
-    """
-    t_start = time.perf_counter()
-    s = settings
-    extras = SceneExtras() if extras is None else extras
-    image_from_phantom = frames.as_transform(image_from_phantom, "image_from_phantom")
-    scanner_from_image = frames.invert(image_from_scanner(s.orientation))
-    rtk_from_phantom = RTK_FROM_SCANNER @ scanner_from_image @ image_from_phantom
-    material = extras.material_for(phantom)
-    spectrum = physics.kramers_spectrum(s.kvp, s.filter_al_mm, s.energy_bin_edges_kev)
-    mu = physics.attenuation_matrix_per_mm(
-        spectrum, extras.plastic, "steel" if material == "plastic" else material
-    )
-    wcorr = physics.water_correction(spectrum)
-    scene = _build(phantom, rtk_from_phantom, extras)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    views = np.empty((s.n_views, s.det_rows, s.det_cols), np.float32)
-    for i in range(s.n_views):
-        theta = math.radians(i * s.arc_deg / s.n_views)
-        views[i] = project_view(s, scene, theta, mu, spectrum.weights, len(physics.SCENE_MATERIALS))
-    timings["project_s"] = time.perf_counter() - t0
-    views = _detect_views(views, s, wcorr)
-    t0 = time.perf_counter()
+
+def _grid_rtk(s: ConeBeamSettings) -> tuple[F64, F64, F64]:
+    """RTK-frame voxel origin, half extent (centre to outer voxel centres) and centre of the grid."""
     roi = np.asarray(s.roi_centre_mm, dtype=np.float64)
-    origin = np.array(
-        [
-            roi[0] - (s.columns - 1) / 2.0 * s.pixel_mm,
-            roi[2] - (s.n_slices - 1) / 2.0 * s.slice_spacing_mm,
-            -roi[1] - (s.rows - 1) / 2.0 * s.pixel_mm,
-        ]
-    )
-    arr = fdk_rtk(
-        views, s, origin, (s.columns, s.n_slices, s.rows), (s.pixel_mm, s.slice_spacing_mm, s.pixel_mm)
-    )
-    del views
-    timings["fdk_s"] = time.perf_counter() - t0
-    mu_vol = np.ascontiguousarray(arr.transpose(1, 0, 2)[:, ::-1, :])  # [z_r, y_r, x_r] → [k, j, i]
-    hu = (mu_vol / np.float32(wcorr.mu_ref_per_mm) - 1.0) * 1000.0
-    np.clip(hu, HU_MIN, HU_MAX, out=hu)
-    centres_img = frames.apply(image_from_phantom, extras.actual_centres_phantom_mm(phantom))
-    nominal_img = frames.apply(image_from_phantom, phantom.centres_phantom_mm)
-    centres_rtk = frames.apply(RTK_FROM_SCANNER @ scanner_from_image, centres_img)
+    centre = np.array([roi[0], roi[2], -roi[1]])
     half = np.array(
         [
             (s.columns - 1) / 2.0 * s.pixel_mm,
@@ -431,13 +662,77 @@ def simulate_cbct(
             (s.rows - 1) / 2.0 * s.pixel_mm,
         ]
     )
-    grid_centre = np.array([roi[0], roi[2], -roi[1]])
+    return centre - half, half, centre
+
+
+def project_scan(
+    phantom: Phantom,
+    rtk_from_phantom: F64,
+    s: ConeBeamSettings,
+    extras: SceneExtras,
+    rtk_from_image: F64,
+) -> tuple[F32, physics.WaterCorrection, dict[str, float]]:
+    """All views, detected and water-linearised: line integrals (V, rows, cols), the correction
+    (its ``mu_ref_per_mm`` converts μ to HU) and the timings."""
+    material = extras.material_for(phantom)
+    spectrum = _spectrum(s)
+    mu = physics.attenuation_matrix_per_mm(
+        spectrum, extras.plastic, "steel" if material == "plastic" else material
+    )
+    wcorr = physics.water_correction(spectrum)
+    scene = _build(phantom, rtk_from_phantom, extras, rtk_from_image)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    views = np.empty((s.n_views, s.det_rows, s.det_cols), np.float32)
+    for i in range(s.n_views):
+        theta = math.radians(i * s.arc_deg / s.n_views)
+        views[i] = project_view(s, scene, theta, mu, spectrum.weights, len(physics.SCENE_MATERIALS))
+    timings["project_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    views = _detect_views(views, s, wcorr)
+    timings["detect_s"] = time.perf_counter() - t0
+    return views, wcorr, timings
+
+
+def simulate_cbct_mu(
+    phantom: Phantom,
+    image_from_phantom: NDArray[Any],
+    settings: ConeBeamSettings,
+    extras: SceneExtras | None = None,
+) -> tuple[F32, SimulatedScan]:
+    """Cone-beam scan, FDK-reconstructed: the unclipped float HU volume [k, j, i] and the scan.
+
+    The scan's ``hu`` is the same volume rounded and clipped to [−1024, 3071] as a scanner stores
+    it; the float volume serves validation (no saturation of the metal).  Voxels outside the
+    cylinder every view sees are air (−1024 HU), as the slice-wise simulator fills its FOV.
+    """
+    t_start = time.perf_counter()
+    s = settings
+    extras = SceneExtras() if extras is None else extras
+    image_from_phantom = frames.as_transform(image_from_phantom, "image_from_phantom")
+    rtk_from_image = RTK_FROM_SCANNER @ frames.invert(image_from_scanner(s.orientation))
+    rtk_from_phantom = rtk_from_image @ image_from_phantom
+    material = extras.material_for(phantom)
+    views, wcorr, timings = project_scan(phantom, rtk_from_phantom, s, extras, rtk_from_image)
+    t0 = time.perf_counter()
+    origin, half, grid_centre = _grid_rtk(s)
+    grid = ((s.columns, s.n_slices, s.rows), (s.pixel_mm, s.slice_spacing_mm, s.pixel_mm))
+    fdk = fdk_rtk if s.reconstructor == "rtk" else fdk_numpy
+    arr = fdk(views, s, origin, *grid)
+    del views
+    timings["fdk_s"] = time.perf_counter() - t0
+    mu_vol = np.ascontiguousarray(arr.transpose(1, 0, 2)[:, ::-1, :])  # [z_r, y_r, x_r] → [k, j, i]
+    hu = (mu_vol / np.float32(wcorr.mu_ref_per_mm) - 1.0) * 1000.0
+    hu[:, _fov_mask(s, origin)[3][::-1, :]] = HU_MIN
+    centres_img = frames.apply(image_from_phantom, extras.actual_centres_phantom_mm(phantom))
+    nominal_img = frames.apply(image_from_phantom, phantom.centres_phantom_mm)
+    centres_rtk = frames.apply(rtk_from_image, centres_img)
     full = fully_imaged(centres_rtk, phantom.sphere_radius_mm, s, half, grid_centre)
     touches = np.all(np.abs(centres_rtk - grid_centre) - phantom.sphere_radius_mm < half, axis=1)
     idx = np.flatnonzero(full).astype(np.int64)
     timings["total_s"] = time.perf_counter() - t_start
-    return SimulatedScan(
-        hu=np.rint(hu).astype(np.int16),
+    scan = SimulatedScan(
+        hu=np.rint(np.clip(hu, HU_MIN, HU_MAX)).astype(np.int16),
         image_from_voxel=s.image_from_voxel(),
         image_from_phantom=image_from_phantom,
         spheres_image_mm=centres_img[idx],
@@ -452,3 +747,19 @@ def simulate_cbct(
         sphere_material=material,
         n_phantom_spheres=phantom.n_spheres,
     )
+    return hu, scan
+
+
+def simulate_cbct(
+    phantom: Phantom,
+    image_from_phantom: NDArray[Any],
+    settings: ConeBeamSettings,
+    extras: SceneExtras | None = None,
+) -> SimulatedScan:
+    """Cone-beam scan of ``phantom`` at ``image_from_phantom``, FDK-reconstructed.
+
+    Returns a :class:`~mocks.oarm.simulator.SimulatedScan` (``settings`` is the
+    :class:`ConeBeamSettings`); its truth lists the spheres fully inside the grid and imaged by
+    untruncated rays in every view.  See :func:`simulate_cbct_mu` for the unclipped volume.
+    """
+    return simulate_cbct_mu(phantom, image_from_phantom, settings, extras)[1]

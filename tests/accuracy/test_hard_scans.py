@@ -5,12 +5,17 @@ O-arm pixels (0.415 × 0.833 mm) on a 256 × 256 matrix with the ``small-realist
 
 * ``wc_rows40``: 40 tungsten-carbide spheres, neighbours in rows, SPR 0.3.  Before the blob split
   29 of 40 were rejected as "elongated or oversized metal" (streak tails) and registration refused.
-  Tolerances: every fully imaged sphere found, nothing else; mean ≤ 0.08 mm, max ≤ 0.35 mm (this
-  scan measured 0.066 / 0.31 mm; the issue's 0.05 / 0.15 mm target is not met yet, see the sweep
-  in benchmarks/bench_detection.py); registration answers with no wrong match.
+  Every fully imaged sphere found, nothing else, registration answers and is not wrong (design.md
+  §8: every sphere on its own hole, TRE ≤ 5 × predicted).  The issue's FLE target for WC under
+  strong scatter (mean ≤ 0.05, max ≤ 0.15 mm) is a strict xfail: this scan measures 0.063 / 0.318
+  mm (streak bands along the rows of neighbours shift the reconstructed spheres; see the sweep in
+  benchmarks/bench_detection.py).
 * partial FOV: ``bai2018_cube`` shifted 40 mm off axis, 60 slices (11 of 28 spheres fully imaged).
   Before the image-side base triples, correspondence matched 0 and refused.  Every imaged sphere
-  found and matched to its own hole.
+  found and matched to its own hole; steel FLE max ≤ 0.12 mm (issue target).
+* partial FOV, tungsten carbide: ``wc_rows40`` 45 mm off axis, 50 slices, SPR 0.3.  Before the
+  symmetric edge re-measurement, spheres cut by the FOV circle were reported (2 false positives
+  on each of 2 sweep scans).  Every imaged sphere found, nothing else; WC FLE target.
 """
 
 from __future__ import annotations
@@ -57,19 +62,54 @@ def _correct(phantom, scan, result, reg) -> bool:  # type: ignore[no-untyped-def
     )
 
 
-def test_tungsten_carbide_strong_scatter_neighbouring_spheres() -> None:
+WC_MEAN_MM, WC_MAX_MM = 0.05, 0.15
+"""Issue #11 Done-when: FLE mean / max for tungsten carbide with strong scatter."""
+STEEL_MAX_MM = 0.12
+"""Issue #11 Done-when: FLE max for steel."""
+WRONG_TRE_FACTOR = 5.0
+"""design.md §8: wrong if the error at a target exceeds this many times its predicted TRE."""
+TARGETS_PHANTOM_MM = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0]])
+
+
+@pytest.fixture(scope="module")
+def wc_scan():  # type: ignore[no-untyped-def]
     phantom, scan = _scan("wc_rows40.toml", (2, -3, 1, 5, -4, 30), scatter_spr=0.3)
-    assert len(scan.spheres_image_mm) == 40
     result = detect_spheres(
         sim.scan_to_volume(scan), DetectionParams(sphere_diameter_mm=phantom.sphere_diameter_mm)
     )
-    err, misses, false_pos = _match(result, scan.spheres_image_mm)
+    return phantom, scan, result
+
+
+def test_tungsten_carbide_strong_scatter_neighbouring_spheres(wc_scan) -> None:  # type: ignore[no-untyped-def]
+    phantom, scan, result = wc_scan
+    assert len(scan.spheres_image_mm) == 40
+    _, misses, false_pos = _match(result, scan.spheres_image_mm)
     assert misses == 0, [r.reason for r in result.rejections]
     assert false_pos == 0
-    assert err.mean() <= 0.08 and err.max() <= 0.35, err
-    reg = register_points(phantom.centres_phantom_mm, result.centres_image_mm, phantom=phantom)
+    reg = register_points(
+        phantom.centres_phantom_mm,
+        result.centres_image_mm,
+        phantom=phantom,
+        targets_robot_mm=TARGETS_PHANTOM_MM,
+    )
     assert _correct(phantom, scan, result, reg)
     assert reg.n_matched >= 38
+    tre = np.linalg.norm(
+        frames.apply(reg.image_from_robot, TARGETS_PHANTOM_MM)
+        - frames.apply(scan.image_from_phantom, TARGETS_PHANTOM_MM),
+        axis=1,
+    )
+    assert np.all(tre <= WRONG_TRE_FACTOR * reg.predicted_tre_mm), (tre, reg.predicted_tre_mm)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue #11 WC FLE target not met: this scan measures mean 0.063 / max 0.318 mm (streak bands)",
+)
+def test_tungsten_carbide_strong_scatter_meets_the_fle_target(wc_scan) -> None:  # type: ignore[no-untyped-def]
+    _, scan, result = wc_scan
+    err, _, _ = _match(result, scan.spheres_image_mm)
+    assert err.mean() <= WC_MEAN_MM and err.max() <= WC_MAX_MM, err
 
 
 def test_partial_fov_answered_on_the_imaged_subset() -> None:
@@ -79,7 +119,19 @@ def test_partial_fov_answered_on_the_imaged_subset() -> None:
     result = detect_spheres(sim.scan_to_volume(scan))
     err, misses, false_pos = _match(result, truth)
     assert misses == 0 and false_pos == 0
-    assert err.max() <= 0.15, err
+    assert err.max() <= STEEL_MAX_MM, err
     reg = register_points(phantom.centres_phantom_mm, result.centres_image_mm, phantom=phantom)
     assert reg.n_matched == len(truth)
     assert _correct(phantom, scan, result, reg)
+
+
+def test_tungsten_carbide_partial_fov_reports_only_whole_spheres() -> None:
+    phantom, scan = _scan("wc_rows40.toml", (45, -3, 1, 5, -4, 30), n_slices=50, scatter_spr=0.3)
+    truth = scan.spheres_image_mm
+    assert 6 <= len(truth) < phantom.n_spheres
+    result = detect_spheres(
+        sim.scan_to_volume(scan), DetectionParams(sphere_diameter_mm=phantom.sphere_diameter_mm)
+    )
+    err, misses, false_pos = _match(result, truth)
+    assert misses == 0 and false_pos == 0, [r.reason for r in result.rejections if "cut" in r.reason]
+    assert err.mean() <= WC_MEAN_MM and err.max() <= WC_MAX_MM, err

@@ -196,9 +196,10 @@ def test_orientation_variants_give_the_same_lps_centres() -> None:
 
 
 def test_grouping_keeps_neighbouring_spheres_apart() -> None:
-    """Two spheres 6 mm apart (closer than the 15 mm pitch) stay two detections."""
+    """Two spheres 6 mm apart (closer than the 15 mm pitch) stay two detections when the phantom
+    allows spheres that close (``min_separation_mm`` below 6 mm; its default is half the pitch)."""
     truth = np.array([[40.2, 48.3, 20.2], [40.2 + 6.0 / 0.415, 48.1, 20.6]])
-    result = detect_spheres(make_volume(truth))
+    result = detect_spheres(make_volume(truth), DetectionParams(min_separation_mm=5.0))
     assert len(result.spheres) == 2
     _errors_mm(result, truth)
 
