@@ -29,6 +29,7 @@ from service.capture import Capture
 from service.context import ServiceContext
 from service.event_bus import EventBus
 from service.intake import Intake
+from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
 from service.settings import Settings
 from service.store import Database
@@ -127,8 +128,9 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     ctx.bus.bind(asyncio.get_running_loop())
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ctx.db = Database.open(settings.db_path)
+    or_int = ctx.or_integration = OrIntegration(ctx)
     ctx.orchestrator = Orchestrator(
-        settings, ctx.db, ctx.phantom, ctx.robot_model, ctx.bus.publish, volumes=ctx.volumes
+        settings, ctx.db, ctx.phantom, ctx.robot_model, or_int.publish, volumes=ctx.volumes
     )
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
@@ -136,13 +138,14 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         w = settings.watcher
         ctx.watcher = SeriesWatcher(
             settings.watch_dir,
-            on_series=Intake(ctx.db, ctx.capture, ctx.volumes, ctx.bus.publish),
+            on_series=or_int.folder_intake(Intake(ctx.db, ctx.capture, ctx.volumes, or_int.publish)),
             is_known=ctx.db.scans.has_complete,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,
         )
         ctx.watcher.start()
+    await or_int.start()  # DICOM C-STORE SCP and OpenIGTLink server, when enabled
     log.info(
         "oarmreg %s serving: watch %s, data %s, robot %s (%s), auth %s",
         __version__, settings.watch_dir, settings.data_dir, settings.robot.link_url, settings.robot.model,
@@ -152,6 +155,8 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
 
 async def _stop(ctx: ServiceContext) -> None:
     ctx.bus.close()
+    if ctx.or_integration is not None:
+        await ctx.or_integration.stop()
     if ctx.watcher is not None:
         await asyncio.to_thread(ctx.watcher.stop)
     await ctx.capture.stop()
@@ -209,10 +214,12 @@ class CurrentRegistrationFastPath:
 
 
 def _install_routes(app: FastAPI) -> None:
-    from service.api import events, health, problems, registrations, scans, status, verifications
+    from service.api import events, health, problems, registrations, scans, sro, status, verifications
     from service.api.deps import AuthDep
 
     problems.install(app)
     app.include_router(health.router)
-    for r in (status.router, scans.router, registrations.router, verifications.router, events.router):
+    routers = (status.router, scans.router, registrations.router, sro.router, verifications.router)
+    routers += (events.router,)
+    for r in routers:
         app.include_router(r, dependencies=[AuthDep])

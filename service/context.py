@@ -10,6 +10,7 @@ from registration.kinematics import RobotModel
 from registration.phantom import Phantom
 from service.capture import Capture
 from service.event_bus import EventBus
+from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
 from service.records import RegistrationRecord
 from service.settings import Settings
@@ -32,6 +33,8 @@ class ServiceContext:
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
     watcher: SeriesWatcher | None = None
+    or_integration: OrIntegration | None = None
+    """DICOM SCP, OpenIGTLink server, auto-register (:mod:`service.or_integration`)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""

@@ -9,6 +9,7 @@ from registration.errors import ConfigError
 from service.store import migrations
 from service.store.base import Connection
 from service.store.registrations import RegistrationStore
+from service.store.scan_instances import ScanInstanceStore
 from service.store.scans import ScanStore
 from service.store.verifications import VerificationStore
 
@@ -25,6 +26,7 @@ class Database:
         self.scans = ScanStore(conn)
         self.registrations = RegistrationStore(conn)
         self.verifications = VerificationStore(conn)
+        self.scan_instances = ScanInstanceStore(conn)
 
     @classmethod
     def open(cls, path: str | Path) -> Database:

@@ -14,6 +14,9 @@
     every POST /verify: per-sphere errors, mean / RMS / max, histogram path.
 ``current_registration``
     a single-row pointer to the registration the service serves.
+``scan_instances``
+    per series UID, the headers a DICOM Spatial Registration object references (patient and
+    study attributes, SOP Class / Instance UIDs of every slice), :mod:`service.store.scan_instances`.
 """
 
 from __future__ import annotations
@@ -100,6 +103,14 @@ MIGRATIONS: tuple[str, ...] = (
         singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
         registration_id INTEGER NOT NULL REFERENCES registrations(id),
         set_at TEXT NOT NULL
+    );
+    """,
+    # 2: what the DICOM Spatial Registration object needs of a scan (issue #12)
+    """
+    CREATE TABLE scan_instances (
+        series_uid TEXT PRIMARY KEY,
+        headers_json TEXT NOT NULL,
+        updated_at TEXT NOT NULL
     );
     """,
 )
