@@ -225,6 +225,11 @@ class TlsSettings(_Section):
     allow_insecure_http: bool = False
     """Permit plain HTTP on a non-loopback bind (a TLS-terminating proxy in front, say)."""
 
+    @field_validator("cert_file", "key_file", mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
     @model_validator(mode="after")
     def _pair(self) -> TlsSettings:
         if (self.cert_file is None) != (self.key_file is None):
