@@ -419,7 +419,8 @@ def test_refused_registration_has_no_sro(svc: Service) -> None:
 def test_curl_reaches_the_api_over_tls(svc: Service) -> None:
     url = svc.base_url + "/status"
     assert url.startswith("https://")
-    r = subprocess.run([CURL, "-sS", "--fail", "--cacert", str(svc.ca), "-H", f"Authorization: Bearer {TOKEN}", url],
+    auth = f"Authorization: Bearer {TOKEN}"
+    r = subprocess.run([CURL, "-sS", "--fail", "--cacert", str(svc.ca), "-H", auth, url],
                        capture_output=True, text=True, timeout=30)  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert '"listeners"' in r.stdout
