@@ -219,7 +219,7 @@ def _install_routes(app: FastAPI) -> None:
 
     problems.install(app)
     app.include_router(health.router)
-    routers = (status.router, scans.router, registrations.router, sro.router, verifications.router)
-    routers += (events.router,)
+    routers = [status.router, scans.router, registrations.router, sro.router, verifications.router]
+    routers.append(events.router)
     for r in routers:
         app.include_router(r, dependencies=[AuthDep])

@@ -269,7 +269,7 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     if uid is None:
         uid = robot_frame_uid(args.data)
     elif not (_UID_RE.match(uid) and len(uid) <= 64):
-        raise RobotFrameUidError(f"--robot-frame-uid {uid!r} is not a DICOM UID (digits and dots, ≤ 64 chars)")
+        raise RobotFrameUidError(f"--robot-frame-uid {uid!r} is not a DICOM UID (digits, dots, ≤ 64 chars)")
     series_uid = str(doc.get("provenance", {}).get("series_uid", ""))
     summary = next(s for s in list_series(args.dicom_dir) if s.series_uid == series_uid)  # headers only
     inst = scan_instances_from_files(series_uid, list(summary.files))
