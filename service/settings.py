@@ -181,8 +181,10 @@ class DicomSettings(_Section):
 
     @model_validator(mode="after")
     def _allow_lists(self) -> DicomSettings:
-        if self.enabled and not is_loopback(self.host) and not (
-            self.allowed_calling_ae_titles or self.allowed_peer_addresses
+        if (
+            self.enabled
+            and not is_loopback(self.host)
+            and not (self.allowed_calling_ae_titles or self.allowed_peer_addresses)
         ):
             raise ValueError(
                 f"dicom.host: accepting DICOM on {self.host!r} with both allow-lists empty would let anyone "
