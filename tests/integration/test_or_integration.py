@@ -372,6 +372,18 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
     svc.robot.move_to(Q1, 0.01)
 
 
+def test_own_decoder_and_pyigtl_agree_on_the_wire(svc: Service, current: Current) -> None:
+    """The demo's fallback (plain socket + service.igtl.wire) reads what pyigtl reads."""
+    from service.igtl.probe import _receive_raw, receive_transform
+
+    rid = str(current.registration["id"])
+    a = receive_transform("127.0.0.1", svc.igtl_port, "RobotToImage", registration_id=rid)
+    b = _receive_raw("127.0.0.1", svc.igtl_port, "RobotToImage", rid, 10.0)
+    assert a.via.startswith("pyigtl") and b.via.startswith("service.igtl.wire")
+    np.testing.assert_array_equal(a.matrix, b.matrix)
+    assert a.metadata["RegistrationId"] == b.metadata["RegistrationId"] == rid
+
+
 # ---------------------------------------------------------------------------- SRO, TLS
 
 
