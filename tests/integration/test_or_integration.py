@@ -317,6 +317,26 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
     assert svc.scan(good_uid) == before
 
 
+def test_folder_and_cstore_paths_run_at_once(svc: Service) -> None:
+    from tests.unit.dicom_factory import ramp_volume, write_series
+
+    staging = svc.root / "staging-folder-path"
+    folder_files = write_series(staging, ramp_volume(6, 32, 32))
+    folder_uid = str(pydicom.dcmread(folder_files[0]).SeriesInstanceUID)
+    sops = {str(pydicom.dcmread(f).SOPInstanceUID) for f in folder_files}
+    cstore_files = sorted(Path(p) for p in write_series(svc.root / "outbox" / "both", ramp_volume(6, 32, 32)))
+    cstore_uid = str(pydicom.dcmread(cstore_files[0]).SeriesInstanceUID)
+    (svc.root / "watch").mkdir(exist_ok=True)
+    staging.rename(svc.root / "watch" / "series-a")  # the O-arm's folder export, atomically
+    assert set(send_files(svc.dicom_port, cstore_files)) == {0}
+    a, b = svc.wait_scan(folder_uid, "complete"), svc.wait_scan(cstore_uid, "complete")
+    assert "dicom-intake" in b["folder"] and "dicom-intake" not in a["folder"]
+    expected = {folder_uid: sops, cstore_uid: {str(pydicom.dcmread(f).SOPInstanceUID) for f in cstore_files}}
+    for uid, want in expected.items():  # what the SRO references, stored on both paths
+        inst = wait_for(lambda u=uid: svc.ctx.db.scan_instances.get(u), f"instance UIDs of {uid}")
+        assert set(inst.sop_instance_uids) == want
+
+
 # ---------------------------------------------------------------------------- OpenIGTLink
 
 
