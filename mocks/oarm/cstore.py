@@ -7,6 +7,7 @@ Run: ``python -m mocks.oarm.cstore HOST PORT FILE_OR_FOLDER... [--aec OARMREG] [
 from __future__ import annotations
 
 import argparse
+import socket
 import sys
 import time
 from collections.abc import Sequence
@@ -62,6 +63,11 @@ def send_series(
             f"{'rejected' if assoc.is_rejected else 'not established'}; check the port, the called AE title "
             "and the service's dicom.allowed_calling_ae_titles / allowed_peer_addresses"
         )
+    # pynetdicom writes each PDU separately: without TCP_NODELAY every C-STORE waits ~40 ms for the
+    # SCP's delayed ACK (Nagle); measured on loopback 62 → 20 ms per 50 kB instance.
+    raw = getattr(getattr(assoc.dul, "socket", None), "socket", None)
+    if raw is not None:
+        raw.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     statuses, n_bytes = [], 0
     try:
         for f in files:
