@@ -2,11 +2,13 @@
 
 ``create_app(settings)`` validates what can fail early (phantom file, robot model, link
 URL) and returns an app whose lifespan opens the database, connects the robot link,
-starts the DICOM watcher, and stops them again.  No settings or resources exist at
+starts the DICOM watcher (and, when enabled, the DICOM C-STORE SCP and the OpenIGTLink
+server, :mod:`service.or_integration`), and stops them again.  No settings or resources exist at
 import time; tests inject settings, a robot link, or override dependencies.
 
 Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/joints`` ·
-``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` · ``/verify`` ·
+``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` ·
+``/registrations/{id}/dicom`` · ``/verify`` ·
 ``/verifications`` · ``/events``.  Every route but ``/health`` needs
 ``Authorization: Bearer <api_token>`` when a token is configured.
 """

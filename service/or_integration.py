@@ -190,7 +190,10 @@ class OrIntegration:
         def on_thread(*args: Any) -> None:
             loop = self._loop
             if loop is not None and not loop.is_closed():
-                loop.call_soon_threadsafe(fn, *args)
+                try:
+                    loop.call_soon_threadsafe(fn, *args)
+                except RuntimeError:  # the loop closed meanwhile (shutdown)
+                    log.warning("DICOM: %s dropped at shutdown", getattr(fn, "__name__", fn))
 
         return on_thread
 
