@@ -30,7 +30,7 @@ from benchmarks.common import print_table
 
 TOKEN = "bench-or-latency-token-0123456789"
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
-WINDOW_S = 0.6
+WINDOW_S = 1.0
 
 
 def _wait(pred: Any, what: str, timeout_s: float = 300.0) -> Any:
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         with run_mock_controller("simple-message", ScriptedRobot(Q1)) as mock:
             settings = load_settings(None, {
                 "watch_dir": root / "watch", "data_dir": root / "data", "api_token": TOKEN,
-                "robot.link_url": mock.url, "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.25,
+                "robot.link_url": mock.url, "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.5,
                 "dicom.enabled": True, "dicom.port": 0, "igtl.enabled": True, "igtl.port": 0,
                 "service.auto_register": True,
             })  # fmt: skip

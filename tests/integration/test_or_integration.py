@@ -131,7 +131,7 @@ def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Serv
         settings = load_settings(None, {
             "watch_dir": root / "watch", "data_dir": root / "data", "api_token": TOKEN,
             "robot.link_url": mock.url, "robot.connect_timeout_s": 2.0, "robot.reconnect_interval_s": 0.2,
-            "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.25,
+            "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.5,
             "watcher.quiet_period_s": 0.3, "watcher.poll_interval_s": 0.2,
             "dicom.enabled": True, "dicom.port": 0, "dicom.ae_title": AE_TITLE,
             "dicom.allowed_calling_ae_titles": list(ALLOWED_AETS),
