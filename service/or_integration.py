@@ -31,7 +31,7 @@ import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -53,7 +53,36 @@ from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
 from service.watcher import SeriesArrival
 
 if TYPE_CHECKING:
-    from service.context import ServiceContext
+    from drivers.base import RobotLink
+    from registration.kinematics import RobotModel
+    from service.capture import Capture
+    from service.event_bus import EventBus
+    from service.orchestrator import Orchestrator
+    from service.settings import Settings
+    from service.store import Database
+    from service.volume_cache import VolumeCache
+
+
+class ServiceParts(Protocol):
+    """What this module uses of :class:`service.context.ServiceContext` (no import: no cycle)."""
+
+    @property
+    def settings(self) -> Settings: ...
+    @property
+    def bus(self) -> EventBus: ...
+    @property
+    def db(self) -> Database: ...
+    @property
+    def capture(self) -> Capture: ...
+    @property
+    def volumes(self) -> VolumeCache: ...
+    @property
+    def orchestrator(self) -> Orchestrator: ...
+    @property
+    def robot_model(self) -> RobotModel: ...
+    @property
+    def robot_link(self) -> RobotLink: ...
+
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +93,7 @@ INTAKE_FOLDER = "dicom-intake"
 class OrIntegration:
     """The DICOM SCP, the OpenIGTLink server and auto-register of one service (see the module docstring)."""
 
-    def __init__(self, ctx: ServiceContext) -> None:
+    def __init__(self, ctx: ServiceParts) -> None:
         self.ctx = ctx
         self.settings = ctx.settings
         self.scp: StorageScp | None = None
