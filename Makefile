@@ -5,12 +5,12 @@ VENV := .venv
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint wheel-smoke bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,cbct]'
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
@@ -19,12 +19,18 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/oarmreg demo --out demo-output
 
+# mypy settings (--strict for all four packages, the pydantic plugin): pyproject.toml [tool.mypy].
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy registration
+	$(BIN)/mypy registration drivers service mocks
+
+# Build the wheel, install it into a fresh venv outside the checkout, run simulate + detect.
+wheel-smoke: $(STAMP)
+	.ci/wheel-smoke $(BIN)/python
 
 test: lint
 	$(BIN)/python -m pytest
+	$(MAKE) wheel-smoke
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

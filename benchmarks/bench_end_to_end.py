@@ -37,7 +37,7 @@ from mocks.oarm.dicom_export import write_dicom_series
 from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, image_from_scanner, simulate_scan
 from registration import frames
 from registration.detection import detect_spheres
-from registration.dicom_series import load_series
+from registration.dicom import load_series
 from registration.errors import RegistrationError
 from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 from registration.phantom import Phantom, load_phantom

@@ -11,24 +11,47 @@ intercept 0 (the direct ``readinto`` path) and unsigned with intercept −1024
 
 * the I/O floor ``benchmarks.common.naive_read_series`` (``np.stack`` of
   ``dcmread(p).pixel_array``, no sorting, no rescale),
-* :func:`registration.dicom_series.load_series` (sorting, checks, rescale),
-* :func:`registration.dicom_series.list_series` (header-only, the watcher's call),
+* :func:`registration.dicom.load_series` (sorting, checks, rescale),
+* :func:`registration.dicom.list_series` (header-only, the watcher's call),
 
 and the peak traced memory (tracemalloc) of one ``load_series`` against the
 volume's int16 size.  The files sit in the page cache after the warm-up run,
 so this measures parsing and copying, not the disk.
+
+After the table it prints :data:`BEFORE`, the same table recorded for the reader this package
+replaced (``registration/dicom_series.py``: PixelData offsets from pydicom's ``RawDataElement.value_tell``,
+``readinto`` the volume), so the ratios to the floor measured in each run can be compared.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import tempfile
 from pathlib import Path
+from typing import Final
 
 import numpy as np
 
 from benchmarks.common import median_time_s, naive_read_series, peak_python_memory_bytes, print_table
-from registration.dicom_series import list_series, load_series
+from registration.dicom import list_series, load_series
+
+COLUMNS: Final = [
+    "series",
+    "naive dcmread floor (s)",
+    "load_series (s)",
+    "load / floor",
+    "list_series (s)",
+    "load peak (MiB)",
+    "peak / int16 volume",
+]
+
+BEFORE: Final = [
+    ["512x512x192 int16, intercept 0", 0.5904, 0.3419, 0.579, 0.2155, 96.38, 1.004],
+    ["512x512x192 uint16, intercept -1024", 0.3323, 0.2297, 0.6913, 0.166, 96.94, 1.01],
+]
+"""``python -m benchmarks.bench_loader --repeats 5`` on the old reader (registration/dicom_series.py at
+commit 9daed23), on the 2-core VM shared with other jobs: compare the load / floor ratios, not the seconds."""
 
 
 def synthetic_hu(n_slices: int, rows: int = 512, columns: int = 512, seed: int = 0) -> np.ndarray:
@@ -76,10 +99,10 @@ def main(argv: list[str] | None = None) -> int:
             write_case(folder, hu, unsigned=unsigned)
             vol = load_series(folder)
             assert np.array_equal(vol.voxels, hu), "loader returned wrong HU"
-            floor_s, _ = median_time_s(lambda f=folder: naive_read_series(f), repeats=args.repeats)
-            load_s, _ = median_time_s(lambda f=folder: load_series(f), repeats=args.repeats)
-            list_s, _ = median_time_s(lambda f=folder: list_series(f), repeats=args.repeats)
-            peak = peak_python_memory_bytes(lambda f=folder: load_series(f))
+            floor_s, _ = median_time_s(functools.partial(naive_read_series, folder), repeats=args.repeats)
+            load_s, _ = median_time_s(functools.partial(load_series, folder), repeats=args.repeats)
+            list_s, _ = median_time_s(functools.partial(list_series, folder), repeats=args.repeats)
+            peak = peak_python_memory_bytes(functools.partial(load_series, folder))
             rows.append(
                 [
                     f"512x512x{args.slices} {label}",
@@ -93,17 +116,12 @@ def main(argv: list[str] | None = None) -> int:
             )
             del vol
     print_table(
-        f"Series loading, median of {args.repeats} runs (one process, page cache warm)",
-        [
-            "series",
-            "naive dcmread floor (s)",
-            "load_series (s)",
-            "load / floor",
-            "list_series (s)",
-            "load peak (MiB)",
-            "peak / int16 volume",
-        ],
-        rows,
+        f"Series loading, median of {args.repeats} runs (one process, page cache warm)", COLUMNS, rows
+    )
+    print_table(
+        "Before: registration/dicom_series.py (commit 9daed23), same command, median of 5 runs",
+        COLUMNS,
+        BEFORE,
     )
     return 0
 

@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from benchmarks.common import print_table
-from drivers.base import open_link
+from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 

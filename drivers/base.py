@@ -1,12 +1,15 @@
-"""The one robot-link interface, its shared machinery, and the URL factory.
+"""The one robot-link interface and its shared machinery.
 
 A link reads joint angles from a Stäubli CS8/CS9 controller (design.md §6).
 Every implementation (``simple-message://``, ``modbus://``, ``serial://``)
-shares this module's :class:`BaseLink`: a background task that connects,
-reads, publishes :class:`JointState` samples into a ring buffer, and on any
-failure marks the link *down* with the reason, backs off (capped exponential)
-and reconnects.  Constructors never connect and never start tasks or threads:
-:meth:`BaseLink.connect` is the awaited step that does, with a ``timeout_s``.
+shares this module's :class:`BaseLink`: a reader that connects, reads,
+publishes :class:`JointState` samples into a ring buffer, and on any failure
+marks the link *down* with the reason, backs off (capped exponential) and
+reconnects; that is the service's one reconnect policy.  Constructors never
+connect and never start tasks or threads: :meth:`BaseLink.start` (return at
+once) or :meth:`BaseLink.connect` (await the first frame, with a
+``timeout_s``) does.  The URL factory is :func:`drivers.factory.open_link`;
+this module imports none of the link modules.
 
 Health
 ------
@@ -15,9 +18,13 @@ Health
 ``down``       no transport (never connected, refused, closed, protocol error),
                with the reason.
 
-Threading: a link lives on the event loop that called :meth:`connect`.  The
-read-only accessors (``latest``, ``status``, ``health``, ``history``,
-``counters``) take a lock and may be called from any thread.
+Threading: the reader runs on a thread of its own with its own event loop
+(:mod:`drivers.loop_thread`) and stamps every frame there when its bytes
+arrive, so the caller's loop can block without distorting the history.  The
+awaited methods are called from the caller's loop; the read-only accessors
+(``latest``, ``status``, ``health``, ``history``, ``counters``) take a lock
+and may be called from any thread.  :meth:`BaseLink.close` is bounded by
+``close_timeout_s`` and joins the thread.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from types import TracebackType
@@ -37,6 +44,7 @@ from typing import Any, Protocol, Self, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
 
 from drivers.errors import LinkConfigError, LinkTimeoutError, ProtocolError, RobotLinkError
+from drivers.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +71,14 @@ BACKOFF_MAX_S = 0.5
 picked up within ~0.5 s plus one connect (the issue asks for < 1 s)."""
 
 CONNECT_TIMEOUT_S = 5.0
-"""Default for :meth:`RobotLink.connect`."""
+"""Default for :meth:`RobotLink.connect` (s)."""
+
+CLOSE_TIMEOUT_S = 2.0
+"""Default upper bound on :meth:`BaseLink.close` (s): the reader gets half of it to stop after
+being cancelled, the loop's leftover tasks a quarter; then the thread ends regardless."""
+
+STREAM_QUEUE_SIZE = 1000
+"""States queued per :meth:`BaseLink.stream` consumer (20 s at 50 Hz) before the oldest are dropped."""
 
 CHECKLIST = (
     "check: the controller is switched on and reachable (cable, IP address, ping); "
@@ -87,7 +102,9 @@ class JointState:
     joints_rad : tuple of float
         Joint angles J1…J6 in radians, as sent by the controller (no offsets).
     t_s : float
-        ``time.monotonic()`` at receipt (the controllers send no timestamp).
+        ``time.monotonic()`` (s) taken on the link's reader thread when the frame's bytes
+        arrived (the controllers send no timestamp); comparable with ``time.monotonic()``
+        anywhere in the process.
     received_at : datetime
         UTC wall clock at receipt, for provenance.
     source_url : str
@@ -140,6 +157,7 @@ class RobotLink(Protocol):
 
     url: str
 
+    def start(self) -> None: ...
     async def connect(self, timeout_s: float = CONNECT_TIMEOUT_S) -> None: ...
     async def close(self) -> None: ...
     def latest(self) -> JointState | None: ...
@@ -240,6 +258,7 @@ _BASE_OPTIONS: dict[str, type] = {
     "frame_period_s": float,
     "backoff_initial_s": float,
     "backoff_max_s": float,
+    "close_timeout_s": float,
     "n_joints": int,
 }
 
@@ -266,21 +285,53 @@ class _Disconnect(Exception):
     """Internal: the session ended (peer closed, silence, protocol error)."""
 
 
+@dataclass(frozen=True)
+class _Subscriber:
+    """One :meth:`BaseLink.stream` consumer: its queue lives on the consumer's loop."""
+
+    loop: asyncio.AbstractEventLoop
+    queue: asyncio.Queue[JointState | None]
+
+
+def _deliver(queue: asyncio.Queue[JointState | None], item: JointState | None) -> None:
+    """Runs on the consumer's loop: a full queue loses its oldest state (``None`` = end)."""
+    if queue.full():
+        with contextlib.suppress(asyncio.QueueEmpty):
+            queue.get_nowait()
+    queue.put_nowait(item)
+
+
 class BaseLink:
     """Shared machinery of every link.  Subclasses implement :meth:`_session`.
+
+    The reader runs on a thread of its own with its own event loop
+    (:class:`drivers.loop_thread.LoopThread`), started by :meth:`start` or
+    :meth:`connect`.  Every frame is stamped with ``time.monotonic()`` on that
+    thread when its bytes arrive, so a blocked or busy caller loop cannot delay or
+    distort the stamps.  The awaited methods (:meth:`connect`, :meth:`close`,
+    :meth:`stream`) are called from the caller's loop and bridge to the link's
+    loop thread-safely; the accessors take a lock and work from any thread.
+
+    Reconnect policy (the only one in the service): after any failure the reader
+    marks the link *down* with the reason, waits a capped exponential back-off
+    (``backoff_initial_s`` doubling to ``backoff_max_s``, reset by every accepted
+    frame) and re-opens the transport, for as long as the link is not closed.  A
+    transport silent for ``silence_reconnect_s`` is dropped and re-opened too.
 
     Parameters
     ----------
     url : str
-        The link URL (scheme picks the class, see :func:`open_link`).
+        The link URL (scheme picks the class, see :func:`drivers.factory.open_link`).
     stale_after_s : float
-        Age of the last valid frame beyond which :meth:`health` says ``stale``.
+        Age of the last valid frame beyond which :meth:`health` says ``stale`` (s).
     silence_reconnect_s : float
-        Drop and re-open a transport that delivered nothing valid for this long.
+        Drop and re-open a transport that delivered nothing valid for this long (s).
     history_s, frame_period_s : float
-        Ring-buffer span and the nominal frame period used to size it.
+        Ring-buffer span and the nominal frame period used to size it (s).
     backoff_initial_s, backoff_max_s : float
-        Reconnect back-off.
+        Reconnect back-off: first delay and cap (s).
+    close_timeout_s : float
+        Upper bound on :meth:`close` (s): a reader that does not stop by then is abandoned (logged).
     n_joints : int
         Joints published (6 for TX60 / TX2-60).
     """
@@ -297,17 +348,21 @@ class BaseLink:
         frame_period_s: float = FRAME_PERIOD_S,
         backoff_initial_s: float = BACKOFF_INITIAL_S,
         backoff_max_s: float = BACKOFF_MAX_S,
+        close_timeout_s: float = CLOSE_TIMEOUT_S,
         n_joints: int = N_JOINTS,
     ) -> None:
-        if stale_after_s <= 0 or silence_reconnect_s <= 0 or history_s <= 0 or frame_period_s <= 0:
+        positive = (stale_after_s, silence_reconnect_s, history_s, frame_period_s, close_timeout_s)
+        if min(positive) <= 0:
             raise LinkConfigError(
-                f"{url}: stale_after_s, silence_reconnect_s, history_s and frame_period_s must be > 0"
+                f"{url}: stale_after_s, silence_reconnect_s, history_s, frame_period_s and "
+                f"close_timeout_s must be > 0 (seconds)"
             )
         if not 1 <= n_joints <= 10:
             raise LinkConfigError(f"{url}: n_joints must be 1..10, got {n_joints}")
         self.url = url
         self.stale_after_s = stale_after_s
         self.silence_reconnect_s = silence_reconnect_s
+        self.close_timeout_s = close_timeout_s
         self.n_joints = n_joints
         self._ring = JointRing(max(1, math.ceil(history_s / frame_period_s)))
         self._backoff = Backoff(backoff_initial_s, backoff_max_s)
@@ -324,58 +379,73 @@ class BaseLink:
             "connects": 0,
             "disconnects": 0,
         }
-        self._task: asyncio.Task[None] | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._first_state: asyncio.Event | None = None
-        self._subscribers: list[asyncio.Queue[JointState | None]] = []
-        self._closing = False
+        self._thread: LoopThread | None = None
+        self._first_state = asyncio.Event()  # set on the link's loop
+        self._stop = asyncio.Event()  # set on the link's loop by close()
+        self._closing = threading.Event()
+        self._subscribers: list[_Subscriber] = []
         self._last_error: str = ""
 
     # ---- public API -------------------------------------------------------
 
+    def start(self) -> None:
+        """Start the reader thread and return at once (idempotent; never blocks).
+
+        The reader connects, reconnects with back-off for as long as the link is
+        open, and publishes into the history; :meth:`health` tells how it goes.  A
+        link may be started again after :meth:`close` has returned.
+        """
+        if self._thread is not None:
+            return
+        self._closing.clear()
+        self._stop = asyncio.Event()
+        self._first_state = asyncio.Event()
+        thread = LoopThread(f"robot-link {self.url}", teardown_timeout_s=self.close_timeout_s / 4)
+        self._thread = thread
+        thread.start(self._main())
+
     async def connect(self, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
-        """Start the reader and wait for the first valid joint state.
+        """Start the reader (:meth:`start`) and wait for the first valid joint state.
 
         Raises
         ------
         LinkTimeoutError
-            No valid joint frame within ``timeout_s``; the message says whether the
-            transport could be opened at all and ends with a checklist.
+            No valid joint frame within ``timeout_s``; the link is closed again, and the
+            message says whether the transport could be opened at all and ends with a checklist.
+        RobotLinkError
+            :meth:`close` was called while waiting.
         """
-        if self._task is None:
-            self._loop = asyncio.get_running_loop()
-            self._first_state = asyncio.Event()
-            self._closing = False
-            self._task = asyncio.create_task(self._run(), name=f"robot-link {self.url}")
-        assert self._first_state is not None
+        self.start()
+        thread, first = self._thread, self._first_state
+        if thread is None or first.is_set():
+            return
         try:
-            await asyncio.wait_for(self._first_state.wait(), timeout_s)
+            await asyncio.wait_for(asyncio.wrap_future(thread.submit(first.wait())), timeout_s)
         except TimeoutError:
-            with self._lock:
-                up, err = self._transport_up, self._last_error or self._down_reason
+            message = self._timeout_message(timeout_s)
             await self.close()
-            if up or self._counters["connects"]:
-                what = (
-                    f"connected to {self.url} but received no valid joint frame within {timeout_s:g} s "
-                    f"(frames rejected: {self._counters['frames_rejected']}, protocol errors: "
-                    f"{self._counters['protocol_errors']}; last problem: {err})"
-                )
-            else:
-                what = f"could not connect to {self.url} within {timeout_s:g} s (last error: {err})"
-            raise LinkTimeoutError(f"{what}; {CHECKLIST}") from None
+            raise LinkTimeoutError(message) from None
+        except (asyncio.CancelledError, RuntimeError):
+            task = asyncio.current_task()
+            if task is not None and task.cancelling():
+                raise  # our caller cancelled us
+            raise RobotLinkError(f"{self.url}: the link was closed while connecting") from None
 
     async def close(self) -> None:
-        """Stop the reader, close the transport, end every :meth:`stream`."""
-        self._closing = True
-        task, self._task = self._task, None
-        if task is not None and not task.done():
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        """Stop the reader, close the transport, join the thread, end every :meth:`stream`.
+
+        Returns within about ``close_timeout_s`` whatever the transport does; the
+        caller's loop keeps running meanwhile.
+        """
+        self._closing.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.call_soon(self._stop.set)
+            if not await thread.join(self.close_timeout_s):
+                log.error("robot link %s: reader thread still running %.3g s after close()",
+                          self.url, self.close_timeout_s)  # fmt: skip
         self._set_down("closed")
-        for q in list(self._subscribers):
-            with contextlib.suppress(asyncio.QueueFull):
-                q.put_nowait(None)
+        self._notify_subscribers(None)
 
     async def __aenter__(self) -> Self:
         await self.connect()
@@ -385,6 +455,12 @@ class BaseLink:
         self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
     ) -> None:
         await self.close()
+
+    @property
+    def running(self) -> bool:
+        """True while the reader thread is alive."""
+        t = self._thread
+        return t is not None and t.alive
 
     def latest(self) -> JointState | None:
         return self._ring.latest()
@@ -409,7 +485,10 @@ class BaseLink:
         age = None if last is None else max(0.0, now - last.t_s)
         with self._lock:
             up, reason = self._transport_up, self._down_reason
+            never = self._counters["connects"] == 0 and bool(self._last_error) and reason != "closed"
         if not up:
+            if never:
+                reason = f"cannot reach the controller ({reason}); {CHECKLIST}"
             return LinkHealth("down", reason, age)
         if age is None:
             return LinkHealth("stale", "connected, no valid joint frame received yet", None)
@@ -422,23 +501,29 @@ class BaseLink:
     async def stream(self) -> AsyncIterator[JointState]:
         """Yield every accepted joint state from now on until :meth:`close`.
 
-        A slow consumer loses the oldest queued states (bounded queue of 1000).
+        The states are handed to the caller's loop thread-safely; a slow consumer
+        loses the oldest queued states (bounded queue of :data:`STREAM_QUEUE_SIZE`).
         """
-        q: asyncio.Queue[JointState | None] = asyncio.Queue(maxsize=1000)
-        self._subscribers.append(q)
+        if self._closing.is_set():
+            return
+        sub = _Subscriber(asyncio.get_running_loop(), asyncio.Queue(maxsize=STREAM_QUEUE_SIZE))
+        with self._lock:
+            self._subscribers.append(sub)
         try:
             while True:
-                item = await q.get()
+                item = await sub.queue.get()
                 if item is None:
                     return
                 yield item
         finally:
-            self._subscribers.remove(q)
+            with self._lock:
+                self._subscribers.remove(sub)
 
-    # ---- for subclasses ----------------------------------------------------
+    # ---- for subclasses (they run on the link's thread) ----------------------
 
     async def _session(self) -> None:
-        """Open the transport, call :meth:`_mark_up`, read until failure (raise) or cancel."""
+        """Open the transport, call :meth:`_mark_up`, read until failure (raise), cancel or
+        ``self._closing``; return when the peer ended the session."""
         raise NotImplementedError
 
     async def _cleanup(self) -> None:
@@ -456,7 +541,10 @@ class BaseLink:
             self._counters[key] = self._counters.get(key, 0) + n
 
     def _publish_joints(self, joints_rad: Sequence[float], t_s: float | None = None) -> JointState | None:
-        """Validate and publish one joint sample; returns it, or None if rejected (logged, counted)."""
+        """Validate and publish one joint sample; returns it, or None if rejected (logged, counted).
+
+        ``t_s`` is the ``time.monotonic()`` instant the bytes arrived (default: now).
+        """
         q = tuple(float(v) for v in joints_rad[: self.n_joints])
         if len(q) != self.n_joints or not all(math.isfinite(v) for v in q):
             with self._lock:
@@ -477,13 +565,9 @@ class BaseLink:
         with self._lock:
             self._counters["frames_accepted"] += 1
         self._backoff.reset()
-        if self._first_state is not None and not self._first_state.is_set():
+        if not self._first_state.is_set():
             self._first_state.set()
-        for sub in self._subscribers:
-            if sub.full():
-                with contextlib.suppress(asyncio.QueueEmpty):
-                    sub.get_nowait()
-            sub.put_nowait(state)
+        self._notify_subscribers(state)
         return state
 
     def _publish_status(self, status: RobotStatus) -> None:
@@ -500,6 +584,27 @@ class BaseLink:
 
     # ---- internals ----------------------------------------------------------
 
+    def _notify_subscribers(self, item: JointState | None) -> None:
+        with self._lock:
+            subs = list(self._subscribers)
+        for sub in subs:
+            with contextlib.suppress(RuntimeError):  # the consumer's loop is closed
+                sub.loop.call_soon_threadsafe(_deliver, sub.queue, item)
+
+    def _timeout_message(self, timeout_s: float) -> str:
+        with self._lock:
+            up, err = self._transport_up, self._last_error or self._down_reason
+            c = dict(self._counters)
+        if up or c["connects"]:
+            what = (
+                f"connected to {self.url} but received no valid joint frame within {timeout_s:g} s "
+                f"(frames rejected: {c['frames_rejected']}, protocol errors: "
+                f"{c['protocol_errors']}; last problem: {err})"
+            )
+        else:
+            what = f"could not connect to {self.url} within {timeout_s:g} s (last error: {err})"
+        return f"{what}; {CHECKLIST}"
+
     def _set_down(self, reason: str) -> None:
         with self._lock:
             was_up = self._transport_up
@@ -508,76 +613,59 @@ class BaseLink:
             if was_up:
                 self._counters["disconnects"] += 1
 
+    async def _main(self) -> None:
+        """The link thread's main coroutine: run the reader until :meth:`close` sets ``_stop``."""
+        run = asyncio.create_task(self._run(), name=f"robot-link reader {self.url}")
+        stop = asyncio.create_task(self._stop.wait(), name=f"robot-link stop {self.url}")
+        await asyncio.wait({run, stop}, return_when=asyncio.FIRST_COMPLETED)
+        self._closing.set()
+        run.cancel()
+        stop.cancel()
+        _, pending = await asyncio.wait({run, stop}, timeout=self.close_timeout_s / 2)
+        if pending:
+            log.error("robot link %s: the reader did not stop within %.3g s of close(); abandoned",
+                      self.url, self.close_timeout_s / 2)  # fmt: skip
+
     async def _run(self) -> None:
-        while not self._closing:
-            reason = "session ended"
-            try:
-                await self._session()
-                reason = "peer closed the connection"
-            except asyncio.CancelledError:
-                await self._cleanup()
-                raise
-            except ProtocolError as e:
-                self._count("protocol_errors")
-                reason = f"protocol error: {e}"
-                log.error("robot link %s: %s; closing the connection as corrupt", self.url, e)
-            except (OSError, EOFError, TimeoutError, RobotLinkError, _Disconnect) as e:
-                reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
-                log.info("robot link %s: %s", self.url, reason)
-            except Exception as e:  # a bug must not kill the reader silently
-                reason = f"unexpected {type(e).__name__}: {e}"
-                log.exception("robot link %s: unexpected error", self.url)
-            await self._cleanup()
-            self._last_error = reason
+        while not self._closing.is_set():
+            reason = await self._one_session()
+            with self._lock:
+                self._last_error = reason
             self._set_down(reason)
-            if self._closing:
+            if self._closing.is_set():
                 break
             delay = self._backoff.next_delay_s()
             log.debug("robot link %s: down (%s); retry in %.3f s", self.url, reason, delay)
-            await asyncio.sleep(delay)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), delay)
+
+    async def _one_session(self) -> str:
+        """Run one :meth:`_session` and its cleanup; return why it ended."""
+        reason = "session ended"
+        try:
+            await self._session()
+            reason = "closed" if self._closing.is_set() else "peer closed the connection"
+        except asyncio.CancelledError:
+            await self._safe_cleanup()
+            raise
+        except ProtocolError as e:
+            self._count("protocol_errors")
+            reason = f"protocol error: {e}"
+            log.error("robot link %s: %s; closing the connection as corrupt", self.url, e)
+        except (OSError, EOFError, TimeoutError, RobotLinkError, _Disconnect) as e:
+            reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+            log.info("robot link %s: %s", self.url, reason)
+        except Exception as e:  # a bug must not kill the reader silently
+            reason = f"unexpected {type(e).__name__}: {e}"
+            log.exception("robot link %s: unexpected error", self.url)
+        await self._safe_cleanup()
+        return reason
+
+    async def _safe_cleanup(self) -> None:
+        try:
+            await self._cleanup()
+        except Exception:  # a failing close must not end the reader
+            log.exception("robot link %s: closing the transport failed", self.url)
 
 
 # --------------------------------------------------------------------------- factory
-
-_SCHEMES: dict[str, Callable[..., BaseLink]] = {}
-
-
-def register_scheme(scheme: str, factory: Callable[..., BaseLink]) -> None:
-    """Register a link class for a URL scheme (used by the link modules)."""
-    _SCHEMES[scheme] = factory
-
-
-def open_link(url: str, **options: Any) -> BaseLink:
-    """Build (never connect) the link for ``url``.
-
-    ``simple-message://HOST[:11002]``, ``modbus://HOST[:502]?…``,
-    ``serial:///dev/ttyS0?baudrate=115200``.  ``options`` are passed to the
-    link's constructor (e.g. ``stale_after_s=0.1``).
-
-    Raises
-    ------
-    LinkConfigError
-        Unknown scheme or malformed URL / options.
-    """
-    scheme = urlsplit(url).scheme
-    if not _SCHEMES:
-        _load_builtin()
-    factory = _SCHEMES.get(scheme)
-    if factory is None:
-        _load_builtin()
-        factory = _SCHEMES.get(scheme)
-    if factory is None:
-        raise LinkConfigError(
-            f"unknown robot link scheme {scheme!r} in {url!r}; expected one of "
-            f"{sorted(_SCHEMES)} (e.g. simple-message://192.168.0.254:11002)"
-        )
-    try:
-        return factory(url, **options)
-    except TypeError as e:
-        raise LinkConfigError(f"{url}: bad link option ({e})") from None
-
-
-def _load_builtin() -> None:
-    import drivers.modbus
-    import drivers.serial_link
-    import drivers.simple_message  # noqa: F401

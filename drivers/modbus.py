@@ -36,7 +36,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 from urllib.parse import urlsplit
 
-from drivers.base import BaseLink, base_options, parse_query, register_scheme
+from drivers.base import BaseLink, base_options, parse_query
 from drivers.errors import LinkConfigError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -206,6 +206,8 @@ class ModbusLink(BaseLink):
         from pymodbus.exceptions import ModbusException
 
         rm = self.register_map
+        # retries=0, reconnect_delay=0: pymodbus's own retry and reconnect are off, so the
+        # back-off in BaseLink is the only reconnect policy.
         client = AsyncModbusTcpClient(
             self.host, port=self.port, timeout=rm.timeout_s, retries=0, reconnect_delay=0
         )
@@ -218,7 +220,7 @@ class ModbusLink(BaseLink):
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         started = time.monotonic()
-        while True:
+        while not self._closing.is_set():
             try:
                 rr = await read(rm.start_address, count=rm.register_count, device_id=rm.unit_id)
             except ModbusException as e:
@@ -244,6 +246,3 @@ class ModbusLink(BaseLink):
         c, self._client = self._client, None
         if c is not None:
             c.close()
-
-
-register_scheme(ModbusLink.scheme, ModbusLink)

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
-from drivers.base import BaseLink, RobotStatus, base_options, parse_query, register_scheme
+from drivers.base import BaseLink, RobotStatus, base_options, parse_query
 from drivers.errors import LinkConfigError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -252,7 +252,7 @@ class SerialLink(BaseLink):
         self._mark_up()
         started = time.monotonic()
         check_s = min(0.5, self.silence_reconnect_s / 4)
-        while True:
+        while not self._closing.is_set():
             done, _ = await asyncio.wait({closed}, timeout=check_s)
             if done:
                 raise closed.result()
@@ -291,6 +291,3 @@ class SerialLink(BaseLink):
             asyncio.get_running_loop().remove_reader(fd)
         if ser is not None:
             ser.close()
-
-
-register_scheme(SerialLink.scheme, SerialLink)

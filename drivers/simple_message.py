@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
 
-from drivers.base import BaseLink, RobotStatus, base_options, option_float, parse_query, register_scheme
+from drivers.base import BaseLink, RobotStatus, base_options, option_float, parse_query
 from drivers.errors import LinkConfigError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -402,7 +402,7 @@ class SimpleMessageLink(BaseLink):
         self._mark_up()
         started = time.monotonic()
         check_s = min(0.5, self.silence_reconnect_s / 4)
-        while True:
+        while not self._closing.is_set():
             done, _ = await asyncio.wait({proto.closed}, timeout=check_s)
             if done:
                 exc = proto.closed.result()
@@ -416,6 +416,3 @@ class SimpleMessageLink(BaseLink):
         t, self._transport = self._transport, None
         if t is not None:
             t.abort()
-
-
-register_scheme(SimpleMessageLink.scheme, SimpleMessageLink)

@@ -32,6 +32,7 @@ poses with ICP and refuses an ambiguous result.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -127,9 +128,11 @@ def choose_base_triples(
 
     Edge (a, b) is the one with the fewest image pairs of matching length, so
     it gets the ``searchsorted`` look-up; c maximises the triangle area among
-    points whose edges to a and b are long as well.  Edges must be at least
-    :data:`MIN_EDGE_FRACTION` of the set's diameter; a set with fewer than
-    :data:`MIN_BASE_TRIPLES` such triples (a few spheres, far apart) is
+    points whose edges to a and b are long as well.  Every edge must be matched by at least one
+    image pair (so the triples are chosen among what the image shows: a phantom partly outside
+    the field of view keeps only its imaged part's lengths), and at least
+    :data:`MIN_EDGE_FRACTION` of the smaller of the robot set's and the image set's diameters;
+    a set with fewer than :data:`MIN_BASE_TRIPLES` such triples (a few spheres, far apart) is
     retried with half that fraction, then with none.
     """
     triples: list[tuple[int, int, int]] = []
@@ -153,11 +156,16 @@ def _base_triples(
         return []
     iu, ju = np.triu_indices(n, 1)
     lengths = d_robot[iu, ju]
-    diameter = float(lengths.max())
     lo = np.searchsorted(image_pair_dist_sorted, lengths - pair_tol_mm, side="left")
     hi = np.searchsorted(image_pair_dist_sorted, lengths + pair_tol_mm, side="right")
     rarity = hi - lo
-    eligible = lengths >= min_edge_fraction * diameter
+    # Long relative to what the image shows: a phantom half outside the field of view has no image
+    # pair as long as the robot set's diameter, and an edge no image pair matches yields nothing.
+    image_diameter = float(image_pair_dist_sorted[-1]) if len(image_pair_dist_sorted) else 0.0
+    diameter = min(float(lengths.max()), image_diameter + pair_tol_mm)
+    seen = np.zeros((n, n), dtype=bool)
+    seen[iu, ju] = seen[ju, iu] = rarity > 0
+    eligible = (lengths >= min_edge_fraction * diameter) & (rarity > 0)
     # rare first, long second
     order = np.lexsort((-lengths, rarity))
     order = order[eligible[order]]
@@ -171,6 +179,7 @@ def _base_triples(
             if not allow_reuse and (used[a] or used[b]):
                 continue
             ok = (d_robot[a] >= min_edge_fraction * diameter) & (d_robot[b] >= min_edge_fraction * diameter)
+            ok &= seen[a] & seen[b]
             if not allow_reuse:
                 ok &= ~used
             ok[[a, b]] = False
@@ -326,6 +335,60 @@ class PoseClusters:
         return len(self.triples[ranked[0]]) if ranked else 0
 
 
+@dataclass(frozen=True)
+class _TripleSearch:
+    """The base-triple search of :func:`find_hypotheses` from one side (robot → image, or swapped)."""
+
+    pair_tol_mm: float
+    gate_mm: float
+    max_base_triples: int
+    min_agreeing: int
+    n_probes: int
+    max_scored: int
+
+    def run(
+        self,
+        src_mm: F64,
+        dst_mm: F64,
+        dst_tree: cKDTree,
+        add: Callable[[F64, int, float, int], None],
+    ) -> list[tuple[int, int, int]]:
+        """Base triples of ``src`` matched to ``dst``; every scored pose (dst_from_src) goes to
+        ``add(pose, inliers, rms, triple index)``.  Stops once ``min_agreeing`` triples agree on the
+        best pose (tracked here, for poses of this side)."""
+        d_src = pairwise_distances(src_mm)
+        pairs = _ImagePairs.of(dst_mm)
+        triples = choose_base_triples(src_mm, d_src, pairs.sorted_mm, self.pair_tol_mm, self.max_base_triples)
+        local = PoseClusters(
+            src_mm.mean(axis=0), DEFAULT_DISTINCT_ROTATION_DEG, DEFAULT_DISTINCT_TRANSLATION_MM
+        )
+        for t_idx, triple in enumerate(triples):
+            dst_triples = consistent_image_triples(triple, d_src, pairs, self.pair_tol_mm)
+            if len(dst_triples) == 0:
+                continue
+            transforms, n_in, rms = score_triple_poses(
+                src_mm,
+                dst_mm,
+                triple,
+                dst_triples,
+                dst_tree,
+                gate_mm=self.gate_mm,
+                n_probes=self.n_probes,
+                max_scored=self.max_scored,
+            )
+            for t, n_t, rms_t in zip(transforms, n_in, rms, strict=True):
+                add(t, int(n_t), float(rms_t), t_idx)
+                local.add(t, int(n_t), float(rms_t), t_idx)
+            if local.best_support() >= self.min_agreeing:
+                log.debug(
+                    "correspondence: best pose confirmed by %d base triples after %d",
+                    local.best_support(),
+                    t_idx + 1,
+                )
+                break
+        return triples
+
+
 def find_hypotheses(
     robot_mm: F64,
     image_mm: F64,
@@ -372,40 +435,32 @@ def find_hypotheses(
         return []
     if tree is None:
         tree = cKDTree(image_mm)
-    d_robot = pairwise_distances(robot_mm)
-    pairs = _ImagePairs.of(image_mm)
-    triples = choose_base_triples(robot_mm, d_robot, pairs.sorted_mm, pair_tol_mm, max_base_triples)
+    search = _TripleSearch(pair_tol_mm, gate_mm, max_base_triples, min_agreeing, n_probes, max_scored)
     clusters = PoseClusters(robot_mm.mean(axis=0), distinct_rotation_deg, distinct_translation_mm)
-    for t_idx, triple in enumerate(triples):
-        image_triples = consistent_image_triples(triple, d_robot, pairs, pair_tol_mm)
-        if len(image_triples) == 0:
-            continue
-        transforms, n_in, rms = score_triple_poses(
-            robot_mm,
-            image_mm,
-            triple,
-            image_triples,
-            tree,
-            gate_mm=gate_mm,
-            n_probes=n_probes,
-            max_scored=max_scored,
-        )
-        for t, n_t, rms_t in zip(transforms, n_in, rms, strict=True):
-            clusters.add(t, int(n_t), float(rms_t), t_idx)
-        if clusters.best_support() >= min_agreeing:
-            log.debug(
-                "correspondence: best pose confirmed by %d base triples after %d",
-                clusters.best_support(),
-                t_idx + 1,
-            )
-            break
+    triples = search.run(robot_mm, image_mm, tree, clusters.add)
+    best = clusters.n_inliers[clusters.ranked()[0]] if clusters.n_inliers else 0
+    if best < min(len(image_mm), len(robot_mm)):
+        # Not every detection explained (part of the phantom outside the image, or no robot triple
+        # fully imaged): base triples from the image side, whose points are all in the image.
+        robot_tree = cKDTree(robot_mm)
+        offset = len(triples)
+
+        def add_inverted(t_robot_from_image: F64, n_img: int, rms_img: float, t_idx: int) -> None:
+            t = np.asarray(np.linalg.inv(t_robot_from_image), dtype=np.float64)
+            n_r, rms_r = _count_inliers(t[None], robot_mm, tree, gate_mm)
+            if int(n_r[0]) >= MIN_HYPOTHESIS_INLIERS:
+                clusters.add(t, int(n_r[0]), float(rms_r[0]), offset + t_idx)
+
+        image_triples = search.run(image_mm, robot_mm, robot_tree, add_inverted)
+        log.debug("correspondence: %d image-side base triples searched", len(image_triples))
+        triples = triples + [(-1, -1, -1)] * len(image_triples)
     return [
         Hypothesis(
             image_from_robot=clusters.transforms[i].copy(),
             n_inliers=clusters.n_inliers[i],
             rms_mm=clusters.rms_mm[i],
             support=len(clusters.triples[i]),
-            base_triples=tuple(triples[k] for k in sorted(clusters.triples[i])),
+            base_triples=tuple(triples[k] for k in sorted(clusters.triples[i]) if triples[k][0] >= 0),
         )
         for i in clusters.ranked()[:max_hypotheses]
     ]

@@ -31,10 +31,10 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,14 +43,22 @@ from scipy import ndimage
 from registration.circles import CircleParams, find_circles
 from registration.errors import DetectionError
 from registration.mar import MarParams, reduce_metal_artifacts
+from registration.sphere_fit import FitParams, fit_sphere_model
 from registration.volume import Volume
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+Support = tuple[tuple[slice, slice, slice], NDArray[np.bool_]]
+"""A region of the volume: a (k, j, i) box and a boolean mask of the box's shape."""
 
-METHODS: Final = ("subvoxel", "paper")
-"""Centre estimators.  ``subvoxel`` measured more accurate (benchmarks/bench_detection.py)."""
+METHODS: Final = ("subvoxel", "model", "paper")
+"""Centre estimators.  ``subvoxel`` and ``model`` measured more accurate than ``paper``
+(benchmarks/bench_detection.py); ``model`` fits a blurred saturated ball (:mod:`registration.sphere_fit`)."""
+
+SATURATION_MIN_VOXELS: Final = 3
+"""A crop whose maximum is held by at least this many voxels is clipped there (a 12-bit export
+stores 3071 HU for every metal voxel; noise makes a tie of 3 unclipped voxels improbable)."""
 
 AIR_HU: Final = -1000.0
 """Padding outside a circular FOV is stored at or below air (−1024 HU for RescaleIntercept −1024)."""
@@ -123,6 +131,14 @@ class DetectionParams:
     crop_margin_mm : float
         Margin around a group of threshold hits when its components are labelled: more than a
         voxel of blooming on each side, far below the 15 mm pitch (neighbours stay out).
+    split_core_fraction : float
+        A blob too large for one sphere (a sphere with streak tails joining it to its neighbours,
+        several spheres joined by blooms) is split by a morphological opening of its metal mask
+        with an ellipsoid of this fraction of the nominal radius: streaks (1–2 voxels wide) vanish,
+        sphere cores (apparent radius ≈ 1.9 mm for 1.25 mm) and the rod (Ø10 mm) stay.  0.75
+        keeps a 3-slice core of a 2.5 mm sphere at 0.833 mm slices; on a 40-sphere tungsten
+        carbide scan (SPR 0.3, 256² × 120 at 0.415 × 0.833 mm) 0.75 recovered every sphere where
+        the unsplit detection lost 21 to "elongated" (streak tails) and failed circle tests.
     background_shell_mm : float
         ``subvoxel``: thickness of the shell outside the weighting ball whose median is the local
         background (1.5 mm holds enough voxels at 0.4–0.8 mm spacing and stays on the phantom).
@@ -145,6 +161,7 @@ class DetectionParams:
     min_patch_half_px: int = 4
     crop_margin_mm: float = 2.0
     background_shell_mm: float = 1.5
+    split_core_fraction: float = 0.75
     mar: MarParams = field(default_factory=MarParams)
     circles: CircleParams = field(default_factory=CircleParams)
 
@@ -285,6 +302,10 @@ class _Blob:
     peak_hu: float
     centroid_voxel: F64  # (i, j, k)
     extent_mm: F64  # (3,) along i, j, k
+    support: Support | None = None
+    """A split core's region (box in the volume, mask in it): outside it, slice patches are
+    flattened to the circle window's floor so the streak tails cut off by the split do not
+    distort the cross-sections.  None for an unsplit blob."""
 
 
 def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
@@ -310,10 +331,36 @@ def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
 # ----------------------------------------------------------------------------- centres
 
 
+def _support_mask(
+    lo_ijk: NDArray[np.int_],
+    hi_ijk: NDArray[np.int_],
+    support: Support,
+) -> NDArray[np.bool_]:
+    """The (k, j, i) crop [lo, hi) of a split core's support mask (False outside its box)."""
+    box, mask = support
+    out = np.zeros((hi_ijk[2] - lo_ijk[2], hi_ijk[1] - lo_ijk[1], hi_ijk[0] - lo_ijk[0]), dtype=bool)
+    src, dst = [], []
+    for ax, b in zip((2, 1, 0), box, strict=True):
+        a0, a1 = max(int(lo_ijk[ax]), b.start), min(int(hi_ijk[ax]), b.stop)
+        if a1 <= a0:
+            return out
+        src.append(slice(a0 - b.start, a1 - b.start))
+        dst.append(slice(a0 - int(lo_ijk[ax]), a1 - int(lo_ijk[ax])))
+    out[dst[0], dst[1], dst[2]] = mask[src[0], src[1], src[2]]
+    return out
+
+
 def _subvoxel_centre(
-    vox: NDArray[Any], start_ijk: F64, spacing: F64, params: DetectionParams
+    vox: NDArray[Any],
+    start_ijk: F64,
+    spacing: F64,
+    params: DetectionParams,
+    support: Support | None = None,
 ) -> tuple[F64, float, float]:
     """Intensity-weighted 3-D centroid of the raw voxels above background + margin.
+
+    With a split core's ``support``, only voxels inside it are weighted (the streak tails the
+    split cut off would pull the centroid towards the neighbours they lead to).
 
     Returns (centre (i, j, k), background HU, peak HU).  The ball has radius
     ``radius + bloom`` mm; the background is the median of the shell between
@@ -343,6 +390,8 @@ def _subvoxel_centre(
         bg = float(np.median(crop[shell])) if shell.any() else float(np.median(crop))
         peak = float(crop[ball].max()) if ball.any() else float(crop.max())
         level = bg + max(params.centroid_margin_hu, params.centroid_margin_fraction * (peak - bg))
+        if support is not None:
+            ball = ball & _support_mask(lo, hi, support)
         w = np.where(ball, np.clip(crop - level, 0.0, None), 0.0)
         total = float(w.sum())
         if total <= 0.0:
@@ -512,6 +561,50 @@ def _measure_component(
     )
 
 
+def _ellipsoid(semi_axes_vox: tuple[float, float, float]) -> NDArray[np.bool_]:
+    """Boolean (k, j, i) ellipsoid with the given semi-axes in voxels (at least the centre voxel)."""
+    half = [math.floor(a) for a in semi_axes_vox]
+    kk, jj, ii = np.ogrid[-half[0] : half[0] + 1, -half[1] : half[1] + 1, -half[2] : half[2] + 1]
+    a = [max(x, 1e-9) for x in semi_axes_vox]
+    return np.asarray((kk / a[0]) ** 2 + (jj / a[1]) ** 2 + (ii / a[2]) ** 2 <= 1.0)
+
+
+SUPPORT_GROW_VOXELS: Final = 1.0
+"""A split core's support is its opened mask dilated by this many voxels: the opening shaved the
+bloom edge by up to a voxel, and the circle finder needs the 2000 → 500 HU edge ramp (≈ 1 voxel at
+0.4 mm pixels with a 0.8 mm PSF) around it."""
+
+
+def split_blob(
+    vox: NDArray[Any], b: _Blob, threshold_hu: float, spacing: F64, params: DetectionParams
+) -> list[_Blob]:
+    """The sphere-core components of an oversized blob: its metal mask opened by an ellipsoid.
+
+    The opening (radius ``split_core_fraction`` × the nominal radius, per axis in voxels) removes
+    streaks and bloom bridges narrower than that, so a sphere with streak tails, or spheres joined
+    by them, fall apart into cores; a rod stays one elongated component.  Returns the cores as
+    blobs (measured on the opened mask, peak from the raw voxels), in (k, j, i) order.
+    """
+    shape = (vox.shape[0], vox.shape[1], vox.shape[2])
+    rho_mm = params.split_core_fraction * params.radius_mm
+    semi = (rho_mm / float(spacing[2]), rho_mm / float(spacing[1]), rho_mm / float(spacing[0]))
+    pad = tuple(math.floor(a) + 1 for a in semi)
+    crop_box = _expand(b.box, (pad[0], pad[1], pad[2]), shape)
+    crop = vox[crop_box]
+    opened = ndimage.binary_opening(crop >= threshold_hu, structure=_ellipsoid(semi))
+    labels, _ = ndimage.label(opened, structure=np.ones((3, 3, 3), dtype=bool))
+    grow = _ellipsoid((SUPPORT_GROW_VOXELS, SUPPORT_GROW_VOXELS, SUPPORT_GROW_VOXELS))
+    cores = []
+    for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+        if sl is None:
+            continue
+        core = _measure_component(crop, labels[sl] == lab, sl, crop_box, spacing)
+        core.support = (crop_box, ndimage.binary_dilation(labels == lab, structure=grow))
+        cores.append(core)
+    cores.sort(key=lambda c: (c.box[0].start, c.box[1].start, c.box[2].start))
+    return cores
+
+
 @dataclass(frozen=True)
 class SizeLimits:
     """What a sphere-sized blob may measure, from the nominal diameter, blooming and voxel size."""
@@ -533,6 +626,13 @@ class SizeLimits:
             # blooming on both sides, plus one voxel each side for the quantised extent of the blob
             ext_max_mm=params.sphere_diameter_mm + 2.0 * params.bloom_mm + 2.0 * float(spacing.max()),
         )
+
+
+NO_CIRCLE_REASON: Final = "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
+"""End of the circle cross-check's rejection; such a blob gets the 3-D core test of a split."""
+
+OVERSIZED_REASONS: Final = ("elongated or oversized metal", "blob volume")
+"""Reasons of :func:`blob_reject_reason` that a split into sphere cores may resolve."""
 
 
 def blob_reject_reason(b: _Blob, limits: SizeLimits, params: DetectionParams) -> str | None:
@@ -603,6 +703,7 @@ def slice_circles(
     params: DetectionParams,
     pixel_mm: float,
     timer: StageTimer,
+    support: Support | None = None,
 ) -> list[_SliceCircle]:
     """The accepted circle nearest the 3-D centre in each slice of ``k_range`` (MAR as configured).
 
@@ -624,6 +725,8 @@ def slice_circles(
     circles: list[_SliceCircle] = []
     for k in k_range:
         patch = np.asarray(vox[k, j0:j1, i0:i1], dtype=np.float32)
+        if support is not None:
+            patch = _flatten_outside(patch, k, (j0, i0), support, params.circles.window_hu[0])
         best = None if mar_every_patch else circle(patch, k)
         if best is None and params.use_mar:
             with timer.stage("mar_s"):
@@ -634,19 +737,110 @@ def slice_circles(
     return circles
 
 
-CentreEstimator = Callable[[list[_SliceCircle], F64, float, float], tuple[F64 | None, str]]
-"""(circles, subvoxel centre (i, j, k), fitted radius mm, slice spacing mm) → (centre or None, why not)."""
+def _flatten_outside(
+    patch: NDArray[np.float32], k: int, origin_ji: tuple[int, int], support: Support, floor_hu: float
+) -> NDArray[np.float32]:
+    """``patch`` (slice k, rows/columns from ``origin_ji``) with voxels outside ``support`` capped at
+    ``floor_hu`` (the circle window's floor, so they map to 0 before Canny)."""
+    lo = np.array([origin_ji[1], origin_ji[0], k])
+    hi = lo + np.array([patch.shape[1], patch.shape[0], 1])
+    inside = _support_mask(lo, hi, support)[0]
+    return np.where(inside, patch, np.minimum(patch, np.float32(floor_hu)))
+
+
+@dataclass(frozen=True, eq=False)
+class SpherePatch:
+    """The raw voxels around one sphere, for estimators that look at intensities.
+
+    ``values_hu`` (V,) and ``coords_mm`` (V, 3) = voxel index (i, j, k) × spacing; ``spacing_mm``
+    (i, j, k); ``saturation_hu`` (inf if the crop is not clipped); ``radius_mm`` nominal.
+    """
+
+    values_hu: F64
+    coords_mm: F64
+    spacing_mm: F64
+    saturation_hu: float
+    radius_mm: float
+    fit: FitParams = field(default_factory=FitParams)
+
+
+def sphere_patch(vox: NDArray[Any], centre_ijk: F64, spacing: F64, params: DetectionParams) -> SpherePatch:
+    """Voxels within ``radius + bloom + background_shell`` mm of ``centre_ijk`` (clamped to the volume)."""
+    r_out = params.radius_mm + params.bloom_mm + params.background_shell_mm
+    half = np.ceil(r_out / spacing).astype(int) + 1
+    c = np.rint(centre_ijk).astype(int)
+    lo = np.maximum(c - half, 0)
+    hi = np.minimum(c + half + 1, (vox.shape[2], vox.shape[1], vox.shape[0]))
+    crop = np.asarray(vox[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]], dtype=np.float64)
+    kk, jj, ii = np.meshgrid(
+        np.arange(lo[2], hi[2]), np.arange(lo[1], hi[1]), np.arange(lo[0], hi[0]), indexing="ij"
+    )
+    coords = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(np.float64) * spacing
+    keep = np.sum((coords - centre_ijk * spacing) ** 2, axis=1) <= r_out**2
+    values = crop.ravel()[keep]
+    peak = float(values.max()) if len(values) else math.nan
+    saturated = len(values) > 0 and int(np.count_nonzero(values == peak)) >= SATURATION_MIN_VOXELS
+    return SpherePatch(values, coords[keep], spacing, peak if saturated else math.inf, params.radius_mm)
+
+
+class CentreEstimator(Protocol):
+    """(circles, subvoxel centre (i, j, k), fitted radius mm, slice spacing mm, raw patch) →
+    (centre (i, j, k) or None, why not)."""
+
+    def __call__(
+        self,
+        circles: list[_SliceCircle],
+        centre_sv: F64,
+        radius_fit_mm: float,
+        dz_mm: float,
+        patch: SpherePatch | None = None,
+    ) -> tuple[F64 | None, str]: ...
 
 
 def _subvoxel_estimate(
-    circles: list[_SliceCircle], centre_sv: F64, radius_fit_mm: float, dz_mm: float
+    circles: list[_SliceCircle],
+    centre_sv: F64,
+    radius_fit_mm: float,
+    dz_mm: float,
+    patch: SpherePatch | None = None,
 ) -> tuple[F64 | None, str]:
     """The 3-D sub-voxel centre on the raw volume; the circles are only its cross-check."""
     return centre_sv, ""
 
 
+def _model_estimate(
+    circles: list[_SliceCircle],
+    centre_sv: F64,
+    radius_fit_mm: float,
+    dz_mm: float,
+    patch: SpherePatch | None = None,
+) -> tuple[F64 | None, str]:
+    """A blurred, saturated ball of the nominal radius fitted to the raw voxels, from the centroid."""
+    if patch is None or len(patch.values_hu) < MODEL_MIN_VOXELS:
+        return None, "model method: no raw voxels around the sphere to fit"
+    fit = fit_sphere_model(
+        patch.values_hu,
+        patch.coords_mm,
+        centre_sv * patch.spacing_mm,
+        patch.radius_mm,
+        patch.saturation_hu,
+        patch.fit,
+    )
+    if not fit.ok:
+        return None, f"model fit failed: {fit.reason}"
+    return fit.centre_mm / patch.spacing_mm, ""
+
+
+MODEL_MIN_VOXELS: Final = 27
+"""The model has 6 parameters; fewer than a 3 × 3 × 3 block of voxels cannot constrain it."""
+
+
 def _paper_estimate(
-    circles: list[_SliceCircle], centre_sv: F64, radius_fit_mm: float, dz_mm: float
+    circles: list[_SliceCircle],
+    centre_sv: F64,
+    radius_fit_mm: float,
+    dz_mm: float,
+    patch: SpherePatch | None = None,
 ) -> tuple[F64 | None, str]:
     """Bai 2018: in-plane mean of the circle centres, depth by Pythagoras with the fitted radius."""
     if len({c.k for c in circles}) < 2 or not math.isfinite(radius_fit_mm) or radius_fit_mm <= 0:
@@ -660,6 +854,7 @@ def _paper_estimate(
 
 CENTRE_ESTIMATORS: Final[Mapping[str, CentreEstimator]] = {
     "subvoxel": _subvoxel_estimate,
+    "model": _model_estimate,
     "paper": _paper_estimate,
 }
 """The centre estimator of each :data:`METHODS` entry."""
@@ -669,6 +864,8 @@ def sphere_score(
     circles: list[_SliceCircle], centre_sv: F64, spacing: F64, n_slices: int, radius_mm: float
 ) -> float:
     """Fraction of the blob's slices with a circle × (1 − in-plane circle/centre disagreement / radius)."""
+    if not circles:
+        return 0.0
     inplane_mm = math.hypot(
         (np.mean([c.i for c in circles]) - centre_sv[0]) * spacing[0],
         (np.mean([c.j for c in circles]) - centre_sv[1]) * spacing[1],
@@ -698,22 +895,27 @@ def _measure_sphere(
     vox, spacing, r = scan.volume.voxels, scan.spacing, params.radius_mm
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     with timer.stage("centres_s"):
-        centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params)
+        centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params, b.support)
     reason = edge_reject_reason(centre_sv, shape, spacing, r) or fov_reject_reason(
         centre_sv, scan.fov_radius_mm, shape, spacing, r
     )
     if reason is not None:
         return reason
     circles = slice_circles(
-        vox, range(b.box[0].start, b.box[0].stop), centre_sv, params, scan.pixel_mm, timer
+        vox, range(b.box[0].start, b.box[0].stop), centre_sv, params, scan.pixel_mm, timer, b.support
     )
-    if len(circles) < params.min_circle_slices:
+    # A split core already passed a 3-D shape test (it survived the opening and is sphere-sized on
+    # every axis); its cross-sections are bloomed along the streaks that joined it (axis ratio
+    # down to 0.5 for tungsten carbide under strong scatter), so the 2-D circle test is not a gate.
+    if len(circles) < params.min_circle_slices and b.support is None:
         return (
             f"{len(circles)} slice(s) with a circular cross-section (need {params.min_circle_slices}): "
-            "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
+            + NO_CIRCLE_REASON
         )
     radius_fit, _ = _fit_radius(circles, scan.dz_mm)
-    centre, reason = CENTRE_ESTIMATORS[params.method](circles, centre_sv, radius_fit, scan.dz_mm)
+    patch = sphere_patch(vox, centre_sv, spacing, params) if params.method == "model" else None
+    with timer.stage("centres_s"):
+        centre, reason = CENTRE_ESTIMATORS[params.method](circles, centre_sv, radius_fit, scan.dz_mm, patch)
     if centre is None:
         return reason
     log.debug(
@@ -731,6 +933,33 @@ def _measure_sphere(
         score=sphere_score(circles, centre_sv, spacing, b.box[0].stop - b.box[0].start, r),
         center_voxel=centre.astype(np.float64),
     )
+
+
+def _measure_blob(
+    b: _Blob, scan: _Scan, limits: SizeLimits, params: DetectionParams, threshold_hu: float, timer: StageTimer
+) -> list[tuple[_Blob, DetectedSphere | str]]:
+    """(blob, sphere or rejection reason) for a blob, or for each sphere core of an oversized one.
+
+    A blob too large for one sphere is split (:func:`split_blob`); if none of its cores is
+    sphere-sized the blob is rejected with its own reason (a rod stays a rod).
+    """
+    reason = blob_reject_reason(b, limits, params)
+    if reason is None:
+        found = _measure_sphere(b, scan, limits, params, timer)
+        if not (isinstance(found, str) and found.endswith(NO_CIRCLE_REASON)):
+            return [(b, found)]
+        reason = found  # streak-bloomed cross-sections: the 3-D core test decides
+    elif not reason.startswith(OVERSIZED_REASONS):
+        return [(b, reason)]
+    with timer.stage("components_s"):
+        cores = split_blob(scan.volume.voxels, b, threshold_hu, scan.spacing, params)
+    sized = [c for c in cores if blob_reject_reason(c, limits, params) is None]
+    if not sized:
+        return [(b, reason)]
+    out = [(c, _measure_sphere(c, scan, limits, params, timer)) for c in sized]
+    rest = [c for c in cores if blob_reject_reason(c, limits, params) is not None]
+    out.extend((c, f"part of a split blob: {blob_reject_reason(c, limits, params)}") for c in rest)
+    return out
 
 
 # ----------------------------------------------------------------------------- main entry
@@ -779,12 +1008,12 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
     spheres: list[DetectedSphere] = []
     rejections: list[Rejection] = []
     for b in blobs:
-        found = _measure_sphere(b, scan, limits, params, timer)
-        if isinstance(found, DetectedSphere):
-            spheres.append(found)
-        else:
-            where = volume.voxel_to_image(b.centroid_voxel)
-            rejections.append(Rejection((float(where[0]), float(where[1]), float(where[2])), found))
+        for part, found in _measure_blob(b, scan, limits, params, thr_cast, timer):
+            if isinstance(found, DetectedSphere):
+                spheres.append(found)
+            else:
+                where = volume.voxel_to_image(part.centroid_voxel)
+                rejections.append(Rejection((float(where[0]), float(where[1]), float(where[2])), found))
     timings = dict(timer.seconds)
     timings["total_s"] = time.perf_counter() - t_start
     log.info(

@@ -23,11 +23,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.errors import ConfigError, KinematicsError
 from registration.frames import apply, as_transform
+from registration.resources import robot_urdf, robots_dir
 
 F64 = NDArray[np.float64]
-
-ROBOTS_DIR = Path(__file__).resolve().parents[1] / "configs" / "robots"
-"""Where ``RobotModel.load("tx60")`` looks for ``tx60.urdf``."""
 
 ROOT_FRAME = "base"
 TOOL_FRAME = "tool0"
@@ -90,9 +88,9 @@ class RobotModel:
         text = str(name_or_urdf)
         path = Path(text)
         if not text.endswith(".urdf"):
-            path = ROBOTS_DIR / f"{text}.urdf"
+            path = robot_urdf(text)
             if not path.is_file():
-                known = sorted(p.stem for p in ROBOTS_DIR.glob("*.urdf"))
+                known = sorted(p.stem for p in robots_dir().glob("*.urdf"))
                 raise ConfigError(f"unknown robot model {text!r}: expected one of {known} or a .urdf path")
         if not path.is_file():
             raise ConfigError(f"robot URDF {path} does not exist")

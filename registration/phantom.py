@@ -33,6 +33,9 @@ FACES = ("+x", "+y", "-x", "-y")
 
 _NORMALS = {"+x": (1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-x": (-1.0, 0.0, 0.0), "-y": (0.0, -1.0, 0.0)}
 
+SPHERE_MATERIALS = ("steel", "tungsten_carbide", "titanium")
+"""Sphere materials the simulator models (mocks/oarm/physics.py); ``steel`` when the file says none."""
+
 SYMMETRY_MATCH_TOL_MM = 1e-6
 """Two hole centres coincide under a symmetry when closer than this (exact grid arithmetic)."""
 
@@ -78,6 +81,8 @@ class Phantom:
         Hole (sphere) centres in the phantom frame.
     filled : ndarray of bool, shape (n_holes,)
     min_symmetry_margin : int
+    sphere_material : str
+        One of :data:`SPHERE_MATERIALS` (optional key ``sphere_material``; default ``steel``).
     """
 
     name: str
@@ -88,6 +93,7 @@ class Phantom:
     holes_phantom_mm: NDArray[np.float64]
     filled: NDArray[np.bool_]
     min_symmetry_margin: int
+    sphere_material: str = "steel"
 
     @property
     def sphere_radius_mm(self) -> float:
@@ -228,6 +234,7 @@ def phantom_from_dict(d: dict[str, Any], source: Path | str = "<phantom>") -> Ph
         grid_raw = _require(d, "grid_rows_cols", src)
         grid = (int(grid_raw[0]), int(grid_raw[1]))
         min_margin = int(d.get("min_symmetry_margin", 0))
+        material = str(d.get("sphere_material", "steel"))
     except (TypeError, ValueError, IndexError) as e:
         raise PhantomDefinitionError(f"{src}: malformed geometry value: {e}") from None
     if np.any(size_mm <= 0) or diameter <= 0 or pitch <= 0 or depth < 0:
@@ -235,6 +242,10 @@ def phantom_from_dict(d: dict[str, Any], source: Path | str = "<phantom>") -> Ph
     if size_mm.max() > 1000 or diameter > 50:
         raise PhantomDefinitionError(
             f"{src}: cube {size_mm.tolist()} mm / sphere {diameter} mm is implausible; are the values in mm?"
+        )
+    if material not in SPHERE_MATERIALS:
+        raise PhantomDefinitionError(
+            f"{src}: sphere_material {material!r} is not one of {list(SPHERE_MATERIALS)}"
         )
     ids, holes = make_grid_holes(size_mm, pitch, grid, depth)
     r = diameter / 2.0
@@ -270,6 +281,7 @@ def phantom_from_dict(d: dict[str, Any], source: Path | str = "<phantom>") -> Ph
         holes_phantom_mm=holes,
         filled=filled,
         min_symmetry_margin=min_margin,
+        sphere_material=material,
     )
     check_symmetry_margin(ph, src)
     return ph
@@ -282,9 +294,7 @@ def check_symmetry_margin(ph: Phantom, source: Path | str = "<phantom>") -> None
             # Suggest empty holes whose image under this symmetry is also empty:
             # filling one adds a sphere that lands on an empty hole.
             sugg = [
-                ph.hole_ids[i]
-                for i in np.flatnonzero(~ph.filled)
-                if not ph.filled[sym.hole_permutation[i]]
+                ph.hole_ids[i] for i in np.flatnonzero(~ph.filled) if not ph.filled[sym.hole_permutation[i]]
             ]
             raise PhantomDefinitionError(
                 f"{source}: filled pattern is ambiguous under the rotation {sym.describe()}: only "

@@ -119,7 +119,7 @@ def _load_robot_model(settings: Settings) -> RobotModel:
 
 
 def _open_link(settings: Settings) -> RobotLink:
-    from drivers.base import open_link
+    from drivers.factory import open_link
 
     return open_link(settings.robot.link_url)
 

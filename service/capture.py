@@ -1,13 +1,14 @@
 """Joint capture: hold the robot link open and record the joints at each scan's arrival.
 
-The link (``drivers.base.open_link``) keeps a ≥ 60 s ring buffer of timestamped joint
-states and reconnects on its own once connected.  :class:`Capture` runs on the
-service's event loop: it connects (retrying every ``reconnect_interval_s`` while the
-controller is unreachable), watches the link health and publishes ``link_state``
-events on every change.  :meth:`Capture.snapshot` (thread-safe) takes the joints at a
-scan's arrival and asks :func:`registration.stillness.assess_stillness` whether the
-robot was still over ``stillness.window_s`` before the first file appeared and until
-the last file landed.
+The link (``drivers.factory.open_link``) reads on its own thread, keeps a ≥ 60 s ring
+buffer of timestamped joint states and owns the service's **one reconnect policy**:
+capped exponential back-off while the controller is unreachable or after any failure,
+configured on the link URL (``backoff_initial_s``, ``backoff_max_s``, seconds; see
+docs/robot-link.md).  :class:`Capture` only starts the link (never retries by itself),
+watches its health and publishes ``link_state`` events on every change.
+:meth:`Capture.snapshot` (thread-safe) takes the joints at a scan's arrival and asks
+:func:`registration.stillness.assess_stillness` whether the robot was still over
+``stillness.window_s`` before the first file appeared and until the last file landed.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from drivers.errors import RobotLinkError
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -37,8 +37,10 @@ class Capture:
     Parameters
     ----------
     link : RobotLink
-        Built by ``drivers.base.open_link`` (never connected yet) or injected by tests.
+        Built by ``drivers.factory.open_link`` (never connected yet) or injected by tests.
     settings : Settings
+        ``robot.connect_timeout_s``: after this long without a joint frame a warning is logged
+        (the link keeps trying).
     publish : callable
         ``publish(event_name, data)``; thread-safe (``EventBus.publish``).
     """
@@ -48,9 +50,7 @@ class Capture:
         self.settings = settings
         self.publish = publish
         self._task: asyncio.Task[None] | None = None
-        self._connected_once = False
         self._last_state: tuple[str, str] | None = None
-        self._connect_error = "not connected yet"
         self._connected_since_t_s: float | None = None
 
     @property
@@ -60,32 +60,32 @@ class Capture:
     # ---- lifecycle ------------------------------------------------------------------------
 
     async def start(self) -> None:
+        """Start the link's reader (it connects and reconnects by itself) and the health watch."""
+        self.link.start()
         self._task = asyncio.create_task(self._supervise(), name="oarmreg-capture")
 
     async def stop(self) -> None:
+        """Stop the health watch and close the link (bounded by the link's ``close_timeout_s``)."""
         task, self._task = self._task, None
         if task is not None:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        with contextlib.suppress(Exception):
+        try:
             await self.link.close()
+        except Exception:
+            log.exception("robot link %s: close failed", self.url)
 
     async def _supervise(self) -> None:
-        rs = self.settings.robot
-        while not self._connected_once:
-            try:
-                await self.link.connect(timeout_s=rs.connect_timeout_s)
-                self._connected_once = True
-                self._connected_since_t_s = time.monotonic()
-            except RobotLinkError as e:
-                self._connect_error = str(e)
-                self._check_state()
-                log.warning("robot link %s: %s; retrying in %.3g s", self.url, e, rs.reconnect_interval_s)
-                await asyncio.sleep(rs.reconnect_interval_s)
-        # Connected once: the link reconnects by itself; report its health changes.
+        warn_at_t_s: float | None = time.monotonic() + self.settings.robot.connect_timeout_s
         while True:
             self._check_state()
+            if warn_at_t_s is not None and self.link.latest() is None and time.monotonic() > warn_at_t_s:
+                warn_at_t_s = None
+                log.warning(
+                    "robot link %s: no joint frame %.3g s after start (%s); still trying",
+                    self.url, self.settings.robot.connect_timeout_s, self.link.health().reason,
+                )  # fmt: skip
             await asyncio.sleep(HEALTH_POLL_S)
 
     def _check_state(self) -> None:
@@ -102,15 +102,6 @@ class Capture:
 
     def health(self) -> dict[str, Any]:
         """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``."""
-        if not self._connected_once:
-            age = None
-            return {
-                "url": self.url,
-                "state": "down",
-                "reason": self._connect_error,
-                "last_frame_age_s": age,
-                "history_s": 0.0,
-            }
         h = self.link.health()
         latest = self.link.latest()
         hist = self.link.history(time.monotonic() - self.settings.stillness.window_s * 4)
@@ -124,7 +115,7 @@ class Capture:
         }
 
     def latest(self) -> Any:
-        return self.link.latest() if self._connected_once else None
+        return self.link.latest()
 
     def snapshot(
         self, first_seen_t_s: float, last_change_t_s: float, *, preexisting: bool = False
@@ -158,7 +149,7 @@ class Capture:
             )
             return base
         start_t = first_seen_t_s - st.window_s
-        samples = self.link.history(start_t - st.max_gap_s) if self._connected_once else []
+        samples = self.link.history(start_t - st.max_gap_s)
         samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
         if not samples:
             base["stillness_reason"] = (

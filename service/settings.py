@@ -47,13 +47,13 @@ from pydantic_settings import (
 
 from registration.errors import ConfigError
 from registration.register import RegistrationParams
+from registration.resources import default_phantom
 from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
 
 _REG_DEFAULTS = RegistrationParams()
 """The registration dataclass carries the defaults (one source of truth, configs/oarmreg.toml agrees)."""
 
-REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-DEFAULT_PHANTOM_FILE = REPO_CONFIGS / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM_FILE = default_phantom()
 ENV_PREFIX = "OARMREG_"
 MIN_TOKEN_CHARS = 16
 """Shortest accepted API token (16 chars ≈ 96 bits if random base64; OWASP: ≥ 64 bits of entropy)."""
@@ -85,7 +85,6 @@ class RobotSettings(_Section):
     link_url: str = "simple-message://127.0.0.1:11002"
     model: str = "tx60"
     connect_timeout_s: float = Field(default=5.0, gt=0, le=120)
-    reconnect_interval_s: float = Field(default=2.0, gt=0, le=600)
     tool0_from_phantom: Tool0FromPhantom = Tool0FromPhantom()
 
     @field_validator("link_url")

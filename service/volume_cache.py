@@ -43,7 +43,7 @@ class VolumeCache:
         vol = self.get(scan.series_uid)
         if vol is not None:
             return vol
-        from registration.dicom_series import load_series
+        from registration.dicom import load_series
 
         try:
             vol = load_series(scan.folder, series_uid=scan.series_uid)

@@ -5,8 +5,8 @@ series counts as complete when (research note §5):
 
 1. the folder's entries (names, sizes, mtimes, ``.*.part`` temp files
    included) have not changed for ``quiet_period_s``, and
-2. :func:`registration.dicom_series.list_series` /
-   :func:`~registration.dicom_series.load_series` build a consistent volume.
+2. :func:`registration.dicom.list_series` /
+   :func:`~registration.dicom.load_series` build a consistent volume.
 
 Changes are noticed through OS file-system events (watchdog) when available;
 the folder tree is also rescanned every ``poll_interval_s`` (the polling
@@ -325,7 +325,7 @@ class SeriesWatcher:
         log.warning("watcher: %s; retrying %s after the next quiet period", why, folder)
 
     def _process(self, folder: Path, st: _DirState) -> None:
-        from registration.dicom_series import list_series
+        from registration.dicom import list_series
 
         before = st.snapshot
         try:
@@ -366,7 +366,7 @@ class SeriesWatcher:
     ) -> bool | None:
         """Load and deliver one series of ``folder``: True if recorded, False if recording failed,
         None if the folder changed meanwhile (a retry is already scheduled)."""
-        from registration.dicom_series import load_series
+        from registration.dicom import load_series
 
         uid = _series_uid(summary)
         arrival_kw: dict[str, Any] = {

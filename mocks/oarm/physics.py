@@ -8,6 +8,11 @@ the spectrum bins, as the tables' own documentation recommends.  Compounds
 without a table row (POM, cancellous bone, stainless steel) use the mixture
 rule μ/ρ = Σ wᵢ (μ/ρ)ᵢ over element mass fractions wᵢ.
 
+Tungsten has its K edge (69.525 keV) inside the spectrum, so its table carries
+the NIST values just below and just above the edge and the interpolation never
+crosses it (:data:`_EDGE_TABLES`); a spectrum for tungsten carbide should put
+a bin edge there (:data:`K_EDGE_BIN_EDGES_KEV`).
+
 The spectrum is a Kramers-law tungsten bremsstrahlung spectrum (photon number
 per keV ∝ (kVp − E)/E, H. A. Kramers, Phil. Mag. 46:836 (1923)) hardened by an
 aluminium filter and weighted by E for an energy-integrating flat-panel
@@ -41,7 +46,39 @@ _MU_RHO_CM2_G: dict[str, tuple[float, ...]] = {
     "water": (0.3756, 0.2683, 0.2269, 0.2059, 0.1837, 0.1707, 0.1505),
     # Bone, cortical (ICRU-44), table 4.
     "bone_cortical": (1.331, 0.6655, 0.4242, 0.3148, 0.2229, 0.1855, 0.1480),
+    # Titanium, Z = 22 (table 3); no absorption edge above 5 keV.
+    "Ti": (4.972, 2.214, 1.213, 0.7661, 0.4052, 0.2721, 0.1649),
 }
+
+W_K_EDGE_KEV = 69.525
+"""Tungsten K absorption edge (NIST table 3, Z = 74: 6.95250E-02 MeV)."""
+
+# Elements whose tables need their own energies: (energies keV, μ/ρ cm²/g), an edge given twice
+# (value below, value above).  Tungsten, Z = 74, NIST table 3 rows 30–150 keV.
+_EDGE_TABLES: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
+    "W": (
+        (30.0, 40.0, 50.0, 60.0, W_K_EDGE_KEV, W_K_EDGE_KEV, 80.0, 100.0, 150.0),
+        (22.73, 10.67, 5.949, 3.713, 2.552, 11.23, 7.810, 4.438, 1.581),
+    ),
+}
+
+
+def _element_mu_rho(key: str, energies_kev: NDArray[np.float64]) -> NDArray[np.float64]:
+    """μ/ρ (cm²/g) of one table entry, log-log interpolated without crossing an absorption edge."""
+    e = np.asarray(energies_kev, dtype=np.float64)
+    if key not in _EDGE_TABLES:
+        table = np.log(np.asarray(_MU_RHO_CM2_G[key]))
+        return np.asarray(np.exp(np.interp(np.log(e), np.log(TABLE_ENERGIES_KEV), table)), dtype=np.float64)
+    te, tv = (np.asarray(v, dtype=np.float64) for v in _EDGE_TABLES[key])
+    out = np.empty_like(e)
+    # Split the table at repeated energies (edges) and interpolate each branch on its own side.
+    cuts = [0, *(np.flatnonzero(np.diff(te) == 0) + 1).tolist(), len(te)]
+    for a, b in itertools.pairwise(cuts):
+        lo = -np.inf if a == 0 else te[a]
+        hi = np.inf if b == len(te) else te[b]
+        m = (e >= lo) & (e < hi)
+        out[m] = np.exp(np.interp(np.log(e[m]), np.log(te[a:b]), np.log(tv[a:b])))
+    return out
 
 
 @dataclass(frozen=True)
@@ -54,11 +91,10 @@ class Material:
 
     def mu_rho_cm2_g(self, energies_kev: NDArray[np.float64]) -> NDArray[np.float64]:
         """Mass attenuation coefficient (cm²/g) at ``energies_kev`` (log-log interpolation)."""
-        e = np.log(np.asarray(energies_kev, dtype=np.float64))
+        e = np.asarray(energies_kev, dtype=np.float64)
         out = np.zeros_like(e)
         for key, w in self.mass_fractions:
-            table = np.log(np.asarray(_MU_RHO_CM2_G[key]))
-            out += w * np.exp(np.interp(e, np.log(TABLE_ENERGIES_KEV), table))
+            out += w * _element_mu_rho(key, e)
         return out
 
     def mu_per_mm(self, energies_kev: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -80,10 +116,21 @@ MATERIALS: dict[str, Material] = {
     # of Fe in Z, so their μ/ρ average out within a few per cent); 7.9 g/cm³.
     "steel": Material("steel", 7.9, (("Fe", 1.0),)),
     "aluminium": Material("aluminium", 2.699, (("Al", 1.0),)),
+    # Tungsten carbide WC: W 93.87 %, C 6.13 % by mass (stoichiometry, atomic masses 183.84 and
+    # 12.011), 15.63 g/cm³ (sintered WC spheres, e.g. grade-10 WC ball specifications: 15.6 g/cm³;
+    # WC-Co grades with 6 % Co are 14.9 g/cm³ and attenuate slightly less).  The issue asks for
+    # ~15.6 g/cm³ and the NIST composition W 93.9 % / C 6.1 %.
+    "tungsten_carbide": Material("tungsten_carbide", 15.63, (("W", 0.9387), ("C", 0.0613))),
+    # Commercially pure titanium (grade 2), 4.51 g/cm³; Ti-6Al-4V (4.43 g/cm³) differs by < 3 % in μ.
+    "titanium": Material("titanium", 4.51, (("Ti", 1.0),)),
 }
 
-SCENE_MATERIALS = ("water", "plastic", "bone_cortical", "bone_cancellous", "steel")
-"""Material slots of the simulator's line-integral arrays (``plastic`` is POM or PMMA)."""
+SPHERE_MATERIALS = ("steel", "tungsten_carbide", "titanium")
+"""Materials a phantom's spheres can be made of (registration/phantom.py lists the same names)."""
+
+SCENE_MATERIALS = ("water", "plastic", "bone_cortical", "bone_cancellous", "steel", "sphere")
+"""Material slots of the simulator's line-integral arrays (``plastic`` is POM or PMMA; ``sphere``
+is the phantom's sphere material, one of :data:`SPHERE_MATERIALS`; ``steel`` is the rod)."""
 
 DEFAULT_KVP = 120.0
 """O-arm maximum tube voltage (Medtronic O-arm O2 brochure: 40–120 kV); assumption, see module doc."""
@@ -91,6 +138,8 @@ DEFAULT_FILTER_AL_MM = 4.0
 """Total filtration in mm Al equivalent (assumption: gives HVL ≈ 5.5 mm Al at 120 kVp)."""
 DEFAULT_BIN_EDGES_KEV = (35.0, 45.0, 55.0, 65.0, 75.0, 85.0, 95.0, 105.0, 120.0)
 """Eight energy bins 35–120 keV (issue #2 asks for ≥ 4 bins between ~40 and 120 keV)."""
+K_EDGE_BIN_EDGES_KEV = (35.0, 45.0, 55.0, 62.0, W_K_EDGE_KEV, 77.0, 85.0, 95.0, 105.0, 120.0)
+"""Nine bins with an edge at tungsten's K edge, so no bin mixes μ from both sides of it."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,9 +196,13 @@ def kramers_spectrum(
     return Spectrum(energies_kev=np.asarray(energies), weights=w / w.sum())
 
 
-def attenuation_matrix_per_mm(spectrum: Spectrum, plastic: str = "pom") -> NDArray[np.float32]:
+def attenuation_matrix_per_mm(
+    spectrum: Spectrum, plastic: str = "pom", sphere: str = "steel"
+) -> NDArray[np.float32]:
     """μ (1/mm) of each scene material (rows, :data:`SCENE_MATERIALS` order) at each bin (columns)."""
-    names = [plastic if m == "plastic" else m for m in SCENE_MATERIALS]
+    if sphere not in SPHERE_MATERIALS:
+        raise ValueError(f"sphere material {sphere!r} not one of {SPHERE_MATERIALS}")
+    names = [{"plastic": plastic, "sphere": sphere}.get(m, m) for m in SCENE_MATERIALS]
     return np.stack([MATERIALS[n].mu_per_mm(spectrum.energies_kev) for n in names]).astype(np.float32)
 
 

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from registration.detection import DetectionParams, detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
 
     params = DetectionParams()
     overrides: dict[str, object] = {}

@@ -10,9 +10,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from registration.resources import default_phantom
+
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 
 
 def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
@@ -110,7 +112,7 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
         )
         return read_points(args.image_points, min_points=0)
     from registration.detection import DetectionParams, detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
 
     t0 = time.perf_counter()
     volume = load_series(args.dicom_dir, series_uid=args.series_uid)

@@ -42,9 +42,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from registration.resources import default_phantom
+
 HELP = "read joint angles from the robot controller, or the sphere centres in the robot frame"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 WATCH_PRINT_HZ = 10.0
 """Human-readable --watch output is throttled to this rate (the link runs at 50 Hz)."""
 
@@ -88,7 +90,7 @@ def _human(state: Any, health: Any) -> str:
 
 
 async def _joints(args: argparse.Namespace) -> int:
-    from drivers.base import open_link
+    from drivers.factory import open_link
 
     link = open_link(args.link)
     await link.connect(timeout_s=args.timeout_s)
@@ -174,8 +176,8 @@ def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
 async def _points(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from drivers.base import open_link
     from drivers.errors import LinkConfigError
+    from drivers.factory import open_link
     from registration.errors import RobotMovedError
     from registration.kinematics import RobotModel, sphere_centres_robot_mm
     from registration.phantom import load_phantom

@@ -7,13 +7,16 @@ import sys
 import time
 from pathlib import Path
 
+from registration.resources import default_phantom
+
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, ORIENTATIONS
+    from mocks.oarm.physics import SPHERE_MATERIALS
+    from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, ORIENTATIONS, PRESET_NAMES
 
     default_pose = ",".join(f"{v:g}" for v in DEMO_POSE_XYZ_RPY)
     parser.add_argument("--out", required=True, type=Path, help="output folder for the series and truth.json")
@@ -26,7 +29,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="image_from_phantom as 'tx,ty,tz,rx,ry,rz' (mm, deg; URDF rpy) (default: %(default)s)",
     )
     parser.add_argument(
-        "--preset", choices=("oarm", "demo", "small"), default="demo", help="acquisition preset"
+        "--preset",
+        choices=PRESET_NAMES,
+        default="demo-realistic",
+        help="acquisition preset; *-realistic add kernel scatter (SPR 0.2), light spread and a 0.8 mm "
+        "PSF; oarm, demo, small are the gentler legacy presets (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--material",
+        choices=SPHERE_MATERIALS,
+        default=None,
+        help="sphere material, overriding the phantom file's sphere_material",
+    )
+    parser.add_argument(
+        "--hole-tolerance-mm",
+        type=float,
+        default=0.02,
+        help="machining tolerance of the hole positions, applied to the true sphere centres "
+        "(Bai 2018: ±0.02 mm) (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--scatter-spr", type=float, default=None, help="override the scatter-to-primary ratio (0 = legacy)"
     )
     parser.add_argument("--seed", type=int, default=0, help="noise seed")
     parser.add_argument("--dose", type=float, default=1.0, help="dose factor (multiplies photons per ray)")
@@ -70,12 +93,15 @@ def run(args: argparse.Namespace) -> int:
         overrides["n_views"] = args.views
     if args.slices:
         overrides["n_slices"] = args.slices
+    if args.scatter_spr is not None:
+        overrides["scatter_spr"] = args.scatter_spr
     settings = AcquisitionSettings.preset(args.preset, **overrides)
     extras = SceneExtras(
         vertebra=args.vertebra,
         rod=args.rod,
         body=args.body,
-        sphere_material="plastic" if args.metal_free else "steel",
+        sphere_material="plastic" if args.metal_free else args.material,
+        hole_tolerance_mm=args.hole_tolerance_mm,
     )
     err = sys.stderr
     last = [-1]
@@ -100,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
     out.write(f"series {res.series_uid}: {len(res.paths)} files in {Path(args.out).resolve()}\n")
     out.write(f"truth: {res.truth_path}\n")
     out.write(
-        f"spheres inside the volume: {len(scan.sphere_indices)} of {phantom.n_spheres}; "
+        f"spheres fully imaged: {len(scan.sphere_indices)} of {phantom.n_spheres} "
+        f"({len(scan.partial_indices)} cut by the edge of the imaged region); "
         f"simulation {scan.timings_s['total_s']:.1f} s, export {res.elapsed_s:.1f} s\n"
     )
     if args.png:

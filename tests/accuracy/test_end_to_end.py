@@ -31,7 +31,7 @@ from mocks.oarm.simulator import (
 )
 from registration import frames
 from registration.detection import detect_spheres
-from registration.dicom_series import load_series
+from registration.dicom import load_series
 from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 from registration.register import RegistrationResult, register_points
 

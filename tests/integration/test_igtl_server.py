@@ -17,7 +17,7 @@ import pyigtl
 import pytest
 from polling import wait_until
 
-from drivers.base import open_link
+from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 from registration.kinematics import RobotModel

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from polling import wait_until
 
-from drivers.base import open_link
 from drivers.errors import LinkConfigError, LinkTimeoutError
+from drivers.factory import open_link
 from drivers.modbus import RegisterMap, joints_to_registers, registers_to_joints
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller

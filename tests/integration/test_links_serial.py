@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from polling import wait_until
 
-from drivers.base import open_link
+from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 

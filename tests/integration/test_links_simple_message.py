@@ -16,8 +16,8 @@ import pytest
 from polling import wait_until
 
 import drivers.simple_message as sm
-from drivers.base import open_link
 from drivers.errors import LinkConfigError, LinkTimeoutError
+from drivers.factory import open_link
 from mocks.robot.robot import ControllerStatus, ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 

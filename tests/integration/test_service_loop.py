@@ -163,7 +163,6 @@ def make_settings(watch: Path, data: Path, link_url: str, **kw: Any) -> Any:
             "api_token": TOKEN,
             "robot.link_url": link_url,
             "robot.connect_timeout_s": 2.0,
-            "robot.reconnect_interval_s": 0.2,
             "stillness.window_s": WINDOW_S,
             "stillness.max_gap_s": 0.25,
             "watcher.quiet_period_s": 0.3,

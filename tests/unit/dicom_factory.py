@@ -1,6 +1,6 @@
 """Build small, real DICOM CT series on disk (well-formed or deliberately broken).
 
-Used by ``tests/unit/test_dicom_series.py`` and ``benchmarks/bench_loader.py``.
+Used by ``tests/unit/test_dicom_*.py`` and ``benchmarks/bench_loader.py``.
 Every file is a genuine Part-10 file written by pydicom, so the loader is
 exercised exactly as on a scanner export; a test breaks one property (one
 slice's orientation, one file's length, ...) through the per-slice overrides.
@@ -16,6 +16,7 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import (
     PYDICOM_IMPLEMENTATION_UID,
+    UID,
     CTImageStorage,
     ExplicitVRLittleEndian,
     generate_uid,
@@ -43,7 +44,7 @@ def ct_dataset(
     if stored.dtype not in (np.int16, np.uint16):
         raise TypeError(f"stored pixels must be int16 or uint16, got {stored.dtype}")
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = sop_class_uid
+    meta.MediaStorageSOPClassUID = UID(sop_class_uid)
     meta.MediaStorageSOPInstanceUID = generate_uid()
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
@@ -131,7 +132,7 @@ def write_series(
         pixels = extra.pop("stored", stored[k])
         ds = ct_dataset(
             pixels,
-            position_mm=positions[k],
+            position_mm=positions[k].tolist(),
             orientation=extra.pop("orientation", orientation),
             pixel_spacing_mm=extra.pop("pixel_spacing_mm", pixel_spacing_mm),
             series_uid=series_uid,
@@ -156,3 +157,48 @@ def ramp_volume(n_slices: int, rows: int = 16, columns: int = 16, *, dtype: Any 
     """A volume whose voxel values are all different (``1000 k + 32 j + i``, for rows, columns <= 32)."""
     k, j, i = np.meshgrid(np.arange(n_slices), np.arange(rows), np.arange(columns), indexing="ij")
     return (1000 * k + 32 * j + i).astype(dtype)
+
+
+def slice_header(k: int = 0, **overrides: Any) -> Any:
+    """An in-memory :class:`~registration.dicom.SliceHeader` of slice k of a good 16 x 16 axial stack.
+
+    Slice k sits at (-10, -20, 30 + 0.8 k) mm in ``/series/IM{k:04d}.dcm``; ``overrides`` replace
+    fields (``position_mm=None``, ``rows=8``, ...), so a geometry rule can be tested without files.
+    """
+    from registration.dicom import SliceHeader
+
+    fields: dict[str, Any] = {
+        "path": Path(f"/series/IM{k:04d}.dcm"),
+        "frame": 0,
+        "n_frames": 1,
+        "sop_class_uid": CTImageStorage,
+        "sop_instance_uid": f"1.2.3.4.{k + 1}",
+        "series_uid": "1.2.3.4",
+        "frame_of_reference_uid": "1.2.3.5",
+        "study_uid": "1.2.3.6",
+        "modality": "CT",
+        "series_description": "",
+        "instance_number": k + 1,
+        "position_mm": (-10.0, -20.0, 30.0 + 0.8 * k),
+        "orientation": (1.0, 0.0, 0.0, 0.0, 1.0, 0.0),
+        "pixel_spacing_mm": (0.5, 0.5),
+        "rows": 16,
+        "columns": 16,
+        "samples_per_pixel": 1,
+        "photometric": "MONOCHROME2",
+        "bits_allocated": 16,
+        "bits_stored": 16,
+        "pixel_representation": 1,
+        "slope": 1.0,
+        "intercept": 0.0,
+        "transfer_syntax_uid": ExplicitVRLittleEndian,
+        "pixel_offset": 0,
+    }
+    fields.update(overrides)
+    return SliceHeader(**fields)
+
+
+def slice_stack(n: int = 6, overrides: Mapping[int, Mapping[str, Any]] | None = None) -> list[Any]:
+    """``n`` :func:`slice_header` slices, ``overrides[k]`` replacing fields of slice k."""
+    overrides = overrides or {}
+    return [slice_header(k, **dict(overrides.get(k, {}))) for k in range(n)]

@@ -15,7 +15,7 @@ import pytest
 from dicom_factory import ct_dataset, ramp_volume, write_series
 from pydicom.uid import RLELossless, SecondaryCaptureImageStorage, generate_uid
 
-from registration.dicom_series import (
+from registration.dicom import (
     AmbiguousSeriesError,
     DuplicatePositionError,
     GantryTiltError,
@@ -166,7 +166,7 @@ def test_truncated_file_is_skipped_and_rest_loads(tmp_path: Path, caplog: pytest
     last = paths[-1]
     data = last.read_bytes()
     last.write_bytes(data[: len(data) - 100])  # export interrupted: end of PixelData missing
-    with caplog.at_level(logging.INFO, logger="registration.dicom_series"):
+    with caplog.at_level(logging.INFO, logger="registration.dicom"):
         v = load_series(tmp_path)
     assert v.shape[0] == N - 1
     skipped = dict(v.meta["skipped"])

@@ -83,14 +83,7 @@ def test_the_checker_finds_a_cycle() -> None:
     assert find_cycle({"a": {"b"}, "b": set()}, {"a", "b"}) is None
 
 
-DRIVERS_CYCLE = pytest.mark.xfail(
-    strict=True,
-    reason="drivers.base.open_link imports the link modules, which import drivers.base; moving the "
-    "factory into its own module (drivers engineer) fixes it, then drop this marker",
-)
-
-
-@pytest.mark.parametrize("pkg", ["service", pytest.param("drivers", marks=DRIVERS_CYCLE), "registration"])
+@pytest.mark.parametrize("pkg", ["service", "drivers", "registration"])
 def test_no_import_cycle(pkg: str) -> None:
     g = graph()
     cycle = find_cycle(g, set(in_package(g, pkg)))

@@ -90,3 +90,35 @@ def test_missing_file_and_bad_toml(tmp_path: Path) -> None:
     bad.write_text("name = [unclosed")
     with pytest.raises(PhantomDefinitionError, match="not valid TOML"):
         load_phantom(bad)
+
+
+def test_sphere_material_defaults_to_steel(phantom) -> None:
+    assert phantom.sphere_material == "steel"
+
+
+def test_tungsten_carbide_rows_phantom() -> None:
+    """40 WC spheres with rows of 3–4 neighbours at 15 mm pitch, still unambiguous (margin >= 6)."""
+    from tests.conftest import CONFIGS
+
+    ph = load_phantom(CONFIGS / "phantoms" / "wc_rows40.toml")
+    assert ph.sphere_material == "tungsten_carbide" and ph.n_spheres == 40
+    assert ph.symmetry_margin >= ph.min_symmetry_margin >= 6
+    filled = set(ph.filled_ids)
+    for face in ("+x", "+y", "-x", "-y"):
+        runs = sorted(_longest_run([f"{face}-r{r}c{c}" in filled for c in range(4)]) for r in range(4))
+        assert runs[-1] == 4 and runs[-2] >= 3, f"face {face}: longest filled run per row {runs}"
+
+
+def _longest_run(flags: list[bool]) -> int:
+    best = cur = 0
+    for f in flags:
+        cur = cur + 1 if f else 0
+        best = max(best, cur)
+    return best
+
+
+def test_unknown_sphere_material_refused(phantom_path: Path) -> None:
+    d = _base(phantom_path)
+    d["sphere_material"] = "gold"
+    with pytest.raises(PhantomDefinitionError, match="sphere_material 'gold'"):
+        phantom_from_dict(d)

@@ -165,3 +165,114 @@ def test_volume_centre_is_image_origin_and_affine_is_rigid_scaled(orientation: s
     assert np.allclose(centre[:3], 0.0, atol=1e-12)
     r = a[:3, :3] / np.array([s.pixel_mm, s.pixel_mm, s.slice_spacing_mm])
     assert np.allclose(r.T @ r, np.eye(3)) and np.isclose(np.linalg.det(r), 1.0)
+
+
+# ---------------------------------------------------------------- issue #11: materials and scatter
+
+
+def test_tungsten_values_and_k_edge_jump() -> None:
+    """NIST Z = 74 rows are reproduced and the K edge at 69.525 keV is not interpolated across."""
+    w = physics.Material("w", 19.3, (("W", 1.0),))
+    assert np.allclose(w.mu_rho_cm2_g(np.array([60.0, 80.0, 100.0])), [3.713, 7.810, 4.438])
+    below, above = w.mu_rho_cm2_g(np.array([physics.W_K_EDGE_KEV - 0.01, physics.W_K_EDGE_KEV + 0.01]))
+    assert np.isclose(below, 2.552, rtol=1e-3) and np.isclose(above, 11.23, rtol=1e-3)
+
+
+def test_tungsten_carbide_and_titanium_attenuation() -> None:
+    """WC = 93.87 % W + 6.13 % C by mass at 15.63 g/cm³; Ti between plastic and steel."""
+    e = np.array([50.0, 100.0])
+    wc = physics.MATERIALS["tungsten_carbide"]
+    expect = 0.9387 * np.array([5.949, 4.438]) + 0.0613 * np.array([0.1871, 0.1514])
+    assert np.allclose(wc.mu_rho_cm2_g(e), expect, rtol=1e-6)
+    assert np.isclose(wc.density_g_cm3, 15.63)
+    mu = {m: physics.MATERIALS[m].mu_per_mm(e) for m in ("pmma", "titanium", "steel", "tungsten_carbide")}
+    assert np.all(mu["pmma"] < mu["titanium"]) and np.all(mu["titanium"] < mu["steel"])
+    assert np.all(mu["tungsten_carbide"] > 5 * mu["steel"])
+
+
+def test_k_edge_spectrum_has_a_bin_edge_at_the_k_edge() -> None:
+    s = physics.kramers_spectrum(bin_edges_kev=physics.K_EDGE_BIN_EDGES_KEV)
+    assert physics.W_K_EDGE_KEV in physics.K_EDGE_BIN_EDGES_KEV and len(s.energies_kev) == 9
+    with pytest.raises(ValueError, match="sphere material"):
+        physics.attenuation_matrix_per_mm(s, "pmma", "gold")
+
+
+def test_kernel_scatter_has_the_requested_spr_behind_the_object() -> None:
+    from mocks.oarm.simulator import kernel_scatter
+
+    k, v, d = 12, 3, 400
+    t = (np.arange(d) - d / 2) * 0.4
+    primary = np.ones((k, v, d), np.float32)
+    primary[:, :, np.abs(t) < 30] = 0.2  # a 60 mm wide object
+    for spr in (0.1, 0.3):
+        s = kernel_scatter(primary, spr, 60.0, 0.4, 0.8)
+        behind = primary < 0.98
+        for view in range(v):
+            ratio = s[:, view][behind[:, view]].sum() / primary[:, view][behind[:, view]].sum()
+            assert np.isclose(ratio, spr, rtol=1e-4)
+        # Broad and smooth: it peaks behind the object's centre and spills past its edges.
+        prof = s[k // 2, 0]
+        assert np.argmax(prof) in range(d // 2 - 10, d // 2 + 10)
+        assert prof[np.searchsorted(t, 40.0)] > 0.2 * prof.max()
+        assert np.all(np.abs(np.diff(prof)) < 0.01 * prof.max())
+
+
+def test_scatter_cups_a_uniform_block() -> None:
+    """Centre-minus-edge HU of the plastic cube drops as the scatter-to-primary ratio rises."""
+    from mocks.oarm.simulator import SceneExtras, simulate_scan
+    from registration.phantom import load_phantom
+    from tests.conftest import CONFIGS
+
+    ph = load_phantom(CONFIGS / "phantoms" / "bai2018_cube.toml")
+    extras = SceneExtras(sphere_material="plastic", empty_holes=False)
+    cup = []
+    for spr in (0.0, 0.1, 0.3):
+        s = AcquisitionSettings.preset(
+            "small", n_slices=6, noise=False, scatter_spr=spr, scatter_fraction=0.0
+        )
+        hu = simulate_scan(ph, np.eye(4), s, extras).hu[3].astype(float)
+        centre = hu[75:85, 75:85].mean()
+        edge = hu[76:84, 120:124].mean()  # 28–31 mm from the centre; the cube's half width is 35 mm
+        cup.append(centre - edge)
+    assert abs(cup[0]) < 15.0  # no scatter: water-corrected PMMA is flat
+    assert cup[1] < cup[0] - 50.0 and cup[2] < cup[1] - 50.0
+
+
+def test_scene_extras_material_and_tolerance_rules() -> None:
+    from mocks.oarm.simulator import SceneExtras
+
+    with pytest.raises(ConfigError, match="sphere_material"):
+        SceneExtras(sphere_material="gold")
+    with pytest.raises(ConfigError, match="hole_tolerance_mm"):
+        SceneExtras(hole_tolerance_mm=-0.01)
+    with pytest.raises(ConfigError, match="scatter_spr"):
+        AcquisitionSettings(scatter_spr=3.0)
+
+
+def test_hole_tolerance_moves_spheres_within_the_tolerance(phantom) -> None:
+    from mocks.oarm.simulator import SceneExtras
+
+    nominal = phantom.centres_phantom_mm
+    a = SceneExtras(hole_tolerance_mm=0.02).actual_centres_phantom_mm(phantom)
+    b = SceneExtras(hole_tolerance_mm=0.02).actual_centres_phantom_mm(phantom)
+    d = a - nominal
+    assert np.array_equal(a, b), "the phantom's machining errors must not change between scans"
+    assert np.all(np.abs(d) <= 0.02) and np.abs(d).max() > 0.015 and np.std(d) > 0.005
+    assert np.array_equal(SceneExtras().actual_centres_phantom_mm(phantom), nominal)
+
+
+def test_imaged_spheres_splits_full_and_partial() -> None:
+    from mocks.oarm.simulator import imaged_spheres
+
+    s = AcquisitionSettings.preset("small")  # half extents 55.65 × 55.65 × 47.5 mm, FOV r 56 mm
+    centres = np.array([[0, 0, 0], [0, 0, 46.8], [0, 0, 48.5], [55.5, 0, 0], [0, 0, 60.0], [42.0, 42.0, 0]])
+    full, part = imaged_spheres(centres.astype(float), 1.25, s)
+    assert full.tolist() == [0] and part.tolist() == [1, 2, 3]
+
+
+def test_realistic_presets_keep_the_legacy_ones_unchanged() -> None:
+    legacy = AcquisitionSettings.preset("demo")
+    real = AcquisitionSettings.preset("demo-realistic")
+    assert legacy.scatter_spr == 0.0 and legacy.energy_bin_edges_kev == physics.DEFAULT_BIN_EDGES_KEV
+    assert 0.1 <= real.scatter_spr <= 0.3 and real.n_slices == legacy.n_slices
+    assert AcquisitionSettings.preset("oarm-realistic").n_views == 196

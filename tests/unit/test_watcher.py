@@ -144,7 +144,7 @@ def test_inconsistent_series_is_reported_invalid(tmp_path: Path) -> None:
 
 
 def test_file_vanishing_while_loading_is_retried(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import registration.dicom_series as ds
+    import registration.dicom as ds
 
     w, sink, watch = make(tmp_path)
     paths = series(watch / "s", series_uid="1.2.3.50", n=8)
