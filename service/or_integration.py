@@ -144,11 +144,11 @@ class OrIntegration:
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
         if self.settings.service.auto_register:
-            self._registrar = ThreadPoolExecutor(1, thread_name_prefix="oarmreg-autoreg")
+            self._registrar = _started(ThreadPoolExecutor(1, thread_name_prefix="oarmreg-autoreg"))
         d = self.settings.dicom
         if d.enabled:
             self.intake = Intake(self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish)
-            self._decoder = ThreadPoolExecutor(1, thread_name_prefix="oarmreg-dicom-decode")
+            self._decoder = _started(ThreadPoolExecutor(1, thread_name_prefix="oarmreg-dicom-decode"))
             cfg = DicomScpConfig(
                 enabled=True, host=d.host, ae_title=d.ae_title, port=d.port,
                 allowed_calling_ae_titles=d.allowed_calling_ae_titles,
@@ -289,7 +289,7 @@ class OrIntegration:
     def _record_released(
         self, series_dir: Path, n: int, calling_ae: str, acc: SeriesAccumulator | None
     ) -> None:
-        from registration.dicom_series import load_series
+        from registration.dicom import load_series
 
         uid, db = series_dir.name, self.ctx.db
         known = db.scans.has_complete(uid)
@@ -398,6 +398,12 @@ class OrIntegration:
         return JointView(
             tuple(float(v) for v in latest.joints_rad), float(latest.t_s), str(h.state), str(h.reason)
         )
+
+
+def _started(ex: ThreadPoolExecutor) -> ThreadPoolExecutor:
+    """Start the executor's worker now (it would start on first use), so it lives as long as the service."""
+    ex.submit(lambda: None).result()
+    return ex
 
 
 def scan_instances_from_files(series_uid: str, files: list[Path]) -> ScanInstances:

@@ -2,14 +2,15 @@
 
 The DICOM Storage SCP (:mod:`service.dicom_scp`) writes each instance to disk and hands its path
 here; a worker thread reads its header and pixel data with the same functions the series loader
-uses (:mod:`registration.dicom_series`: the header pass, the HU rescale, and the geometry checks
-of :func:`~registration.dicom_series.check_series_geometry` — one Frame of Reference, one image
+uses (:mod:`registration.dicom`: the header pass :func:`~registration.dicom.headers.read_headers`,
+the HU rescale :func:`~registration.dicom.pixels.read_voxels`, and the geometry checks of
+:func:`~registration.dicom.check_series_geometry` — one Frame of Reference, one image
 size and orientation, contiguous evenly spaced positions).  At release :meth:`SeriesAccumulator.assemble`
 waits for the last decodes, runs the checks on every slice and stacks the volume in slice order.
 
 Whenever the decoded set is not exactly the series folder's ``*.dcm`` files (a series reopened by
 a later association, a file the header pass skipped, a decode that failed), it falls back to
-:func:`~registration.dicom_series.load_series` on the folder, so the outcome is always the
+:func:`~registration.dicom.load_series` on the folder, so the outcome is always the
 loader's.
 """
 
@@ -35,19 +36,21 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class _Decoded:
     headers: tuple[Any, ...]
-    """``registration.dicom_series.SliceHeader`` of each frame of the file."""
+    """:class:`registration.dicom.SliceHeader` of each frame of the file."""
     voxels: NDArray[Any]
     """(n_frames, rows, columns) HU."""
 
 
 def _decode(path: Path) -> _Decoded | None:
     """Header + HU pixels of one file, or None when the loader would skip it (then the loader decides)."""
-    from registration import dicom_series as ds
+    from registration.dicom import SkippedFile
+    from registration.dicom.headers import read_headers
+    from registration.dicom.pixels import read_voxels
 
-    result = ds._read_headers(path, {})
-    if isinstance(result, ds.SkippedFile) or not result:
+    result = read_headers(path)
+    if isinstance(result, SkippedFile) or not result:
         return None
-    voxels = ds._read_voxels(result, result[0].series_uid)
+    voxels = read_voxels(result, result[0].series_uid)
     return _Decoded(tuple(result), voxels)
 
 
@@ -91,7 +94,7 @@ class SeriesAccumulator:
         OSError
             The folder cannot be read.
         """
-        from registration.dicom_series import load_series
+        from registration.dicom import load_series
 
         with self._lock:
             futures = dict(self._futures)
@@ -114,7 +117,8 @@ class SeriesAccumulator:
 
 def _stack(root: Path, series_uid: str, decoded: dict[Path, _Decoded]) -> Volume:
     """Check the geometry of every slice and stack the decoded frames in slice order."""
-    from registration.dicom_series import check_series_geometry
+    from registration.dicom import check_series_geometry
+    from registration.dicom.loader import _volume_meta  # the loader's own meta, key for key
 
     frames: dict[tuple[Path, int], NDArray[Any]] = {}
     headers = []
@@ -126,24 +130,7 @@ def _stack(root: Path, series_uid: str, decoded: dict[Path, _Decoded]) -> Volume
     dtype = np.result_type(*{plane.dtype for plane in frames.values()})
     voxels = np.stack([frames[(h.path, h.frame)] for h in geometry.slices]).astype(dtype, copy=False)
     first = geometry.slices[0]
-    meta: dict[str, Any] = {
-        "source": str(root),
-        "files": tuple(str(h.path) for h in geometry.slices),
-        "frames": tuple(h.frame for h in geometry.slices),
-        "skipped": (),
-        "slice_spacing_mm": geometry.slice_spacing_mm,
-        "positions_mm": tuple(float(s) for s in geometry.positions_mm),
-        "instance_numbers": tuple(h.instance_number for h in geometry.slices),
-        "transfer_syntax_uids": tuple(sorted({h.transfer_syntax_uid for h in geometry.slices})),
-        "rescale": tuple(sorted({(h.slope, h.intercept) for h in geometry.slices})),
-        "sop_class_uid": first.sop_class_uid,
-        "modality": first.modality,
-        "manufacturer": first.manufacturer,
-        "acquisition": first.acquisition,
-        "study_uid": first.study_uid,
-        "series_description": first.series_description,
-        "decoded_on_arrival": True,
-    }
+    meta: dict[str, Any] = {**_volume_meta(root, geometry, ()), "decoded_on_arrival": True}
     return Volume(
         voxels=voxels,
         image_from_voxel=geometry.image_from_voxel,

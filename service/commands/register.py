@@ -258,7 +258,7 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     RobotFrameUidError
         ``--robot-frame-uid`` is not a DICOM UID, or the stored one is malformed.
     """
-    from registration.dicom_series import list_series
+    from registration.dicom import list_series
     from registration.errors import PointsFileError
     from registration.sro import build_spatial_registration
     from service.or_integration import scan_instances_from_files

@@ -505,8 +505,13 @@ class IgtlServer:
                 self._broadcast(self._tool(reg, joints))
                 last_tool, next_tool = tool_key, now + cfg.period_s
             self._wake.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), cfg.poll_period_s)
+            # wake at the poll period or on notify(); call_later instead of wait_for, which would
+            # start a new task for every wait (100 per second)
+            timer = asyncio.get_running_loop().call_later(cfg.poll_period_s, self._wake.set)
+            try:
+                await self._wake.wait()
+            finally:
+                timer.cancel()
 
 
 def _registration_key(reg: RegistrationState) -> object:

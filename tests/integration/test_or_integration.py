@@ -130,7 +130,7 @@ def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Serv
     with run_mock_controller("simple-message", robot) as mock:
         settings = load_settings(None, {
             "watch_dir": root / "watch", "data_dir": root / "data", "api_token": TOKEN,
-            "robot.link_url": mock.url, "robot.connect_timeout_s": 2.0, "robot.reconnect_interval_s": 0.2,
+            "robot.link_url": mock.url, "robot.connect_timeout_s": 2.0,
             "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.5,
             "watcher.quiet_period_s": 0.3, "watcher.poll_interval_s": 0.2,
             "dicom.enabled": True, "dicom.port": 0, "dicom.ae_title": AE_TITLE,
@@ -234,7 +234,7 @@ def test_dcmtk_echoscu_and_storescu_512_series_is_recorded(svc: Service) -> None
     ev = svc.wait_released(uid)
     assert ev["outcome"] == "complete" and ev["calling_ae"] == "STORESCU" and ev["scan_id"] == scan["id"]
     # the volume decoded on arrival equals the loader's, voxel for voxel
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
 
     vol = svc.ctx.volumes.get(uid)
     assert vol is not None and vol.meta.get("decoded_on_arrival")
