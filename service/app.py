@@ -9,13 +9,15 @@ import time; tests inject settings, a robot link, or override dependencies.
 Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/joints`` ·
 ``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` ·
 ``/registrations/{id}/dicom`` · ``/verify`` ·
-``/verifications`` · ``/events``.  Every route but ``/health`` needs
-``Authorization: Bearer <api_token>`` when a token is configured.
+``/verifications`` · ``/events`` (+ ``/events/ticket``) · ``/audit``.  Every route but ``/health``
+needs ``Authorization: Bearer <api_token>``, checked with Host, Origin, Content-Type and body size
+by :class:`service.security.SecurityGate` before any body byte is read.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -33,6 +35,7 @@ from service.event_bus import EventBus
 from service.intake import Intake
 from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
+from service.security import SecurityGate
 from service.settings import Settings
 from service.store import Database
 from service.watcher import SeriesWatcher
@@ -80,6 +83,7 @@ def create_app(
     ConfigError, RobotLinkError
         Bad phantom file, robot model or link URL (fail at start-up, naming the setting).
     """
+    settings.check_serving()
     ctx = ServiceContext(
         settings=settings,
         bus=EventBus(),
@@ -96,10 +100,16 @@ def create_app(
         finally:
             await _stop(ctx)
 
-    app = FastAPI(title="oarmreg", version=__version__, description=API_DESCRIPTION, lifespan=lifespan)
+    docs = settings.api.docs
+    app = FastAPI(
+        title="oarmreg", version=__version__, description=API_DESCRIPTION, lifespan=lifespan,
+        docs_url="/docs" if docs else None, redoc_url="/redoc" if docs else None,
+        openapi_url="/openapi.json" if docs else None,
+    )  # fmt: skip
     app.state.ctx = ctx
     _install_routes(app)
     app.add_middleware(CurrentRegistrationFastPath)
+    app.add_middleware(SecurityGate)  # outermost: nothing is read before it admits the request
     return app
 
 
@@ -131,6 +141,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ctx.db = Database.open(settings.db_path)
     or_int = ctx.or_integration = OrIntegration(ctx)
+    ctx.db_watch_task = asyncio.create_task(_watch_database(ctx), name="oarmreg-db-watch")
     ctx.orchestrator = Orchestrator(
         settings, ctx.db, ctx.phantom, ctx.robot_model, or_int.publish, volumes=ctx.volumes
     )
@@ -148,6 +159,11 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         )
         ctx.watcher.start()
     await or_int.start()  # DICOM C-STORE SCP and OpenIGTLink server, when enabled
+    if settings.api.auth == "none-loopback-only":
+        log.warning(
+            "authentication is OFF (api.auth = 'none-loopback-only'): any local process or user can change "
+            "the current registration; set api_token and api.auth = 'token' for clinical use"
+        )
     log.info(
         "oarmreg %s serving: watch %s, data %s, robot %s (%s), auth %s",
         __version__, settings.watch_dir, settings.data_dir, settings.robot.link_url, settings.robot.model,
@@ -155,10 +171,25 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     )  # fmt: skip
 
 
+async def _watch_database(ctx: ServiceContext) -> None:
+    """Every ``database.integrity_check_interval_s``: is the database file still the one opened?
+
+    The check also runs on every write transaction and every ``GET /health``; this loop makes a
+    vanished file show up in the log (and the rescue copy be taken) even when nothing writes.
+    """
+    interval_s = ctx.settings.database.integrity_check_interval_s
+    while ctx.db.health_problem() is None:
+        await asyncio.sleep(interval_s)
+
+
 async def _stop(ctx: ServiceContext) -> None:
     ctx.bus.close()
     if ctx.or_integration is not None:
         await ctx.or_integration.stop()
+    if ctx.db_watch_task is not None:
+        ctx.db_watch_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await ctx.db_watch_task
     if ctx.watcher is not None:
         await asyncio.to_thread(ctx.watcher.stop)
     await ctx.capture.stop()
@@ -216,12 +247,19 @@ class CurrentRegistrationFastPath:
 
 
 def _install_routes(app: FastAPI) -> None:
-    from service.api import events, health, problems, registrations, scans, sro, status, verifications
+    from service.api import audit, events, health, problems, registrations, scans, sro, status, verifications
     from service.api.deps import AuthDep
 
     problems.install(app)
     app.include_router(health.router)
-    routers = [status.router, scans.router, registrations.router, sro.router, verifications.router]
-    routers.append(events.router)
+    routers = (
+        status.router,
+        scans.router,
+        registrations.router,
+        sro.router,
+        verifications.router,
+        events.router,
+        audit.router,
+    )
     for r in routers:
         app.include_router(r, dependencies=[AuthDep])

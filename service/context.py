@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
@@ -15,6 +16,7 @@ from service.orchestrator import Orchestrator
 from service.records import RegistrationRecord
 from service.settings import Settings
 from service.store import Database
+from service.tickets import TicketBook
 from service.volume_cache import VolumeCache
 from service.watcher import SeriesWatcher
 
@@ -35,6 +37,9 @@ class ServiceContext:
     watcher: SeriesWatcher | None = None
     or_integration: OrIntegration | None = None
     """DICOM SCP, OpenIGTLink server, auto-register (:mod:`service.or_integration`)."""
+    db_watch_task: asyncio.Task[None] | None = None
+    tickets: TicketBook = field(default_factory=TicketBook)
+    """Single-use tickets for GET /events?ticket= (service.security)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""

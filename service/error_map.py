@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 from drivers.errors import LinkConfigError, RobotLinkError
 from registration.errors import AccuracyGateError, ConfigError, OarmRegError, RegistrationError
-from service.errors import AuthError, InternalError, NoScanError, NotFoundError
+from service.errors import AuthError, DatabaseGoneError, InternalError, NoScanError, NotFoundError
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -55,6 +55,7 @@ ERROR_MAP: dict[type, ErrorClass] = {
     NoScanError: ErrorClass(409, EXIT_INPUT, "No complete scan"),
     InternalError: ErrorClass(500, EXIT_INPUT, "Internal error"),
     AuthError: ErrorClass(401, EXIT_USAGE, "Unauthorized"),
+    DatabaseGoneError: ErrorClass(503, EXIT_CONFIG, "Database unavailable"),
     RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK, "Robot link error"),
     LinkConfigError: ErrorClass(422, EXIT_CONFIG, "Invalid robot link configuration"),
 }

@@ -38,3 +38,9 @@ class AuthError(OarmRegError):
 
     title = "Unauthorized"
     headers: ClassVar[dict[str, str]] = {"WWW-Authenticate": 'Bearer realm="oarmreg"'}
+
+
+class DatabaseGoneError(OarmRegError):
+    """The database file was deleted or replaced while the service ran (answered 503)."""
+
+    title = "Database unavailable"

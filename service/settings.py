@@ -141,6 +141,37 @@ class DetectionSettings(_Section):
     use_mar: bool = True
 
 
+AUTH_MODES = ("token", "none-loopback-only")
+"""``api.auth``: ``token`` (default: every route but /health needs the Bearer token) or
+``none-loopback-only`` (explicit opt-out; refused unless the bind address is loopback)."""
+
+
+class ApiSettings(_Section):
+    """HTTP hardening (issue #13): authentication mode, body limit, Host / Origin allow-lists."""
+
+    auth: Literal["token", "none-loopback-only"] = "token"
+    # 1 MiB: the largest legitimate body is POST /register with 1000 targets (~60 kB of JSON);
+    # 16× headroom, and far below what stalls the event loop (a 10 MB body took seconds, #13).
+    max_body_bytes: int = Field(default=1_048_576, ge=1024, le=64 * 1_048_576)
+    # Host header values accepted ("name" = that name on the service's port, "name:port" exactly).
+    # Empty: the bind host, localhost, 127.0.0.1 and [::1] on the service's port (DNS rebinding guard).
+    allowed_hosts: tuple[str, ...] = ()
+    # Origin header values accepted from browsers ("http://ui.example:8080"); a request without an
+    # Origin header is a non-browser client and is allowed.  Empty: http(s):// + the allowed hosts.
+    allowed_origins: tuple[str, ...] = ()
+    # Serve /docs, /redoc and /openapi.json (behind the token like every other route).
+    docs: bool = True
+    # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
+    # (EventSource cannot send an Authorization header; short, as it travels in the URL).
+    event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
+
+
+class DatabaseSettings(_Section):
+    # How often the service checks that its database file is still the one it opened (same
+    # device + inode) besides the check on every write transaction, s.
+    integrity_check_interval_s: float = Field(default=5.0, gt=0, le=3600)
+
+
 class Tool0FromTcp(_Section):
     """The tool centre point in the flange (tool0) frame, for OpenIGTLink ``ToolToImage``."""
 
@@ -272,6 +303,8 @@ class Settings(BaseSettings):
     stillness: StillnessSettings = StillnessSettings()
     watcher: WatcherSettings = WatcherSettings()
     detection: DetectionSettings = DetectionSettings()
+    api: ApiSettings = ApiSettings()
+    database: DatabaseSettings = DatabaseSettings()
     dicom: DicomSettings = DicomSettings()
     igtl: IgtlSettings = IgtlSettings()
     tls: TlsSettings = TlsSettings()
@@ -314,6 +347,16 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _refuse_unsafe(self) -> Settings:
+        if self.api.auth == "none-loopback-only" and not is_loopback(self.host):
+            raise ValueError(
+                f"api.auth: 'none-loopback-only' cannot be used with host {self.host!r}; bind 127.0.0.1 "
+                "or use api.auth = 'token' with api_token"
+            )
+        if self.api.auth == "none-loopback-only" and self.api_token is not None:
+            raise ValueError(
+                "api.auth is 'none-loopback-only' but api_token is set; choose one: api.auth = 'token' "
+                f"(env {ENV_PREFIX}API__AUTH) or an empty api_token"
+            )
         if not is_loopback(self.host) and self.api_token is None:
             raise ValueError(
                 f"host: binding {self.host!r} exposes the API beyond this machine; set api_token "
@@ -341,7 +384,23 @@ class Settings(BaseSettings):
 
     @property
     def auth_enabled(self) -> bool:
-        return self.api_token is not None
+        return self.api_token is not None and self.api.auth == "token"
+
+    def check_serving(self) -> None:
+        """Refuse to serve with no way to authenticate (``api.auth = 'token'`` without ``api_token``).
+
+        Raises
+        ------
+        ConfigError
+            Names both ways out: a token, or the explicit loopback-only no-auth mode.
+        """
+        if self.api.auth == "token" and self.api_token is None:
+            raise ConfigError(
+                f"api_token is not set and api.auth is 'token' (the default): set {ENV_PREFIX}API_TOKEN "
+                "to at least 16 random characters "
+                "(python -c 'import secrets; print(secrets.token_urlsafe(24))'), "
+                "or, on a loopback bind only, api.auth = 'none-loopback-only' to serve without authentication"
+            )
 
     @property
     def db_path(self) -> Path:

@@ -17,9 +17,13 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 from fastapi import APIRouter, Request
-from fastapi.responses import StreamingResponse
+from fastapi.responses import JSONResponse, StreamingResponse
 
-from service.api.deps import CtxDep
+from service.api.deps import CtxDep, PrincipalDep
+from service.api.models import EventTicketOut
+from service.api.problems import problem_response, problem_responses
+from service.security import EVENTS_PATH
+from service.tickets import MAX_OUTSTANDING_TICKETS
 
 
 def format_sse(item: tuple[int, str, dict[str, Any]] | None) -> str:
@@ -36,6 +40,8 @@ router = APIRouter(tags=["events"])
     "/events",
     summary="Server-sent events",
     description=(
+        "Authenticate with the Bearer header or, from a browser's `EventSource` (which cannot send "
+        "headers), with `?ticket=` from `POST /events/ticket`.  "
         "A `text/event-stream` of service events: `scan_arrived`, `scan_invalid`, `registration_done`, "
         "`registration_refused`, `verification_done`, `link_state`.  `data` is a JSON object, e.g. "
         '`event: registration_done` / `data: {"registration_id": 3, "scan_id": 2, "fre_mm": 0.08}`.'
@@ -58,3 +64,27 @@ async def events(request: Request, ctx: CtxDep) -> StreamingResponse:
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )
+
+
+@router.post(
+    "/events/ticket",
+    response_model=EventTicketOut,
+    summary="A single-use, short-lived ticket for GET /events?ticket=… (for EventSource)",
+    description=(
+        "Browsers' `EventSource` cannot send `Authorization`; an authenticated client asks for a ticket "
+        "(valid `api.event_ticket_ttl_s` seconds, usable once) and opens `/events?ticket=…`.  Bodiless, "
+        "but like every mutating request it needs `Content-Type: application/json`."
+    ),
+    responses=problem_responses(401, 429),
+)
+async def event_ticket(
+    request: Request, ctx: CtxDep, principal: PrincipalDep
+) -> EventTicketOut | JSONResponse:
+    ttl_s = ctx.settings.api.event_ticket_ttl_s
+    ticket = ctx.tickets.mint(principal, ttl_s)
+    if ticket is None:
+        return problem_response(
+            429, "Too many tickets", f"{MAX_OUTSTANDING_TICKETS} event tickets are outstanding; use them or "
+            "let them expire before asking for more", request.url.path,
+        )  # fmt: skip
+    return EventTicketOut(ticket=ticket, expires_in_s=ttl_s, url=f"{EVENTS_PATH}?ticket={ticket}")

@@ -8,9 +8,19 @@ FrameOfReferenceUID): ``p_image = image_from_robot @ p_robot``.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, AliasPath, BaseModel, ConfigDict, Field, computed_field, field_validator
+from pydantic import (
+    AliasChoices,
+    AliasPath,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    computed_field,
+    field_validator,
+)
 
 from service.records import RegistrationRecord, ScanRecord, VerificationRecord
 
@@ -21,8 +31,17 @@ EXAMPLE_MATRIX: list[Any] = [
     [0.0, 0.0, 0.0, 1.0],
 ]
 
+MAX_DB_ID = 2**63 - 1
+"""SQLite's INTEGER range: row ids are 1 … 2^63 − 1 (sqlite.org/lang_createtable.html#rowid)."""
+MAX_OFFSET = 2**63 - 1
+
+DbId = Annotated[StrictInt, Field(ge=1, le=MAX_DB_ID)]
+"""A record id in a request body: a JSON integer (not ``true``, not ``"3"``) in SQLite's row-id range."""
+
 Matrix4 = list[list[float]]
 Point3 = list[float]
+StrictPoint3 = list[StrictFloat]
+"""A request point: JSON numbers only (no ``true``, no numeric strings)."""
 
 
 class _Out(BaseModel):
@@ -45,10 +64,10 @@ class RegisterRequest(BaseModel):
         json_schema_extra={"examples": [{}, {"scan_id": 3, "targets_mm": [[10.0, -25.5, 140.0]]}]},
     )
 
-    scan_id: int | None = Field(
+    scan_id: DbId | None = Field(
         default=None, description="Scan to register (GET /scans); default: the latest complete scan."
     )
-    targets_mm: list[Point3] | None = Field(
+    targets_mm: list[StrictPoint3] | None = Field(
         default=None,
         description=(
             "Target points in the IMAGE frame (DICOM LPS mm, the navigation UI's space) at which to report "
@@ -60,7 +79,7 @@ class RegisterRequest(BaseModel):
 
     @field_validator("targets_mm")
     @classmethod
-    def _three(cls, v: list[Point3] | None) -> list[Point3] | None:
+    def _three(cls, v: list[StrictPoint3] | None) -> list[StrictPoint3] | None:
         if v is None:
             return v
         for i, p in enumerate(v):
@@ -76,7 +95,7 @@ class VerifyRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{}, {"scan_id": 4}]})
 
-    scan_id: int | None = Field(
+    scan_id: DbId | None = Field(
         default=None,
         description="A scan newer than the current registration's scan; default: the latest complete scan.",
     )
@@ -86,8 +105,30 @@ class VerifyRequest(BaseModel):
 
 
 class Health(_Out):
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "unhealthy"] = "ok"
     version: str
+    problems: list[str] = Field(
+        [], description="Why the service is unhealthy (e.g. its database file vanished) and what to do."
+    )
+
+
+class EventTicketOut(_Out):
+    ticket: str = Field(
+        description="Single use; pass as GET /events?ticket=… (EventSource cannot send headers)."
+    )
+    expires_in_s: float
+    url: str
+
+
+class AuditOut(_Out):
+    id: int
+    at: str
+    principal: str = Field(description="token:<12 hex of the token's SHA-256> or none-loopback-only.")
+    action: str = Field(description="register | verify | activate | delete")
+    target: str
+    target_id: int | None
+    outcome: str
+    detail: str
 
 
 class LinkOut(_Out):
@@ -291,6 +332,8 @@ class StatusOut(_Out):
         default_factory=dict,
         description="DICOM SCP and OpenIGTLink server: enabled, host, port, associations / clients.",
     )
+    healthy: bool = True
+    problems: list[str] = Field([], description="Why the service is unhealthy and what to do.")
 
 
 # ---- converters ----------------------------------------------------------------------------

@@ -22,6 +22,11 @@ log = logging.getLogger(__name__)
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:oarmreg:problem:"
+INTERNAL_DETAIL = (
+    "the service failed on this request (a bug, logged with its traceback); records already stored are "
+    "kept; retry, and report it if it persists"
+)
+"""The detail of every 500: no exception text, which can quote row contents or paths."""
 
 
 def _kebab(name: str) -> str:
@@ -47,13 +52,19 @@ def problem_response(
 async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
     entry = classify(exc)
     status = entry.http_status if entry is not None and entry.http_status >= 400 else 422
+    headers = getattr(exc, "headers", None)
+    detail = str(exc)
+    if status == 500:  # a bug: its text may quote internals; the log has it
+        log.error("internal error on %s %s: %s", request.method, request.url.path, exc)
+        detail = INTERNAL_DETAIL
+        headers = {**(headers or {}), "Connection": "close"}
     return problem_response(
         status,
         title_of(exc),
-        str(exc),
+        detail,
         request.url.path,
         type_=TYPE_PREFIX + _kebab(type(exc).__name__),
-        headers=getattr(exc, "headers", None),
+        headers=headers,
         exit_code=exit_code_of(exc),
         registration_id=getattr(exc, "registration_id", None),
     )
@@ -89,10 +100,12 @@ async def _http_handler(request: Request, exc: Exception) -> JSONResponse:
 
 
 async def _unexpected_handler(request: Request, exc: Exception) -> JSONResponse:
-    log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+    # No exception text in the body (it can quote row contents); the log has the traceback.
+    log.error("unhandled %s on %s %s", type(exc).__name__, request.method, request.url.path, exc_info=exc)
     return problem_response(
-        500, "Internal error", f"{type(exc).__name__}: {exc}; see the service log", request.url.path
-    )
+        500, "Internal error", INTERNAL_DETAIL, request.url.path, type_=TYPE_PREFIX + "internal",
+        headers={"Connection": "close"},
+    )  # fmt: skip
 
 
 def install(app: FastAPI) -> None:
@@ -127,7 +140,11 @@ def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         401: "missing or wrong Bearer token",
         404: "no such resource",
         409: "refused (robot moved, robot link down, too few spheres, ambiguous, FRE over the gate)",
+        413: "request body over api.max_body_bytes",
+        415: "a mutating request without Content-Type: application/json",
         422: "invalid request or unusable scan (problem details)",
+        429: "too many outstanding tickets",
         500: "internal error",
+        503: "the database is unavailable (file deleted or replaced); see GET /health",
     }
     return {c: {"description": desc.get(c, "error"), **PROBLEM_SCHEMA} for c in codes}

@@ -5,11 +5,12 @@ from __future__ import annotations
 from typing import Annotated
 
 import anyio.to_thread
-from fastapi import APIRouter, Body, Query, Response
+from fastapi import APIRouter, Body, Response
 
-from service.api.deps import CtxDep
+from service.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
 from service.api.models import RegisterRequest, RegistrationOut, registration_out
 from service.api.problems import problem_responses
+from service.audit import audited
 from service.errors import NoCurrentRegistrationError, NotFoundError
 
 router = APIRouter(tags=["registration"])
@@ -28,9 +29,13 @@ router = APIRouter(tags=["registration"])
     ),
     responses=problem_responses(401, 404, 409, 422),
 )
-async def register(ctx: CtxDep, body: Annotated[RegisterRequest | None, Body()] = None) -> RegistrationOut:
+async def register(
+    ctx: CtxDep, principal: PrincipalDep, body: Annotated[RegisterRequest | None, Body()] = None
+) -> RegistrationOut:
     req = body or RegisterRequest()
-    rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_mm)
+    with audited(ctx, principal, "register", "registration") as note:
+        rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_mm)
+        note(rec.id, "accepted", f"scan {rec.scan_id}, FRE {rec.fre_mm or 0.0:.3f} mm; made current")
     return registration_out(rec)
 
 
@@ -57,8 +62,8 @@ async def current(ctx: CtxDep) -> Response:
 )
 def list_registrations(
     ctx: CtxDep,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> list[RegistrationOut]:
     return [registration_out(r) for r in ctx.db.registrations.list(limit, offset)]
 
@@ -69,7 +74,7 @@ def list_registrations(
     summary="One registration",
     responses=problem_responses(401, 404),
 )
-def get_registration(ctx: CtxDep, registration_id: int) -> RegistrationOut:
+def get_registration(ctx: CtxDep, registration_id: RecordId) -> RegistrationOut:
     rec = ctx.db.registrations.get(registration_id)
     if rec is None:
         raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")

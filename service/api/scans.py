@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from fastapi import APIRouter
 
-from fastapi import APIRouter, Query
-
-from service.api.deps import CtxDep
+from service.api.deps import CtxDep, Limit, Offset, RecordId
 from service.api.models import ScanOut, scan_out
 from service.api.problems import problem_responses
 from service.errors import NotFoundError
@@ -22,8 +20,8 @@ router = APIRouter(tags=["scans"])
 )
 def list_scans(
     ctx: CtxDep,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> list[ScanOut]:
     return [scan_out(s) for s in ctx.db.scans.list(limit, offset)]
 
@@ -34,7 +32,7 @@ def list_scans(
     summary="One scan with its joint snapshot",
     responses=problem_responses(401, 404),
 )
-def get_scan(ctx: CtxDep, scan_id: int) -> ScanOut:
+def get_scan(ctx: CtxDep, scan_id: RecordId) -> ScanOut:
     scan = ctx.db.scans.get(scan_id)
     if scan is None:
         raise NotFoundError(f"scan {scan_id} does not exist; GET /scans lists the recorded scans")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from service.api.deps import CtxDep
+from service.api.deps import CtxDep, RecordId
 from service.api.problems import problem_responses
 from service.errors import NotFoundError
 
@@ -26,7 +26,7 @@ DICOM_MEDIA_TYPE = "application/dicom"
     response_class=Response,
     responses={200: {"content": {DICOM_MEDIA_TYPE: {}}}, **problem_responses(401, 404, 409)},
 )
-def registration_dicom(ctx: CtxDep, registration_id: int) -> Response:
+def registration_dicom(ctx: CtxDep, registration_id: RecordId) -> Response:
     from service.robot_frame import robot_frame_uid
     from service.sro_export import sro_dataset, to_bytes
 

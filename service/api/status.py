@@ -25,7 +25,10 @@ router = APIRouter(tags=["status"])
 def status(ctx: CtxDep) -> StatusOut:
     latest = ctx.db.scans.latest_complete()
     cur = ctx.orchestrator.current
+    db_problem = ctx.db.health_problem()
     return StatusOut(
+        healthy=db_problem is None,
+        problems=[db_problem] if db_problem else [],
         version=__version__,
         started_at=ctx.started_at.isoformat(),
         uptime_s=(datetime.now(UTC) - ctx.started_at).total_seconds(),

@@ -9,9 +9,10 @@ import anyio.to_thread
 from fastapi import APIRouter, Body
 from fastapi.responses import FileResponse
 
-from service.api.deps import CtxDep
+from service.api.deps import CtxDep, PrincipalDep, RecordId
 from service.api.models import VerificationOut, VerifyRequest, verification_out
 from service.api.problems import problem_responses
+from service.audit import audited
 from service.errors import NotFoundError
 
 router = APIRouter(tags=["verification"])
@@ -28,9 +29,18 @@ router = APIRouter(tags=["verification"])
     ),
     responses=problem_responses(401, 404, 409, 422),
 )
-async def verify(ctx: CtxDep, body: Annotated[VerifyRequest | None, Body()] = None) -> VerificationOut:
+async def verify(
+    ctx: CtxDep, principal: PrincipalDep, body: Annotated[VerifyRequest | None, Body()] = None
+) -> VerificationOut:
     req = body or VerifyRequest()
-    rec = await anyio.to_thread.run_sync(ctx.orchestrator.verify, req.scan_id)
+    with audited(ctx, principal, "verify", "verification") as note:
+        rec = await anyio.to_thread.run_sync(ctx.orchestrator.verify, req.scan_id)
+        outcome = "passed" if rec.passed else "failed"
+        note(
+            rec.id,
+            outcome,
+            f"registration {rec.registration_id}, scan {rec.scan_id}, max {rec.max_mm:.3f} mm",
+        )
     return verification_out(rec)
 
 
@@ -40,7 +50,7 @@ async def verify(ctx: CtxDep, body: Annotated[VerifyRequest | None, Body()] = No
     summary="One verification",
     responses=problem_responses(401, 404),
 )
-def get_verification(ctx: CtxDep, verification_id: int) -> VerificationOut:
+def get_verification(ctx: CtxDep, verification_id: RecordId) -> VerificationOut:
     rec = ctx.db.verifications.get(verification_id)
     if rec is None:
         raise NotFoundError(f"verification {verification_id} does not exist")
@@ -53,7 +63,7 @@ def get_verification(ctx: CtxDep, verification_id: int) -> VerificationOut:
     summary="Histogram of the verification's per-sphere errors",
     responses={200: {"content": {"image/png": {}}}, **problem_responses(401, 404)},
 )
-def histogram(ctx: CtxDep, verification_id: int) -> FileResponse:
+def histogram(ctx: CtxDep, verification_id: RecordId) -> FileResponse:
     rec = ctx.db.verifications.get(verification_id)
     if rec is None or not rec.histogram_path or not Path(rec.histogram_path).is_file():
         raise NotFoundError(f"verification {verification_id} has no histogram")

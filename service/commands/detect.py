@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from service.commands.argtypes import positive_float
+
 HELP = "detect the calibration spheres in an O-arm DICOM series (centres in LPS mm)"
 
 
@@ -34,7 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "or paper (per-slice Pythagorean depth, Bai 2018)",
     )
     parser.add_argument(
-        "--sphere-diameter", metavar="MM", type=float, default=None, help="sphere diameter in mm (2.5)"
+        "--sphere-diameter",
+        metavar="MM",
+        type=positive_float,
+        default=None,
+        help="sphere diameter in mm (2.5)",
     )
     parser.add_argument("--no-mar", action="store_true", help="skip the polar metal artefact reduction")
     parser.add_argument("--series-uid", metavar="UID", default=None, help="pick this SeriesInstanceUID")

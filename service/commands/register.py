@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.resources import default_phantom
+from service.commands.argtypes import float_below, positive_float, positive_int
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
 
@@ -44,6 +45,25 @@ def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_image_arguments(parser)
+    for action in parser._actions:  # register takes the robot side from --robot-points or --joints
+        if action.dest == "robot_points":
+            action.required = False
+    parser.add_argument(
+        "--joints",
+        type=Path,
+        metavar="JOINTS.json",
+        help='joint angles of the scan, {"joints_rad": [...]}: robot points by forward kinematics '
+        "(instead of --robot-points)",
+    )
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="CALDIR",
+        help="with --joints: use this calibration's robot.urdf and tool0_from_phantom (default: nominal)",
+    )
+    parser.add_argument(
+        "--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)"
+    )
     parser.add_argument(
         "--targets",
         type=Path,
@@ -52,13 +72,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--prior-rotation",
+        type=prior_rotation_arg,
         metavar="RX,RY,RZ|FILE.json",
         help="expected rotation of image_from_robot: roll,pitch,yaw in degrees (URDF xyz convention) or a "
         'JSON file with "image_from_robot" (4 × 4) or "rotation" (3 × 3)',
     )
     parser.add_argument(
         "--prior-tolerance-deg",
-        type=float,
+        type=float_below(45.0),
         default=30.0,
         help="discard poses further than this from the prior (must be < 45; default 30)",
     )
@@ -73,8 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="phantom TOML whose symmetry twins are checked explicitly "
         "('none' to skip; default: %(default)s)",
     )
-    parser.add_argument("--max-fre-mm", type=float, help="override the FRE gate (mm)")
-    parser.add_argument("--min-margin", type=int, help="override the symmetry margin (matched spheres)")
+    parser.add_argument("--max-fre-mm", type=positive_float, help="override the FRE gate (mm, > 0)")
+    parser.add_argument(
+        "--min-margin", type=positive_int, help="override the symmetry margin (matched spheres, ≥ 1)"
+    )
     parser.add_argument(
         "--sro",
         type=Path,
@@ -131,6 +154,17 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
         }
     )
     return det.centres_image_mm
+
+
+def prior_rotation_arg(text: str) -> str:
+    """argparse type of ``--prior-rotation``: parse it now so a bad value names the flag (exit 2)."""
+    from registration.errors import OarmRegError
+
+    try:
+        parse_prior(text)
+    except OarmRegError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix(f"--prior-rotation {text!r}: ")) from None
+    return text
 
 
 def parse_prior(text: str | None) -> Any:
@@ -201,9 +235,20 @@ def run(args: argparse.Namespace) -> int:
             "software": f"oarmreg {__version__}",
             "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         }
-        robot = read_points(args.robot_points)
-        provenance["robot_points_file"] = str(args.robot_points)
-        provenance["robot_points_sha256"] = sha256_of(args.robot_points)
+        if (args.robot_points is None) == (args.joints is None):
+            from registration.errors import PointsFileError
+
+            raise PointsFileError(
+                "give either --robot-points FILE.json or --joints JOINTS.json (exactly one)"
+            )
+        if args.joints is not None:
+            from service.commands.calibrate import robot_points_from_joints
+
+            robot = robot_points_from_joints(args, provenance)
+        else:
+            robot = read_points(args.robot_points)
+            provenance["robot_points_file"] = str(args.robot_points)
+            provenance["robot_points_sha256"] = sha256_of(args.robot_points)
         image = load_image_points(args, provenance, timings)
         targets = read_targets(args.targets) if args.targets else None
         overrides: dict[str, Any] = {}

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.resources import default_phantom
+from service.commands.argtypes import positive_float
 
 HELP = "read joint angles from the robot controller, or the sphere centres in the robot frame"
 
@@ -57,7 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     j.add_argument("--link", required=True, help="link URL, e.g. simple-message://HOST:11002")
     j.add_argument("--watch", action="store_true", help="keep printing until Ctrl-C")
     j.add_argument("--json", action="store_true", help="machine-readable output (radians)")
-    j.add_argument("--timeout-s", type=float, default=5.0, help="connect timeout in seconds (default 5)")
+    j.add_argument(
+        "--timeout-s", type=positive_float, default=5.0, help="connect timeout in seconds (default 5)"
+    )
 
     p = sub.add_parser("points", help="print the sphere centres in the robot frame (points-file JSON)")
     p.add_argument("--link", help="link URL (default: [robot] link in --config)")
@@ -69,10 +72,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="connecting rod: X Y Z ROLL PITCH YAW (mm, deg; URDF rpy) or a JSON file with a 4x4 "
         "matrix (default: 200 mm along tool0 z, rolled 180°)",
     )  # fmt: skip
-    p.add_argument("--still-window-s", type=float, help="require the robot still this long (default 0.5)")
-    p.add_argument("--max-deviation-rad", type=float, help="stillness threshold (default 0.0005 rad)")
+    p.add_argument(
+        "--still-window-s", type=positive_float, help="require the robot still this long (default 0.5)"
+    )
+    p.add_argument(
+        "--max-deviation-rad", type=positive_float, help="stillness threshold (default 0.0005 rad)"
+    )
     p.add_argument("--out", type=Path, help="also write the JSON to this file")
-    p.add_argument("--timeout-s", type=float, default=5.0, help="connect timeout in seconds (default 5)")
+    p.add_argument(
+        "--timeout-s", type=positive_float, default=5.0, help="connect timeout in seconds (default 5)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -75,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args)
     ssl_options = uvicorn_ssl_options(settings)
+    preflight(settings)
     app = create_app(settings)
     config = uvicorn.Config(
         app,
@@ -87,7 +88,25 @@ def run(args: argparse.Namespace) -> int:
     )
     server = _Server(config, app)
     server.run()
+    if not server.started:
+        from registration.errors import ConfigError
+
+        raise ConfigError(f"the service did not start on {settings.host}:{settings.port} (see the log above)")
     return 0
+
+
+def preflight(settings: Any) -> None:
+    """Fail before uvicorn starts, with one line and the exit code, not a lifespan traceback:
+    no way to authenticate, or a database that is empty, foreign or damaged (issue #13).
+
+    Raises
+    ------
+    ConfigError
+    """
+    from service.store import Database
+
+    settings.check_serving()
+    Database.open(settings.db_path).close()
 
 
 class _Server:

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from registration.resources import default_phantom
+from service.commands.argtypes import positive_float, positive_int
 
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
 
@@ -52,9 +53,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--scatter-spr", type=float, default=None, help="override the scatter-to-primary ratio (0 = legacy)"
     )
     parser.add_argument("--seed", type=int, default=0, help="noise seed")
-    parser.add_argument("--dose", type=float, default=1.0, help="dose factor (multiplies photons per ray)")
-    parser.add_argument("--views", type=int, default=None, help="override the number of views")
-    parser.add_argument("--slices", type=int, default=None, help="override the number of slices")
+    parser.add_argument(
+        "--dose", type=positive_float, default=1.0, help="dose factor (multiplies photons per ray)"
+    )
+    parser.add_argument("--views", type=positive_int, default=None, help="override the number of views")
+    parser.add_argument("--slices", type=positive_int, default=None, help="override the number of slices")
     parser.add_argument("--vertebra", action="store_true", help="add a bone block (vertebra) beside the cube")
     parser.add_argument("--rod", action="store_true", help="add the steel connecting rod")
     parser.add_argument(

@@ -33,13 +33,27 @@ class Connection:
     """
 
     def __init__(self, conn: sqlite3.Connection, path: Path) -> None:
+        from service.store.integrity import FileWatch
+
         self.raw = conn
         self.path = path
         self.lock = threading.RLock()
+        self.watch = FileWatch(path, conn, self.lock)
 
     @contextmanager
     def transaction(self) -> Iterator[sqlite3.Connection]:
-        """``BEGIN IMMEDIATE`` … ``COMMIT``; rolls back on any exception."""
+        """``BEGIN IMMEDIATE`` … ``COMMIT``; rolls back on any exception.
+
+        Raises
+        ------
+        DatabaseGoneError
+            The database file was deleted or replaced since it was opened (nothing is written).
+        """
+        problem = self.watch.check()
+        if problem is not None:
+            from service.errors import DatabaseGoneError
+
+            raise DatabaseGoneError(problem)
         with self.lock:
             self.raw.execute("BEGIN IMMEDIATE")
             try:

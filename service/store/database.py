@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import sqlite3
 from pathlib import Path
+from typing import IO
 
 from registration.errors import ConfigError
-from service.store import migrations
+from service.store import integrity, migrations
+from service.store.audit import AuditStore
 from service.store.base import Connection
 from service.store.registrations import RegistrationStore
 from service.store.scan_instances import ScanInstanceStore
@@ -27,44 +29,59 @@ class Database:
         self.registrations = RegistrationStore(conn)
         self.verifications = VerificationStore(conn)
         self.scan_instances = ScanInstanceStore(conn)
+        self.audit = AuditStore(conn)
+        self._lock_file: IO[bytes] | None = None
 
     @classmethod
-    def open(cls, path: str | Path) -> Database:
-        """Open (creating if needed) and migrate the database at ``path``.
+    def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:
+        """Open (creating only if the path does not exist), check and migrate the database at ``path``.
+
+        ``hold_lock``: take the shared service lock (``<db>.lock``, see
+        :mod:`service.store.integrity`) until :meth:`close`, so ``oarmreg restore`` refuses.
 
         Raises
         ------
         ConfigError
-            The folder cannot be created, the file is not a database, or it was written by a
-            newer version of the software (``user_version`` above the known migrations).
+            The folder cannot be created; the file is empty, foreign or damaged
+            (``PRAGMA quick_check``); or it was written by a newer version of the software.
         """
         p = Path(path)
-        unusable = f"{p} is not a usable oarmreg database: {{}}; move it away or fix data_dir"
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
-            raw = sqlite3.connect(p, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False)
-            raw.row_factory = sqlite3.Row
-            raw.execute("PRAGMA journal_mode=WAL")
-            raw.execute("PRAGMA foreign_keys=ON")
-            raw.execute("PRAGMA synchronous=NORMAL")
-        except sqlite3.DatabaseError as e:
-            raise ConfigError(unusable.format(e)) from None
-        except (OSError, sqlite3.Error) as e:
+        except OSError as e:
             raise ConfigError(
-                f"cannot open the database {p}: {e}; check data_dir and its permissions"
+                f"cannot create the folder of {p}: {e}; check data_dir and its permissions"
             ) from None
+        is_new = integrity.preflight(p)
+        lock = integrity.hold_shared(p) if hold_lock else None
         try:
-            migrations.migrate(raw, p)
-        except sqlite3.DatabaseError as e:
-            raw.close()
-            raise ConfigError(unusable.format(e)) from None
-        except ConfigError:
-            raw.close()
+            raw = _connect(p, is_new)
+        except BaseException:
+            if lock is not None:
+                lock.close()
             raise
-        return cls(Connection(raw, p))
+        db = cls(Connection(raw, p))
+        db._lock_file = lock
+        return db
 
     def close(self) -> None:
         self._conn.close()
+        if self._lock_file is not None:
+            self._lock_file.close()
+            self._lock_file = None
+
+    def health_problem(self) -> str | None:
+        """None while the database file is the one opened; else what happened and what to do."""
+        return self._conn.watch.check()
+
+    def backup_to(self, target: Path) -> None:
+        """Copy the database to ``target`` with the SQLite online backup API (consistent while serving)."""
+        dest = sqlite3.connect(target)
+        try:
+            with self._conn.lock:
+                self._conn.raw.backup(dest)
+        finally:
+            dest.close()
 
     @property
     def schema_version(self) -> int:
@@ -76,3 +93,27 @@ class Database:
             table: int(self._conn.query(f"SELECT COUNT(*) FROM {table}")[0][0])
             for table in ("scans", "registrations", "verifications")
         }
+
+
+def _connect(p: Path, is_new: bool) -> sqlite3.Connection:
+    """Connect, check an existing file (integrity, identity), migrate, stamp; ConfigError on failure."""
+    try:
+        raw = sqlite3.connect(p, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False)
+    except (OSError, sqlite3.Error) as e:
+        raise ConfigError(f"cannot open the database {p}: {e}; check data_dir and its permissions") from None
+    try:
+        raw.row_factory = sqlite3.Row
+        if not is_new:
+            integrity.verify_existing(raw, p)
+        raw.execute("PRAGMA journal_mode=WAL")
+        raw.execute("PRAGMA foreign_keys=ON")
+        raw.execute("PRAGMA synchronous=NORMAL")
+        migrations.migrate(raw, p)
+        integrity.stamp(raw)
+    except sqlite3.DatabaseError as e:
+        raw.close()
+        raise integrity.unusable(p, f"SQLite cannot read it ({e})") from None
+    except BaseException:
+        raw.close()
+        raise
+    return raw

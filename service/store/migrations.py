@@ -14,7 +14,12 @@
     every POST /verify: per-sphere errors, mean / RMS / max, histogram path.
 ``current_registration``
     a single-row pointer to the registration the service serves.
-``scan_instances``
+``oarmreg_identity`` (2)
+    a single row naming the application, a random database id, its creation time and the schema
+    version (kept equal to ``user_version``; :mod:`service.store.integrity`).
+``audit_log`` (2)
+    who (``principal``: a 12-hex hash of the token, never the token) did what to which record.
+``scan_instances`` (3)
     per series UID, the headers a DICOM Spatial Registration object references (patient and
     study attributes, SOP Class / Instance UIDs of every slice), :mod:`service.store.scan_instances`.
 """
@@ -105,7 +110,29 @@ MIGRATIONS: tuple[str, ...] = (
         set_at TEXT NOT NULL
     );
     """,
-    # 2: what the DICOM Spatial Registration object needs of a scan (issue #12)
+    # 2: identity row and audit log (issue #13)
+    """
+    CREATE TABLE oarmreg_identity (
+        singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
+        application TEXT NOT NULL CHECK (application = 'oarmreg'),
+        database_id TEXT NOT NULL,
+        created_at TEXT NOT NULL,
+        schema_version INTEGER NOT NULL
+    );
+    INSERT INTO oarmreg_identity (singleton, application, database_id, created_at, schema_version)
+        VALUES (1, 'oarmreg', lower(hex(randomblob(16))), strftime('%Y-%m-%dT%H:%M:%fZ', 'now'), 2);
+    CREATE TABLE audit_log (
+        id INTEGER PRIMARY KEY,
+        at TEXT NOT NULL,
+        principal TEXT NOT NULL,
+        action TEXT NOT NULL,
+        target TEXT NOT NULL,
+        target_id INTEGER,
+        outcome TEXT NOT NULL,
+        detail TEXT NOT NULL DEFAULT ''
+    );
+    """,
+    # 3: what the DICOM Spatial Registration object needs of a scan (issue #12)
     """
     CREATE TABLE scan_instances (
         series_uid TEXT PRIMARY KEY,

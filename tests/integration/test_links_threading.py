@@ -21,13 +21,15 @@ from drivers.errors import RobotLinkError
 from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
-from registration.stillness import assess_stillness
+from registration.stillness import DEFAULT_MAX_GAP_S, assess_stillness
 
 Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
 BLOCK_S = 1.0
 """How long the fault keeps the caller's event loop from running (s)."""
-GAP_FACTOR = 5
-"""Largest allowed gap between stamps, in 50 Hz frame periods (= the stillness default, 100 ms)."""
+MAX_GAP_S = DEFAULT_MAX_GAP_S
+"""Largest allowed gap between stamps: the stillness gate itself (0.25 s), since a larger gap is what
+would make ``/register`` refuse a still robot.  A link sharing the blocked loop shows ≈ BLOCK_S (1 s);
+a tighter bound (5 frame periods) measured the machine's scheduler under load, not the link."""
 N_CLOSES = 200
 
 
@@ -83,16 +85,16 @@ def test_blocked_caller_loop_leaves_no_gap(kind: str, block: Callable[[float], N
     if sent_t:
         latency = t - np.array(sent_t[-len(t) :])
         worst = latency[blocked].max()
-        assert worst <= GAP_FACTOR * FRAME_PERIOD_S, f"a frame was stamped {worst:.3f} s after its write"
+        assert worst <= MAX_GAP_S, f"a frame was stamped {worst:.3f} s after its write"
     if cpu:
         return
     gaps = np.diff(t[blocked])
     inside = int(np.count_nonzero((t >= t_block) & (t <= t_unblock)))
-    assert gaps.max() <= GAP_FACTOR * FRAME_PERIOD_S, f"largest gap {gaps.max():.3f} s"
+    assert gaps.max() <= MAX_GAP_S, f"largest gap {gaps.max():.3f} s"
     assert inside >= 0.8 * (t_unblock - t_block) / FRAME_PERIOD_S, f"{inside} frames while blocked"
     res = assess_stillness(
         t[blocked], np.tile(Q, (int(blocked.sum()), 1)), window_end_t_s=t_unblock,
-        window_s=t_unblock - t_block, max_deviation_rad=0.0005, max_gap_s=GAP_FACTOR * FRAME_PERIOD_S,
+        window_s=t_unblock - t_block, max_deviation_rad=0.0005, max_gap_s=MAX_GAP_S,
     )  # fmt: skip
     assert res.still, res.reason
 

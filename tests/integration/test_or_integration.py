@@ -427,6 +427,7 @@ def test_sro_from_the_api_has_no_dciodvfy_errors(svc: Service, current: Current,
     assert refs.SeriesInstanceUID == reg["series_uid"] and len(refs.ReferencedInstanceSequence) > 10
     assert svc.client.get(f"/registrations/{reg['id']}/dicom").content == r.content  # stable UIDs
     assert svc.client.get("/registrations/999999/dicom").status_code == 404
+    assert svc.client.get("/registrations/0/dicom").status_code == 422
 
 
 def test_refused_registration_has_no_sro(svc: Service) -> None:

@@ -24,6 +24,7 @@ from service.records import (
     VerificationRecord,
 )
 from service.store import MIGRATIONS, Database
+from service.store.integrity import APPLICATION_ID
 
 IDENTITY = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
@@ -88,6 +89,7 @@ def test_reopen_does_not_migrate_again(tmp_path: Path) -> None:
 def test_newer_schema_is_refused(tmp_path: Path) -> None:
     p = tmp_path / "x.sqlite3"
     c = sqlite3.connect(p)
+    c.execute(f"PRAGMA application_id = {APPLICATION_ID}")  # an oarmreg database from a newer release
     c.execute(f"PRAGMA user_version = {len(MIGRATIONS) + 1}")
     c.close()
     with pytest.raises(ConfigError, match="newer than this software"):

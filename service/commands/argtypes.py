@@ -1,0 +1,57 @@
+"""argparse ``type=`` functions that refuse bad numbers at parse time (exit 2, naming the flag).
+
+argparse turns the :class:`argparse.ArgumentTypeError` message into
+``oarmreg CMD: error: argument --max-fre-mm: must be > 0, got -1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+
+def _number(text: str, kind: type[float] | type[int]) -> float:
+    try:
+        value = kind(text)
+    except ValueError:
+        what = "an integer" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite float > 0 (thresholds in mm, durations in s)."""
+    value = _number(text, float)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    value = _number(text, float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    value = int(_number(text, int))
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def float_below(limit: float) -> Callable[[str], float]:
+    """A finite float in (0, limit)."""
+
+    def parse(text: str) -> float:
+        value = positive_float(text)
+        if value >= limit:
+            raise argparse.ArgumentTypeError(f"must be < {limit:g}, got {text}")
+        return value
+
+    parse.__name__ = f"float_below_{limit:g}"
+    return parse

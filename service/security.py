@@ -1,0 +1,316 @@
+"""The HTTP gate: pure ASGI middleware that admits or refuses a request before the app reads it.
+
+Issue #13.  Checked from the request line and headers alone, in this order, before a single body
+byte is read (so a 10 MB body without a token costs nothing):
+
+1. ``Host`` must be in the allow-list (``api.allowed_hosts``; default: the bind host, ``localhost``,
+   ``127.0.0.1``, ``[::1]`` and the connection's local address, on the service's port) → else 400.
+   This closes DNS rebinding: a page on ``evil.example`` that re-points its name at 127.0.0.1
+   still sends ``Host: evil.example``.
+2. ``Origin``, when present (browsers), must be in ``api.allowed_origins`` (default ``http(s)://``
+   + an allowed host) → else 403.  No ``Origin`` header = a non-browser client, allowed.
+3. Authentication (every path but ``/health``; ``/docs``, ``/redoc``, ``/openapi.json`` included):
+   ``Authorization: Bearer <api_token>``, or for ``GET /events`` a single-use ``?ticket=`` from
+   ``POST /events/ticket`` (``EventSource`` cannot send headers) → else 401.  ``api.auth =
+   "none-loopback-only"`` skips this on a loopback bind (settings refuse it elsewhere).
+4. Mutating methods (POST, PUT, PATCH, DELETE) need ``Content-Type: application/json``, bodiless
+   ones included → else 415.  A cross-site form or ``fetch`` without a CORS pre-flight can only
+   send ``text/plain``, form or multipart bodies, so this closes CSRF.
+5. Body size: a ``Content-Length`` above ``api.max_body_bytes`` → 413 at once; a chunked body is
+   counted while it is read and refused with 413 as soon as it passes the limit.  Admitted bodies
+   are buffered here and replayed to the app.
+6. Mutating requests while the database is unusable (file deleted or replaced) → 503.
+
+Every refusal is problem details (RFC 9457).  A refusal that leaves body bytes unread carries
+``Connection: close`` so the rest of the body is never parsed.  The gate also guards against bugs:
+an exception escaping the app becomes a 500 problem without internals and ``Connection: close``
+(the connection ends cleanly instead of being reset on the next request).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+from typing import TYPE_CHECKING, Any
+from urllib.parse import parse_qs
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+if TYPE_CHECKING:
+    from service.context import ServiceContext
+    from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+PROBLEM_MEDIA_TYPE = b"application/problem+json"
+TYPE_PREFIX = "urn:oarmreg:problem:"
+MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+PUBLIC_PATHS = frozenset({"/health"})
+EVENTS_PATH = "/events"
+PRINCIPAL_NO_AUTH = "none-loopback-only"
+"""The audit principal when authentication is off (``api.auth = "none-loopback-only"``)."""
+
+
+def token_principal(token: str) -> str:
+    """Who presented ``token``, for the audit log: ``token:`` + 12 hex of its SHA-256 (never the token)."""
+    return "token:" + hashlib.sha256(token.encode()).hexdigest()[:12]
+
+
+class Refusal(Exception):
+    """A request the gate does not admit (answered as problem details)."""
+
+    def __init__(
+        self, status: int, title: str, detail: str, kind: str, headers: tuple[tuple[bytes, bytes], ...] = ()
+    ) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.title = title
+        self.detail = detail
+        self.kind = kind
+        self.headers = headers
+
+
+def _header(scope: Scope, name: bytes) -> str | None:
+    for k, v in scope["headers"]:
+        if k == name:
+            return str(v.decode("latin-1"))
+    return None
+
+
+def _has_body(scope: Scope) -> bool:
+    length = _header(scope, b"content-length")
+    return _header(scope, b"transfer-encoding") is not None or (length is not None and length.strip() != "0")
+
+
+def allowed_hosts(settings: Settings, scope: Scope) -> frozenset[str]:
+    """``Host`` values accepted on this connection (lower case, ``name:port``)."""
+    server = scope.get("server") or ("127.0.0.1", settings.port)
+    port = int(server[1]) if server[1] is not None else settings.port
+    out: set[str] = set()
+    names = settings.api.allowed_hosts or (settings.host, "localhost", "127.0.0.1", "::1", str(server[0]))
+    for name in names:
+        name = name.strip().lower()
+        bare = name[1:-1] if name.startswith("[") and name.endswith("]") else name
+        if ":" in bare and not name.startswith("["):  # an IPv6 literal, or host:port
+            if bare.count(":") == 1:
+                out.add(bare)
+                continue
+            name = f"[{bare}]"
+        out.add(f"{name}:{port}")
+        if port == 80:
+            out.add(name)
+    return frozenset(out)
+
+
+def allowed_origins(settings: Settings, hosts: frozenset[str]) -> frozenset[str]:
+    if settings.api.allowed_origins:
+        return frozenset(o.strip().lower().rstrip("/") for o in settings.api.allowed_origins)
+    return frozenset(f"{scheme}://{h}" for scheme in ("http", "https") for h in hosts)
+
+
+def check_host_origin(settings: Settings, scope: Scope) -> None:
+    """Steps 1–2 (Host, Origin); raise :class:`Refusal`."""
+    hosts = allowed_hosts(settings, scope)
+    host = (_header(scope, b"host") or "").strip().lower()
+    if host not in hosts:
+        raise Refusal(
+            400, "Host not allowed", f"Host header {host[:100]!r} is not one this service answers to "
+            f"({', '.join(sorted(hosts))}); add the name the clients use to api.allowed_hosts",
+            "host-not-allowed",
+        )  # fmt: skip
+    origin = _header(scope, b"origin")
+    if origin is not None and origin.strip().lower().rstrip("/") not in allowed_origins(settings, hosts):
+        raise Refusal(
+            403, "Origin not allowed", f"cross-origin request from {origin[:100]!r} refused; a browser UI "
+            "served from another origin must be listed in api.allowed_origins", "origin-not-allowed",
+        )  # fmt: skip
+
+
+def authenticate(ctx: ServiceContext, scope: Scope) -> str | None:
+    """Step 3: the request's principal (None for public paths); raise :class:`Refusal` (401)."""
+    settings = ctx.settings
+    if scope["path"] in PUBLIC_PATHS:
+        return None
+    if settings.api.auth == "none-loopback-only":
+        return PRINCIPAL_NO_AUTH
+    secret = settings.api_token.get_secret_value() if settings.api_token is not None else None
+    auth = _header(scope, b"authorization")
+    if auth is not None and secret is not None:
+        scheme, _, presented = auth.partition(" ")
+        if scheme.lower() == "bearer" and hmac.compare_digest(presented.strip().encode(), secret.encode()):
+            return token_principal(secret)
+        raise _unauthorized("the Bearer token does not match the service's api_token")
+    if scope["path"] == EVENTS_PATH and scope["method"] == "GET":
+        query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
+        tickets = query.get("ticket")
+        if tickets:
+            principal = ctx.tickets.redeem(tickets[0])
+            if principal is None:
+                raise _unauthorized("the event ticket is unknown, used or expired; POST /events/ticket again")
+            return principal
+    raise _unauthorized(
+        "missing 'Authorization: Bearer <token>' header (GET /events also takes ?ticket= from "
+        "POST /events/ticket); the API token is set in api_token"
+    )
+
+
+def _unauthorized(detail: str) -> Refusal:
+    return Refusal(
+        401, "Unauthorized", detail, "unauthorized", ((b"www-authenticate", b'Bearer realm="oarmreg"'),)
+    )
+
+
+def check_content(settings: Settings, scope: Scope) -> int | None:
+    """Steps 4–5 from the headers: refuse non-JSON mutations and declared oversize bodies.
+
+    Returns the declared ``Content-Length`` (None when chunked or absent).
+    """
+    if scope["method"] in MUTATING_METHODS:
+        ctype = (_header(scope, b"content-type") or "").split(";", 1)[0].strip().lower()
+        if ctype != "application/json":
+            raise Refusal(
+                415, "Unsupported media type", f"{scope['method']} needs 'Content-Type: application/json' "
+                f"(bodiless requests too); got {ctype[:60] or 'none'!r}", "unsupported-media-type",
+            )  # fmt: skip
+    raw = _header(scope, b"content-length")
+    if raw is None:
+        return None
+    if not raw.strip().isdigit() or len(raw.strip()) > 19:
+        raise Refusal(400, "Bad request", f"Content-Length {raw[:30]!r} is not a byte count", "bad-request")
+    length = int(raw)
+    if length > settings.api.max_body_bytes:
+        raise _too_large(settings, f"Content-Length {length}")
+    return length
+
+
+def _too_large(settings: Settings, what: str) -> Refusal:
+    limit = settings.api.max_body_bytes
+    return Refusal(
+        413, "Request body too large", f"{what} exceeds api.max_body_bytes ({limit} bytes); the largest "
+        "legitimate request (POST /register with 1000 targets) is well below it", "body-too-large",
+    )  # fmt: skip
+
+
+async def read_body(settings: Settings, receive: Receive) -> tuple[bytes, list[Message]]:
+    """Read the whole body, counting bytes; raise 413 as soon as it passes the limit.
+
+    Returns the body and any non-body message seen (``http.disconnect``), to replay.
+    """
+    limit = settings.api.max_body_bytes
+    chunks: list[bytes] = []
+    size = 0
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            return b"".join(chunks), [message]
+        chunk = message.get("body", b"")
+        size += len(chunk)
+        if size > limit:
+            raise _too_large(settings, f"the body (more than {size} bytes so far)")
+        chunks.append(chunk)
+        if not message.get("more_body", False):
+            return b"".join(chunks), []
+
+
+def replay(body: bytes, extra: list[Message], receive: Receive) -> Receive:
+    pending: list[Message] = [{"type": "http.request", "body": body, "more_body": False}, *extra]
+
+    async def _receive() -> Message:
+        if pending:
+            return pending.pop(0)
+        return await receive()
+
+    return _receive
+
+
+async def send_problem(
+    send: Send, status: int, title: str, detail: str, instance: str, *, kind: str,
+    close: bool, headers: tuple[tuple[bytes, bytes], ...] = (),
+) -> None:  # fmt: skip
+    body = json.dumps(
+        {"type": TYPE_PREFIX + kind, "title": title, "status": status, "detail": detail, "instance": instance}
+    ).encode()
+    head = [(b"content-type", PROBLEM_MEDIA_TYPE), (b"content-length", str(len(body)).encode()), *headers]
+    if close:
+        head.append((b"connection", b"close"))
+    await send({"type": "http.response.start", "status": status, "headers": head})
+    await send({"type": "http.response.body", "body": body})
+
+
+class SecurityGate:
+    """The gate (see the module docstring); install it as the outermost middleware."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        ctx: ServiceContext = scope["app"].state.ctx
+        path = str(scope["path"])[:200]
+        try:
+            receive = await self._admit(ctx, scope, receive)
+        except Refusal as r:
+            await send_problem(
+                send,
+                r.status,
+                r.title,
+                r.detail,
+                path,
+                kind=r.kind,
+                close=_has_body(scope),
+                headers=r.headers,
+            )
+            return
+        await self._guarded(scope, receive, send, path)
+
+    @staticmethod
+    async def _admit(ctx: ServiceContext, scope: Scope, receive: Receive) -> Receive:
+        settings = ctx.settings
+        check_host_origin(settings, scope)
+        principal = authenticate(ctx, scope)
+        if principal is not None:
+            scope.setdefault("state", {})["principal"] = principal
+        declared = check_content(settings, scope)
+        if scope["method"] in MUTATING_METHODS:
+            problem = ctx.db.health_problem()
+            if problem is not None:
+                raise Refusal(503, "Database unavailable", problem, "database-unavailable")
+        if declared == 0 or not _has_body(scope):
+            return receive
+        body, extra = await read_body(settings, receive)
+        return replay(body, extra, receive)
+
+    async def _guarded(self, scope: Scope, receive: Receive, send: Send, path: str) -> None:
+        started = False
+
+        async def _send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, _send)
+        except Exception as exc:
+            log.error("unhandled %s on %s %s", type(exc).__name__, scope["method"], path, exc_info=exc)
+            if started:
+                raise  # mid-response: uvicorn closes the connection
+            from service.api.problems import INTERNAL_DETAIL
+
+            await send_problem(
+                send, 500, "Internal error", INTERNAL_DETAIL, path, kind="internal", close=True
+            )
+
+
+def gate_summary(settings: Settings) -> dict[str, Any]:
+    """For /status: the gate's configuration (no secrets)."""
+    return {
+        "auth": settings.api.auth,
+        "max_body_bytes": settings.api.max_body_bytes,
+        "allowed_hosts": list(settings.api.allowed_hosts) or "bind host, localhost, 127.0.0.1, [::1]",
+        "allowed_origins": list(settings.api.allowed_origins) or "http(s):// + the allowed hosts",
+    }
