@@ -18,6 +18,7 @@ MODULES = (
     "benchmarks.bench_end_to_end",
     "benchmarks.bench_robot_link",
     "benchmarks.bench_service",
+    "benchmarks.bench_or_latency",
 )
 
 

@@ -168,8 +168,9 @@ def build_spatial_registration(
     ds.SeriesInstanceUID = series_instance_uid or generate_uid()
     ds.SeriesNumber = 9000
     ds.SeriesDescription = "robot to image registration"
-    if "Laterality" in first:
-        ds.Laterality = first.Laterality
+    # General Series (0020,0060) Laterality is type 2C: dciodvfy errors when it is absent and only
+    # warns when it is empty, so copy it from the scan, empty if the scan has none.
+    ds.Laterality = first.get("Laterality", "")
     ds.FrameOfReferenceUID = first.FrameOfReferenceUID  # Registered RCS = the scan's
     ds.PositionReferenceIndicator = first.get("PositionReferenceIndicator", "")
     ds.Manufacturer = manufacturer

@@ -2,11 +2,13 @@
 
 ``create_app(settings)`` validates what can fail early (phantom file, robot model, link
 URL) and returns an app whose lifespan opens the database, connects the robot link,
-starts the DICOM watcher, and stops them again.  No settings or resources exist at
+starts the DICOM watcher (and, when enabled, the DICOM C-STORE SCP and the OpenIGTLink
+server, :mod:`service.or_integration`), and stops them again.  No settings or resources exist at
 import time; tests inject settings, a robot link, or override dependencies.
 
 Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/joints`` ·
-``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` · ``/verify`` ·
+``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` ·
+``/registrations/{id}/dicom`` · ``/verify`` ·
 ``/verifications`` · ``/events`` (+ ``/events/ticket``) · ``/audit``.  Every route but ``/health``
 needs ``Authorization: Bearer <api_token>``, checked with Host, Origin, Content-Type and body size
 by :class:`service.security.SecurityGate` before any body byte is read.
@@ -31,6 +33,7 @@ from service.capture import Capture
 from service.context import ServiceContext
 from service.event_bus import EventBus
 from service.intake import Intake
+from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
 from service.security import SecurityGate
 from service.settings import Settings
@@ -137,9 +140,10 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     ctx.bus.bind(asyncio.get_running_loop())
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     ctx.db = Database.open(settings.db_path)
+    or_int = ctx.or_integration = OrIntegration(ctx)
     ctx.db_watch_task = asyncio.create_task(_watch_database(ctx), name="oarmreg-db-watch")
     ctx.orchestrator = Orchestrator(
-        settings, ctx.db, ctx.phantom, ctx.robot_model, ctx.bus.publish, volumes=ctx.volumes
+        settings, ctx.db, ctx.phantom, ctx.robot_model, or_int.publish, volumes=ctx.volumes
     )
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
@@ -147,13 +151,14 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         w = settings.watcher
         ctx.watcher = SeriesWatcher(
             settings.watch_dir,
-            on_series=Intake(ctx.db, ctx.capture, ctx.volumes, ctx.bus.publish),
+            on_series=or_int.folder_intake(Intake(ctx.db, ctx.capture, ctx.volumes, or_int.publish)),
             is_known=ctx.db.scans.has_complete,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,
         )
         ctx.watcher.start()
+    await or_int.start()  # DICOM C-STORE SCP and OpenIGTLink server, when enabled
     if settings.api.auth == "none-loopback-only":
         log.warning(
             "authentication is OFF (api.auth = 'none-loopback-only'): any local process or user can change "
@@ -179,6 +184,8 @@ async def _watch_database(ctx: ServiceContext) -> None:
 
 async def _stop(ctx: ServiceContext) -> None:
     ctx.bus.close()
+    if ctx.or_integration is not None:
+        await ctx.or_integration.stop()
     if ctx.db_watch_task is not None:
         ctx.db_watch_task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
@@ -240,7 +247,7 @@ class CurrentRegistrationFastPath:
 
 
 def _install_routes(app: FastAPI) -> None:
-    from service.api import audit, events, health, problems, registrations, scans, status, verifications
+    from service.api import audit, events, health, problems, registrations, scans, sro, status, verifications
     from service.api.deps import AuthDep
 
     problems.install(app)
@@ -249,6 +256,7 @@ def _install_routes(app: FastAPI) -> None:
         status.router,
         scans.router,
         registrations.router,
+        sro.router,
         verifications.router,
         events.router,
         audit.router,

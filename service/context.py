@@ -11,6 +11,7 @@ from registration.kinematics import RobotModel
 from registration.phantom import Phantom
 from service.capture import Capture
 from service.event_bus import EventBus
+from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
 from service.records import RegistrationRecord
 from service.settings import Settings
@@ -34,6 +35,8 @@ class ServiceContext:
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
     watcher: SeriesWatcher | None = None
+    or_integration: OrIntegration | None = None
+    """DICOM SCP, OpenIGTLink server, auto-register (:mod:`service.or_integration`)."""
     db_watch_task: asyncio.Task[None] | None = None
     tickets: TicketBook = field(default_factory=TicketBook)
     """Single-use tickets for GET /events?ticket= (service.security)."""

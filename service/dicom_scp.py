@@ -26,7 +26,7 @@ association that was released normally (``instance_count`` = ``.dcm`` files now 
 folder); ``on_association_aborted(series_dirs, reason)`` when an association aborts
 (its stored instances stay, but the series may be incomplete); ``on_refused(refusal)`` for
 every refusal (peer address, calling AE title, rejected presentation context, dataset,
-disk).
+disk); ``on_instance_stored(path, outcome)`` after each instance is on disk.
 
 Security: loopback by default.  A non-loopback bind needs at least one allow-list (calling
 AE titles and/or peer addresses); DICOM has no authentication here (no TLS configured).
@@ -163,6 +163,9 @@ class ScpCallbacks:
     on_series_released: Callable[[Path, int, str], None] | None = None
     on_association_aborted: Callable[[list[Path], str], None] | None = None
     on_refused: Callable[[ScpRefusal], None] | None = None
+    on_instance_stored: Callable[[Path, str], None] | None = None
+    """``(path, outcome)`` after each instance is on disk; outcome ``stored``, ``duplicates`` or
+    ``replaced`` (lets the service decode slices as they arrive)."""
 
 
 # --------------------------------------------------------------------------- writing
@@ -252,6 +255,11 @@ class StorageScp:
             "stored": 0, "duplicates": 0, "replaced": 0, "refused": 0, "echoes": 0,
             "released": 0, "aborted": 0, "bytes": 0,
         }  # fmt: skip
+
+    @property
+    def active_associations(self) -> int:
+        with self._lock:
+            return len(self._assocs)
 
     @property
     def port(self) -> int:
@@ -383,6 +391,11 @@ class StorageScp:
             self.counters[outcome] += 1
             self.counters["bytes"] += len(data) if outcome != "duplicates" else 0
             state.series[target.parent] = state.series.get(target.parent, 0) + 1
+        if self.callbacks.on_instance_stored is not None:
+            try:
+                self.callbacks.on_instance_stored(target, outcome)
+            except Exception:
+                log.exception("DICOM SCP: on_instance_stored callback failed")
         return STATUS_SUCCESS
 
     def _check(self, event: evt.Event, sop: str) -> tuple[int, str, Path | None]:

@@ -31,6 +31,12 @@ EVENT_NAMES = (
     "registration_refused",
     "verification_done",
     "link_state",
+    # operating-room interfaces (service/or_integration.py)
+    "dicom_association_released",
+    "dicom_association_aborted",
+    "dicom_refused",
+    "igtl_client_connected",
+    "igtl_client_disconnected",
 )
 
 

@@ -61,6 +61,7 @@ MIN_TOKEN_CHARS = 16
 _toml_file: contextvars.ContextVar[Path | None] = contextvars.ContextVar("oarmreg_toml_file", default=None)
 
 _PATH_KEYS = ("watch_dir", "data_dir", "phantom_file")
+_NESTED_PATH_KEYS = (("tls", "cert_file"), ("tls", "key_file"))
 
 
 class _Section(BaseModel):
@@ -171,6 +172,115 @@ class DatabaseSettings(_Section):
     integrity_check_interval_s: float = Field(default=5.0, gt=0, le=3600)
 
 
+class Tool0FromTcp(_Section):
+    """The tool centre point in the flange (tool0) frame, for OpenIGTLink ``ToolToImage``."""
+
+    translation_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> NDArray[np.float64]:
+        """4 × 4 ``tool0_from_tcp`` (mm), URDF rpy convention (identity by default)."""
+        from registration.frames import transform_from_xyz_rpy
+
+        return transform_from_xyz_rpy(self.translation_mm, self.rpy_deg)
+
+
+def _check_networks(values: tuple[str, ...]) -> tuple[str, ...]:
+    for v in values:
+        try:
+            ipaddress.ip_network(v, strict=False)
+        except ValueError as e:
+            raise ValueError(f"{v!r} is not an IP address or network (CIDR): {e}") from None
+    return values
+
+
+class DicomSettings(_Section):
+    """DICOM Storage SCP (C-STORE from the O-arm), :mod:`service.dicom_scp`."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    ae_title: str = Field(default="OARMREG", min_length=1, max_length=16)
+    port: int = Field(default=11112, ge=0, le=65535)
+    allowed_calling_ae_titles: tuple[str, ...] = ()
+    allowed_peer_addresses: tuple[str, ...] = ()
+
+    @field_validator("allowed_peer_addresses")
+    @classmethod
+    def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        return _check_networks(v)
+
+    @model_validator(mode="after")
+    def _allow_lists(self) -> DicomSettings:
+        if (
+            self.enabled
+            and not is_loopback(self.host)
+            and not (self.allowed_calling_ae_titles or self.allowed_peer_addresses)
+        ):
+            raise ValueError(
+                f"dicom.host: accepting DICOM on {self.host!r} with both allow-lists empty would let anyone "
+                "on the network store images; set dicom.allowed_calling_ae_titles (the O-arm's AE title) "
+                "and/or dicom.allowed_peer_addresses, or bind 127.0.0.1"
+            )
+        return self
+
+
+class IgtlSettings(_Section):
+    """OpenIGTLink server (``RobotToImage``, ``ToolToImage``), :mod:`service.igtl.server`."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(default=18944, ge=0, le=65535)
+    allowed_peer_addresses: tuple[str, ...] = ()
+    period_s: float = Field(default=1.0, gt=0, le=60)
+    tool0_from_tcp: Tool0FromTcp = Tool0FromTcp()
+
+    @field_validator("allowed_peer_addresses")
+    @classmethod
+    def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        return _check_networks(v)
+
+    @model_validator(mode="after")
+    def _allow_list(self) -> IgtlSettings:
+        if self.enabled and not is_loopback(self.host) and not self.allowed_peer_addresses:
+            raise ValueError(
+                f"igtl.host: serving OpenIGTLink on {self.host!r} needs igtl.allowed_peer_addresses (the "
+                "protocol has no authentication), e.g. ['10.0.0.12'], or bind 127.0.0.1"
+            )
+        return self
+
+
+class TlsSettings(_Section):
+    """HTTPS for the REST API (uvicorn's ``ssl_certfile`` / ``ssl_keyfile``)."""
+
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    allow_insecure_http: bool = False
+    """Permit plain HTTP on a non-loopback bind (a TLS-terminating proxy in front, say)."""
+
+    @field_validator("cert_file", "key_file", mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
+    @model_validator(mode="after")
+    def _pair(self) -> TlsSettings:
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("tls.cert_file and tls.key_file must be set together (PEM certificate + key)")
+        for key, path in (("tls.cert_file", self.cert_file), ("tls.key_file", self.key_file)):
+            if path is not None and not path.is_file():
+                raise ValueError(f"{key}: {path} is not a readable file")
+        return self
+
+    @property
+    def enabled(self) -> bool:
+        return self.cert_file is not None
+
+
+class ServiceSection(_Section):
+    auto_register: bool = False
+    """Register every scan as soon as it is recorded complete (and push the result)."""
+
+
 class Settings(BaseSettings):
     """Every setting of the service (see ``configs/oarmreg.toml`` for units and origins)."""
 
@@ -195,6 +305,10 @@ class Settings(BaseSettings):
     detection: DetectionSettings = DetectionSettings()
     api: ApiSettings = ApiSettings()
     database: DatabaseSettings = DatabaseSettings()
+    dicom: DicomSettings = DicomSettings()
+    igtl: IgtlSettings = IgtlSettings()
+    tls: TlsSettings = TlsSettings()
+    service: ServiceSection = ServiceSection()
 
     @classmethod
     def settings_customise_sources(
@@ -247,6 +361,12 @@ class Settings(BaseSettings):
             raise ValueError(
                 f"host: binding {self.host!r} exposes the API beyond this machine; set api_token "
                 f"(env {ENV_PREFIX}API_TOKEN) or bind 127.0.0.1"
+            )
+        if not is_loopback(self.host) and not self.tls.enabled and not self.tls.allow_insecure_http:
+            raise ValueError(
+                f"host: binding {self.host!r} would send the API token in clear text; set tls.cert_file and "
+                "tls.key_file (or --tls-cert / --tls-key), or tls.allow_insecure_http = true behind a "
+                "TLS-terminating proxy"
             )
         if self.quality.min_symmetry_margin > self.quality.min_matched_spheres:
             raise ValueError(
@@ -317,6 +437,12 @@ class _RelativePathsToml(TomlConfigSettingsSource):
             value = data.get(key)
             if isinstance(value, str) and value and not Path(value).expanduser().is_absolute():
                 data[key] = str((self._base_dir / value).resolve())
+        for section, key in _NESTED_PATH_KEYS:
+            sub = data.get(section)
+            value = sub.get(key) if isinstance(sub, dict) else None
+            if isinstance(value, str) and value and not Path(value).expanduser().is_absolute():
+                assert isinstance(sub, dict)
+                data[section] = {**sub, key: str((self._base_dir / value).resolve())}
         return data
 
 

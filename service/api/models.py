@@ -328,6 +328,10 @@ class StatusOut(_Out):
     busy: bool = Field(description="A registration or verification is running.")
     counts: dict[str, int]
     config_hash: str
+    listeners: dict[str, Any] = Field(
+        default_factory=dict,
+        description="DICOM SCP and OpenIGTLink server: enabled, host, port, associations / clients.",
+    )
     healthy: bool = True
     problems: list[str] = Field([], description="Why the service is unhealthy and what to do.")
 

@@ -1,12 +1,15 @@
 """``oarmreg demo``: the whole loop on mock hardware, end to end, over real sockets.
 
 1. a mock Stäubli controller speaks simple_message on loopback (robot holding still);
-2. the service (uvicorn, random free port, temporary API token) watches ``OUT/watch``;
-3. the mock O-arm writes a DICOM scan of the phantom, posed by the mock robot's forward
-   kinematics and a hidden ``image_from_robot``, into the watch folder;
+2. the service (uvicorn, random free port, temporary API token) watches ``OUT/watch`` and
+   listens for DICOM C-STORE and OpenIGTLink on free loopback ports;
+3. the mock O-arm simulates a DICOM scan of the phantom, posed by the mock robot's forward
+   kinematics and a hidden ``image_from_robot``, and pushes it by C-STORE (pynetdicom's SCU,
+   as the O-arm's "send" does; :mod:`mocks.oarm.cstore`);
 4. acting as the navigation UI over HTTP, the demo waits for the scan, calls ``/register``
    and prints the matrix, the quality figures and the TRUE error (the simulator knows the
-   hidden transform);
+   hidden transform); an OpenIGTLink client (pyigtl when importable, else the project's own
+   :mod:`service.igtl.wire` decoder on a plain socket) receives ``RobotToImage``;
 5. it moves the robot, rescans, calls ``/verify``, prints the error table and saves the
    histogram PNG into ``OUT``.
 
@@ -141,6 +144,8 @@ class _Demo:
     watch: Path
     out: Path
     preset: str
+    dicom_port: int = 0
+    igtl_port: int = 0
 
 
 def _output_dir(out_arg: str | None) -> tuple[Path, tempfile.TemporaryDirectory[str] | None]:
@@ -175,6 +180,10 @@ def _demo_settings(out: Path, token: str, link_url: str) -> Settings:
             "stillness.window_s": WINDOW_S,
             "watcher.quiet_period_s": 1.0,
             "watcher.poll_interval_s": 0.5,
+            "dicom.enabled": True,
+            "dicom.port": 0,
+            "igtl.enabled": True,
+            "igtl.port": 0,
         },
     )
 
@@ -209,7 +218,12 @@ def run(args: argparse.Namespace) -> int:
                     base_url=server.base_url, headers={"Authorization": f"Bearer {token}"}, timeout=300.0
                 ) as client,
             ):
-                _err(f"  service on {server.base_url} (watching {settings.watch_dir})")
+                listeners = client.get("/status").json()["listeners"]
+                _err(
+                    f"  service on {server.base_url} (watching {settings.watch_dir}; DICOM "
+                    f"{settings.dicom.ae_title}@127.0.0.1:{listeners['dicom']['port']}, OpenIGTLink "
+                    f"127.0.0.1:{listeners['igtl']['port']})"
+                )
                 demo = _Demo(
                     client=client,
                     robot=robot,
@@ -221,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
                     watch=settings.watch_dir,
                     out=out,
                     preset=args.preset,
+                    dicom_port=int(listeners["dicom"]["port"]),
+                    igtl_port=int(listeners["igtl"]["port"]),
                 )
                 _scan_and_register(demo)
                 _move_scan_verify(demo)
@@ -242,8 +258,8 @@ def _scan_and_register(d: _Demo) -> None:
     acq = AcquisitionSettings.preset(d.preset)
     scan1 = simulate_scan(d.phantom, d.image_from_phantom_1, acq, progress=_Progress("O-arm scan 1"))
     _wait_still(d.client, d.robot)
-    exp1 = write_dicom_series(scan1, d.watch / "scan-1")
-    _err(f"  exported {len(exp1.paths)} slices → {d.watch / 'scan-1'}; waiting for the service")
+    exp1 = write_dicom_series(scan1, d.out / "oarm-outbox" / "scan-1")
+    _send(d, exp1.paths, "scan 1")
     s1 = _wait_scan(d.client, exp1.series_uid, WAIT_SCAN_S)
     _err(f"  scan {s1['id']} recorded ({s1['n_slices']} slices, robot still: {s1['joints']['still']})")
     _err("  POST /register ...")
@@ -253,6 +269,37 @@ def _scan_and_register(d: _Demo) -> None:
     m = np.asarray(reg["image_from_robot"])
     _report_registration(
         reg, dt, m, d.hidden_image_from_robot, d.model, d.tool0_from_phantom, apply, rotation_angle_deg
+    )
+    _report_igtl(d, reg)
+
+
+def _send(d: _Demo, paths: Any, label: str) -> None:
+    """Push the exported slices to the service by C-STORE, as the O-arm would."""
+    from mocks.oarm.cstore import send_series
+
+    res = send_series(sorted(paths), "127.0.0.1", d.dicom_port, called_ae="OARMREG")
+    bad = [s for s in res.statuses if s != 0]
+    _err(
+        f"  O-arm C-STORE of {label}: {len(res.statuses)} slices, {res.n_bytes / 1e6:.1f} MB in "
+        f"{res.seconds:.2f} s ({res.mb_per_s:.0f} MB/s), {len(bad)} refused; association released"
+    )
+
+
+def _report_igtl(d: _Demo, reg: dict[str, Any]) -> None:
+    """Receive ``RobotToImage`` as a Slicer-like client would and compare it with the REST matrix."""
+    import numpy as np
+
+    from service.igtl.probe import receive_transform
+
+    rx = receive_transform("127.0.0.1", d.igtl_port, "RobotToImage", registration_id=str(reg["id"]))
+    expected = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(reg["image_from_robot"])
+    _out(f"\n== OpenIGTLink TRANSFORM 'RobotToImage' received via {rx.via}")
+    _out("  matrix (RAS_from_LPS @ image_from_robot: robot mm → image RAS mm):")
+    _out(_fmt_matrix(rx.matrix))
+    _out(f"  metadata: {dict(sorted(rx.metadata.items()))}")
+    _out(
+        f"  max |IGTL − diag(-1,-1,1,1)·REST| = {np.abs(rx.matrix - expected).max():.2e} "
+        "(float32 on the wire)"
     )
 
 
@@ -274,7 +321,8 @@ def _move_scan_verify(d: _Demo) -> None:
         progress=_Progress("O-arm scan 2"),
     )
     _wait_still(d.client, d.robot)
-    exp2 = write_dicom_series(scan2, d.watch / "scan-2")
+    exp2 = write_dicom_series(scan2, d.out / "oarm-outbox" / "scan-2")
+    _send(d, exp2.paths, "scan 2")
     s2 = _wait_scan(d.client, exp2.series_uid, WAIT_SCAN_S)
     _err(f"  scan {s2['id']} recorded; POST /verify ...")
     ver = _check(d.client.post("/verify", json={"scan_id": s2["id"]}))

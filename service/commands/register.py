@@ -98,6 +98,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--min-margin", type=positive_int, help="override the symmetry margin (matched spheres, ≥ 1)"
     )
+    parser.add_argument(
+        "--sro",
+        type=Path,
+        metavar="OUT.dcm",
+        help="also write the DICOM Spatial Registration object (needs DICOM_DIR; not written on refusal)",
+    )
+    parser.add_argument(
+        "--robot-frame-uid",
+        help="Frame of Reference UID of the robot base frame for --sro (default: the one stored in --data, "
+        "minted on first use)",
+    )
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=Path("oarmreg-data"),
+        help="service data folder holding the robot frame UID (default: %(default)s)",
+    )
 
 
 def sha256_of(path: Path) -> str:
@@ -266,10 +283,57 @@ def run(args: argparse.Namespace) -> int:
     doc = result.to_dict()
     if args.json:  # files first: the result must not depend on stdout staying open
         write_json(args.json, doc)
+    if getattr(args, "sro", None) is not None:
+        write_sro(args, doc)
     sys.stdout.write(summary(doc))
     if args.json:
         sys.stdout.write(f"written: {args.json}\n")
+    if getattr(args, "sro", None) is not None:
+        sys.stdout.write(f"written: {args.sro} (DICOM Spatial Registration)\n")
     return 0
+
+
+def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
+    """Write the Spatial Registration object of this registration to ``args.sro``.
+
+    Raises
+    ------
+    PointsFileError
+        ``--sro`` without DICOM_DIR (the SRO references the scan's instances).
+    RobotFrameUidError
+        ``--robot-frame-uid`` is not a DICOM UID, or the stored one is malformed.
+    """
+    from registration.dicom import list_series
+    from registration.errors import PointsFileError
+    from registration.sro import build_spatial_registration
+    from service.or_integration import scan_instances_from_files
+    from service.robot_frame import _UID_RE, RobotFrameUidError, robot_frame_uid
+    from service.sro_export import ct_headers
+
+    if args.dicom_dir is None:
+        raise PointsFileError("--sro needs DICOM_DIR: the Spatial Registration object references the scan")
+    uid = args.robot_frame_uid
+    if uid is None:
+        uid = robot_frame_uid(args.data)
+    elif not (_UID_RE.match(uid) and len(uid) <= 64):
+        raise RobotFrameUidError(f"--robot-frame-uid {uid!r} is not a DICOM UID (digits, dots, ≤ 64 chars)")
+    series_uid = str(doc.get("provenance", {}).get("series_uid", ""))
+    summary = next(s for s in list_series(args.dicom_dir) if s.series_uid == series_uid)  # headers only
+    inst = scan_instances_from_files(series_uid, list(summary.files))
+    tre = doc.get("predicted_tre_mm") or []
+    ds = build_spatial_registration(
+        doc["image_from_robot"],
+        ct_headers(inst),
+        robot_frame_of_reference_uid=uid,
+        fre_mm=float(doc["fre_mm"]),
+        status="accepted",
+        registration_id="oarmreg register",
+        content_datetime=datetime.now(UTC),
+        tre_pred_mm=max(tre) if tre else None,
+        software_version=str(doc.get("provenance", {}).get("software", "")),
+    )
+    args.sro.parent.mkdir(parents=True, exist_ok=True)
+    ds.save_as(args.sro, enforce_file_format=True)
 
 
 def summary(d: dict[str, Any]) -> str:

@@ -36,6 +36,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--watch", type=Path, default=None, help="folder the O-arm exports DICOM into")
     parser.add_argument("--data", type=Path, default=None, help="folder for the database and histograms")
     parser.add_argument("--robot-link", default=None, help="robot link URL, e.g. simple-message://HOST:11002")
+    parser.add_argument(
+        "--dicom-port", type=int, default=None, help="enable the DICOM C-STORE SCP on this port (0 = any)"
+    )
+    parser.add_argument(
+        "--igtl-port", type=int, default=None, help="enable the OpenIGTLink server on this port (0 = any)"
+    )
+    parser.add_argument("--tls-cert", type=Path, default=None, help="PEM certificate: serve HTTPS")
+    parser.add_argument("--tls-key", type=Path, default=None, help="PEM private key of --tls-cert")
 
 
 def settings_from_args(args: argparse.Namespace) -> Any:
@@ -49,6 +57,12 @@ def settings_from_args(args: argparse.Namespace) -> Any:
             "watch_dir": args.watch,
             "data_dir": args.data,
             "robot.link_url": args.robot_link,
+            "dicom.port": getattr(args, "dicom_port", None),
+            "dicom.enabled": True if getattr(args, "dicom_port", None) is not None else None,
+            "igtl.port": getattr(args, "igtl_port", None),
+            "igtl.enabled": True if getattr(args, "igtl_port", None) is not None else None,
+            "tls.cert_file": getattr(args, "tls_cert", None),
+            "tls.key_file": getattr(args, "tls_key", None),
         },
     )
 
@@ -57,14 +71,17 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.tls import uvicorn_ssl_options
 
     settings = settings_from_args(args)
+    ssl_options = uvicorn_ssl_options(settings)
     preflight(settings)
     app = create_app(settings)
     config = uvicorn.Config(
         app,
         host=settings.host,
         port=settings.port,
+        **ssl_options,
         log_config=None,  # the CLI configured logging
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
         loop=UVICORN_LOOP,
@@ -111,15 +128,18 @@ class _Server:
 class ServerThread:
     """A running uvicorn server on a background thread (see :func:`serve_in_thread`)."""
 
-    def __init__(self, server: Any, thread: threading.Thread, host: str, port: int) -> None:
+    def __init__(
+        self, server: Any, thread: threading.Thread, host: str, port: int, scheme: str = "http"
+    ) -> None:
         self.server = server
         self.thread = thread
         self.host = host
         self.port = port
+        self.scheme = scheme
 
     @property
     def base_url(self) -> str:
-        return f"http://{self.host}:{self.port}"
+        return f"{self.scheme}://{self.host}:{self.port}"
 
     def stop(self, timeout_s: float = 30.0) -> None:
         self.server.should_exit = True
@@ -127,8 +147,12 @@ class ServerThread:
 
 
 @contextlib.contextmanager
-def serve_in_thread(app: Any, host: str = "127.0.0.1", port: int = 0) -> Iterator[ServerThread]:
+def serve_in_thread(
+    app: Any, host: str = "127.0.0.1", port: int = 0, *, ssl_options: dict[str, Any] | None = None
+) -> Iterator[ServerThread]:
     """Run ``app`` with uvicorn on ``host:port`` (0 = a free port) in a background thread.
+
+    ``ssl_options``: :func:`service.tls.uvicorn_ssl_options` (HTTPS; ``base_url`` says ``https``).
 
     The socket is bound before the thread starts, so the port is known and reserved.
     Yields once the app's lifespan has started; stops the server (lifespan shutdown
@@ -148,6 +172,7 @@ def serve_in_thread(app: Any, host: str = "127.0.0.1", port: int = 0) -> Iterato
         log_config=None,
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
         loop=UVICORN_LOOP,
+        **(ssl_options or {}),
     )
     server = _Server(config, app)
     failure: list[BaseException] = []
@@ -179,7 +204,7 @@ def serve_in_thread(app: Any, host: str = "127.0.0.1", port: int = 0) -> Iterato
         if failure:
             raise failure[0]
         raise RuntimeError(f"uvicorn did not start on {host}:{bound_port} within {SERVER_START_TIMEOUT_S} s")
-    handle = ServerThread(server, thread, host, bound_port)
+    handle = ServerThread(server, thread, host, bound_port, "https" if ssl_options else "http")
     try:
         yield handle
     finally:

@@ -328,9 +328,17 @@ class IgtlServer:
     server also notices changes by itself at ``poll_period_s``.
     """
 
-    def __init__(self, config: IgtlServerConfig, source: IgtlStateSource) -> None:
+    def __init__(
+        self,
+        config: IgtlServerConfig,
+        source: IgtlStateSource,
+        *,
+        on_client: Callable[[str, str, int], None] | None = None,
+    ) -> None:
         self.config = config
         self.source = source
+        self.on_client = on_client
+        """``on_client(event, peer, n_clients)``, event ``connected`` / ``disconnected`` (on the loop)."""
         self._networks = config.allowed_networks()
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -429,6 +437,7 @@ class IgtlServer:
         self._clients.add(client)
         self.counters["connects"] += 1
         log.info("OpenIGTLink client %s connected (%d now)", client.peer, len(self._clients))
+        self._report("connected", client.peer)
         self.push_current(client)
         client.tasks = [asyncio.create_task(client.write_loop()), asyncio.create_task(client.read_loop())]
         try:
@@ -440,6 +449,14 @@ class IgtlServer:
             writer.transport.abort()
             self._clients.discard(client)
             log.info("OpenIGTLink client %s gone (%d left)", client.peer, len(self._clients))
+            self._report("disconnected", client.peer)
+
+    def _report(self, event: str, peer: str) -> None:
+        if self.on_client is not None:
+            try:
+                self.on_client(event, peer, len(self._clients))
+            except Exception:
+                log.exception("OpenIGTLink: on_client callback failed")
 
     def _registration(self) -> RegistrationState:
         try:
@@ -488,8 +505,13 @@ class IgtlServer:
                 self._broadcast(self._tool(reg, joints))
                 last_tool, next_tool = tool_key, now + cfg.period_s
             self._wake.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), cfg.poll_period_s)
+            # wake at the poll period or on notify(); call_later instead of wait_for, which would
+            # start a new task for every wait (100 per second)
+            timer = asyncio.get_running_loop().call_later(cfg.poll_period_s, self._wake.set)
+            try:
+                await self._wake.wait()
+            finally:
+                timer.cancel()
 
 
 def _registration_key(reg: RegistrationState) -> object:

@@ -11,6 +11,7 @@ from service.store import integrity, migrations
 from service.store.audit import AuditStore
 from service.store.base import Connection
 from service.store.registrations import RegistrationStore
+from service.store.scan_instances import ScanInstanceStore
 from service.store.scans import ScanStore
 from service.store.verifications import VerificationStore
 
@@ -27,6 +28,7 @@ class Database:
         self.scans = ScanStore(conn)
         self.registrations = RegistrationStore(conn)
         self.verifications = VerificationStore(conn)
+        self.scan_instances = ScanInstanceStore(conn)
         self.audit = AuditStore(conn)
         self._lock_file: IO[bytes] | None = None
 

@@ -19,6 +19,9 @@
     version (kept equal to ``user_version``; :mod:`service.store.integrity`).
 ``audit_log`` (2)
     who (``principal``: a 12-hex hash of the token, never the token) did what to which record.
+``scan_instances`` (3)
+    per series UID, the headers a DICOM Spatial Registration object references (patient and
+    study attributes, SOP Class / Instance UIDs of every slice), :mod:`service.store.scan_instances`.
 """
 
 from __future__ import annotations
@@ -127,6 +130,14 @@ MIGRATIONS: tuple[str, ...] = (
         target_id INTEGER,
         outcome TEXT NOT NULL,
         detail TEXT NOT NULL DEFAULT ''
+    );
+    """,
+    # 3: what the DICOM Spatial Registration object needs of a scan (issue #12)
+    """
+    CREATE TABLE scan_instances (
+        series_uid TEXT PRIMARY KEY,
+        headers_json TEXT NOT NULL,
+        updated_at TEXT NOT NULL
     );
     """,
 )

@@ -20,19 +20,20 @@ class ScanStore:
     def __init__(self, db: Connection) -> None:
         self._db = db
 
-    def upsert(self, scan: NewScan) -> tuple[int, bool]:
+    def upsert(self, scan: NewScan, *, reopen: bool = False) -> tuple[int, bool]:
         """Record a series; returns ``(scan_id, created)``.
 
         A series UID seen before with status ``complete`` is a re-export: only
         ``seen_count`` grows and ``created`` is False.  One seen before as ``invalid``
-        is replaced by the new record (and its new joint snapshot).
+        is replaced by the new record (and its new joint snapshot).  ``reopen=True`` replaces a
+        ``complete`` one too (new instances of a recorded series arrived over C-STORE); the id stays.
         """
         now = utc_now()
         with self._db.transaction() as c:
             row = c.execute(
                 "SELECT id, status FROM scans WHERE series_uid = ?", (scan.series_uid,)
             ).fetchone()
-            if row is not None and row["status"] == "complete":
+            if row is not None and row["status"] == "complete" and not reopen:
                 c.execute(
                     "UPDATE scans SET seen_count = seen_count + 1, updated_at = ? WHERE id = ?",
                     (now, row["id"]),
@@ -66,6 +67,10 @@ class ScanStore:
 
     def get(self, scan_id: int) -> ScanRecord | None:
         rows = self._db.query("SELECT * FROM scans WHERE id = ?", (scan_id,))
+        return self._record(rows[0]) if rows else None
+
+    def by_series_uid(self, series_uid: str) -> ScanRecord | None:
+        rows = self._db.query("SELECT * FROM scans WHERE series_uid = ?", (series_uid,))
         return self._record(rows[0]) if rows else None
 
     def latest_complete(self) -> ScanRecord | None:

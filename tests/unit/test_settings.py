@@ -102,7 +102,8 @@ def test_invalid_toml(tmp_path: Path) -> None:
 def test_non_loopback_without_token_is_refused() -> None:
     with pytest.raises(ConfigError, match=r"host.*api_token"):
         load_settings(None, {"host": "0.0.0.0"})
-    assert load_settings(None, {"host": "0.0.0.0", "api_token": TOKEN}).host == "0.0.0.0"
+    insecure_ok = {"host": "0.0.0.0", "api_token": TOKEN, "tls.allow_insecure_http": True}
+    assert load_settings(None, insecure_ok).host == "0.0.0.0"
 
 
 def test_short_token_is_refused() -> None:
