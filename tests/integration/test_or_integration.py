@@ -251,6 +251,8 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
     good_uid = str(pydicom.dcmread(good_files[0]).SeriesInstanceUID)
     assert set(send_files(svc.dicom_port, good_files)) == {0}
     before = svc.wait_scan(good_uid, "complete")
+    # the scan is recorded before its release event is published: wait for that event, then count
+    assert svc.wait_released(good_uid)["outcome"] == "complete"
     n_released = len([e for e in svc.events("dicom_association_released") if e["series_uid"] == good_uid])
 
     # an identical re-send changes nothing
