@@ -15,7 +15,7 @@ import pytest
 
 from mocks.oarm import cbct
 from mocks.oarm.cbct import ConeBeamSettings, projection_matrix, simulate_cbct_mu
-from mocks.oarm.simulator import SceneExtras, image_from_scanner
+from mocks.oarm.simulator import HU_MAX, HU_MIN, SceneExtras, image_from_scanner
 from registration import frames
 
 CENTROID_TOL_MM = 0.01
@@ -160,26 +160,31 @@ def test_isolated_sphere_centroids_in_air() -> None:
 
 
 def test_fdk_centroids_at_and_off_the_central_plane(phantom) -> None:  # type: ignore[no-untyped-def]
-    """Issue #11: the flush steel spheres of the cube, at z = 0 and 35 mm, 0.15 mm ROI voxels,
-    noise-free and monochromatic: centroids within 0.01 mm.
+    """Issue #11: the cube's flush steel spheres nearest z = 0 and z = 35 mm, 0.15 mm ROI voxels,
+    noise-free and monochromatic, 391 views (the O-arm's standard count): centroids within 0.01 mm.
 
-    The plastic/air step beside a flush sphere biases any intensity-weighted centroid (a
-    property of the estimator, not of the geometry), so the sphere is isolated by subtracting the
-    metal-free twin scan (the FDK is linear at one energy); the estimator biases are reported by
-    ``benchmarks/bench_simulator.py --cbct``.
+    At 120 views the view-aliasing streaks of the other 27 spheres shift centroids by up to
+    0.05 mm (the spheres alone in air stay within 0.005 mm, test above).  The stored HU saturate
+    at 3071: thresholded at 1500 HU the sphere becomes a flat plateau whose weights sit in the edge
+    ring, brighter on the plastic side than on the air side, so that centroid is pulled towards
+    the cube (0.02-0.15 mm; the bias the xfail of this test recorded, beam hardening adds little).
     """
-    s = ConeBeamSettings.preset("cbct-ci", **IDEAL)
-    twin = SceneExtras(empty_holes=False, sphere_material="plastic")
-    extras = dataclasses.replace(twin, sphere_material=None)
+    s = ConeBeamSettings.preset("cbct-ci", **{**IDEAL, "n_views": 391})
+    extras = SceneExtras(empty_holes=False)
+    mu_ref = cbct.physics.water_correction(cbct._spectrum(s)).mu_ref_per_mm
     for pose, z_mm in ((POSE_0, 0.0), (POSE_35, 35.0)):
         targets = _targets(phantom, pose, z_mm)
         assert np.all(np.abs(targets[:, 2] - z_mm) < 1.3)
         centres = frames.apply(_rtk_from_image(s), targets)
-        with_metal, vox = _roi_mu(phantom, pose, s, extras, centres)
-        without, _ = _roi_mu(phantom, pose, s, twin, centres)
-        for c, a, b in zip(centres, with_metal, without, strict=True):
-            found = c - 27 / 2.0 * vox + _centroid(a - b)[::-1] * vox
+        cube_rtk = frames.apply(_rtk_from_image(s), pose[:3, 3][None])[0]
+        vols, vox = _roi_mu(phantom, pose, s, extras, centres)
+        for c, mu in zip(centres, vols, strict=True):
+            found = c - 27 / 2.0 * vox + _centroid(mu)[::-1] * vox
             assert np.linalg.norm(found - c) < CENTROID_TOL_MM, (z_mm, found - c)
+            stored = np.clip((mu / mu_ref - 1.0) * 1000.0, HU_MIN, HU_MAX) - 1500.0
+            clipped = c - 27 / 2.0 * vox + _centroid(stored, 0.0)[::-1] * vox
+            outward = (c - cube_rtk) * np.array([1.0, 0.0, 1.0])
+            assert (clipped - c) @ outward / np.linalg.norm(outward) < -0.01  # towards the plastic
 
 
 def test_volume_frame_and_truth(phantom) -> None:  # type: ignore[no-untyped-def]
@@ -200,4 +205,6 @@ def test_volume_frame_and_truth(phantom) -> None:  # type: ignore[no-untyped-def
         lo = np.rint([k, j, i]).astype(int) - 3
         patch = diff[lo[0] : lo[0] + 7, lo[1] : lo[1] + 7, lo[2] : lo[2] + 7]
         found = frames.apply(scan.image_from_voxel, (lo + _centroid(patch))[::-1][None])[0]
-        assert np.linalg.norm(found - centre) < 0.2  # 0.8 × 1.6 mm voxels; a frame error is mm
+        assert (
+            np.linalg.norm(found - centre) < 0.5
+        )  # 1.6 mm slices sample a 2.5 mm ball coarsely; a frame error is mm
