@@ -370,29 +370,36 @@ def project_view(
             paths = np.zeros((n_slots, *uu.shape), np.float32)
             _add_extended(paths, scene, src, d)
             trans[c1:e1, c0:e0] = polychromatic_transmission(paths, mu, weights)
+    if not scene.balls:
+        return trans
     ns = s.subrays
     offs = ((np.arange(ns) + 0.5) / ns - 0.5) * p
-    for b in scene.balls:
-        h = projection_matrix(s, theta) @ np.append(b.centre_rtk_mm, 1.0)
-        rad = b.radius_mm * s.sdd_mm / max(abs(h[2]) - b.radius_mm, 1.0) + 1.5 * p
-        c0, e0, c1, e1 = _pixel_window(s, theta, b.centre_rtk_mm[None], rad)
+    centres = np.array([bl.centre_rtk_mm for bl in scene.balls])
+    radii = np.array([bl.radius_mm for bl in scene.balls])
+    h = np.c_[centres, np.ones(len(centres))] @ projection_matrix(s, theta).T
+    uv = h[:, :2] / h[:, 2:3]
+    # Shadow radius on the panel (tangent cone, generous) plus 1.5 pixels of window margin.
+    rad = radii * s.sdd_mm / np.maximum(np.abs(h[:, 2]) - radii, 1.0) + 1.5 * p
+    # Balls whose shadows overlap a window in this view (near in projection, however far apart).
+    overlap = np.all(
+        np.abs(uv[:, None, :] - uv[None, :, :]) < (rad[:, None] + rad[None, :])[..., None], axis=2
+    )
+    for ib, b in enumerate(scene.balls):
+        c0, e0, c1, e1 = _pixel_window(s, theta, b.centre_rtk_mm[None], float(rad[ib]))
         if e0 <= c0 or e1 <= c1:
             continue
-        # Sub-rays across each pixel of the window, through every object near it.
+        # Sub-rays across each pixel of the window, through every object they may meet.
         suu, svv = np.meshgrid(
             (u[c0:e0, None] + offs[None, :]).ravel(), (v[c1:e1, None] + offs[None, :]).ravel()
         )
         src, sd = _rays(s, theta, suu, svv)
         sp = np.zeros((n_slots, *suu.shape), np.float32)
         _add_extended(sp, scene, src, sd)
-        for other in scene.balls:
-            if (
-                np.linalg.norm(other.centre_rtk_mm - b.centre_rtk_mm)
-                < 2 * rad / s.magnification + 2 * other.radius_mm
-            ):
-                chord = _sphere_chords(src, sd, other).astype(np.float32)
-                for slot, sign in other.paths:
-                    sp[slot] += np.float32(sign) * chord
+        for io in np.flatnonzero(overlap[ib]):
+            other = scene.balls[io]
+            chord = _sphere_chords(src, sd, other).astype(np.float32)
+            for slot, sign in other.paths:
+                sp[slot] += np.float32(sign) * chord
         st = polychromatic_transmission(sp, mu, weights)
         trans[c1:e1, c0:e0] = st.reshape(e1 - c1, ns, e0 - c0, ns).mean(axis=(1, 3))
     return trans
