@@ -1,9 +1,10 @@
 """Simulator speed (issue #2: full O-arm scan <= 90 s, small preset <= 5 s, demo <= 25 s on 2 cores).
 
-Run: ``.venv/bin/python -m benchmarks.bench_simulator [--quick] [--cbct]`` (``--quick`` skips the full
-presets; ``--cbct`` adds the cone-beam presets, issue #11: ``cbct-ci`` <= 60 s including RTK start-up,
-``oarm-cbct`` <= 300 s; the FDK is numpy + OpenCV, RTK is only timed (cold import) and used for
-the cross-check of the slice-wise FBP: max |ΔHU| and centroid differences on one slice).
+Run: ``.venv/bin/python -m benchmarks.bench_simulator [--quick] [--cbct] [--cbct-png]``.
+``--quick`` skips the full presets; ``--cbct`` adds the cone-beam presets (issue #11: ``cbct-ci``
+<= 60 s including RTK start-up, ``oarm-cbct`` <= 300 s; the FDK is numpy + OpenCV, RTK is only
+timed, cold import, and cross-checks the slice-wise FBP on one slice: max |ΔHU| and centroid
+differences); ``--cbct-png`` only redraws ``docs/img/sim_cbct_ci_*.png``.
 """
 
 from __future__ import annotations
@@ -116,6 +117,46 @@ def fbp_cross_check(window: str = "ramp") -> dict[str, float] | None:
     return out
 
 
+def cbct_pictures(out_dir: Path) -> list[Path]:
+    """``cbct-ci`` scan of the demo pose (rod on): an axial slice through the most spheres and one
+    near the top of the slab (far off the central plane) in a bone window, and a sagittal cut."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
+    from mocks.oarm.simulator import SceneExtras, best_slice, demo_pose
+    from registration.phantom import load_phantom
+
+    phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
+    s = ConeBeamSettings.preset("cbct-ci")
+    scan = simulate_cbct(phantom, demo_pose(), s, SceneExtras(rod=True))
+    k_mid = best_slice(scan)
+    k_off = scan.hu.shape[0] - 3
+    z = scan.image_from_voxel @ np.array([[0, 0, k, 1.0] for k in (k_mid, k_off)]).T
+    paths = []
+    for name, img, title in (
+        ("sim_cbct_ci_bone_window.png", scan.hu[k_mid], f"axial k={k_mid} (z = {z[2, 0]:.1f} mm)"),
+        ("sim_cbct_ci_offplane_bone_window.png", scan.hu[k_off], f"axial k={k_off} (z = {z[2, 1]:.1f} mm)"),
+        (
+            "sim_cbct_ci_sagittal_bone_window.png",
+            scan.hu[:, :, scan.hu.shape[2] // 2],
+            "sagittal, centre column",
+        ),
+    ):
+        fig, ax = plt.subplots(figsize=(5, 5), dpi=110)
+        aspect = s.slice_spacing_mm / s.pixel_mm if "sagittal" in name else 1.0
+        ax.imshow(img, cmap="gray", vmin=-500, vmax=2000, aspect=aspect, interpolation="nearest")
+        ax.set_title(f"cbct-ci, {title}\nbone window W 2500 / L 750 HU", fontsize=9)
+        ax.axis("off")
+        fig.tight_layout()
+        paths.append(out_dir / name)
+        fig.savefig(paths[-1])
+        plt.close(fig)
+    return paths
+
+
 def main(argv: list[str] | None = None) -> None:
     from mocks.oarm.cbct import CBCT_PRESET_NAMES, ConeBeamSettings, simulate_cbct
     from mocks.oarm.dicom_export import write_dicom_series
@@ -123,6 +164,10 @@ def main(argv: list[str] | None = None) -> None:
     from registration.phantom import load_phantom
 
     args = sys.argv[1:] if argv is None else argv
+    if "--cbct-png" in args:
+        for path in cbct_pictures(REPO / "docs" / "img"):
+            print(path)
+        return
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
     pose = demo_pose()
     presets = [("small", 5), ("demo", 3), ("small-realistic", 3), ("demo-realistic", 3)]
