@@ -208,3 +208,34 @@ def test_volume_frame_and_truth(phantom) -> None:  # type: ignore[no-untyped-def
         assert (
             np.linalg.norm(found - centre) < 0.5
         )  # 1.6 mm slices sample a 2.5 mm ball coarsely; a frame error is mm
+
+
+def test_rod_and_vertebra_in_the_cone_beam_scene(phantom) -> None:  # type: ignore[no-untyped-def]
+    """The steel rod (leaving the cube's +z face) and the bone block (cortical shell, cancellous
+    core, 72 mm off in y) reconstruct with their materials' HU; scatter off so PMMA reads true."""
+    s = ConeBeamSettings.preset(
+        "cbct-ci",
+        n_views=40,
+        noise=False,
+        scatter_spr=0.0,
+        rows=32,
+        columns=12,
+        n_slices=18,
+        pixel_mm=3.2,
+        slice_spacing_mm=4.0,
+        roi_centre_mm=(0.0, 40.0, 25.0),
+    )
+    hu, scan = simulate_cbct_mu(phantom, np.eye(4), s, SceneExtras(rod=True, vertebra=True))
+    inv = np.linalg.inv(scan.image_from_voxel)
+
+    def at(x: float, y: float, z: float) -> float:
+        i, j, k, _ = np.rint(inv @ np.array([x, y, z, 1.0])).astype(int)
+        return float(hu[k, j, i])
+
+    assert at(0.0, 0.0, 56.0) > 5000.0  # steel rod axis, 16 mm above the cube
+    assert 100.0 < at(0.0, 72.0, 0.0) < 400.0  # cancellous core (20 % cortical bone in water)
+    assert 60.0 < at(0.0, 20.0, 0.0) < 200.0  # PMMA
+    assert at(12.0, 85.0, 25.0) < -800.0  # air beyond the vertebra
+    without, _ = simulate_cbct_mu(phantom, np.eye(4), s, SceneExtras())
+    i, j, k, _ = np.rint(inv @ np.array([0.0, 0.0, 56.0, 1.0])).astype(int)
+    assert without[k, j, i] < -800.0  # no rod, air
