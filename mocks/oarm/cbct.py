@@ -541,41 +541,40 @@ def backproject(
     p = s.det_pitch_mm
     u0 = -(s.det_cols - 1) / 2.0 * p
     v0 = -(s.det_rows - 1) / 2.0 * p
-    n = xz_rtk_mm.shape[0]
+    n, n_y = xz_rtk_mm.shape[0], len(y_rtk_mm)
     width = 512
     m_rows = -(-n // width)
-    pad = m_rows * width - n
-    x = np.pad(xz_rtk_mm[:, 0], (0, pad))
-    z = np.pad(xz_rtk_mm[:, 1], (0, pad))
-    out = np.zeros((len(y_rtk_mm), m_rows * width), np.float32)
+    x = np.pad(xz_rtk_mm[:, 0], (0, m_rows * width - n))
+    z = np.pad(xz_rtk_mm[:, 1], (0, m_rows * width - n))
+    out = np.zeros((n_y * m_rows, width), np.float32)  # slice-major: rows [k·m_rows, (k+1)·m_rows)
     y32 = np.asarray(y_rtk_mm, np.float32)
+    chunk = min(BP_SLICE_CHUNK, n_y)
+    map_v = np.empty((chunk, m_rows * width), np.float32)
     for i in range(s.n_views):
         theta = math.radians(i * s.arc_deg / s.n_views)
         c, sn = math.cos(theta), math.sin(theta)
         depth = s.sid_mm - (sn * x + c * z)
         mag = s.sdd_mm / depth
         map_u = (((c * x - sn * z) * mag - u0) / p).astype(np.float32).reshape(m_rows, width)
+        map_u = np.tile(map_u, (chunk, 1))
+        weight = np.tile(((s.sid_mm / depth) ** 2).astype(np.float32).reshape(m_rows, width), (chunk, 1))
         vscale = (mag / p).astype(np.float32)
-        weight = ((s.sid_mm / depth) ** 2).astype(np.float32)
         view = np.ascontiguousarray(filtered[i])
-        for k0 in range(0, len(y32), BP_SLICE_CHUNK):
-            yk = y32[k0 : k0 + BP_SLICE_CHUNK]
-            map_v = np.multiply.outer(yk, vscale)
-            map_v -= np.float32(v0 / p)
-            samples = np.asarray(
-                cv2.remap(
-                    view,
-                    np.tile(map_u, (len(yk), 1)),
-                    map_v.reshape(len(yk) * m_rows, width),
-                    cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=0.0,
-                ),
-                dtype=np.float32,
-            ).reshape(len(yk), -1)
-            samples *= weight
-            out[k0 : k0 + len(yk)] += samples
-    return out[:, :n]
+        for k0 in range(0, n_y, chunk):
+            nk = min(chunk, n_y - k0)
+            rows = nk * m_rows
+            np.multiply.outer(y32[k0 : k0 + nk], vscale, out=map_v[:nk])
+            map_v[:nk] -= np.float32(v0 / p)
+            samples = cv2.remap(
+                view,
+                map_u[:rows],
+                map_v[:nk].reshape(rows, width),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0.0,
+            )
+            cv2.accumulateProduct(samples, weight[:rows], out[k0 * m_rows : k0 * m_rows + rows])
+    return out.reshape(n_y, m_rows * width)[:, :n]
 
 
 def _fov_mask(
