@@ -9,6 +9,7 @@ differences); ``--cbct-png`` only redraws ``docs/img/sim_cbct_ci_*.png``.
 
 from __future__ import annotations
 
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -177,11 +178,14 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for name, repeats in presets:
         settings = (ConeBeamSettings if name in CBCT_PRESET_NAMES else AcquisitionSettings).preset(name)
-        scans = []
+        scans: list[Any] = []
+        cpu: list[float] = []
 
-        def run(settings: Any = settings, scans: list = scans) -> None:
+        def run(settings: Any = settings, scans: list[Any] = scans, cpu: list[float] = cpu) -> None:
             sim = simulate_cbct if isinstance(settings, ConeBeamSettings) else simulate_scan
+            c0 = time.process_time()
             scans.append(sim(phantom, pose, settings))
+            cpu.append(time.process_time() - c0)
 
         med, times = median_time_s(run, repeats=repeats, warmup=0)
         scan = scans[-1]
@@ -202,6 +206,7 @@ def main(argv: list[str] | None = None) -> None:
                 len(scan.sphere_indices),
                 med,
                 min(times),
+                statistics.median(cpu),
                 BUDGET_S[name],
                 t.get("project_s", 0.0),
                 t.get("fbp_s", t.get("fdk_s", 0.0)),
@@ -210,7 +215,8 @@ def main(argv: list[str] | None = None) -> None:
             ]
         )
     print_table(
-        "Simulator (median wall time, seconds)",
+        "Simulator (median wall time, seconds; cpu_s: process CPU time, all threads, a load-independent"
+        " measure of work on a shared machine)",
         [
             "preset",
             "matrix",
@@ -218,6 +224,7 @@ def main(argv: list[str] | None = None) -> None:
             "spheres",
             "simulate_s",
             "best_s",
+            "cpu_s",
             "budget_s",
             "project_s",
             "fbp_s",
