@@ -239,3 +239,18 @@ def test_rod_and_vertebra_in_the_cone_beam_scene(phantom) -> None:  # type: igno
     without, _ = simulate_cbct_mu(phantom, np.eye(4), s, SceneExtras())
     i, j, k, _ = np.rint(inv @ np.array([0.0, 0.0, 56.0, 1.0])).astype(int)
     assert without[k, j, i] < -800.0  # no rod, air
+
+
+def test_only_the_fov_cylinder_is_reconstructed(phantom) -> None:  # type: ignore[no-untyped-def]
+    """Voxels beyond the radius every view sees are air; the cube inside is plastic."""
+    s = ConeBeamSettings.preset(
+        "cbct-ci", n_views=16, det_cols=64, det_rows=48, det_pitch_mm=6.2, noise=False, scatter_spr=0.0
+    )
+    s = dataclasses.replace(s, rows=16, columns=16, n_slices=4, pixel_mm=16.0, slice_spacing_mm=8.0)
+    r_fov = cbct.fov_radius_rtk_mm(s)
+    assert 100.0 < r_fov < 120.0  # 64 · 6.2 mm panel at SDD 1150, SID 650
+    hu, _ = simulate_cbct_mu(phantom, np.eye(4), s, SceneExtras(empty_holes=False))
+    xy = (np.arange(16) - 7.5) * 16.0
+    outside = np.hypot(*np.meshgrid(xy, xy)) > r_fov
+    assert np.all(hu[:, outside] == HU_MIN) and np.count_nonzero(outside) >= 8
+    assert -300.0 < hu[2, 7, 7] < 400.0  # PMMA at the centre (coarse voxels, 16 views)
