@@ -114,6 +114,9 @@ class ConeBeamSettings:
     preset_name: str = "custom-cbct"
     monochromatic_kev: float | None = None
     """Validation only: one photon energy (keV) instead of the spectrum, so no beam hardening."""
+    hann_cut: float = 0.0
+    """Ramp apodisation, RTK's ``HannCutFrequency``: 0 = plain ramp (default); c > 0 multiplies
+    rfft bin i < round(c·n) by 0.5(1 + cos(π i / round(c·n))) and zeroes the rest (n bins)."""
     reconstructor: str = "numpy"
     """``numpy``: :func:`fdk_numpy` (RTK's FDK re-implemented, validated against it, no RTK needed);
     ``rtk``: RTK's own ``FDKConeBeamReconstructionFilter`` (needs itk-rtk, slow on CPU)."""
@@ -128,6 +131,8 @@ class ConeBeamSettings:
             problems.append("lag_fraction must be in [0, 1) and scatter_spr in [0, 2]")
         if self.orientation not in ORIENTATIONS:
             problems.append(f"orientation {self.orientation!r} not one of {sorted(ORIENTATIONS)}")
+        if not 0.0 <= self.hann_cut <= 1.0:
+            problems.append(f"hann_cut={self.hann_cut} outside [0, 1]")
         if self.reconstructor not in ("numpy", "rtk"):
             problems.append(f"reconstructor must be 'numpy' or 'rtk', got {self.reconstructor!r}")
         if self.reconstructor == "numpy" and abs(self.arc_deg - 360.0) > 1e-9:
@@ -479,7 +484,7 @@ def fdk_rtk(
     fdk.SetInput(0, src.GetOutput())
     fdk.SetInput(1, proj)
     fdk.SetGeometry(g)
-    fdk.GetRampFilter().SetHannCutFrequency(0.0)
+    fdk.GetRampFilter().SetHannCutFrequency(float(s.hann_cut))
     fdk.Update()
     return np.asarray(itk.array_from_image(fdk.GetOutput()), dtype=np.float32)
 
@@ -490,9 +495,12 @@ BP_SLICE_CHUNK = 16
 """Slices back-projected per OpenCV remap call (bounded by remap's 32767-row map limit)."""
 
 
-def ramp_kernel_fft(n_cols: int, pitch_mm: float) -> tuple[NDArray[np.complex128], int]:
-    """FFT of RTK's spatial ramp kernel (Kak & Slaney eq. 3.61; ``FFTRampImageFilter``, no window).
+def ramp_kernel_fft(
+    n_cols: int, pitch_mm: float, hann_cut: float = 0.0
+) -> tuple[NDArray[np.complex128], int]:
+    """FFT of RTK's spatial ramp kernel (Kak & Slaney eq. 3.61; ``FFTRampImageFilter``).
 
+    Optionally Hann-windowed as RTK's ``HannCutFrequency`` (:attr:`ConeBeamSettings.hann_cut`).
     h(0) = 1/(4Δ), h(n odd) = −1/(n²π²Δ), h(n even ≠ 0) = 0 (Δ = detector pitch, the spacing not
     squared as RTK does: the convolution is a plain sum), on a zero-padded length of the next power
     of two ≥ 2·n_cols so the circular convolution equals the linear one over the panel.
@@ -503,7 +511,13 @@ def ramp_kernel_fft(n_cols: int, pitch_mm: float) -> tuple[NDArray[np.complex128
     odd = np.arange(1, n_pad // 2, 2)
     h[odd] = -1.0 / (odd * math.pi) ** 2 / pitch_mm
     h[n_pad - odd] = h[odd]
-    return np.fft.rfft(h), n_pad
+    resp = np.fft.rfft(h)
+    if hann_cut > 0.0:
+        n_cut = round(len(resp) * min(1.0, hann_cut))
+        win = np.zeros(len(resp))
+        win[:n_cut] = 0.5 * (1.0 + np.cos(np.pi * np.arange(n_cut) / n_cut))
+        resp *= win
+    return resp, n_pad
 
 
 def filter_projections(line_integrals: F32, s: ConeBeamSettings) -> F32:
@@ -521,7 +535,7 @@ def filter_projections(line_integrals: F32, s: ConeBeamSettings) -> F32:
     cos_g = s.sdd_mm / np.sqrt(s.sdd_mm**2 + u[None, :] ** 2 + v[:, None] ** 2)
     gap = 2.0 * math.pi / s.n_views
     weight = (cos_g * gap * s.sdd_mm / (2.0 * s.sid_mm)).astype(np.float32)
-    kernel, n_pad = ramp_kernel_fft(s.det_cols, p)
+    kernel, n_pad = ramp_kernel_fft(s.det_cols, p, s.hann_cut)
     for i in range(line_integrals.shape[0]):
         spec = sfft.rfft(line_integrals[i] * weight, n=n_pad, axis=-1, workers=-1)
         spec *= kernel[None, :]
