@@ -25,10 +25,10 @@ no apodisation window, inside the cylinder every view sees (the rest is air, −
 
 Validation (noise-free, monochromatic, 0.15 mm ROI voxels, 0.3·max intensity-weighted
 centroids): spheres alone in air within 0.005 mm at the isocentre, 30 mm off-axis and 35 mm
-off-plane; the cube's flush steel spheres at z = 0 and 35 mm within 0.01 mm at 391 views (at 120
-views the other spheres' view-aliasing streaks shift them up to 0.05 mm).  Centroids of the
-*stored* HU (clipped at 3071) thresholded at 1500 HU are pulled 0.02–0.15 mm towards the plastic:
-the saturated plateau leaves the weights in the edge ring, brighter on the plastic side.
+off-plane; the cube's flush steel spheres at z = 0 and 35 mm within 0.0024 mm at 391 views
+(polychromatic 0.0016 mm; at 120 views the other spheres' view-aliasing streaks reach 0.012 mm).
+Centroids of the *stored* HU (clipped at 3071) thresholded at 1500 HU move 0.01–0.017 mm towards
+the plastic: the saturated plateau leaves the weights in the edge ring, brighter on that side.
 
 O-arm numbers (research note calibration.md §4, **unverified**): SID ≈ 650 mm, SDD ≈ 1150 mm,
 40 × 30 cm panel (PaxScan 4030CB-like; here 4 × 4 binned to 0.776 mm), 391 views over 360°.

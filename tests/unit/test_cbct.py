@@ -163,13 +163,15 @@ def test_isolated_sphere_centroids_in_air() -> None:
 
 def test_fdk_centroids_at_and_off_the_central_plane(phantom) -> None:  # type: ignore[no-untyped-def]
     """Issue #11: the cube's flush steel spheres nearest z = 0 and z = 35 mm, 0.15 mm ROI voxels,
-    noise-free and monochromatic, 391 views (the O-arm's standard count): centroids within 0.01 mm.
+    noise-free and monochromatic, 391 views (the O-arm's standard count): centroids within 0.01 mm
+    (measured 0.0018-0.0024 mm; polychromatic 0.0005-0.0016 mm).
 
-    At 120 views the view-aliasing streaks of the other 27 spheres shift centroids by up to
-    0.05 mm (the spheres alone in air stay within 0.005 mm, test above).  The stored HU saturate
-    at 3071: thresholded at 1500 HU the sphere becomes a flat plateau whose weights sit in the edge
-    ring, brighter on the plastic side than on the air side, so that centroid is pulled towards
-    the cube (0.02-0.15 mm; the bias the xfail of this test recorded, beam hardening adds little).
+    At 120 views the other 27 spheres' view-aliasing streaks shift one of them by 0.012 mm.  The
+    stored HU saturate at 3071: thresholded at 1500 HU the sphere is a flat plateau whose weights
+    sit in the edge ring, brighter on the plastic side, so that centroid moves 0.01-0.017 mm towards
+    the cube.  (The 0.13-0.18 mm inward bias this test once recorded as xfail was a projector bug:
+    a ball's sub-ray window ignored balls far away in 3-D whose shadows overlapped it, and erased
+    their shadows in the views where they did.)
     """
     s = ConeBeamSettings.preset("cbct-ci", **{**IDEAL, "n_views": 391})
     extras = SceneExtras(empty_holes=False)
@@ -186,7 +188,7 @@ def test_fdk_centroids_at_and_off_the_central_plane(phantom) -> None:  # type: i
             stored = np.clip((mu / mu_ref - 1.0) * 1000.0, HU_MIN, HU_MAX) - 1500.0
             clipped = c - 27 / 2.0 * vox + _centroid(stored, 0.0)[::-1] * vox
             outward = (c - cube_rtk) * np.array([1.0, 0.0, 1.0])
-            assert (clipped - c) @ outward / np.linalg.norm(outward) < -0.01  # towards the plastic
+            assert (clipped - c) @ outward / np.linalg.norm(outward) < -0.005  # towards the plastic
 
 
 def test_volume_frame_and_truth(phantom) -> None:  # type: ignore[no-untyped-def]
