@@ -28,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "mock": "service.commands.mock",
     "serve": "service.commands.serve",
     "demo": "service.commands.demo",
+    "calibrate": "service.commands.calibrate",
 }
 
 

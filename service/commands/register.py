@@ -44,6 +44,25 @@ def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_image_arguments(parser)
+    for action in parser._actions:  # register takes the robot side from --robot-points or --joints
+        if action.dest == "robot_points":
+            action.required = False
+    parser.add_argument(
+        "--joints",
+        type=Path,
+        metavar="JOINTS.json",
+        help='joint angles of the scan, {"joints_rad": [...]}: robot points by forward kinematics '
+        "(instead of --robot-points)",
+    )
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="CALDIR",
+        help="with --joints: use this calibration's robot.urdf and tool0_from_phantom (default: nominal)",
+    )
+    parser.add_argument(
+        "--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)"
+    )
     parser.add_argument(
         "--targets",
         type=Path,
@@ -184,9 +203,20 @@ def run(args: argparse.Namespace) -> int:
             "software": f"oarmreg {__version__}",
             "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         }
-        robot = read_points(args.robot_points)
-        provenance["robot_points_file"] = str(args.robot_points)
-        provenance["robot_points_sha256"] = sha256_of(args.robot_points)
+        if (args.robot_points is None) == (args.joints is None):
+            from registration.errors import PointsFileError
+
+            raise PointsFileError(
+                "give either --robot-points FILE.json or --joints JOINTS.json (exactly one)"
+            )
+        if args.joints is not None:
+            from service.commands.calibrate import robot_points_from_joints
+
+            robot = robot_points_from_joints(args, provenance)
+        else:
+            robot = read_points(args.robot_points)
+            provenance["robot_points_file"] = str(args.robot_points)
+            provenance["robot_points_sha256"] = sha256_of(args.robot_points)
         image = load_image_points(args, provenance, timings)
         targets = read_targets(args.targets) if args.targets else None
         overrides: dict[str, Any] = {}

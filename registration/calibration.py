@@ -1,0 +1,894 @@
+"""Multi-pose calibration of robot geometry, connecting rod and O-arm placement (issue #10).
+
+One session = K ≥ 6 scans of the phantom at different robot poses with the
+O-arm left in place (one FrameOfReferenceUID).  Sphere ``k`` detected in scan
+``i`` at ``d_ik`` (image, mm) is explained by::
+
+    d_ik = Y · T(q_i; θ) · X · p_k
+
+``Y`` = ``image_from_robot`` of the session, ``X`` = ``tool0_from_phantom``,
+``T`` the arm's forward kinematics (:class:`~registration.urdf_writer.SerialChain`)
+with joint-origin corrections ``θ``, ``p_k`` the phantom's CAD centres.
+
+**Parameter set** (``CalibrationParams.parameter_set``).  Each joint origin
+``M_i`` gets a small correction ``M_i · E(ω, v)`` (rotation vector ω, translation
+v, in joint *i*'s frame); a rotation about the joint's own axis ``a_i`` is its
+zero offset.  Not all 36 components are identifiable: a rotation about / a
+translation along ``a_i`` commutes with ``Rot(a_i, q_i)`` and so moves into the
+next origin (or into X after the last joint), everything before joint 1 (and
+joint 1's offset) is absorbed by Y, and everything after joint 6 by X.  With
+the 12 parameters of X and Y this leaves the 30 of the minimal complete model
+of a 6R arm measured in full pose (4R + 2P + 6, research/calibration.md §1),
+i.e. **18 robot parameters**.  :func:`parameter_candidates` lists the 36 in a
+fixed priority (offsets first, then axis tilts, axis shifts, slides) and
+:func:`minimal_parameter_set` keeps, in that order, every one that adds rank
+to the identification Jacobian at generic configurations — FIGAROH's QR
+selection (research note §1), done greedily so the kept set is readable.
+For the TX60 (and TX2-60) it is, 18 in all: the zero offsets of J2–J5 (4);
+origin tilts J2 x, J3 x and z, J4 x, J5 x, J6 x and y (7); origin shifts J2 x,
+J3 z, J4 x and y, J5 x and z, J6 y (7).  (Frames of the URDF: J1, J4, J6 turn
+about z, J2, J3, J5 about y.)  J1's origin and offset and J6's offset are
+absorbed by Y and X; parallel J2/J3 cost the shift of J3 along x.  Plain DH
+would be singular for that parallel pair (research note §1); these local
+origin corrections are not.
+``"offsets"`` fits X, Y and the joint offsets only (research note §1,
+"joint-offset-only model"); ``"hand-eye"`` fits X and Y only.
+
+**Method.** Shah's closed form for AX = YB (Kronecker product, doi:10.1115/1.4024473)
+from per-pose rigid fits gives X and Y with nominal kinematics; then a
+Levenberg–Marquardt least-squares fit on all sphere residuals with a robust
+(soft-L1) loss estimates X, Y and θ jointly (research note §2: point LSQ after
+Shah).  It is the ``scipy.optimize.least_squares`` pattern written out on the
+normal equations, with an analytic Jacobian (see :func:`_fit` for why).
+
+**Identifiability.** The SVD of the column-normalised Jacobian gives numeric
+rank and condition number; above ``max_condition`` (default 100, Schroer et
+al. as quoted by Nahvi & Hollerbach, ICRA 1996, research note §1) the set is
+refused naming the parameters of the weakest direction and the motion to add,
+or (``on_weak="drop"``) those robot parameters are dropped until it passes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Final, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration import __version__
+from registration.errors import OarmRegError, RegistrationError
+from registration.frames import as_transform, invert, make_transform
+from registration.rigid import fit_rigid, nearest_rotation
+from registration.urdf_writer import SerialChain, rotation_about
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+MIN_POSES: Final = 6
+"""Issue #10: K ≥ 6 scans per session."""
+FD_STEP: Final = 1e-6
+"""Central-difference step of the Jacobian (rad or mm): truncation ~1e-12, round-off ~1e-10."""
+MAX_ITERATIONS: Final = 60
+"""Levenberg–Marquardt iterations at most (a noise-free fit converges in ~10)."""
+MIN_JOINT_SPREAD_DEG: Final = 5.0
+"""A joint whose range over the session's poses is below this is named as not moving."""
+STRUCTURAL_RANK_TOL: Final = 1e-5
+"""A candidate column whose normalised residual after projection on the kept ones is below this is
+structurally redundant (exact redundancies leave ~1e-10, genuine parameters ≥ 1e-2)."""
+
+
+class CalibrationError(RegistrationError):
+    """A calibration was refused.  Subclasses say why."""
+
+    title = "Calibration refused"
+
+
+class TooFewPosesError(CalibrationError):
+    title = "Too few calibration poses"
+
+
+class SessionMismatchError(CalibrationError):
+    title = "Scans from different O-arm placements"
+
+
+class NotIdentifiableError(CalibrationError):
+    title = "Calibration parameters not identifiable from these poses"
+
+
+class OutlierPoseError(CalibrationError):
+    title = "Calibration pose inconsistent with the others"
+
+
+@dataclass(frozen=True)
+class CalibrationParams:
+    """Settings of :func:`calibrate` (lengths in mm)."""
+
+    parameter_set: Literal["full", "offsets", "hand-eye"] = "full"
+    max_condition: float = 100.0
+    """Refusal threshold on the condition number of the column-normalised identification Jacobian:
+    Schroer et al. (quoted in Nahvi & Hollerbach, ICRA 1996; research/calibration.md §1) ask < 100
+    (FIGAROH's default is 1000)."""
+    on_weak: Literal["refuse", "drop"] = "refuse"
+    """Over ``max_condition``: refuse, or drop the weakest robot parameters until it passes."""
+    min_poses: int = MIN_POSES
+    robust_scale_mm: float = 0.2
+    """soft-L1 loss scale: residuals ≫ this (a wrong match, ≥ 1 mm) weigh linearly, not squared;
+    true-cell residuals after calibration are ≈ 0.05 mm."""
+    outlier_factor: float = 4.0
+    """A pose whose RMS residual exceeds this × the median pose RMS (and the floor) is an outlier."""
+    outlier_floor_mm: float = 0.25
+    """... never flag below this RMS (0.25 mm: research note §6 residual RMS gate)."""
+    outliers: Literal["exclude", "refuse"] = "exclude"
+    leave_one_out: bool = True
+    rank_rtol: float = 1e-7
+    """Singular values below this × the largest count as zero for the numeric rank (they come from
+    the normal matrix, whose round-off floor is ~1e-8 of the largest singular value)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MatchedPose:
+    """One calibration scan with its spheres matched to the phantom.
+
+    Attributes
+    ----------
+    name : str
+        Scan name for messages (e.g. its folder).
+    joints_rad : ndarray, shape (n,)
+        Reported joint angles.
+    sphere_indices : ndarray, shape (K,), int
+        Phantom sphere index of each matched centre.
+    centres_image_mm : ndarray, shape (K, 3)
+        Detected centres (image frame, LPS mm), paired with ``sphere_indices``.
+    series_uid, frame_of_reference_uid : str
+    """
+
+    name: str
+    joints_rad: F64
+    sphere_indices: I64
+    centres_image_mm: F64
+    series_uid: str = ""
+    frame_of_reference_uid: str = ""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One candidate parameter: a rotation about / translation along ``direction`` of a frame."""
+
+    name: str
+    group: str
+    """``"image_from_robot"``, ``"tool0_from_phantom"`` or a joint name (its origin)."""
+    kind: Literal["rot", "trans"]
+    direction: tuple[float, float, float]
+
+    @property
+    def unit(self) -> str:
+        return "rad" if self.kind == "rot" else "mm"
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Outcome of :func:`calibrate` (mm, rad; see :meth:`to_dict` for the JSON form)."""
+
+    image_from_robot: F64
+    tool0_from_phantom: F64
+    chain: SerialChain
+    parameters: tuple[Parameter, ...]
+    values: F64
+    std_errors: F64
+    rank: int
+    condition_number: float
+    singular_values: F64
+    dropped: tuple[str, ...]
+    pose_names: tuple[str, ...]
+    used: NDArray[np.bool_]
+    pose_rms_mm: F64
+    pose_max_mm: F64
+    sphere_residuals_mm: tuple[F64, ...]
+    sphere_indices: tuple[I64, ...]
+    """Phantom sphere index of each entry of ``sphere_residuals_mm``, per pose."""
+    outliers: tuple[str, ...]
+    lopo_pose_mean_mm: F64
+    lopo_pose_rms_mm: F64
+    timings_s: dict[str, float]
+    fit_rms_mm: float
+    fle_rms_mm: float
+    """Per-sphere detection error (RMS, 3-D) implied by the residuals, corrected for the fitted DoF."""
+    registration_tre_rms_mm: float
+    """Fitzpatrick's RMS TRE over the phantom's spheres of a one-scan registration with this FLE and
+    all spheres (1998 eq. 46): what re-registering after the O-arm moved adds."""
+
+    @property
+    def predicted_held_out_rms_mm(self) -> float:
+        """Expected RMS sphere-centre error at an unseen pose after a one-scan registration with the
+        calibrated model: √(LOPO TRE² + registration TRE²)."""
+        return math.sqrt(self.lopo_tre_rms_mm**2 + self.registration_tre_rms_mm**2)
+
+    @property
+    def lopo_tre_rms_mm(self) -> float:
+        """Leave-one-pose-out error with the held-out scan's own detection error removed:
+        √(mean LOPO RMS² − FLE²).  It estimates how far the calibrated model's prediction at an
+        unseen pose is from where the spheres really are (not from where they are detected)."""
+        v = self.lopo_pose_rms_mm[np.isfinite(self.lopo_pose_rms_mm)]
+        if not v.size:
+            return float("nan")
+        return math.sqrt(max(float(np.mean(v**2)) - self.fle_rms_mm**2, 0.0))
+
+    @property
+    def lopo_mean_mm(self) -> float:
+        v = self.lopo_pose_mean_mm[np.isfinite(self.lopo_pose_mean_mm)]
+        return float(v.mean()) if v.size else float("nan")
+
+    @property
+    def lopo_max_mm(self) -> float:
+        v = self.lopo_pose_mean_mm[np.isfinite(self.lopo_pose_mean_mm)]
+        return float(v.max()) if v.size else float("nan")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``calibration.json`` body (without provenance, which the caller adds)."""
+        return {
+            "tool0_from_phantom": self.tool0_from_phantom.tolist(),
+            "image_from_robot": self.image_from_robot.tolist(),
+            "parameters": [
+                {"name": p.name, "value": float(v), "std_error": float(s), "unit": p.unit}
+                for p, v, s in zip(self.parameters, self.values, self.std_errors, strict=True)
+            ],
+            "dropped_parameters": list(self.dropped),
+            "identification": {
+                "rank": self.rank,
+                "n_parameters": len(self.parameters),
+                "condition_number": _finite_or_none(self.condition_number),
+                "singular_values": self.singular_values.tolist(),
+            },
+            "fit_rms_mm": self.fit_rms_mm,
+            "poses": [
+                {
+                    "name": n,
+                    "used": bool(u),
+                    "rms_mm": float(r),
+                    "max_mm": float(m),
+                    "sphere_indices": [int(i) for i in k],
+                    "sphere_residuals_mm": s.tolist(),
+                    "leave_one_out_mean_mm": None if not math.isfinite(lo) else float(lo),
+                    "leave_one_out_rms_mm": None if not math.isfinite(lr) else float(lr),
+                }
+                for n, u, r, m, k, s, lo, lr in zip(
+                    self.pose_names,
+                    self.used,
+                    self.pose_rms_mm,
+                    self.pose_max_mm,
+                    self.sphere_indices,
+                    self.sphere_residuals_mm,
+                    self.lopo_pose_mean_mm,
+                    self.lopo_pose_rms_mm,
+                    strict=True,
+                )
+            ],
+            "outlier_poses": list(self.outliers),
+            "leave_one_pose_out_mean_mm": _finite_or_none(self.lopo_mean_mm),
+            "leave_one_pose_out_max_mm": _finite_or_none(self.lopo_max_mm),
+            "leave_one_pose_out_tre_rms_mm": _finite_or_none(self.lopo_tre_rms_mm),
+            "fle_rms_mm": self.fle_rms_mm,
+            "registration_tre_rms_mm": self.registration_tre_rms_mm,
+            "predicted_held_out_rms_mm": _finite_or_none(self.predicted_held_out_rms_mm),
+            "timings_s": dict(self.timings_s),
+            "software": f"oarmreg {__version__}",
+        }
+
+
+def _finite_or_none(v: float) -> float | None:
+    """JSON has no NaN / inf: report a figure that was not computed as null."""
+    return float(v) if math.isfinite(v) else None
+
+
+# ---------------------------------------------------------------- parametrisation
+
+
+def _perpendicular_pair(axis: F64) -> tuple[F64, F64]:
+    """Two unit vectors ⟂ ``axis`` (the other coordinate axes when ``axis`` is one)."""
+    e = np.eye(3)
+    k = int(np.argmax(np.abs(axis)))
+    if abs(abs(axis[k]) - 1.0) < 1e-12:
+        others = [e[j] for j in range(3) if j != k]
+        return others[0], others[1]
+    u = np.cross(axis, e[int(np.argmin(np.abs(axis)))])
+    u /= np.linalg.norm(u)
+    return u, np.cross(axis, u)
+
+
+def _dir_name(d: F64) -> str:
+    for j, n in enumerate("xyz"):
+        if abs(abs(d[j]) - 1.0) < 1e-12:
+            return ("-" if d[j] < 0 else "") + n
+    return "(" + ",".join(f"{v:+.3f}" for v in d) + ")"
+
+
+def parameter_candidates(chain: SerialChain) -> list[Parameter]:
+    """Every candidate, in selection priority: Y (6), X (6), offsets, tilts, shifts, slides."""
+    e = np.eye(3)
+    out = [
+        Parameter(f"{g} {k} {n}", g, k, tuple(e[j]))
+        for g in ("image_from_robot", "tool0_from_phantom")
+        for k in ("rot", "trans")
+        for j, n in enumerate("xyz")
+    ]
+    names, axes = chain.joint_names, chain.axes
+    out += [Parameter(f"{names[i]} offset", names[i], "rot", tuple(axes[i])) for i in range(len(names))]
+    for i, name in enumerate(names):
+        u, w = _perpendicular_pair(axes[i])
+        out += [Parameter(f"{name} origin tilt {_dir_name(d)}", name, "rot", tuple(d)) for d in (u, w)]
+    for i, name in enumerate(names):
+        u, w = _perpendicular_pair(axes[i])
+        out += [Parameter(f"{name} origin shift {_dir_name(d)}", name, "trans", tuple(d)) for d in (u, w)]
+    out += [
+        Parameter(f"{n} origin slide {_dir_name(axes[i])}", n, "trans", tuple(axes[i]))
+        for i, n in enumerate(names)
+    ]
+    return out
+
+
+def _rotvec_matrix(w: F64) -> F64:
+    ang = float(np.linalg.norm(w))
+    if ang == 0.0:
+        return np.eye(3)
+    k = w / ang
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.asarray(np.eye(3) + math.sin(ang) * kx + (1.0 - math.cos(ang)) * (kx @ kx), dtype=np.float64)
+
+
+def _corrections(params: Sequence[Parameter], values: F64) -> dict[str, F64]:
+    """group → E(ω, v) (4 × 4) from the parameter values."""
+    acc: dict[str, tuple[F64, F64]] = {}
+    for p, v in zip(params, values, strict=True):
+        w, t = acc.setdefault(p.group, (np.zeros(3), np.zeros(3)))
+        (w if p.kind == "rot" else t)[:] += float(v) * np.asarray(p.direction)
+    return {g: make_transform(_rotvec_matrix(w), t) for g, (w, t) in acc.items()}
+
+
+@dataclass(frozen=True, eq=False)
+class _Model:
+    """Nominal X, Y, chain and the parameter list: maps a parameter vector to (Y, X, chain)."""
+
+    y0: F64
+    x0: F64
+    chain: SerialChain
+    params: tuple[Parameter, ...]
+
+    def unpack(self, values: F64) -> tuple[F64, F64, SerialChain]:
+        c = _corrections(self.params, values)
+        eye = np.eye(4)
+        y = self.y0 @ c.get("image_from_robot", eye)
+        x = self.x0 @ c.get("tool0_from_phantom", eye)
+        m = np.stack(
+            [
+                mi @ c.get(n, eye)
+                for mi, n in zip(self.chain.parent_from_joint, self.chain.joint_names, strict=True)
+            ]
+        )
+        return y, x, self.chain.with_origins(m)
+
+    def predict(self, values: F64, joints_rad: F64, pts_phantom_mm: F64, pose_of: I64) -> F64:
+        y, x, chain = self.unpack(values)
+        t = y @ chain.robot_from_tool0_batch(joints_rad) @ x
+        tp = t[pose_of]
+        return np.asarray(
+            np.einsum("lij,lj->li", tp[:, :3, :3], pts_phantom_mm) + tp[:, :3, 3], dtype=np.float64
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Data:
+    joints_rad: F64  # (K, n)
+    pts_phantom_mm: F64  # (L, 3)
+    meas_image_mm: F64  # (L, 3)
+    pose_of: I64  # (L,)
+
+    def subset(self, keep: NDArray[np.bool_]) -> _Data:
+        new_index = np.cumsum(keep) - 1
+        rows = keep[self.pose_of]
+        return _Data(
+            self.joints_rad[keep],
+            self.pts_phantom_mm[rows],
+            self.meas_image_mm[rows],
+            new_index[self.pose_of[rows]].astype(np.int64),
+        )
+
+
+def _residuals(model: _Model, data: _Data, values: F64) -> F64:
+    pred = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
+    return np.asarray((pred - data.meas_image_mm).reshape(-1), dtype=np.float64)
+
+
+def _jacobian_fd(model: _Model, data: _Data, values: F64) -> F64:
+    """Central-difference Jacobian (3L, P) of the residuals (the reference for the analytic one)."""
+    cols = []
+    for j in range(len(values)):
+        step = np.zeros_like(values)
+        step[j] = FD_STEP
+        cols.append(
+            (_residuals(model, data, values + step) - _residuals(model, data, values - step)) / (2 * FD_STEP)
+        )
+    return np.stack(cols, axis=1)
+
+
+def _frames(model: _Model, values: F64, joints_rad: F64) -> tuple[F64, dict[str, tuple[F64, F64]]]:
+    """``image_from_phantom`` (K, 4, 4) and, per group, (R_A (K, 3, 3), o_F (K, 3)).
+
+    ``A`` is everything left of the group's correction ``E``; ``F = A · E``.  A rotation
+    parameter about ``d`` moves a point P by (R_A d) × (P − o_F) per radian, a translation
+    parameter by R_A d per mm (exact at zero corrections, first-order in them otherwise).
+    """
+    c = _corrections(model.params, values)
+    eye = np.eye(4)
+    k = len(joints_rad)
+    out: dict[str, tuple[F64, F64]] = {}
+    cur = np.broadcast_to(model.y0, (k, 4, 4)).copy()
+    e = c.get("image_from_robot", eye)
+    out["image_from_robot"] = (cur[:, :3, :3].copy(), (cur @ e)[:, :3, 3].copy())
+    cur = cur @ e
+    ch = model.chain
+    for i, name in enumerate(ch.joint_names):
+        cur = cur @ ch.parent_from_joint[i]
+        e = c.get(name, eye)
+        out[name] = (cur[:, :3, :3].copy(), (cur @ e)[:, :3, 3].copy())
+        cur = cur @ e
+        cur[:, :3, :3] = cur[:, :3, :3] @ rotation_about(ch.axes[i], joints_rad[:, i])
+    cur = cur @ ch.last_from_tool0 @ model.x0
+    e = c.get("tool0_from_phantom", eye)
+    out["tool0_from_phantom"] = (cur[:, :3, :3].copy(), (cur @ e)[:, :3, 3].copy())
+    return cur @ e, out
+
+
+def _jacobian(model: _Model, data: _Data, values: F64) -> F64:
+    """Analytic Jacobian (3L, P) of the residuals (see :func:`_frames`)."""
+    t, frames = _frames(model, values, data.joints_rad)
+    tp = t[data.pose_of]
+    world = np.einsum("lij,lj->li", tp[:, :3, :3], data.pts_phantom_mm) + tp[:, :3, 3]
+    cols = []
+    for p in model.params:
+        rot_a, o_f = frames[p.group]
+        axis = rot_a[data.pose_of] @ np.asarray(p.direction)
+        col = np.cross(axis, world - o_f[data.pose_of]) if p.kind == "rot" else axis
+        cols.append(col.reshape(-1))
+    return np.stack(cols, axis=1)
+
+
+def _normalised_svd(jac: F64) -> tuple[F64, F64]:
+    """Singular values (descending) and right singular vectors (rows) of the column-normalised
+    Jacobian, from the eigen-decomposition of its P × P normal matrix (no tall-matrix LAPACK)."""
+    norms = np.sqrt(np.einsum("ij,ij->j", jac, jac))
+    norms[norms == 0.0] = 1.0
+    jn = jac / norms
+    lam, vec = np.linalg.eigh(np.einsum("ij,ik->jk", jn, jn))
+    order = np.argsort(lam)[::-1]
+    return np.sqrt(np.clip(lam[order], 0.0, None)), np.asarray(vec[:, order].T, dtype=np.float64)
+
+
+def minimal_parameter_set(chain: SerialChain, parameter_set: str = "full") -> tuple[Parameter, ...]:
+    """The identifiable subset of :func:`parameter_candidates` (see the module docstring).
+
+    Structural: evaluated at 24 fixed generic configurations inside the joint
+    limits with 4 non-coplanar points, so the result depends on the arm only.
+    """
+    cands = parameter_candidates(chain)
+    if parameter_set == "hand-eye":
+        return tuple(cands[:12])
+    gen = np.random.default_rng(20181016)  # fixed: a structural property, not a sample
+    lo, hi = np.maximum(chain.lower_rad, -2.0), np.minimum(chain.upper_rad, 2.0)
+    q = lo + (hi - lo) * gen.uniform(0.1, 0.9, (24, chain.n_joints))
+    pts = np.array([[40.0, 0, 0], [0, 40.0, 0], [0, 0, 40.0], [-30.0, -30.0, -30.0]])
+    data = _Data(q, np.tile(pts, (24, 1)), np.zeros((96, 3)), np.repeat(np.arange(24), 4))
+    model = _Model(np.eye(4), np.eye(4), chain, tuple(cands))
+    jac = _jacobian(model, data, np.zeros(len(cands)))
+    jac = jac / np.linalg.norm(jac, axis=0).clip(1e-300)
+    basis = np.zeros((jac.shape[0], 0))
+    kept: list[Parameter] = []
+    for j, p in enumerate(cands):
+        if parameter_set == "offsets" and j >= 12 and not p.name.endswith(" offset"):
+            continue
+        r = jac[:, j] - basis @ (basis.T @ jac[:, j])
+        if np.linalg.norm(r) > STRUCTURAL_RANK_TOL:
+            basis = np.column_stack([basis, r / np.linalg.norm(r)])
+            kept.append(p)
+    return tuple(kept)
+
+
+# ---------------------------------------------------------------- closed-form start
+
+
+def shah_ax_yb(a: Sequence[F64], b: Sequence[F64]) -> tuple[F64, F64]:
+    """Solve A_i X = Y B_i for rigid X, Y (Shah 2013, doi:10.1115/1.4024473), numpy only.
+
+    Rotation: (I ⊗ R_A) vec R_X − (R_Bᵀ ⊗ I) vec R_Y = 0 (column-major vec) stacked over the
+    poses; the null vector is scaled to det +1 and projected onto SO(3).  Translation: linear
+    least squares of R_A t_X − t_Y = R_Y t_B − t_A.
+
+    Returns
+    -------
+    x, y : ndarray, shape (4, 4)
+    """
+    eye = np.eye(3)
+    rows = [
+        np.hstack([np.kron(eye, ai[:3, :3]), -np.kron(bi[:3, :3].T, eye)])
+        for ai, bi in zip(a, b, strict=True)
+    ]
+    _, _, vt = np.linalg.svd(np.vstack(rows))
+    v = vt[-1]
+    vx, vy = v[:9].reshape(3, 3, order="F"), v[9:].reshape(3, 3, order="F")
+    det_x = float(np.linalg.det(vx))
+    scale = math.copysign(abs(det_x) ** (-1.0 / 3.0), det_x) if det_x != 0.0 else 1.0
+    rx, _ = nearest_rotation(scale * vx)
+    ry, _ = nearest_rotation(scale * vy)
+    lhs = np.vstack([np.hstack([ai[:3, :3], -eye]) for ai in a])
+    rhs = np.concatenate([ry @ bi[:3, 3] - ai[:3, 3] for ai, bi in zip(a, b, strict=True)])
+    t, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)
+    return make_transform(rx, t[:3]), make_transform(ry, t[3:])
+
+
+def _initial_estimate(
+    poses: Sequence[MatchedPose], chain: SerialChain, centres_phantom_mm: F64
+) -> tuple[F64, F64]:
+    """(image_from_robot, tool0_from_phantom) from per-pose rigid fits and Shah with nominal FK."""
+    robot_from_tool0 = chain.robot_from_tool0_batch(np.stack([p.joints_rad for p in poses]))
+    image_from_phantom = [fit_rigid(centres_phantom_mm[p.sphere_indices], p.centres_image_mm) for p in poses]
+    # Y B X = A  ⇔  B X = Y⁻¹ A: Shah's A X = Y B with A = robot_from_tool0, B = image_from_phantom
+    x, robot_from_image = shah_ax_yb(list(robot_from_tool0), image_from_phantom)
+    return invert(robot_from_image), x
+
+
+# ---------------------------------------------------------------- checks and advice
+
+
+def check_session(poses: Sequence[MatchedPose], min_poses: int = MIN_POSES) -> None:
+    """Refuse fewer than ``min_poses`` scans or scans from several O-arm placements.
+
+    Raises
+    ------
+    TooFewPosesError, SessionMismatchError
+    """
+    if len(poses) < min_poses:
+        raise TooFewPosesError(
+            f"calibration needs at least {min_poses} scans at different poses, got {len(poses)}; "
+            "add scans that tilt the phantom by ±45° about two axes and turn the wrist"
+        )
+    groups: dict[str, list[str]] = {}
+    for p in poses:
+        groups.setdefault(p.frame_of_reference_uid, []).append(p.name)
+    if len(groups) > 1:
+        listing = "; ".join(f"FrameOfReferenceUID {u or '(none)'}: {', '.join(n)}" for u, n in groups.items())
+        raise SessionMismatchError(
+            "all scans of a calibration session must share one O-arm placement (one "
+            f"FrameOfReferenceUID (0020,0052)); found {len(groups)}: {listing}. Rescan the odd ones "
+            "without moving the O-arm, or run one calibration per placement"
+        )
+
+
+def _motion_advice(weak: Sequence[Parameter], joints_rad: F64, names: Sequence[str]) -> str:
+    """Which motion to add: the joints that barely move, else the joints of the weakest direction."""
+    spread_deg = np.degrees(np.ptp(joints_rad, axis=0))
+    still = [n for n, s in zip(names, spread_deg, strict=True) if s < MIN_JOINT_SPREAD_DEG]
+    moving = [n for n in names if n not in still]
+    parts = []
+    if still:
+        if moving and len(moving) <= 2:
+            parts.append(f"the poses differ only in {', '.join(moving)}")
+        ranges = ", ".join(f"{n} ({s:.1f}°)" for n, s in zip(names, spread_deg, strict=True) if n in still)
+        parts.append(f"joints that barely move across the poses: {ranges}")
+        parts.append(f"add poses that move {', '.join(still)} by ±45° or more")
+    weak_joints = sorted({p.group for p in weak if p.group in names} - set(still))
+    if any(p.group in ("image_from_robot", "tool0_from_phantom") for p in weak) and not still:
+        parts.append(
+            "add poses that rotate the phantom about at least two non-parallel axes by ±45° and "
+            "shift it within the scan volume"
+        )
+    if weak_joints:
+        parts.append(f"add poses that move {', '.join(weak_joints)} (and its neighbours) over a wider range")
+    return "; ".join(parts)
+
+
+def _identifiability(
+    jac: F64, params: Sequence[Parameter], rtol: float
+) -> tuple[int, float, F64, list[Parameter], list[Parameter]]:
+    """(rank, condition number, singular values, main parameters of the weakest direction, all
+    parameters by decreasing weight in it)."""
+    s, vt = _normalised_svd(jac)
+    rank = int(np.sum(s > rtol * s[0]))
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    v = np.abs(vt[-1])
+    order = np.argsort(-v)
+    weak = [params[j] for j in order if v[j] >= 0.5 * v.max()]
+    return rank, cond, s, weak, [params[j] for j in order]
+
+
+def _select_parameters(
+    model: _Model, data: _Data, params: CalibrationParams, names: Sequence[str]
+) -> tuple[_Model, tuple[str, ...], int, float, F64]:
+    """Check identifiability at the start; refuse or drop weak robot parameters."""
+    dropped: list[str] = []
+    while True:
+        jac = _jacobian(model, data, np.zeros(len(model.params)))
+        rank, cond, s, weak, ranked = _identifiability(jac, model.params, params.rank_rtol)
+        if cond <= params.max_condition:
+            return model, tuple(dropped), rank, cond, s
+        robot_weak = [p for p in ranked if p.group in names]
+        if params.on_weak == "drop" and robot_weak:
+            dropped.append(robot_weak[0].name)
+            model = _Model(
+                model.y0, model.x0, model.chain, tuple(p for p in model.params if p is not robot_weak[0])
+            )
+            continue
+        raise NotIdentifiableError(
+            f"the {len(data.joints_rad)} poses do not identify the requested '{params.parameter_set}' "
+            f"set of {len(model.params)} parameters: numeric rank {rank}, condition number {cond:.3g} > "
+            f"{params.max_condition:g}; weakest: {', '.join(p.name for p in weak[:4])}. "
+            f"{_motion_advice(weak, data.joints_rad, names)}"
+        )
+
+
+# ---------------------------------------------------------------- fitting
+
+
+def _robust_cost(err_mm: F64, scale_mm: float) -> float:
+    """Σ c² ρ((e/c)²) with the soft-L1 ρ(z) = 2(√(1+z) − 1) over per-sphere distances e."""
+    z = (err_mm / scale_mm) ** 2
+    return float(scale_mm**2 * np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
+
+
+def _fit(model: _Model, data: _Data, x0: F64, params: CalibrationParams) -> F64:
+    """Levenberg–Marquardt with iteratively reweighted soft-L1 loss on per-sphere distances.
+
+    Written out (normal equations of ≤ 30 parameters, einsum) rather than calling
+    ``scipy.optimize.least_squares``: its SVD of the tall Jacobian goes through a threaded
+    BLAS that is slow on a loaded machine, and the loss is applied per sphere, not per axis.
+    """
+    v = np.asarray(x0, dtype=np.float64).copy()
+    r = _residuals(model, data, v)
+    cost = _robust_cost(np.linalg.norm(r.reshape(-1, 3), axis=1), params.robust_scale_mm)
+    damping = 1e-6
+    for _ in range(MAX_ITERATIONS):
+        e = np.linalg.norm(r.reshape(-1, 3), axis=1)
+        sw = np.repeat((1.0 + (e / params.robust_scale_mm) ** 2) ** -0.25, 3)  # √ of IRLS weight ρ'
+        jw = _jacobian(model, data, v) * sw[:, None]
+        h = np.einsum("ij,ik->jk", jw, jw)
+        g = np.einsum("ij,i->j", jw, r * sw)
+        d = np.diag(h).copy()
+        d[d == 0.0] = 1.0
+        while damping < 1e12:
+            step = np.linalg.solve(h + damping * np.diag(d), -g)
+            r_new = _residuals(model, data, v + step)
+            cost_new = _robust_cost(np.linalg.norm(r_new.reshape(-1, 3), axis=1), params.robust_scale_mm)
+            if cost_new <= cost:
+                break
+            damping *= 10.0
+        else:
+            return v
+        v, r, done = v + step, r_new, cost - cost_new <= 1e-15 * cost or cost_new < 1e-26
+        cost, damping = cost_new, max(damping / 10.0, 1e-9)
+        if done or float(np.max(np.abs(step) * np.sqrt(d))) < 1e-13:
+            break
+    return v
+
+
+def _per_pose(model: _Model, data: _Data, values: F64, n_poses: int) -> tuple[F64, F64, list[F64]]:
+    err = np.linalg.norm(_residuals(model, data, values).reshape(-1, 3), axis=1)
+    per = [err[data.pose_of == i] for i in range(n_poses)]
+    rms = np.array([math.sqrt(float(np.mean(e**2))) if e.size else float("nan") for e in per])
+    mx = np.array([float(e.max()) if e.size else float("nan") for e in per])
+    return rms, mx, per
+
+
+def _outliers(rms_mm: F64, used: NDArray[np.bool_], params: CalibrationParams) -> NDArray[np.bool_]:
+    med = float(np.median(rms_mm[used]))
+    return np.asarray(
+        used & (rms_mm > max(params.outlier_factor * med, params.outlier_floor_mm)), dtype=np.bool_
+    )
+
+
+def _leave_one_out(
+    model: _Model, data: _Data, values: F64, used: NDArray[np.bool_], params: CalibrationParams
+) -> tuple[F64, F64]:
+    """Mean and RMS sphere prediction error (mm) of each used pose from a fit without it (NaN if unused)."""
+    out = np.full(len(used), np.nan)
+    out_rms = np.full(len(used), np.nan)
+    idx = np.flatnonzero(used)
+    for k in idx:
+        keep = used.copy()
+        keep[k] = False
+        v = _fit(model, data.subset(keep), values, params)
+        one = np.zeros(len(used), dtype=bool)
+        one[k] = True
+        held = data.subset(one)
+        err = np.linalg.norm(_residuals(model, held, v).reshape(-1, 3), axis=1)
+        out[k], out_rms[k] = float(err.mean()), math.sqrt(float(np.mean(err**2)))
+    return out, out_rms
+
+
+def _fle_rms_mm(r: F64, n_params: int) -> float:
+    """RMS detection error per sphere (3-D) implied by the fit residuals: Σr² / (m − P) × 3."""
+    return math.sqrt(3.0 * float(r @ r) / max(len(r) - n_params, 1))
+
+
+def _registration_tre_rms_mm(fle_rms_mm: float, centres_phantom_mm: F64) -> float:
+    from registration.quality import predicted_tre_mm
+
+    tre = predicted_tre_mm(fle_rms_mm, centres_phantom_mm, centres_phantom_mm)
+    return math.sqrt(float(np.mean(np.asarray(tre) ** 2)))
+
+
+def _std_errors(jac: F64, r: F64) -> F64:
+    """Standard errors from σ² (JᵀJ)⁻¹, σ² = Σr² / (m − P)."""
+    dof = max(jac.shape[0] - jac.shape[1], 1)
+    s2 = float(r @ r) / dof
+    cov = np.linalg.pinv(np.einsum("ij,ik->jk", jac, jac)) * s2
+    return np.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), dtype=np.float64)
+
+
+def _stack(poses: Sequence[MatchedPose], centres_phantom_mm: F64) -> _Data:
+    for p in poses:
+        if len(p.sphere_indices) != len(p.centres_image_mm) or len(p.sphere_indices) < 3:
+            raise CalibrationError(
+                f"scan {p.name}: needs ≥ 3 matched spheres paired with centres, "
+                f"got {len(p.sphere_indices)} indices / {len(p.centres_image_mm)} centres"
+            )
+    return _Data(
+        np.stack([np.asarray(p.joints_rad, dtype=np.float64) for p in poses]),
+        np.concatenate([centres_phantom_mm[p.sphere_indices] for p in poses]),
+        np.concatenate([np.asarray(p.centres_image_mm, dtype=np.float64) for p in poses]),
+        np.concatenate([np.full(len(p.sphere_indices), i, dtype=np.int64) for i, p in enumerate(poses)]),
+    )
+
+
+def _fit_without_outliers(
+    model: _Model, data: _Data, poses: Sequence[MatchedPose], params: CalibrationParams
+) -> tuple[F64, NDArray[np.bool_], tuple[F64, F64, list[F64]]]:
+    """Fit all poses; flag poses whose RMS residual stands out, then refit without them (or refuse)."""
+    values = _fit(model, data, np.zeros(len(model.params)), params)
+    used = np.ones(len(poses), dtype=bool)
+    rms, mx, per = _per_pose(model, data, values, len(poses))
+    flagged = _outliers(rms, used, params)
+    if flagged.any():
+        names = [f"{poses[int(i)].name} (RMS {rms[i]:.3f} mm)" for i in np.flatnonzero(flagged)]
+        if params.outliers == "refuse" or int((~flagged).sum()) < params.min_poses:
+            raise OutlierPoseError(
+                "scans inconsistent with the others (robot moved during the scan, wrong joints or a wrong "
+                f"sphere match): {', '.join(names)}; median pose RMS {np.median(rms):.3f} mm. Rescan them"
+            )
+        used = ~flagged
+        values = _fit(model, data.subset(used), values, params)
+        rms, mx, per = _per_pose(model, data, values, len(poses))
+    return values, used, (rms, mx, per)
+
+
+def calibrate(
+    poses: Sequence[MatchedPose],
+    chain: SerialChain,
+    tool0_from_phantom: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    params: CalibrationParams = CalibrationParams(),
+) -> CalibrationResult:
+    """Estimate ``image_from_robot``, ``tool0_from_phantom`` and joint-origin corrections.
+
+    Parameters
+    ----------
+    poses : sequence of MatchedPose, length K ≥ ``params.min_poses``
+    chain : SerialChain
+        The nominal arm (:func:`registration.urdf_writer.read_chain`).
+    tool0_from_phantom : array_like, shape (4, 4)
+        Nominal rod (mm); only used to name the gauge — the fit starts from Shah's estimate.
+    centres_phantom_mm : array_like, shape (N, 3)
+        The phantom's sphere centres (CAD, mm), indexed by ``MatchedPose.sphere_indices``.
+    params : CalibrationParams
+
+    Returns
+    -------
+    CalibrationResult
+        Calibrated chain (offsets folded into the origins), X, Y, parameters with standard
+        errors, rank / condition number, per-pose and per-sphere residuals, outlier poses,
+        leave-one-pose-out errors.
+
+    Raises
+    ------
+    TooFewPosesError, SessionMismatchError, NotIdentifiableError, OutlierPoseError
+    """
+    t0 = time.perf_counter()
+    as_transform(tool0_from_phantom, "tool0_from_phantom")
+    check_session(poses, params.min_poses)
+    pts = np.asarray(centres_phantom_mm, dtype=np.float64)
+    data = _stack(poses, pts)
+    y0, x0 = _initial_estimate(poses, chain, pts)
+    model = _Model(y0, x0, chain, minimal_parameter_set(chain, params.parameter_set))
+    model, dropped, rank, cond, s = _select_parameters(model, data, params, chain.joint_names)
+    timings = {"start_s": time.perf_counter() - t0}
+    t1 = time.perf_counter()
+    values, used, (rms, mx, per) = _fit_without_outliers(model, data, poses, params)
+    timings["solve_s"] = time.perf_counter() - t1
+    fit_data = data.subset(used)
+    jac = _jacobian(model, fit_data, values)
+    r = _residuals(model, fit_data, values)
+    rank, cond, s, weak, _ = _identifiability(jac, model.params, params.rank_rtol)
+    if not used.all() and cond > params.max_condition and params.on_weak == "refuse":
+        excluded = ", ".join(p.name for p, u in zip(poses, used, strict=True) if not u)
+        advice = _motion_advice(weak, fit_data.joints_rad, chain.joint_names)
+        raise NotIdentifiableError(
+            f"without the outlier scans {excluded} the remaining poses no longer identify the parameters "
+            f"(condition number {cond:.3g} > {params.max_condition:g}); rescan them. {advice}"
+        )
+    t2 = time.perf_counter()
+    nan = np.full(len(poses), np.nan)
+    lopo, lopo_rms = _leave_one_out(model, data, values, used, params) if params.leave_one_out else (nan, nan)
+    timings["leave_one_out_s"] = time.perf_counter() - t2
+    y, x, cal_chain = model.unpack(values)
+    return CalibrationResult(
+        image_from_robot=y,
+        tool0_from_phantom=x,
+        chain=cal_chain,
+        parameters=model.params,
+        values=values,
+        std_errors=_std_errors(jac, r),
+        rank=rank,
+        condition_number=cond,
+        singular_values=s,
+        dropped=dropped,
+        pose_names=tuple(p.name for p in poses),
+        used=used,
+        pose_rms_mm=rms,
+        pose_max_mm=mx,
+        sphere_residuals_mm=tuple(per),
+        sphere_indices=tuple(np.asarray(p.sphere_indices, dtype=np.int64) for p in poses),
+        outliers=tuple(poses[int(i)].name for i in np.flatnonzero(~used)),
+        lopo_pose_mean_mm=lopo,
+        lopo_pose_rms_mm=lopo_rms,
+        timings_s=timings,
+        fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
+        fle_rms_mm=_fle_rms_mm(r, len(model.params)),
+        registration_tre_rms_mm=_registration_tre_rms_mm(_fle_rms_mm(r, len(model.params)), pts),
+    )
+
+
+def match_pose(
+    name: str,
+    joints_rad: ArrayLike,
+    centres_image_mm: ArrayLike,
+    robot_mm: ArrayLike,
+    *,
+    phantom: Any = None,
+    series_uid: str = "",
+    frame_of_reference_uid: str = "",
+) -> MatchedPose:
+    """Match one scan's detections to the phantom's spheres with the click-free registration.
+
+    ``robot_mm`` are the sphere centres by the *nominal* model and rod (their 1-mm error is far
+    inside the registration's gates).  Errors of :func:`registration.register.register_points`
+    are re-raised with the scan name.
+    """
+    from registration.register import register_points
+
+    try:
+        reg = register_points(robot_mm, centres_image_mm, phantom=phantom)
+    except OarmRegError as e:
+        raise type(e)(f"calibration scan {name}: {e}") from None
+    img = np.asarray(centres_image_mm, dtype=np.float64)
+    return MatchedPose(
+        name=name,
+        joints_rad=np.asarray(joints_rad, dtype=np.float64).reshape(-1),
+        sphere_indices=reg.robot_indices.astype(np.int64),
+        centres_image_mm=img[reg.image_indices],
+        series_uid=series_uid,
+        frame_of_reference_uid=frame_of_reference_uid,
+    )
+
+
+def predict_image_mm(
+    result: CalibrationResult,
+    joints_rad: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    image_from_robot: ArrayLike | None = None,
+) -> F64:
+    """Sphere centres (image mm) the calibration predicts at ``joints_rad`` (optionally another Y)."""
+    y = result.image_from_robot if image_from_robot is None else as_transform(image_from_robot)
+    t = y @ result.chain.robot_from_tool0(joints_rad) @ result.tool0_from_phantom
+    pts = np.asarray(centres_phantom_mm, dtype=np.float64)
+    return np.asarray(pts @ t[:3, :3].T + t[:3, 3], dtype=np.float64)

@@ -1,0 +1,357 @@
+"""``oarmreg calibrate``: multi-pose calibration of robot, rod and O-arm placement (issue #10).
+
+``oarmreg calibrate run POSES.json --out CALDIR [--phantom FILE] [--robot tx60|tx2_60|URDF]``
+    POSES.json = ``{"robot_model": "tx60", "poses": [{"scan_dir": "pose-01/dicom",
+    "joints_rad": [6 floats]}, ...]}`` (``scan_dir`` relative to the file).  Every scan is
+    loaded, detected and matched with the nominal model; the calibration writes
+    ``CALDIR/robot.urdf`` (corrected joint origins) and ``CALDIR/calibration.json``.
+
+``oarmreg calibrate plan --registration REG.json [--n K] --json OUT``
+    Proposes K poses for a session from one registration (its joints are read from the
+    registration's provenance, written by ``oarmreg register --joints``, or from ``--joints``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
+
+DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+CALIBRATION_FILE = "calibration.json"
+URDF_FILE = "robot.urdf"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
+    run_p = sub.add_parser("run", help="calibrate from the scans listed in POSES.json")
+    run_p.add_argument("poses", type=Path, metavar="POSES.json")
+    run_p.add_argument(
+        "--out", type=Path, required=True, metavar="CALDIR", help="folder for robot.urdf + calibration.json"
+    )
+    run_p.add_argument(
+        "--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)"
+    )
+    run_p.add_argument(
+        "--robot", help="tx60, tx2_60 or a URDF path (default: POSES.json robot_model, else tx60)"
+    )
+    run_p.add_argument(
+        "--parameter-set",
+        choices=("full", "offsets", "hand-eye"),
+        default="full",
+        help="what to estimate besides rod and O-arm placement (default: %(default)s)",
+    )
+    run_p.add_argument(
+        "--max-condition",
+        type=float,
+        default=100.0,
+        help="refuse above this identification condition number (default 100, Schroer et al.)",
+    )
+    run_p.add_argument(
+        "--drop-weak",
+        action="store_true",
+        help="drop robot parameters the poses do not excite instead of refusing",
+    )
+    run_p.add_argument("--method", help="sphere detection method (default: detection's)")
+    plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
+    plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
+    plan_p.add_argument("--n", type=int, default=10, help="number of poses (default %(default)s, at least 6)")
+    plan_p.add_argument("--json", type=Path, required=True, metavar="OUT.json")
+    plan_p.add_argument(
+        "--joints",
+        type=Path,
+        metavar="JOINTS.json",
+        help='joints of the registration scan, {"joints_rad": [...]} (default: from REG.json)',
+    )
+    plan_p.add_argument("--robot", help="tx60, tx2_60 or a URDF path (default: REG.json's, else tx60)")
+    plan_p.add_argument("--phantom", type=Path, default=DEFAULT_PHANTOM)
+    plan_p.add_argument(
+        "--calibration", type=Path, metavar="CALDIR", help="plan with this calibration's model and rod"
+    )
+    plan_p.add_argument(
+        "--fov-radius-mm", type=float, default=106.24, help="scan FOV radius (default: O-arm 212 mm FOV)"
+    )
+    plan_p.add_argument(
+        "--half-length-mm", type=float, default=79.97, help="half the axial coverage (default: O-arm 160 mm)"
+    )
+    plan_p.add_argument(
+        "--volume-centre-mm",
+        metavar="X,Y,Z",
+        help="volume centre in the image frame (default: the phantom centre at the registration)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.calibrate_command == "run":
+        return run_calibration(args)
+    return run_plan(args)
+
+
+def _config_error(msg: str) -> Exception:
+    from registration.errors import PointsFileError
+
+    return PointsFileError(msg)
+
+
+def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
+    """(robot_model, [(name, scan_dir, joints_rad)]) from POSES.json; paths resolved against its folder."""
+    from registration.points_io import _load_json
+
+    obj = _load_json(path)
+    poses = obj.get("poses") if isinstance(obj, dict) else None
+    if not isinstance(poses, list) or not poses:
+        raise _config_error(
+            f'{path}: expected {{"robot_model": ..., '
+            '"poses": [{"scan_dir": ..., "joints_rad": [...]}, ...]}'
+        )
+    out = []
+    for i, p in enumerate(poses):
+        if not isinstance(p, dict) or "scan_dir" not in p or "joints_rad" not in p:
+            raise _config_error(f'{path}: poses[{i}] needs "scan_dir" and "joints_rad"')
+        joints = p["joints_rad"]
+        if not isinstance(joints, list) or not all(isinstance(v, int | float) for v in joints):
+            raise _config_error(f"{path}: poses[{i}].joints_rad must be a list of numbers (radians)")
+        out.append(
+            (str(p["scan_dir"]), (path.parent / str(p["scan_dir"])).resolve(), [float(v) for v in joints])
+        )
+    model = obj.get("robot_model")
+    return (str(model) if model is not None else None), out
+
+
+def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, Any]) -> Any:
+    from registration.calibration import match_pose
+    from registration.detection import DetectionParams, detect_spheres
+    from registration.dicom_series import load_series
+    from registration.kinematics import sphere_centres_robot_mm
+
+    volume = load_series(scan_dir)
+    dparams = DetectionParams() if ctx["method"] is None else DetectionParams(method=ctx["method"])
+    det = detect_spheres(volume, dparams)
+    q = ctx["model"].check_joints(joints)
+    robot_mm = sphere_centres_robot_mm(ctx["model"], q, ctx["rod"], ctx["phantom"].centres_phantom_mm)
+    return match_pose(
+        name,
+        q,
+        det.centres_image_mm,
+        robot_mm,
+        phantom=ctx["phantom"],
+        series_uid=volume.series_uid,
+        frame_of_reference_uid=volume.frame_of_reference_uid,
+    )
+
+
+def config_hash(*parts: bytes) -> str:
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(hashlib.sha256(p).digest())
+    return h.hexdigest()
+
+
+def run_calibration(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from registration import __version__
+    from registration.calibration import CalibrationParams, calibrate
+    from registration.kinematics import RobotModel, default_tool0_from_phantom
+    from registration.phantom import load_phantom
+    from registration.points_io import write_json
+    from registration.urdf_writer import read_chain, write_calibrated_urdf
+
+    robot_name, poses = read_poses_file(args.poses)
+    model = RobotModel.load(args.robot or robot_name or "tx60")
+    phantom = load_phantom(args.phantom)
+    rod = default_tool0_from_phantom()
+    ctx = {"model": model, "rod": rod, "phantom": phantom, "method": args.method}
+    matched = [_detect_pose(d, q, name, ctx) for name, d, q in poses]
+    params = CalibrationParams(
+        parameter_set=args.parameter_set,
+        max_condition=args.max_condition,
+        on_weak="drop" if args.drop_weak else "refuse",
+    )
+    result = calibrate(matched, read_chain(model.urdf_path), rod, phantom.centres_phantom_mm, params)
+    created = datetime.now(UTC).isoformat(timespec="seconds")
+    chash = config_hash(
+        model.urdf_path.read_bytes(),
+        Path(args.phantom).read_bytes(),
+        json.dumps(dataclasses.asdict(params), sort_keys=True).encode(),
+    )
+    cal_id = f"cal-{created.replace(':', '').replace('-', '')[:15]}-{chash[:8]}"
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    write_calibrated_urdf(
+        result.chain,
+        out / URDF_FILE,
+        comment=f"oarmreg calibration {cal_id} ({created}): {int(result.used.sum())} poses, "
+        f"FrameOfReferenceUID {matched[0].frame_of_reference_uid}, leave-one-pose-out mean "
+        f"{result.lopo_mean_mm:.3f} mm; corrected joint origins of {model.urdf_path.name} "
+        "(zero offsets folded into the origins' rpy)",
+    )
+    doc = result.to_dict()
+    doc["provenance"] = {
+        "calibration_id": cal_id,
+        "created_utc": created,
+        "software": f"oarmreg {__version__}",
+        "config_sha256": chash,
+        "robot_model": model.name,
+        "nominal_urdf": str(model.urdf_path),
+        "phantom": phantom.name,
+        "params": dataclasses.asdict(params),
+        "frame_of_reference_uid": matched[0].frame_of_reference_uid,
+        "scans": [
+            {"name": m.name, "series_uid": m.series_uid, "scan_dir": str(d), "joints_rad": q}
+            for m, (_, d, q) in zip(matched, poses, strict=True)
+        ],
+    }
+    doc["robot_urdf"] = URDF_FILE
+    write_json(out / CALIBRATION_FILE, doc)
+    sys.stdout.write(summary(doc))
+    sys.stdout.write(f"written: {out / URDF_FILE}, {out / CALIBRATION_FILE}\n")
+    return 0
+
+
+def summary(d: dict[str, Any]) -> str:
+    ident = d["identification"]
+    n_used = sum(p["used"] for p in d["poses"])
+    lines = [
+        f"calibration {d['provenance']['calibration_id']}: {n_used} of {len(d['poses'])} poses used",
+        f"identification: rank {ident['rank']} of {ident['n_parameters']}, "
+        f"condition number {_fmt(ident['condition_number'])}",
+        f"fit RMS {d['fit_rms_mm']:.3f} mm; "
+        f"leave-one-pose-out mean {_fmt(d['leave_one_pose_out_mean_mm'])} mm, "
+        f"max {_fmt(d['leave_one_pose_out_max_mm'])} mm "
+        f"(TRE estimate {_fmt(d['leave_one_pose_out_tre_rms_mm'])} mm RMS)",
+        f"predicted error at unseen poses after a one-scan registration: "
+        f"{_fmt(d['predicted_held_out_rms_mm'])} mm RMS",
+    ]
+    if d["outlier_poses"]:
+        lines.append(f"outlier poses excluded: {', '.join(d['outlier_poses'])}")
+    if d["dropped_parameters"]:
+        lines.append(f"parameters not excited by the poses, dropped: {', '.join(d['dropped_parameters'])}")
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
+    """(calibrated RobotModel, tool0_from_phantom (4 × 4 mm), calibration.json dict) from CALDIR."""
+    import numpy as np
+
+    from registration.errors import ConfigError
+    from registration.frames import NotRigidError, as_transform
+    from registration.kinematics import RobotModel
+    from registration.points_io import _load_json
+
+    path = Path(caldir) / CALIBRATION_FILE
+    if not path.is_file():
+        raise ConfigError(f"{caldir}: no {CALIBRATION_FILE}; run `oarmreg calibrate run` to create it")
+    doc = _load_json(path)
+    try:
+        rod = as_transform(
+            np.asarray(doc["tool0_from_phantom"], dtype=np.float64), f"{path}: tool0_from_phantom"
+        )
+    except (KeyError, TypeError, ValueError, NotRigidError) as e:
+        raise ConfigError(f'{path}: needs "tool0_from_phantom" as a rigid 4 × 4 nested list ({e})') from None
+    model = RobotModel.load(Path(caldir) / str(doc.get("robot_urdf", URDF_FILE)))
+    return model, rod, doc
+
+
+def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
+    """Sphere centres (robot frame) for ``oarmreg register --joints [--calibration]``."""
+    from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
+    from registration.phantom import load_phantom
+    from registration.points_io import _load_json
+
+    obj = _load_json(args.joints)
+    joints = obj.get("joints_rad") if isinstance(obj, dict) else None
+    if not isinstance(joints, list):
+        raise _config_error(f'{args.joints}: expected {{"joints_rad": [6 numbers]}}')
+    if args.calibration is not None:
+        model, rod, doc = load_calibration(args.calibration)
+        provenance["calibration"] = {
+            "dir": str(args.calibration),
+            **{
+                k: doc.get("provenance", {}).get(k)
+                for k in ("calibration_id", "config_sha256", "created_utc")
+            },
+        }
+    else:
+        model = RobotModel.load(args.robot or obj.get("robot_model") or "tx60")
+        rod = default_tool0_from_phantom()
+        provenance["calibration"] = None
+    phantom_path = args.phantom if args.phantom and args.phantom.lower() != "none" else str(DEFAULT_PHANTOM)
+    q = model.check_joints(joints)
+    provenance.update(
+        {
+            "joints_rad": [float(v) for v in q],
+            "robot_model": model.name,
+            "robot_urdf": str(model.urdf_path),
+            "tool0_from_phantom": rod.tolist(),
+        }
+    )
+    return sphere_centres_robot_mm(model, q, rod, load_phantom(phantom_path).centres_phantom_mm)
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from registration import frames
+    from registration.kinematics import RobotModel, default_tool0_from_phantom
+    from registration.phantom import load_phantom
+    from registration.points_io import _load_json, read_registration, write_json
+    from registration.pose_planner import PlannerParams, ScanVolume, plan_poses
+    from registration.urdf_writer import read_chain
+
+    if args.n < 6:
+        raise _config_error(f"--n {args.n}: a calibration needs at least 6 poses")
+    y = read_registration(args.registration)
+    prov = _load_json(args.registration).get("provenance", {}) or {}
+    joints = _load_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
+    if not isinstance(joints, list):
+        raise _config_error(
+            f"{args.registration}: no joints_rad in its provenance; register with "
+            "`oarmreg register --joints JOINTS.json` or pass --joints JOINTS.json"
+        )
+    if args.calibration:
+        model, rod, _ = load_calibration(args.calibration)
+    else:
+        model, rod = (
+            RobotModel.load(args.robot or prov.get("robot_model") or "tx60"),
+            default_tool0_from_phantom(),
+        )
+    chain = read_chain(model.urdf_path)
+    q0 = model.check_joints(joints)
+    pts = load_phantom(args.phantom).centres_phantom_mm
+    if args.volume_centre_mm:
+        centre = [float(v) for v in args.volume_centre_mm.split(",")]
+    else:
+        centre = frames.apply(y @ chain.robot_from_tool0(q0) @ rod, np.zeros(3)).tolist()
+    volume = ScanVolume(
+        centre_image_mm=(centre[0], centre[1], centre[2]),
+        fov_radius_mm=args.fov_radius_mm,
+        half_length_mm=args.half_length_mm,
+    )
+    plan = plan_poses(y, chain, rod, pts, q0, volume=volume, params=PlannerParams(n_poses=args.n))
+    doc = {
+        "robot_model": model.name,
+        "registration": str(args.registration),
+        "volume": {
+            "centre_image_mm": list(volume.centre_image_mm),
+            "fov_radius_mm": volume.fov_radius_mm,
+            "half_length_mm": volume.half_length_mm,
+        },
+        **plan.to_dict(),
+    }
+    write_json(args.json, doc)
+    sys.stdout.write(
+        f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates; predicted "
+        f"identification condition number {plan.predicted_condition_number:.1f}\nwritten: {args.json}\n"
+    )
+    return 0
