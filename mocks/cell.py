@@ -264,7 +264,7 @@ def simulate_pose_scan(
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import simulate_scan
     from registration.detection import detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
 
     truth = cell.image_from_phantom_true(image_from_robot, joints_rad, rng)
     reported = cell.reported_joints(joints_rad, rng)

@@ -127,7 +127,7 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
 def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, Any]) -> Any:
     from registration.calibration import match_pose
     from registration.detection import DetectionParams, detect_spheres
-    from registration.dicom_series import load_series
+    from registration.dicom import load_series
     from registration.kinematics import sphere_centres_robot_mm
 
     volume = load_series(scan_dir)
