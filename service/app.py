@@ -7,8 +7,8 @@ import time; tests inject settings, a robot link, or override dependencies.
 
 Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/joints`` ·
 ``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` · ``/verify`` ·
-``/verifications`` · ``/events``.  Every route but ``/health`` needs
-``Authorization: Bearer <api_token>`` when a token is configured.
+``/verifications`` · ``/events`` · ``/calibrations`` (:mod:`service.api.calibrations`).
+Every route but ``/health`` needs ``Authorization: Bearer <api_token>`` when a token is configured.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from drivers.base import RobotLink
 from registration import __version__
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
+from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.context import ServiceContext
 from service.event_bus import EventBus
@@ -130,6 +131,10 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     ctx.orchestrator = Orchestrator(
         settings, ctx.db, ctx.phantom, ctx.robot_model, ctx.bus.publish, volumes=ctx.volumes
     )
+    ctx.calibrations = CalibrationJobs(
+        settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
+    )
+    ctx.calibrations.restore()
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
     if start_watcher:
@@ -155,6 +160,7 @@ async def _stop(ctx: ServiceContext) -> None:
     if ctx.watcher is not None:
         await asyncio.to_thread(ctx.watcher.stop)
     await ctx.capture.stop()
+    await asyncio.to_thread(ctx.calibrations.stop)
     # a registration still running on a worker thread finishes before the database closes
     await asyncio.to_thread(ctx.orchestrator.wait_idle)
     ctx.db.close()
@@ -210,9 +216,12 @@ class CurrentRegistrationFastPath:
 
 def _install_routes(app: FastAPI) -> None:
     from service.api import events, health, problems, registrations, scans, status, verifications
+    from service.api.calibrations import router as calibrations_router
     from service.api.deps import AuthDep
 
     problems.install(app)
     app.include_router(health.router)
     for r in (status.router, scans.router, registrations.router, verifications.router, events.router):
+        app.include_router(r, dependencies=[AuthDep])
+    for r in (calibrations_router,):
         app.include_router(r, dependencies=[AuthDep])

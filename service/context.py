@@ -8,6 +8,7 @@ from datetime import UTC, datetime
 from drivers.base import RobotLink
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
+from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.event_bus import EventBus
 from service.orchestrator import Orchestrator
@@ -31,6 +32,7 @@ class ServiceContext:
     db: Database = field(init=False)
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
+    calibrations: CalibrationJobs = field(init=False)
     watcher: SeriesWatcher | None = None
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None

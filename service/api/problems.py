@@ -56,6 +56,7 @@ async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
         headers=getattr(exc, "headers", None),
         exit_code=exit_code_of(exc),
         registration_id=getattr(exc, "registration_id", None),
+        calibration_id=getattr(exc, "calibration_id", None),
     )
 
 

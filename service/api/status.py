@@ -37,7 +37,20 @@ def status(ctx: CtxDep) -> StatusOut:
         busy=ctx.orchestrator.busy,
         counts=ctx.db.counts(),
         config_hash=ctx.orchestrator.config_hash,
+        active_calibration=_active_calibration(ctx),
     )
+
+
+def _active_calibration(ctx: CtxDep) -> dict[str, object] | None:
+    act = ctx.db.calibrations.active()
+    if act is None:
+        return None
+    return {
+        "calibration_id": act.id,
+        "calibration_hash": act.calibration_hash,
+        "activated_at": act.activated_at,
+        "predicted_held_out_rms_mm": (act.result or {}).get("predicted_held_out_rms_mm"),
+    }
 
 
 @router.get(

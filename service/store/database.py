@@ -8,6 +8,7 @@ from pathlib import Path
 from registration.errors import ConfigError
 from service.store import migrations
 from service.store.base import Connection
+from service.store.calibrations import CalibrationStore
 from service.store.registrations import RegistrationStore
 from service.store.scans import ScanStore
 from service.store.verifications import VerificationStore
@@ -25,6 +26,7 @@ class Database:
         self.scans = ScanStore(conn)
         self.registrations = RegistrationStore(conn)
         self.verifications = VerificationStore(conn)
+        self.calibrations = CalibrationStore(conn)
 
     @classmethod
     def open(cls, path: str | Path) -> Database:
@@ -72,5 +74,5 @@ class Database:
     def counts(self) -> dict[str, int]:
         return {
             table: int(self._conn.query(f"SELECT COUNT(*) FROM {table}")[0][0])
-            for table in ("scans", "registrations", "verifications")
+            for table in ("scans", "registrations", "verifications", "calibrations")
         }
