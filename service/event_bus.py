@@ -32,6 +32,17 @@ EVENT_NAMES = (
     "verification_done",
     "link_state",
 )
+EVENT_NAMES = (
+    *EVENT_NAMES,
+    # issue #10: calibration sessions (service.calibration_jobs); registration_retired says none is
+    # current any more (push channels INVALID until the next /register)
+    "calibration_started",
+    "calibration_progress",
+    "calibration_done",
+    "calibration_refused",
+    "calibration_activated",
+    "registration_retired",
+)
 
 
 class EventBus:
