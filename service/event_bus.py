@@ -24,7 +24,7 @@ QUEUE_MAX = 256
 """Events buffered per subscriber; a client that falls further behind loses the oldest."""
 RECENT_MAX = 100
 
-EVENT_NAMES = (
+EVENT_NAMES: tuple[str, ...] = (
     "scan_arrived",
     "scan_invalid",
     "registration_done",
