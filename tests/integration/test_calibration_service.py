@@ -229,7 +229,8 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     retired = events[-1][1]
     assert retired["previous_current_registration_id"] == before.json()["id"]
     assert c.get(f"/registrations/{before.json()['id']}").json()["status"] == "retired"
-    assert c.get("/registration/current").status_code == 404
+    none = c.get("/registration/current")
+    assert none.status_code == 409 and none.json()["title"] == "No current registration", none.text
     assert c.get("/status").json()["active_calibration"]["calibration_id"] == cal_id
 
     after = c.post("/register", json={"scan_id": session.scan_ids[-1]})
