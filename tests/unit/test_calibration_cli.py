@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from registration import frames
-from registration.errors import EXIT_INPUT, EXIT_OK
+from service.error_map import EXIT_INPUT, EXIT_OK
 from registration.kinematics import RobotModel, default_tool0_from_phantom
 from registration.pose_planner import ScanVolume
 from service.cli import main
