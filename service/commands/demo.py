@@ -253,9 +253,9 @@ def run(args: argparse.Namespace) -> int:
                 _scan_and_register(demo)
                 _move_scan_verify(demo)
                 if args.calibrate:
-                    from service.commands.demo_calibrate import run_calibration_demo
+                    from service.commands.demo_calibrate import DemoHooks, run_calibration_demo
 
-                    run_calibration_demo(demo)
+                    run_calibration_demo(demo, DemoHooks(_check, _wait_scan, _wait_still))
         _out(f"\ndemo finished in {time.perf_counter() - t_start:.0f} s; service data in {settings.data_dir}")
     finally:
         if tmp is not None:

@@ -19,6 +19,8 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,15 @@ MOVED_FOR_UID = "1.2.826.0.1.3680043.8.498.1011"
 WAIT_S = 600.0
 
 
+@dataclass(frozen=True)
+class DemoHooks:
+    """demo.py's HTTP helpers (passed in: this module must not import demo.py, which imports it)."""
+
+    check: Callable[[Any], dict[str, Any]]
+    wait_scan: Callable[[Any, str, float], dict[str, Any]]
+    wait_still: Callable[[Any, Any], None]
+
+
 def _err(msg: str) -> None:
     sys.stderr.write(msg + "\n")
     sys.stderr.flush()
@@ -54,21 +65,20 @@ def _acq() -> Any:
     return AcquisitionSettings.preset("small", **CAL_PRESET)
 
 
-def _scan_at(d: Any, q: Any, y_true: Any, name: str, for_uid: str, rng: Any) -> dict[str, Any]:
+def _scan_at(d: Any, h: DemoHooks, q: Any, y_true: Any, name: str, for_uid: str, rng: Any) -> dict[str, Any]:
     """Move, scan through the true cell, export with ``for_uid``, wait until the service records it."""
     from mocks.cell import set_frame_of_reference
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import simulate_scan
-    from service.commands.demo import _wait_scan, _wait_still
 
     d.robot.move_to(tuple(float(v) for v in q), 1.0)
     scan = simulate_scan(d.phantom, d.cell.image_from_phantom_true(y_true, q, rng), _acq())
-    _wait_still(d.client, d.robot)
+    h.wait_still(d.client, d.robot)
     staging = d.out / "oarm-outbox" / name
     exp = write_dicom_series(scan, staging, write_truth=False)
     set_frame_of_reference(staging, for_uid)
     staging.rename(d.watch / name)
-    return _wait_scan(d.client, exp.series_uid, 120.0)
+    return h.wait_scan(d.client, exp.series_uid, 120.0)
 
 
 def _wait_calibration(d: Any, cal_id: int) -> dict[str, Any]:
@@ -132,22 +142,20 @@ def _moved_y(d: Any) -> Any:
     return frames.transform_from_xyz_rpy(list(xyz), list(rpy)) @ d.hidden_image_from_robot
 
 
-def run_calibration_demo(d: Any) -> None:
+def run_calibration_demo(d: Any, h: DemoHooks) -> None:
     """The ``--calibrate`` part (see the module docstring); ``d`` is demo.py's ``_Demo``."""
-    from service.commands.demo import _check
-
     t0 = time.perf_counter()
     rng = np.random.default_rng(10)
     _err("\n== Calibration session (issue #10): the service calibrates robot, rod and O-arm placement")
     poses, cand = _plan(d)
     ids = []
     for i, q in enumerate(poses, start=1):
-        s = _scan_at(d, q, d.hidden_image_from_robot, f"cal-{i:02d}", SESSION_FOR_UID, rng)
+        s = _scan_at(d, h, q, d.hidden_image_from_robot, f"cal-{i:02d}", SESSION_FOR_UID, rng)
         ids.append(int(s["id"]))
         _err(
             f"  calibration scan {i}/{len(poses)}: scan {s['id']} recorded ({time.perf_counter() - t0:.0f} s)"
         )
-    r = _check(d.client.post("/calibrations", json={"scan_ids": ids, "drop_weak": True}))
+    r = h.check(d.client.post("/calibrations", json={"scan_ids": ids, "drop_weak": True}))
     _err(f"  POST /calibrations → calibration {r['id']} running ...")
     cal = _wait_calibration(d, int(r["id"]))
     if cal["status"] != "done":
@@ -157,7 +165,7 @@ def run_calibration_demo(d: Any) -> None:
     _report_calibration(cal)
     urdf = d.out / f"calibration-{cal['id']}.urdf"
     urdf.write_text(d.client.get(cal["urdf_url"]).text, encoding="utf-8")
-    _before_after(d, cal, urdf, cand, rng, t0)
+    _before_after(d, h, cal, urdf, cand, rng, t0)
 
 
 def _report_calibration(cal: dict[str, Any]) -> None:
@@ -176,29 +184,30 @@ def _report_calibration(cal: dict[str, Any]) -> None:
     _out(f"  calibration hash {cal['calibration_hash'][:16]}…")
 
 
-def _register_and_verify(d: Any, scan_id: int, ver_scan_id: int) -> tuple[dict[str, Any], dict[str, Any]]:
-    from service.commands.demo import _check
-
-    reg = _check(d.client.post("/register", json={"scan_id": scan_id}))
-    ver = _check(d.client.post("/verify", json={"scan_id": ver_scan_id}))
+def _register_and_verify(
+    d: Any, h: DemoHooks, scan_id: int, ver_scan_id: int
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    reg = h.check(d.client.post("/register", json={"scan_id": scan_id}))
+    ver = h.check(d.client.post("/verify", json={"scan_id": ver_scan_id}))
     return reg, ver
 
 
-def _before_after(d: Any, cal: dict[str, Any], urdf: Path, cand: Any, rng: Any, t0: float) -> None:
+def _before_after(
+    d: Any, h: DemoHooks, cal: dict[str, Any], urdf: Path, cand: Any, rng: Any, t0: float
+) -> None:
     from registration.kinematics import RobotModel
-    from service.commands.demo import _check
 
     y2 = _moved_y(d)
     idx = np.linspace(0, len(cand) - 1, N_HELD_OUT + 2).round().astype(int)
     q_reg, q_ver, held = cand[idx[0]], cand[idx[-1]], cand[idx[1:-1]]
     _err("  the O-arm is moved (new placement, new FrameOfReferenceUID); registration + verification scans")
-    s_reg = _scan_at(d, q_reg, y2, "moved-register", MOVED_FOR_UID, rng)
-    s_ver = _scan_at(d, q_ver, y2, "moved-verify", MOVED_FOR_UID, rng)
-    reg_nom, ver_nom = _register_and_verify(d, int(s_reg["id"]), int(s_ver["id"]))
-    act = _check(d.client.post(f"/calibrations/{cal['id']}/activate"))
+    s_reg = _scan_at(d, h, q_reg, y2, "moved-register", MOVED_FOR_UID, rng)
+    s_ver = _scan_at(d, h, q_ver, y2, "moved-verify", MOVED_FOR_UID, rng)
+    reg_nom, ver_nom = _register_and_verify(d, h, int(s_reg["id"]), int(s_ver["id"]))
+    act = h.check(d.client.post(f"/calibrations/{cal['id']}/activate"))
     retired = d.client.get(f"/registrations/{reg_nom['id']}").json()["status"]
     _err(f"  calibration {act['id']} activated: registration {reg_nom['id']} is now {retired}")
-    reg_cal, ver_cal = _register_and_verify(d, int(s_reg["id"]), int(s_ver["id"]))
+    reg_cal, ver_cal = _register_and_verify(d, h, int(s_reg["id"]), int(s_ver["id"]))
     assert reg_cal["provenance"]["calibration"]["calibration_id"] == cal["id"]
     nom = _true_errors_mm(d, reg_nom, d.model, d.tool0_from_phantom, y2, held)
     cal_model = RobotModel.load(urdf)

@@ -12,13 +12,10 @@ from __future__ import annotations
 
 import sqlite3
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal, cast
+from typing import Any, Literal, cast
 
 from service.records import JSONDict
 from service.store.base import Connection, dumps, loads, utc_now
-
-if TYPE_CHECKING:
-    from service.store.database import Database
 
 CalibrationStatus = Literal["running", "done", "refused"]
 
@@ -206,9 +203,3 @@ def _record(r: sqlite3.Row, active: tuple[int, str] | None) -> CalibrationRecord
         is_active=is_active,
         activated_at=active[1] if is_active and active is not None else None,
     )
-
-
-def active_calibration_scans(db: Database) -> set[int]:
-    """The scans behind the active calibration: a retention ``Protector`` (keep their files)."""
-    act = db.calibrations.active()
-    return set(act.scan_ids) if act is not None else set()

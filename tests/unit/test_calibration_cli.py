@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from registration import frames
-from service.error_map import EXIT_INPUT, EXIT_OK
 from registration.kinematics import RobotModel, default_tool0_from_phantom
 from registration.pose_planner import ScanVolume
 from service.cli import main
+from service.error_map import EXIT_INPUT, EXIT_OK
 
 START_JOINTS_RAD = [0.2, -0.15, 1.75, 0.3, 0.6, -0.9]
 
