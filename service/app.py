@@ -9,7 +9,8 @@ import time; tests inject settings, a robot link, or override dependencies.
 Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/joints`` ·
 ``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` ·
 ``/registrations/{id}/dicom`` · ``/verify`` ·
-``/verifications`` · ``/events`` (+ ``/events/ticket``) · ``/audit``.  Every route but ``/health``
+``/verifications`` · ``/events`` (+ ``/events/ticket``) · ``/audit`` · ``/calibrations``
+(:mod:`service.api.calibrations`).  Every route but ``/health``
 needs ``Authorization: Bearer <api_token>``, checked with Host, Origin, Content-Type and body size
 by :class:`service.security.SecurityGate` before any body byte is read.
 """
@@ -29,6 +30,7 @@ from drivers.base import RobotLink
 from registration import __version__
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
+from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.context import ServiceContext
 from service.event_bus import EventBus
@@ -145,6 +147,10 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     ctx.orchestrator = Orchestrator(
         settings, ctx.db, ctx.phantom, ctx.robot_model, or_int.publish, volumes=ctx.volumes
     )
+    ctx.calibrations = CalibrationJobs(
+        settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
+    )
+    ctx.calibrations.restore()
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
     if start_watcher:
@@ -193,6 +199,7 @@ async def _stop(ctx: ServiceContext) -> None:
     if ctx.watcher is not None:
         await asyncio.to_thread(ctx.watcher.stop)
     await ctx.capture.stop()
+    await asyncio.to_thread(ctx.calibrations.stop)
     # a registration still running on a worker thread finishes before the database closes
     await asyncio.to_thread(ctx.orchestrator.wait_idle)
     ctx.db.close()
@@ -248,6 +255,7 @@ class CurrentRegistrationFastPath:
 
 def _install_routes(app: FastAPI) -> None:
     from service.api import audit, events, health, problems, registrations, scans, sro, status, verifications
+    from service.api.calibrations import router as calibrations_router
     from service.api.deps import AuthDep
 
     problems.install(app)
@@ -260,6 +268,7 @@ def _install_routes(app: FastAPI) -> None:
         verifications.router,
         events.router,
         audit.router,
+        calibrations_router,
     )
     for r in routers:
         app.include_router(r, dependencies=[AuthDep])

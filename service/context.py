@@ -9,6 +9,7 @@ from datetime import UTC, datetime
 from drivers.base import RobotLink
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
+from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.event_bus import EventBus
 from service.or_integration import OrIntegration
@@ -34,6 +35,7 @@ class ServiceContext:
     db: Database = field(init=False)
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
+    calibrations: CalibrationJobs = field(init=False)
     watcher: SeriesWatcher | None = None
     or_integration: OrIntegration | None = None
     """DICOM SCP, OpenIGTLink server, auto-register (:mod:`service.or_integration`)."""

@@ -24,7 +24,7 @@ QUEUE_MAX = 256
 """Events buffered per subscriber; a client that falls further behind loses the oldest."""
 RECENT_MAX = 100
 
-EVENT_NAMES = (
+EVENT_NAMES: tuple[str, ...] = (
     "scan_arrived",
     "scan_invalid",
     "registration_done",
@@ -37,6 +37,17 @@ EVENT_NAMES = (
     "dicom_refused",
     "igtl_client_connected",
     "igtl_client_disconnected",
+)
+EVENT_NAMES = (
+    *EVENT_NAMES,
+    # issue #10: calibration sessions (service.calibration_jobs); registration_retired says none is
+    # current any more (push channels INVALID until the next /register)
+    "calibration_started",
+    "calibration_progress",
+    "calibration_done",
+    "calibration_refused",
+    "calibration_activated",
+    "registration_retired",
 )
 
 

@@ -90,6 +90,9 @@ class Orchestrator:
         self.config_hash = settings.config_hash()
         self.tool0_from_phantom = settings.robot.tool0_from_phantom.matrix()
         self.params = pipeline_params(settings, phantom)
+        self.calibration: dict[str, Any] | None = None
+        """``{"calibration_id", "calibration_hash", "robot_urdf"}`` of the active calibration (None:
+        the nominal model and rod of the settings); named in every registration's provenance."""
         self._lock = threading.Lock()
         self._current: RegistrationRecord | None = db.registrations.current()
         self.busy = False
@@ -105,6 +108,28 @@ class Orchestrator:
     def current(self) -> RegistrationRecord | None:
         """The current (accepted) registration record, or None (atomic reference read)."""
         return self._current
+
+    def use_calibration(
+        self,
+        robot_model: RobotModel,
+        tool0_from_phantom: NDArray[np.float64],
+        calibration: dict[str, Any] | None,
+        activate: Callable[[], Any] | None = None,
+    ) -> Any:
+        """Register and verify with this model and rod from now on (waits for a running registration).
+
+        ``activate`` runs under the same lock (the store's activation: it retires the registrations
+        and clears the current pointer); then nothing is current until the next ``/register``.
+        Returns what ``activate`` returned.
+        """
+        with self._lock:
+            out = activate() if activate is not None else None
+            self.robot_model, self.tool0_from_phantom, self.calibration = (
+                robot_model, tool0_from_phantom, calibration,
+            )  # fmt: skip
+            if activate is not None:
+                self._current = None
+            return out
 
     def wait_idle(self) -> None:
         """Return once no registration or verification is running."""
@@ -231,6 +256,7 @@ class Orchestrator:
             phantom=self.phantom,
             config_hash=self.config_hash,
         )
+        prov["calibration"] = self.calibration
         figures = registration_figures(
             run, self.phantom, targets_source=source, provenance=prov, load_s=load_s
         )

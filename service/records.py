@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 ScanStatus = Literal["complete", "invalid"]
-RegistrationStatus = Literal["accepted", "refused"]
+RegistrationStatus = Literal["accepted", "refused", "retired"]
 
 Matrix4 = tuple[tuple[float, ...], ...]
 """4 × 4 row-major transform, mm."""
@@ -252,6 +252,9 @@ class RegistrationRecord:
     joints_received_at: str | None = None
     duration_s: float | None = None
     is_current: bool = False
+    retired_at: str | None = None
+    """When activating calibration ``retired_by_calibration`` retired it (status ``retired``)."""
+    retired_by_calibration: int | None = None
 
 
 # ---- verifications -------------------------------------------------------------------------

@@ -242,7 +242,7 @@ class RegistrationOut(_Out):
     )
 
     id: int
-    status: str = Field(description="accepted | refused")
+    status: str = Field(description="accepted | refused | retired")
     reason: str = Field(description="Why it was refused (empty when accepted).")
     problem_title: str = ""
     is_current: bool
@@ -282,6 +282,8 @@ class RegistrationOut(_Out):
     config_hash: str
     software_version: str
     duration_s: float | None = None
+    retired_at: str | None = None
+    retired_by_calibration: int | None = None
     provenance: dict[str, Any] = Field({}, validation_alias=_from("figures", "provenance"))
     timings_s: dict[str, float] = Field({}, validation_alias=_from("figures", "timings_s"))
 
@@ -334,6 +336,9 @@ class StatusOut(_Out):
     )
     healthy: bool = True
     problems: list[str] = Field([], description="Why the service is unhealthy and what to do.")
+    active_calibration: dict[str, Any] | None = Field(
+        None, description="calibration_id, calibration_hash, activated_at; null: the nominal model and rod."
+    )
 
 
 # ---- converters ----------------------------------------------------------------------------

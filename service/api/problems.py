@@ -67,6 +67,7 @@ async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
         headers=headers,
         exit_code=exit_code_of(exc),
         registration_id=getattr(exc, "registration_id", None),
+        calibration_id=getattr(exc, "calibration_id", None),
     )
 
 

@@ -41,7 +41,20 @@ def status(ctx: CtxDep) -> StatusOut:
         counts=ctx.db.counts(),
         config_hash=ctx.orchestrator.config_hash,
         listeners=ctx.or_integration.status() if ctx.or_integration is not None else {},
+        active_calibration=_active_calibration(ctx),
     )
+
+
+def _active_calibration(ctx: CtxDep) -> dict[str, object] | None:
+    act = ctx.db.calibrations.active()
+    if act is None:
+        return None
+    return {
+        "calibration_id": act.id,
+        "calibration_hash": act.calibration_hash,
+        "activated_at": act.activated_at,
+        "predicted_held_out_rms_mm": (act.result or {}).get("predicted_held_out_rms_mm"),
+    }
 
 
 @router.get(

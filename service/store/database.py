@@ -10,6 +10,7 @@ from registration.errors import ConfigError
 from service.store import integrity, migrations
 from service.store.audit import AuditStore
 from service.store.base import Connection
+from service.store.calibrations import CalibrationStore
 from service.store.registrations import RegistrationStore
 from service.store.scan_instances import ScanInstanceStore
 from service.store.scans import ScanStore
@@ -31,6 +32,7 @@ class Database:
         self.scan_instances = ScanInstanceStore(conn)
         self.audit = AuditStore(conn)
         self._lock_file: IO[bytes] | None = None
+        self.calibrations = CalibrationStore(conn)
 
     @classmethod
     def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:
@@ -91,7 +93,7 @@ class Database:
     def counts(self) -> dict[str, int]:
         return {
             table: int(self._conn.query(f"SELECT COUNT(*) FROM {table}")[0][0])
-            for table in ("scans", "registrations", "verifications")
+            for table in ("scans", "registrations", "verifications", "calibrations")
         }
 
 

@@ -22,6 +22,9 @@
 ``scan_instances`` (3)
     per series UID, the headers a DICOM Spatial Registration object references (patient and
     study attributes, SOP Class / Instance UIDs of every slice), :mod:`service.store.scan_instances`.
+``calibrations``, ``active_calibration``
+    every POST /calibrations (running / done / refused + reason, figures, URDF) and the active one;
+    ``registrations.retired_at`` marks the registrations its activation retired.
 """
 
 from __future__ import annotations
@@ -141,6 +144,40 @@ MIGRATIONS: tuple[str, ...] = (
     );
     """,
 )
+
+CALIBRATIONS_MIGRATION = """
+    CREATE TABLE calibrations (
+        id INTEGER PRIMARY KEY,
+        created_at TEXT NOT NULL,
+        status TEXT NOT NULL CHECK (status IN ('running', 'done', 'refused')),
+        reason TEXT NOT NULL DEFAULT '',
+        problem_title TEXT NOT NULL DEFAULT '',
+        scan_ids_json TEXT NOT NULL,
+        frame_of_reference_uid TEXT NOT NULL DEFAULT '',
+        params_json TEXT NOT NULL,
+        result_json TEXT,
+        urdf_text TEXT,
+        urdf_path TEXT,
+        calibration_hash TEXT NOT NULL DEFAULT '',
+        config_hash TEXT NOT NULL,
+        software_version TEXT NOT NULL,
+        finished_at TEXT,
+        duration_s REAL
+    );
+    CREATE TABLE active_calibration (
+        singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
+        calibration_id INTEGER NOT NULL REFERENCES calibrations(id),
+        set_at TEXT NOT NULL
+    );
+    ALTER TABLE registrations ADD COLUMN retired_at TEXT;
+    ALTER TABLE registrations ADD COLUMN retired_by_calibration INTEGER REFERENCES calibrations(id);
+"""
+"""Issue #10 item 6: calibration sessions (:mod:`service.store.calibrations`), the active one, and
+registrations retired by activating a calibration (design.md §9).  SQLite cannot widen the CHECK on
+``registrations.status`` in place, so "retired" is an accepted row with ``retired_at`` set; the store
+reports its status as ``retired``.  Appended after the tuple so branches adding their own migrations
+merge without reordering: it is always the last one."""
+MIGRATIONS = (*MIGRATIONS, CALIBRATIONS_MIGRATION)
 
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""

@@ -103,7 +103,7 @@ def _record(r: sqlite3.Row, current_id: int | None) -> RegistrationRecord:
         created_at=r["created_at"],
         scan_id=r["scan_id"],
         series_uid=r["series_uid"],
-        status=cast(RegistrationStatus, r["status"]),
+        status="retired" if r["retired_at"] is not None else cast(RegistrationStatus, r["status"]),
         reason=r["reason"],
         problem_title=r["problem_title"],
         http_status=r["http_status"],
@@ -117,4 +117,6 @@ def _record(r: sqlite3.Row, current_id: int | None) -> RegistrationRecord:
         software_version=r["software_version"],
         duration_s=r["duration_s"],
         is_current=current_id is not None and int(r["id"]) == current_id,
+        retired_at=r["retired_at"],
+        retired_by_calibration=r["retired_by_calibration"],
     )

@@ -1,0 +1,269 @@
+"""Calibration through the running service (issue #10 item 6; design.md §9).
+
+A seeded true cell (:class:`mocks.cell.TrueCell`: joint origins, offsets, rod, sag differ from the
+nominal ones) poses the phantom; the mock controller streams the commanded joints; the simulated
+O-arm exports each scan into the watched folder with one FrameOfReferenceUID.  Eight planned poses
+are scanned once per module.  Then, over loopback HTTP: ``POST /calibrations`` → ``calibration_done``
+(progress pose i of K on ``/events``), figures and URDF; ``activate`` → the current registration is
+retired (none current, ``registration_retired`` published); ``/register`` → its provenance names
+the calibration and it is closer to the truth at an unseen pose than the nominal one.  Fewer than 6
+scans, or scans of two O-arm placements, are refused with the reason and stored.
+No sleeps: waits poll with deadlines or read server-sent events.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from registration import frames
+
+TOKEN = "calibration-test-token-0123456789"
+WINDOW_S = 0.6
+DEADLINE_S = 120.0
+N_POSES = 8
+START_JOINTS_RAD = (0.2, -0.15, 1.75, 0.3, 0.6, -0.9)
+FOR_UID = "1.2.826.0.1.3680043.8.498.77"
+OTHER_FOR_UID = "1.2.826.0.1.3680043.8.498.78"
+
+
+def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
+    deadline = time.monotonic() + timeout_s
+    ev = threading.Event()
+    while True:
+        v = pred()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        ev.wait(0.05)
+
+
+@dataclass
+class Session:
+    client: httpx.Client
+    robot: Any
+    cell: Any
+    model: Any
+    rod: np.ndarray
+    image_from_robot: np.ndarray
+    scan_ids: list[int]
+    odd_scan_id: int
+    held_out_joints: np.ndarray
+    watch: Path
+    events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+
+
+def _export(scan: Any, watch: Path, name: str, for_uid: str) -> str:
+    from mocks.cell import set_frame_of_reference
+    from mocks.oarm.dicom_export import write_dicom_series
+
+    staging = watch.parent / f"staging-{name}"
+    res = write_dicom_series(scan, staging, write_truth=False)
+    set_frame_of_reference(staging, for_uid)
+    staging.rename(watch / name)
+    return str(res.series_uid)
+
+
+def _scan_at(
+    client: httpx.Client,
+    robot: Any,
+    q: Any,
+    make_scan: Callable[[Any], Any],
+    watch: Path,
+    name: str,
+    uid: str,
+) -> int:
+    """Hold the robot at ``q`` until still, export the scan taken there, return its recorded id."""
+    robot.move_to(tuple(float(v) for v in q), 0.01)
+    end = robot.motion_end_t_s() + WINDOW_S
+
+    def still() -> bool:
+        st = client.get("/status").json()["link"]
+        return st["state"] == "connected" and st["history_s"] > WINDOW_S and time.monotonic() > end
+
+    wait_for(still, "the robot to be still")
+    series = _export(make_scan(q), watch, name, uid)
+
+    def recorded() -> Any:
+        return next((s for s in client.get("/scans").json() if s["series_uid"] == series), None)
+
+    s = wait_for(recorded, f"scan {name} to be recorded")
+    assert s["status"] == "complete" and s["joints"]["still"], s
+    return int(s["id"])
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Session]:
+    from mocks.cell import TrueCell
+    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.robot.robot import ScriptedRobot
+    from mocks.robot.runner import run_mock_controller
+    from registration.kinematics import RobotModel
+    from registration.pose_planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
+    from registration.urdf_writer import read_chain
+    from service.app import create_app
+    from service.commands.serve import serve_in_thread
+    from service.settings import load_settings
+
+    root = tmp_path_factory.mktemp("calsvc")
+    watch, data = root / "watch", root / "data"
+    model = RobotModel.load("tx60")
+    robot = ScriptedRobot(START_JOINTS_RAD)
+    acq = AcquisitionSettings.preset("small", rows=200, columns=200, n_slices=120, n_views=120)
+    with run_mock_controller("simple-message", robot) as mock:
+        settings = load_settings(
+            None,
+            {
+                "watch_dir": watch, "data_dir": data, "api_token": TOKEN, "robot.link_url": mock.url,
+                "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.25,
+                "watcher.quiet_period_s": 0.3, "watcher.poll_interval_s": 0.2,
+            },
+        )  # fmt: skip
+        rod = settings.robot.tool0_from_phantom.matrix()
+        cell = TrueCell.sample(2, model, rod)
+        rng = np.random.default_rng(2)
+        y = frames.transform_from_xyz_rpy([1.0, -2.0, 3.0], [10.0, -5.0, 30.0]) @ frames.invert(
+            cell.robot_from_tool0_true(START_JOINTS_RAD) @ cell.tool0_from_phantom
+        )
+        chain, pts = read_chain(model.urdf_path), phantom.centres_phantom_mm
+        volume = ScanVolume(
+            fov_radius_mm=acq.fov_radius_mm, half_length_mm=acq.n_slices * acq.slice_spacing_mm / 2
+        )
+        plan = plan_poses(
+            y, chain, rod, pts, START_JOINTS_RAD, volume=volume,
+            params=PlannerParams(n_poses=N_POSES, shift_mm=18.0),
+        )  # fmt: skip
+        cand, _, _ = feasible_poses(
+            y, chain, rod, pts, START_JOINTS_RAD, volume=volume,
+            params=PlannerParams(tilts_deg=(0.0, 20.0, 40.0), shift_mm=10.0),
+        )  # fmt: skip
+        planned = {tuple(np.round(q, 6)) for q in plan.joints_rad}
+        held = np.array([q for q in cand if tuple(np.round(q, 6)) not in planned][:5])
+
+        def make_scan(q: Any) -> Any:
+            return simulate_scan(phantom, cell.image_from_phantom_true(y, q, rng), acq)
+
+        app = create_app(settings, phantom=phantom, robot_model=model)
+        with (
+            serve_in_thread(app) as server,
+            httpx.Client(
+                base_url=server.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60.0
+            ) as client,
+        ):
+            ids = [
+                _scan_at(client, robot, q, make_scan, watch, f"pose-{i}", FOR_UID)
+                for i, q in enumerate(plan.joints_rad)
+            ]
+            odd = _scan_at(client, robot, plan.joints_rad[0], make_scan, watch, "odd", OTHER_FOR_UID)
+            yield Session(client, robot, cell, model, rod, y, ids, odd, held, watch)
+
+
+def _stream_until(client: httpx.Client, start: Callable[[], Any], done: set[str]) -> tuple[Any, list[Any]]:
+    """Subscribe to /events, call ``start``, collect events until one named in ``done`` arrives."""
+    events: list[tuple[str, dict[str, Any]]] = []
+    with client.stream("GET", "/events", timeout=httpx.Timeout(DEADLINE_S)) as stream:
+        out = start()
+        name = None
+        for line in stream.iter_lines():
+            if line.startswith("event:"):
+                name = line.split(":", 1)[1].strip()
+            elif line.startswith("data:") and name is not None:
+                events.append((name, json.loads(line.split(":", 1)[1])))
+                if name in done:
+                    break
+    return out, events
+
+
+def _true_error_mm(s: Session, reg: dict[str, Any], model: Any, rod: np.ndarray, pts: np.ndarray) -> float:
+    """Mean sphere-centre error at the held-out poses: registration + model + rod vs the true cell."""
+    y_est = np.asarray(reg["image_from_robot"])
+    errs = [
+        np.linalg.norm(
+            frames.apply(y_est @ model.robot_from_tool0(q) @ rod, pts)
+            - frames.apply(s.cell.image_from_phantom_true(s.image_from_robot, q), pts),
+            axis=1,
+        ).mean()
+        for q in s.held_out_joints
+    ]
+    return float(np.mean(errs))
+
+
+def test_calibrate_activate_retire_and_register_with_it(session: Session, phantom: Any) -> None:
+    from registration.kinematics import RobotModel
+
+    c = session.client
+    before = c.post("/register", json={"scan_id": session.scan_ids[-1]})
+    assert before.status_code == 200, before.text
+    assert before.json()["provenance"]["calibration"] is None
+    body = {"scan_ids": session.scan_ids, "drop_weak": True}
+    r, events = _stream_until(
+        c, lambda: c.post("/calibrations", json=body), {"calibration_done", "calibration_refused"}
+    )
+    assert r.status_code == 202 and r.json()["status"] == "running", r.text
+    cal_id = r.json()["id"]
+    assert events[-1][0] == "calibration_done", events[-1]
+    progress = [d["pose"] for n, d in events if n == "calibration_progress" and d["stage"] == "detect"]
+    assert progress == list(range(1, N_POSES + 1))
+    cal = c.get(f"/calibrations/{cal_id}").json()
+    assert cal["status"] == "done" and cal["scan_ids"] == session.scan_ids
+    assert cal["frame_of_reference_uid"] == FOR_UID and len(cal["poses"]) == N_POSES
+    assert all(p["std_error"] > 0 for p in cal["parameters"]) and cal["leave_one_pose_out_mean_mm"] < 0.3
+    assert all(len(p["sphere_residuals_mm"]) >= 20 for p in cal["poses"])
+    urdf = c.get(cal["urdf_url"])
+    assert urdf.status_code == 200 and "<robot" in urdf.text and f"calibration {cal_id}" in urdf.text
+
+    act, events = _stream_until(
+        c, lambda: c.post(f"/calibrations/{cal_id}/activate"), {"registration_retired"}
+    )
+    assert act.status_code == 200 and act.json()["is_active"], act.text
+    retired = events[-1][1]
+    assert retired["previous_current_registration_id"] == before.json()["id"]
+    assert c.get(f"/registrations/{before.json()['id']}").json()["status"] == "retired"
+    none = c.get("/registration/current")
+    assert none.status_code == 409 and none.json()["title"] == "No current registration", none.text
+    assert c.get("/status").json()["active_calibration"]["calibration_id"] == cal_id
+
+    after = c.post("/register", json={"scan_id": session.scan_ids[-1]})
+    assert after.status_code == 200, after.text
+    prov = after.json()["provenance"]
+    assert prov["calibration"]["calibration_id"] == cal_id
+    assert prov["calibration"]["calibration_hash"] == cal["calibration_hash"]
+    assert np.allclose(prov["tool0_from_phantom"], cal["tool0_from_phantom"])
+    pts = phantom.centres_phantom_mm
+    cal_model = RobotModel.load(Path(prov["calibration"]["robot_urdf"]))
+    nominal_mm = _true_error_mm(session, before.json(), session.model, session.rod, pts)
+    calibrated_mm = _true_error_mm(
+        session, after.json(), cal_model, np.asarray(cal["tool0_from_phantom"]), pts
+    )
+    assert calibrated_mm < 0.5 * nominal_mm, (calibrated_mm, nominal_mm)
+
+
+def _assert_refused_and_stored(c: httpx.Client, body: dict[str, Any], title: str, words: str) -> None:
+    r = c.post("/calibrations", json=body)
+    assert r.status_code == 409 and r.headers["content-type"].startswith("application/problem+json"), r.text
+    p = r.json()
+    assert p["title"] == title and words in p["detail"]
+    stored = c.get(f"/calibrations/{p['calibration_id']}").json()
+    assert stored["status"] == "refused" and stored["reason"] == p["detail"] and stored["urdf_url"] is None
+    assert c.post(f"/calibrations/{p['calibration_id']}/activate").status_code == 409
+
+
+def test_fewer_than_six_scans_are_refused_and_stored(session: Session) -> None:
+    _assert_refused_and_stored(
+        session.client, {"scan_ids": session.scan_ids[:5]}, "Too few calibration poses", "at least 6"
+    )
+
+
+def test_two_o_arm_placements_are_refused_and_stored(session: Session) -> None:
+    body = {"scan_ids": [*session.scan_ids[:6], session.odd_scan_id]}
+    _assert_refused_and_stored(session.client, body, "Scans from different O-arm placements", OTHER_FOR_UID)
