@@ -31,6 +31,7 @@ poses with ICP and refuses an ambiguous result.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -463,4 +464,124 @@ def find_hypotheses(
             base_triples=tuple(triples[k] for k in sorted(clusters.triples[i]) if triples[k][0] >= 0),
         )
         for i in clusters.ranked()[:max_hypotheses]
+    ]
+
+
+EXHAUSTIVE_ROTATION_BIN: Final = 0.1
+"""Rotation-matrix entries are binned at this step to drop duplicate 3-point poses before scoring
+(5° of rotation moves an entry by up to sin 5° ≈ 0.09; pose noise ≈ 0.1° moves it by ≈ 0.002, so a
+pose found from many triples falls into one or two bins; a split only costs one more scored pose)."""
+
+EXHAUSTIVE_POSITION_BIN_MM: Final = 1.0
+"""Where a pose lands the robot centroid is binned at this step (pose noise ≪ 1 mm ≪ 15 mm pitch)."""
+
+
+def _ordered_triples(n: int) -> I64:
+    """(n·(n−1)·(n−2), 3) every ordered triple of distinct indices below ``n``."""
+    a, b, c = (g.ravel() for g in np.indices((n, n, n)))
+    ok = (a != b) & (a != c) & (b != c)
+    return np.stack([a[ok], b[ok], c[ok]], axis=1).astype(np.int64)
+
+
+def exhaustive_runner_ups(
+    robot_mm: F64,
+    image_mm: F64,
+    best_image_from_robot: F64,
+    *,
+    pair_tol_mm: float,
+    gate_mm: float,
+    distinct_rotation_deg: float = DEFAULT_DISTINCT_ROTATION_DEG,
+    distinct_translation_mm: float = DEFAULT_DISTINCT_TRANSLATION_MM,
+    max_hypotheses: int = DEFAULT_MAX_HYPOTHESES,
+    tree: cKDTree | None = None,
+) -> list[Hypothesis]:
+    """Every pose distinct from ``best_image_from_robot`` that maps a robot triple onto an image triple.
+
+    Unlike :func:`find_hypotheses` (a few base triples, early stop: enough to *find* the best pose),
+    this proves there is no close runner-up: every unordered image triple (i, j, k) is paired with
+    every ordered robot triple (a, b, c) whose three side lengths agree within ``pair_tol_mm``
+    (|ab|↔|ij| by ``searchsorted`` on the sorted robot |ab|, then |ac|↔|ik| and |bc|↔|jk| as boolean
+    masks), each pair gives a proper rigid pose (:func:`registration.rigid.fit_rigid_batch`),
+    duplicates are binned away (:data:`EXHAUSTIVE_ROTATION_BIN`, :data:`EXHAUSTIVE_POSITION_BIN_MM`),
+    and the rest are counted at ``gate_mm`` (robot spheres within the gate of a detection).  Poses
+    the same as the best (rotation within ``distinct_rotation_deg`` and the robot centroid within
+    ``distinct_translation_mm``) are dropped; the others are merged into distinct poses.
+
+    Cost grows as C(M, 3) image triples: meant for subsets (the caller bounds M).
+
+    Returns
+    -------
+    list of Hypothesis
+        Distinct runner-up poses, most inliers first then lowest RMS; at most ``max_hypotheses``.
+    """
+    n, m = len(robot_mm), len(image_mm)
+    if n < 3 or m < 3:
+        return []
+    if tree is None:
+        tree = cKDTree(image_mm)
+    d_r = pairwise_distances(robot_mm)
+    d_i = pairwise_distances(image_mm)
+    abc = _ordered_triples(n)
+    r_ab = d_r[abc[:, 0], abc[:, 1]]
+    by_ab = np.argsort(r_ab, kind="stable")
+    r_ab_sorted = r_ab[by_ab]
+    ijk = np.array(list(itertools.combinations(range(m), 3)), dtype=np.int64)
+    i_ij = d_i[ijk[:, 0], ijk[:, 1]]
+    lo = np.searchsorted(r_ab_sorted, i_ij - pair_tol_mm, side="left")
+    hi = np.searchsorted(r_ab_sorted, i_ij + pair_tol_mm, side="right")
+    counts = hi - lo
+    total = int(counts.sum())
+    if total == 0:
+        return []
+    img_rep = np.repeat(np.arange(len(ijk)), counts)
+    starts = np.repeat(lo - (np.cumsum(counts) - counts), counts)
+    rob = by_ab[np.arange(total) + starts]
+    ok = (np.abs(d_r[abc[rob, 0], abc[rob, 2]] - d_i[ijk[img_rep, 0], ijk[img_rep, 2]]) < pair_tol_mm) & (
+        np.abs(d_r[abc[rob, 1], abc[rob, 2]] - d_i[ijk[img_rep, 1], ijk[img_rep, 2]]) < pair_tol_mm
+    )
+    rob, img_rep = rob[ok], img_rep[ok]
+    if len(rob) == 0:
+        return []
+    transforms = fit_rigid_batch(robot_mm[abc[rob]], image_mm[ijk[img_rep]])
+    centroid = robot_mm.mean(axis=0)
+    positions = np.einsum("hij,j->hi", transforms[:, :3, :3], centroid) + transforms[:, :3, 3]
+    # not the best pose (same_pose, vectorised): cos of the rotation angle and centroid distance
+    best_pos = best_image_from_robot[:3, :3] @ centroid + best_image_from_robot[:3, 3]
+    cos = (np.einsum("kij,ij->k", transforms[:, :3, :3], best_image_from_robot[:3, :3]) - 1.0) / 2.0
+    distinct = (cos < float(np.cos(np.radians(distinct_rotation_deg)))) | (
+        np.linalg.norm(positions - best_pos, axis=1) > distinct_translation_mm
+    )
+    transforms, positions = transforms[distinct], positions[distinct]
+    if len(transforms) == 0:
+        return []
+    keys = np.concatenate(
+        [
+            np.round(transforms[:, :3, :3].reshape(-1, 9) / EXHAUSTIVE_ROTATION_BIN),
+            np.round(positions / EXHAUSTIVE_POSITION_BIN_MM),
+        ],
+        axis=1,
+    )
+    _, first = np.unique(keys, axis=0, return_index=True)
+    transforms = transforms[np.sort(first)]
+    n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
+    rank = np.lexsort((rms, -n_in))
+    rank = rank[n_in[rank] >= MIN_HYPOTHESIS_INLIERS]
+    clusters = PoseClusters(centroid, distinct_rotation_deg, distinct_translation_mm)
+    for k in rank:
+        clusters.add(transforms[k], int(n_in[k]), float(rms[k]), 0)
+        if len(clusters.n_inliers) >= max_hypotheses:
+            break
+    log.debug(
+        "correspondence: exhaustive runner-up search, %d image × robot triple pairs, %d distinct poses",
+        len(rob),
+        len(clusters.n_inliers),
+    )
+    return [
+        Hypothesis(
+            image_from_robot=clusters.transforms[i].copy(),
+            n_inliers=clusters.n_inliers[i],
+            rms_mm=clusters.rms_mm[i],
+            support=len(clusters.triples[i]),
+        )
+        for i in clusters.ranked()
     ]

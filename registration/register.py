@@ -13,7 +13,11 @@
    given, every symmetry twin of the best pose are refined by gated ICP
    (:mod:`registration.icp`); the best must explain at least
    ``min_runner_up_margin`` more spheres than the best *distinct* runner-up or
-   the result is refused as ambiguous (design.md §4);
+   the result is refused as ambiguous (design.md §4).  On a subset (at most
+   ``exhaustive_runner_up_max_points`` detections) the runner-up comes from an
+   exhaustive triple search
+   (:func:`registration.correspondence.exhaustive_runner_ups`), not only from
+   the hypotheses that found the best pose;
 5. the mirrored problem (image z → −z) is tried whenever it could explain
    clearly more spheres; if it does, the input is refused as mirrored;
 6. quality figures (design.md §5) are computed and gated.
@@ -30,12 +34,14 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from registration import __version__
 from registration.correspondence import (
     DEFAULT_DISTINCT_ROTATION_DEG,
     DEFAULT_DISTINCT_TRANSLATION_MM,
     Hypothesis,
+    exhaustive_runner_ups,
     find_hypotheses,
     same_pose,
 )
@@ -138,6 +144,15 @@ class RegistrationParams:
     """A competing pose is refined by ICP only if its unrefined count comes within this ×
     ``min_runner_up_margin`` of the best; one further behind cannot threaten the answer (ICP adds a
     sphere or two to a 3-point pose's count, not 2 × 3), and its count still bounds the runner-up."""
+    exhaustive_runner_up_max_points: int = 16
+    """Scans with at most this many detections (a subset of the phantom, or a small phantom) take
+    their runner-up from :func:`registration.correspondence.exhaustive_runner_ups`: every image
+    triple × every robot triple of matching sides.  find_hypotheses' few base triples with an early
+    stop find the best pose but can miss a close runner-up on a subset (issue: 8 of the cube's 28
+    spheres, runner-up 6 found as 4).  C(16, 3) = 560 image triples cost ≈ 0.3 s on the 2-core
+    development machine against the 28-sphere cube (6: ≈ 20 ms, 8: ≈ 30 ms, 12: ≈ 0.1 s); a
+    larger subset (fewer detections than robot spheres) is searched exhaustively too, but only when
+    the runner-up found otherwise comes within ``threat_margin_factor × min_runner_up_margin``."""
     icp_gate_start_mm: float = 7.5
     """Half the 15 mm hole pitch (research §1.7)."""
     icp_gate_sigma_factor: float = 3.0
@@ -715,6 +730,63 @@ def find_runner_up(
     return RunnerUp(n_best, runner, max(runner_key[0], 0), angle)
 
 
+def exhaustive_candidates(
+    best: _Candidate,
+    pool: Sequence[_Candidate],
+    inp: RegistrationInputs,
+    prior: F64 | None,
+    tree: cKDTree,
+    p: RegistrationParams,
+) -> list[_Candidate]:
+    """Step 5a: runner-up poses from the exhaustive triple search, for subsets and small sets.
+
+    Runs when the image has at most ``exhaustive_runner_up_max_points`` detections, or fewer
+    detections than robot spheres and a runner-up in ``pool`` within ``threat_margin_factor ×
+    min_runner_up_margin`` of the best; otherwise returns nothing.  Each pose within the prior
+    counts as found (3-point pose, fixed gate, as an independent brute-force search would count it);
+    the ones that threaten the best (at most ``max_runner_ups``) are also refined by the same gated
+    ICP as every other runner-up, so the comparison is like for like.
+    """
+    subset = inp.m < inp.n
+    small = inp.m <= p.exhaustive_runner_up_max_points
+    if not small:
+        if not subset:
+            return []
+        ru = find_runner_up(best, pool, inp.robot, tree, p)
+        if ru.margin >= p.threat_margin_factor * p.min_runner_up_margin:
+            return []
+    hyps = exhaustive_runner_ups(
+        inp.robot,
+        inp.image,
+        best.image_from_robot,
+        pair_tol_mm=p.pair_distance_tol_mm,
+        gate_mm=p.hypothesis_gate_mm,
+        distinct_rotation_deg=p.distinct_rotation_deg,
+        distinct_translation_mm=p.distinct_translation_mm,
+        tree=tree,
+    )
+    hyps = [h for h in hyps if within_prior(h.image_from_robot, prior, inp.prior_tolerance_deg)]
+    out: list[_Candidate] = []
+    for k, h in enumerate(hyps):
+        name = f"exhaustive search pose {k}"
+        out.append(_Candidate(name, h.image_from_robot, h.n_inliers, h.rms_mm))
+        threat = h.n_inliers + p.threat_margin_factor * p.min_runner_up_margin >= best.n_matched
+        if threat and k < p.max_runner_ups:
+            res = _refine(inp.robot, inp.image, tree, h.image_from_robot, p)
+            out.append(_refined(f"{name}, ICP-refined", res))
+    return out
+
+
+def _pose_text(t: F64, robot: F64) -> str:
+    """The pose's rotation vector (degrees) and where it lands the robot centroid (mm)."""
+    rotvec = np.degrees(Rotation.from_matrix(t[:3, :3]).as_rotvec())
+    pos = t[:3, :3] @ robot.mean(axis=0) + t[:3, 3]
+    return (
+        f"rotation vector ({rotvec[0]:.1f}, {rotvec[1]:.1f}, {rotvec[2]:.1f})°, robot centroid at "
+        f"({pos[0]:.1f}, {pos[1]:.1f}, {pos[2]:.1f}) mm"
+    )
+
+
 def check_runner_up(
     best: _Candidate, pool: Sequence[_Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
 ) -> RunnerUp:
@@ -734,7 +806,8 @@ def check_runner_up(
         )
     raise AmbiguousMatchError(
         f"ambiguous sphere correspondence: the best pose matches {ru.n_best} spheres and a "
-        f"different pose ({ru.candidate.source}, rotated {ru.rotation_deg:.1f}° from it) matches "
+        f"different pose ({ru.candidate.source}, rotated {ru.rotation_deg:.1f}° from it: "
+        f"{_pose_text(ru.candidate.image_from_robot, robot)}) matches "
         f"{ru.n_matched}; a margin of {p.min_runner_up_margin} is required. Give an orientation prior "
         "(--prior-rotation, tolerance < 45°), name 4 marks for the pre-registration, or use a phantom "
         "with an asymmetric filled pattern"
@@ -902,7 +975,10 @@ def register_points(
     mirror_checked = check_mirror(inp, cands, tree, params)
     timings["mirror_check_s"] = time.perf_counter() - t0
     best, r = check_enough_matched(inp, cands, params)
-    ru = check_runner_up(best, cands.pool, inp.robot, tree, params)
+    t0 = time.perf_counter()
+    extra = exhaustive_candidates(best, cands.pool, inp, cands.prior, tree, params)
+    timings["exhaustive_runner_up_s"] = time.perf_counter() - t0
+    ru = check_runner_up(best, [*cands.pool, *extra], inp.robot, tree, params)
     t0 = time.perf_counter()
     q = quality_figures(r, best.image_from_robot, inp, params)
     timings["quality_s"] = time.perf_counter() - t0

@@ -8,7 +8,13 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from registration import frames
-from registration.correspondence import choose_base_triples, find_hypotheses, pairwise_distances
+from registration.correspondence import (
+    choose_base_triples,
+    exhaustive_runner_ups,
+    find_hypotheses,
+    pairwise_distances,
+    same_pose,
+)
 from registration.errors import (
     AccuracyGateError,
     AmbiguousMatchError,
@@ -71,6 +77,33 @@ def test_find_hypotheses_full_grid_returns_symmetric_twins(phantom: Phantom) -> 
 def test_find_hypotheses_empty_for_too_few_points(phantom: Phantom) -> None:
     robot, image, _, _ = _scene(phantom, 3)
     assert find_hypotheses(robot, image[:2], pair_tol_mm=1.0, gate_mm=1.5) == []
+
+
+def test_exhaustive_runner_up_of_a_face_subset_is_the_90_degree_twin() -> None:
+    """Known answer: one 4 × 4 face (15 mm pitch) with three holes empty; the image shows 9 of its
+    13 spheres.  The 90° twin about the face normal lands exactly the robot spheres whose rotated
+    grid cell is imaged; the search must report that count for the twin, and nothing above the
+    best distinct pose's count."""
+    cells = [(u, v) for u in range(4) for v in range(4) if (u, v) not in {(0, 0), (1, 2), (3, 1)}]
+    robot = np.array([[0.0, 15.0 * u, 15.0 * v] for u, v in cells])
+    imaged = [(0, 1), (0, 2), (0, 3), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2), (3, 3)]
+    truth = _pose(7)
+    image = frames.apply(truth, np.array([[0.0, 15.0 * u, 15.0 * v] for u, v in imaged]))
+    # the twin: 90° about the face normal (x) through the face centre, in the robot frame
+    centre = np.array([0.0, 22.5, 22.5])
+    rot = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    twin = truth @ frames.make_transform(rot, centre - rot @ centre)
+    turned = (robot - centre) @ rot.T + centre
+    imaged_mm = np.array([[0.0, 15.0 * u, 15.0 * v] for u, v in imaged])
+    expected = int((np.linalg.norm(turned[:, None] - imaged_mm[None], axis=2).min(axis=1) < 0.5).sum())
+    assert 3 <= expected < len(imaged)
+    hyps = exhaustive_runner_ups(robot, image, truth, pair_tol_mm=1.0, gate_mm=1.5)
+    centroid = robot.mean(axis=0)
+    assert all(not same_pose(h.image_from_robot, truth, centroid, 5.0, 3.0) for h in hyps)
+    match = [h for h in hyps if same_pose(h.image_from_robot, twin, centroid, 5.0, 3.0)]
+    assert len(match) == 1 and match[0].n_inliers == expected
+    assert hyps[0].n_inliers == expected  # the twin is (one of) the best runner-ups
+    assert [h.n_inliers for h in hyps] == sorted((h.n_inliers for h in hyps), reverse=True)
 
 
 def test_base_triples_are_disjoint_and_long(phantom: Phantom) -> None:
