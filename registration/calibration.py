@@ -464,13 +464,14 @@ def _jacobian(model: _Model, data: _Data, values: F64) -> F64:
     t, frames = _frames(model, values, data.joints_rad)
     tp = t[data.pose_of]
     world = np.einsum("lij,lj->li", tp[:, :3, :3], data.pts_phantom_mm) + tp[:, :3, 3]
-    cols = []
-    for p in model.params:
-        rot_a, o_f = frames[p.group]
-        axis = rot_a[data.pose_of] @ np.asarray(p.direction)
-        col = np.cross(axis, world - o_f[data.pose_of]) if p.kind == "rot" else axis
-        cols.append(col.reshape(-1))
-    return np.stack(cols, axis=1)
+    groups = [p.group for p in model.params]
+    rot_a = np.stack([frames[g][0] for g in groups])  # (P, K, 3, 3)
+    o_f = np.stack([frames[g][1] for g in groups])[:, data.pose_of]  # (P, L, 3)
+    dirs = np.array([p.direction for p in model.params], dtype=np.float64)
+    axis = np.einsum("pkij,pj->pki", rot_a, dirs)[:, data.pose_of]  # (P, L, 3)
+    is_rot = np.array([p.kind == "rot" for p in model.params])
+    cols = np.where(is_rot[:, None, None], np.cross(axis, world[None] - o_f), axis)
+    return np.asarray(cols.reshape(len(groups), -1).T, dtype=np.float64)
 
 
 def _normalised_svd(jac: F64) -> tuple[F64, F64]:
