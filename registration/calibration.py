@@ -74,7 +74,7 @@ MIN_POSES: Final = 6
 FD_STEP: Final = 1e-6
 """Central-difference step of the Jacobian (rad or mm): truncation ~1e-12, round-off ~1e-10."""
 MAX_NFEV: Final = 100
-"""Residual evaluations of the robust fit at most (a noise-free fit converges in ~10)."""
+"""Residual evaluations of the robust fit at most (the 10 × 28 benchmark session takes ~15)."""
 FTOL: Final = 1e-12
 """``least_squares`` ftol: relative cost decrease to stop at.  On the 10 × 28 session of
 ``benchmarks/bench_calibration.py --solve-only`` it stops after ~15 evaluations instead of ~33 at
