@@ -35,11 +35,11 @@ origin corrections are not.
 "joint-offset-only model"); ``"hand-eye"`` fits X and Y only.
 
 **Method.** Shah's closed form for AX = YB (Kronecker product, doi:10.1115/1.4024473)
-from per-pose rigid fits gives X and Y with nominal kinematics; then a
-Levenberg–Marquardt least-squares fit on all sphere residuals with a robust
-(soft-L1) loss estimates X, Y and θ jointly (research note §2: point LSQ after
-Shah).  It is the ``scipy.optimize.least_squares`` pattern written out on the
-normal equations, with an analytic Jacobian (see :func:`_fit` for why).
+from per-pose rigid fits gives X and Y with nominal kinematics; then
+``scipy.optimize.least_squares`` (TRF, analytic Jacobian, ``x_scale="jac"``) on all sphere
+residuals with a robust soft-L1 loss estimates X, Y and θ jointly (research note §2: point LSQ
+after Shah).  The loss is applied to each sphere's 3-D distance (a callable loss, see
+:func:`_sphere_soft_l1`), not to its x, y, z separately, so it does not depend on the image axes.
 
 **Identifiability.** The SVD of the column-normalised Jacobian gives numeric
 rank and condition number; above ``max_condition`` (default 100, Schroer et
@@ -58,6 +58,7 @@ from typing import Any, Final, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
 
 from registration import __version__
 from registration.errors import OarmRegError, RegistrationError
@@ -72,8 +73,27 @@ MIN_POSES: Final = 6
 """Issue #10: K ≥ 6 scans per session."""
 FD_STEP: Final = 1e-6
 """Central-difference step of the Jacobian (rad or mm): truncation ~1e-12, round-off ~1e-10."""
-MAX_ITERATIONS: Final = 60
-"""Levenberg–Marquardt iterations at most (a noise-free fit converges in ~10)."""
+MAX_NFEV: Final = 100
+"""Residual evaluations of the robust fit at most (the 10 × 28 benchmark session takes ~15)."""
+FTOL: Final = 1e-12
+"""``least_squares`` ftol: relative cost decrease to stop at.  On the 10 × 28 session of
+``benchmarks/bench_calibration.py --solve-only`` it stops after ~15 evaluations instead of ~33 at
+machine epsilon, the parameters within 3e-8 (rad, mm) of the ε-converged ones (the smallest
+standard error is 1e-5); on exact data the cost falls by more than this every step until round-off, so
+held-out poses are still recovered to 1e-6 mm (tests/unit/test_calibration.py)."""
+XTOL: Final = float(np.finfo(np.float64).eps)
+"""``least_squares`` xtol and gtol: machine epsilon, the smallest scipy accepts (a backstop; the
+hand-written LM ``least_squares`` replaced stopped on a 1e-13 scaled step)."""
+GTOL: Final = XTOL
+TR_SOLVER: Final = "lsmr"
+"""Trust-region subproblem solver of TRF: ``"lsmr"`` (matrix-vector products only), not
+``"exact"``, whose SVD of the (3L, P) Jacobian per iteration goes through scipy's threaded OpenBLAS
+— on the shared 2-core machine 0.09–0.47 s per 840 × 30 SVD vs 4 ms single-threaded (measured
+with ``OPENBLAS_NUM_THREADS=1``; threadpoolctl is not installed): 0.5–2.2 s per calibration
+without LOPO vs 0.2–0.6 s with lsmr (``benchmarks/bench_calibration.py --solve-only``)."""
+LSMR_TOL: Final = 1e-14
+"""lsmr ``atol`` = ``btol`` of the TRF subproblem.  At lsmr's default 1e-6 the inexact steps stall
+TRF (100 evaluations, not converged, measured); at 1e-14 it converges as with ``"exact"``."""
 MIN_JOINT_SPREAD_DEG: Final = 5.0
 """A joint whose range over the session's poses is below this is named as not moving."""
 STRUCTURAL_RANK_TOL: Final = 1e-5
@@ -447,13 +467,14 @@ def _jacobian(model: _Model, data: _Data, values: F64) -> F64:
     t, frames = _frames(model, values, data.joints_rad)
     tp = t[data.pose_of]
     world = np.einsum("lij,lj->li", tp[:, :3, :3], data.pts_phantom_mm) + tp[:, :3, 3]
-    cols = []
-    for p in model.params:
-        rot_a, o_f = frames[p.group]
-        axis = rot_a[data.pose_of] @ np.asarray(p.direction)
-        col = np.cross(axis, world - o_f[data.pose_of]) if p.kind == "rot" else axis
-        cols.append(col.reshape(-1))
-    return np.stack(cols, axis=1)
+    groups = [p.group for p in model.params]
+    rot_a = np.stack([frames[g][0] for g in groups])  # (P, K, 3, 3)
+    o_f = np.stack([frames[g][1] for g in groups])[:, data.pose_of]  # (P, L, 3)
+    dirs = np.array([p.direction for p in model.params], dtype=np.float64)
+    axis = np.einsum("pkij,pj->pki", rot_a, dirs)[:, data.pose_of]  # (P, L, 3)
+    is_rot = np.array([p.kind == "rot" for p in model.params])
+    cols = np.where(is_rot[:, None, None], np.cross(axis, world[None] - o_f), axis)
+    return np.asarray(cols.reshape(len(groups), -1).T, dtype=np.float64)
 
 
 def _normalised_svd(jac: F64) -> tuple[F64, F64]:
@@ -631,45 +652,38 @@ def _select_parameters(
 # ---------------------------------------------------------------- fitting
 
 
-def _robust_cost(err_mm: F64, scale_mm: float) -> float:
-    """Σ c² ρ((e/c)²) with the soft-L1 ρ(z) = 2(√(1+z) − 1) over per-sphere distances e."""
-    z = (err_mm / scale_mm) ** 2
-    return float(scale_mm**2 * np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
+def _sphere_soft_l1(z: F64) -> F64:
+    """soft-L1 ρ(s) = 2(√(1+s) − 1) of each sphere's squared 3-D distance s = Σ over its x, y, z
+    components of ``z`` (already divided by ``f_scale``²), in ``least_squares``'s callable-loss form:
+    rows ρ, ρ′, ρ″ per residual component (ρ split in three so the cost sums per sphere).
+
+    ρ″ is returned as 0: the cross-component Hessian of a per-sphere loss is not diagonal, and
+    with 0 the trust-region model is the IRLS one (gradient exact, weights ρ′ per sphere)."""
+    s = np.repeat(z.reshape(-1, 3).sum(axis=1), 3)
+    root = np.sqrt(1.0 + s)
+    return np.stack([2.0 * (root - 1.0) / 3.0, 1.0 / root, np.zeros_like(s)])
 
 
 def _fit(model: _Model, data: _Data, x0: F64, params: CalibrationParams) -> F64:
-    """Levenberg–Marquardt with iteratively reweighted soft-L1 loss on per-sphere distances.
-
-    Written out (normal equations of ≤ 30 parameters, einsum) rather than calling
-    ``scipy.optimize.least_squares``: its SVD of the tall Jacobian goes through a threaded
-    BLAS that is slow on a loaded machine, and the loss is applied per sphere, not per axis.
-    """
-    v = np.asarray(x0, dtype=np.float64).copy()
-    r = _residuals(model, data, v)
-    cost = _robust_cost(np.linalg.norm(r.reshape(-1, 3), axis=1), params.robust_scale_mm)
-    damping = 1e-6
-    for _ in range(MAX_ITERATIONS):
-        e = np.linalg.norm(r.reshape(-1, 3), axis=1)
-        sw = np.repeat((1.0 + (e / params.robust_scale_mm) ** 2) ** -0.25, 3)  # √ of IRLS weight ρ'
-        jw = _jacobian(model, data, v) * sw[:, None]
-        h = np.einsum("ij,ik->jk", jw, jw)
-        g = np.einsum("ij,i->j", jw, r * sw)
-        d = np.diag(h).copy()
-        d[d == 0.0] = 1.0
-        while damping < 1e12:
-            step = np.linalg.solve(h + damping * np.diag(d), -g)
-            r_new = _residuals(model, data, v + step)
-            cost_new = _robust_cost(np.linalg.norm(r_new.reshape(-1, 3), axis=1), params.robust_scale_mm)
-            if cost_new <= cost:
-                break
-            damping *= 10.0
-        else:
-            return v
-        v, r, done = v + step, r_new, cost - cost_new <= 1e-15 * cost or cost_new < 1e-26
-        cost, damping = cost_new, max(damping / 10.0, 1e-9)
-        if done or float(np.max(np.abs(step) * np.sqrt(d))) < 1e-13:
-            break
-    return v
+    """Robust least squares on all sphere residuals: ``scipy.optimize.least_squares`` (TRF) with
+    the analytic Jacobian and a soft-L1 loss of scale ``robust_scale_mm`` on each sphere's 3-D
+    distance (issue #10)."""
+    res = least_squares(
+        lambda v: _residuals(model, data, v),
+        np.asarray(x0, dtype=np.float64),
+        jac=lambda v: _jacobian(model, data, v),
+        method="trf",
+        loss=_sphere_soft_l1,
+        f_scale=params.robust_scale_mm,
+        x_scale="jac",
+        tr_solver=TR_SOLVER,
+        tr_options={"atol": LSMR_TOL, "btol": LSMR_TOL} if TR_SOLVER == "lsmr" else {},
+        ftol=FTOL,
+        xtol=XTOL,
+        gtol=GTOL,
+        max_nfev=MAX_NFEV,
+    )
+    return np.asarray(res.x, dtype=np.float64)
 
 
 def _per_pose(model: _Model, data: _Data, values: F64, n_poses: int) -> tuple[F64, F64, list[F64]]:
