@@ -136,8 +136,11 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         w = settings.watcher
         ctx.watcher = SeriesWatcher(
             settings.watch_dir,
-            on_series=Intake(ctx.db, ctx.capture, ctx.volumes, ctx.bus.publish),
+            on_series=Intake(
+                ctx.db, ctx.capture, ctx.volumes, ctx.bus.publish, withdraw=ctx.orchestrator.withdraw_scan
+            ),
             is_known=ctx.db.scans.has_complete,
+            recorded_slices=ctx.db.scans.recorded_slices,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 ScanStatus = Literal["complete", "invalid"]
-RegistrationStatus = Literal["accepted", "refused"]
+RegistrationStatus = Literal["accepted", "refused", "withdrawn"]
 
 Matrix4 = tuple[tuple[float, ...], ...]
 """4 × 4 row-major transform, mm."""
@@ -252,6 +252,8 @@ class RegistrationRecord:
     joints_received_at: str | None = None
     duration_s: float | None = None
     is_current: bool = False
+    withdrawn_at: str | None = None
+    """When it stopped being usable (status ``withdrawn``; ``reason`` says why)."""
 
 
 # ---- verifications -------------------------------------------------------------------------

@@ -201,8 +201,8 @@ class RegistrationOut(_Out):
     )
 
     id: int
-    status: str = Field(description="accepted | refused")
-    reason: str = Field(description="Why it was refused (empty when accepted).")
+    status: str = Field(description="accepted | refused | withdrawn")
+    reason: str = Field(description="Why it was refused or withdrawn (empty when accepted).")
     problem_title: str = ""
     is_current: bool
     scan_id: int | None

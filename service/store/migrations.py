@@ -9,11 +9,14 @@
 ``registrations``
     every POST /register, accepted or refused: ``image_from_robot``, quality figures,
     provenance (series UID, joints and their timestamp, config hash, software version),
-    status ``accepted`` / ``refused`` + reason.
+    status ``accepted`` / ``refused`` + reason; ``withdrawn_at`` / ``withdrawn_reason`` (schema 2)
+    mark an accepted one withdrawn (its scan was reopened: incomplete when registered).
 ``verifications``
     every POST /verify: per-sphere errors, mean / RMS / max, histogram path.
 ``current_registration``
     a single-row pointer to the registration the service serves.
+``retention_log`` (schema 2)
+    every scan folder the retention policy deleted, with its size and why.
 """
 
 from __future__ import annotations
@@ -100,6 +103,26 @@ MIGRATIONS: tuple[str, ...] = (
         singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
         registration_id INTEGER NOT NULL REFERENCES registrations(id),
         set_at TEXT NOT NULL
+    );
+    """,
+    # 2: issue #13 — a registration can be withdrawn (its scan turned out incomplete, design §9), a
+    # scan reopened (late slices) and its files deleted by the retention policy (the row stays).
+    # SQLite cannot widen the CHECK on registrations.status in place (the table would have to be
+    # rebuilt under foreign keys), so "withdrawn" is an accepted row with withdrawn_at set; the store
+    # reports its status as "withdrawn".
+    """
+    ALTER TABLE registrations ADD COLUMN withdrawn_at TEXT;
+    ALTER TABLE registrations ADD COLUMN withdrawn_reason TEXT NOT NULL DEFAULT '';
+    ALTER TABLE scans ADD COLUMN reopened_count INTEGER NOT NULL DEFAULT 0;
+    ALTER TABLE scans ADD COLUMN files_deleted_at TEXT;
+    ALTER TABLE scans ADD COLUMN files_deleted_reason TEXT NOT NULL DEFAULT '';
+    CREATE TABLE retention_log (
+        id INTEGER PRIMARY KEY,
+        deleted_at TEXT NOT NULL,
+        scan_id INTEGER REFERENCES scans(id),
+        folder TEXT NOT NULL,
+        bytes INTEGER NOT NULL,
+        reason TEXT NOT NULL
     );
     """,
 )
