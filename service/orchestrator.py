@@ -125,7 +125,8 @@ class Orchestrator:
         if ids:
             log.warning(
                 "registration(s) %s withdrawn (scan %d)%s: %s",
-                ", ".join(map(str, ids)), scan_id, " including the current one" if was_current else "", reason,
+                ", ".join(map(str, ids)), scan_id, " (the current one among them)" if was_current else "",
+                reason,
             )  # fmt: skip
             self.publish(
                 "registration_withdrawn",
