@@ -14,6 +14,7 @@ Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/join
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -146,6 +147,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
             use_polling_only=w.use_polling_only,
         )
         ctx.watcher.start()
+    ctx.retention_task = asyncio.create_task(_retention_loop(ctx), name="oarmreg-retention")
     log.info(
         "oarmreg %s serving: watch %s, data %s, robot %s (%s), auth %s",
         __version__, settings.watch_dir, settings.data_dir, settings.robot.link_url, settings.robot.model,
@@ -153,7 +155,27 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     )  # fmt: skip
 
 
+async def _retention_loop(ctx: ServiceContext) -> None:
+    """Run the retention policy at start-up, then every ``retention.interval_s``; never dies."""
+    from service.retention import run_retention
+
+    r = ctx.settings.retention
+    while True:
+        try:
+            await asyncio.to_thread(
+                run_retention, ctx.db, ctx.settings.watch_dir, ctx.bus.publish,
+                max_age_days=r.max_age_days, max_disk_mb=r.max_disk_mb,
+            )  # fmt: skip
+        except Exception:
+            log.exception("retention: the policy run failed; retrying in %.0f s", r.interval_s)
+        await asyncio.sleep(r.interval_s)  # a period, not synchronisation
+
+
 async def _stop(ctx: ServiceContext) -> None:
+    if ctx.retention_task is not None:
+        ctx.retention_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await ctx.retention_task
     ctx.bus.close()
     if ctx.watcher is not None:
         await asyncio.to_thread(ctx.watcher.stop)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
@@ -32,6 +33,7 @@ class ServiceContext:
     capture: Capture = field(init=False)
     orchestrator: Orchestrator = field(init=False)
     watcher: SeriesWatcher | None = None
+    retention_task: asyncio.Task[None] | None = None
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""
