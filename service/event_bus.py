@@ -31,6 +31,9 @@ EVENT_NAMES = (
     "registration_refused",
     "verification_done",
     "link_state",
+    "scan_reopened",  # late slices of a recorded series (issue #13)
+    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
+    "scan_files_deleted",  # the retention policy deleted a scan's folder
 )
 
 

@@ -127,7 +127,8 @@ def _n_slices(summary: Any) -> int:
 
 
 def snapshot_dir(path: Path) -> tuple[frozenset[tuple[str, int, int]], int]:
-    """Entries of one folder as ``(name, size, mtime_ns)``; returns (snapshot, n_visible_files).
+    """Non-folder entries of one folder as ``(name, size, mtime_ns)`` from ``lstat`` (nothing is opened);
+    returns (snapshot, n_visible_files).
 
     Hidden entries (``.*``, e.g. ``.x.dcm.part`` temp files) are part of the snapshot, so an
     export in progress is never stable, but are not counted as series files.
@@ -138,8 +139,10 @@ def snapshot_dir(path: Path) -> tuple[frozenset[tuple[str, int, int]], int]:
         with os.scandir(path) as it:
             for e in it:
                 try:
-                    if not e.is_file(follow_symlinks=False):
+                    if e.is_dir(follow_symlinks=False):
                         continue
+                    # files, links, FIFOs, devices: lstat only (never opened), so a folder holding only
+                    # hostile entries is still seen and recorded invalid
                     st = e.stat(follow_symlinks=False)
                 except FileNotFoundError:
                     continue  # vanished between listing and stat
