@@ -225,6 +225,81 @@ class ServeProcess:
             self.proc = None
 
 
+@dataclass
+class ForkedServe:
+    """Restarts of ``serve`` forked from :mod:`_zygote` (same code path, without the 4 s of imports)."""
+
+    config: Path
+    port: int
+    log: Path
+    zygote: subprocess.Popen[str] | None = None
+    pid: int | None = None
+    starts: int = 0
+    kills: int = 0
+
+    @property
+    def base_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def _ask(self, line: str) -> str:
+        assert self.zygote is not None and self.zygote.stdin is not None and self.zygote.stdout is not None
+        self.zygote.stdin.write(line + "\n")
+        self.zygote.stdin.flush()
+        return self.zygote.stdout.readline().strip()
+
+    def open(self) -> None:
+        with self.log.open("ab") as out:
+            self.zygote = subprocess.Popen(
+                [sys.executable, str(Path(__file__).with_name("_zygote.py")), str(self.config)],
+                cwd=REPO,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=out,
+                text=True,
+                env={
+                    **os.environ,
+                    "OPENBLAS_NUM_THREADS": "1",
+                    "OMP_NUM_THREADS": "1",
+                    "PYTHONPATH": str(REPO),
+                },
+            )
+        assert self.zygote.stdout is not None
+        assert self.zygote.stdout.readline().strip() == "ready", self.log.read_text()[-3000:]
+
+    def start(self, timeout_s: float = DEADLINE_S) -> None:
+        self.pid = int(self._ask("spawn"))
+        self.starts += 1
+
+        def up() -> bool:
+            try:
+                return httpx.get(self.base_url + "/health", timeout=2.0).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_for(up, "the forked service to answer /health", timeout_s)
+
+    def kill9(self) -> None:
+        assert self.pid is not None
+        os.kill(self.pid, signal.SIGKILL)
+        assert self._ask(f"reap {self.pid}") == "reaped"
+        self.kills += 1
+        self.pid = None
+
+    def close(self) -> None:
+        if self.pid is not None:
+            os.kill(self.pid, signal.SIGTERM)
+            self._ask(f"reap {self.pid}")
+            self.pid = None
+        if self.zygote is not None:
+            assert self.zygote.stdin is not None
+            self.zygote.stdin.write("quit\n")
+            self.zygote.stdin.close()
+            self.zygote.wait(30)
+            if self.zygote.stdout is not None:
+                self.zygote.stdout.close()
+            self.zygote = None
+
+
 def write_config(path: Path, settings: dict[str, Any]) -> None:
     """A TOML config from dotted keys (the subset the suite needs: str, int, float, bool)."""
     tables: dict[str, dict[str, Any]] = {}

@@ -123,7 +123,7 @@ def _set_field(path: Path, keyword: str, value: Any) -> None:
 
 
 SETTINGS = settings(
-    max_examples=100,
+    max_examples=70,
     deadline=EXAMPLE_DEADLINE_MS,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
     derandomize=True,  # the same inputs every run: no order or luck dependence
