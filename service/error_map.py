@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 from drivers.errors import LinkConfigError, RobotLinkError
 from registration.errors import AccuracyGateError, ConfigError, OarmRegError, RegistrationError
-from service.errors import AuthError, InternalError, NoScanError, NotFoundError
+from service.errors import AuthError, InternalError, NoScanError, NotFoundError, StorageFullError
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -57,6 +57,7 @@ ERROR_MAP: dict[type, ErrorClass] = {
     AuthError: ErrorClass(401, EXIT_USAGE, "Unauthorized"),
     RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK, "Robot link error"),
     LinkConfigError: ErrorClass(422, EXIT_CONFIG, "Invalid robot link configuration"),
+    StorageFullError: ErrorClass(507, EXIT_CONFIG, "Data folder full"),
 }
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)

@@ -38,3 +38,10 @@ class AuthError(OarmRegError):
 
     title = "Unauthorized"
     headers: ClassVar[dict[str, str]] = {"WWW-Authenticate": 'Bearer realm="oarmreg"'}
+
+
+class StorageFullError(OarmRegError):
+    """The data folder is full (SQLite ``SQLITE_FULL`` / ``ENOSPC``): the write was rolled back, nothing
+    stored before it is lost.  Answered 507 Insufficient Storage."""
+
+    title = "Data folder full"
