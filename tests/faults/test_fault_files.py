@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _service import Events, Svc, factory_series, in_process_service, wait_for
+from _service import DEADLINE_S, Events, Svc, factory_series, in_process_service, wait_for
 
 from registration.frames import transform_from_xyz_rpy
 
@@ -93,6 +93,34 @@ def test_watcher_health_is_stopped_when_its_thread_is_gone(tmp_path: Path) -> No
     finally:
         w.stop()
     assert w.state()["health"] == "stopped"
+
+
+def test_watcher_reports_stalled_while_one_folder_blocks_it(tmp_path: Path) -> None:
+    import threading
+
+    from service.watcher import SeriesWatcher
+
+    release = threading.Event()
+    entered = threading.Event()
+
+    def slow(arrival: Any) -> None:  # a recording that hangs (a blocked read on a network share, say)
+        entered.set()
+        release.wait(DEADLINE_S)
+
+    w = SeriesWatcher(
+        tmp_path / "w", on_series=slow, use_polling_only=True, quiet_period_s=0.05, poll_interval_s=0.05,
+        stall_after_s=0.2,
+    )  # fmt: skip
+    w.start()
+    try:
+        factory_series(tmp_path / "w" / "s", n=3)
+        assert entered.wait(DEADLINE_S)
+        st = wait_for(lambda: (s := w.state())["health"] == "stalled" and s, "health stalled")
+        assert st["running"] is False and str(tmp_path / "w" / "s") in st["busy_folder"]
+        assert "processing" in st["health_reason"]
+    finally:
+        release.set()
+        w.stop()
 
 
 # ---------------------------------------------------------------------------------------- item 8

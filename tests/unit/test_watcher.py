@@ -119,7 +119,7 @@ def test_reexport_of_same_uid_is_a_duplicate(tmp_path: Path) -> None:
 
 
 def test_junk_folder_is_reported_invalid(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    # issue #13 item 8: a folder with no readable series is recorded (invalid, with the reason), not only logged
+    # issue #13 item 8: a folder with no readable series is recorded (invalid, with the reason)
     w, sink, watch = make(tmp_path)
     j = watch / "junk"
     j.mkdir()
