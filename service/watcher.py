@@ -15,10 +15,19 @@ fallback for network shares, inotify limits and lost events).
 Handled and logged: several series at once (one folder or many), a re-export
 of a series already recorded (deduplicated by SeriesInstanceUID), files
 vanishing while a series loads (retried after the next quiet period), junk
-files (a folder with no DICOM is recorded nowhere; an unloadable series is
-recorded as ``invalid`` with the reason).  Series already present when the
-watcher starts are flagged ``preexisting``: the joints at their acquisition
-are unknown.
+(an unloadable series is recorded as ``invalid`` with the reason; so is a folder
+with no readable series at all, under the key ``folder:<path>``).  Series
+already present when the watcher starts are flagged ``preexisting``: the joints
+at their acquisition are unknown.
+
+Issue #13: a quiet period alone does not make a series complete.  The loader
+refuses a stack with fewer slices than its ImagesInAcquisition announces, and
+late slices of a series already recorded *reopen* it (delivered ``reopened``;
+the intake replaces the record and withdraws the registrations made from the
+short version) instead of being dropped as a re-export.  Nothing but regular
+files is ever opened (``registration.dicom.files``); one folder that raises is
+recorded invalid and never stops the others; :meth:`SeriesWatcher.health` says
+``stopped`` / ``stalled`` / ``erroring`` when the watcher is not doing its job.
 """
 
 from __future__ import annotations
