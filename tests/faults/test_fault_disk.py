@@ -3,9 +3,9 @@
 * The data folder is a 4 MiB tmpfs (``mount -t tmpfs``, root only; skipped otherwise), filled up with a
   ballast file: ``POST /register`` answers 507 problem details naming the full folder, the current
   registration and every stored row stay, and once space is freed the service registers again.
-* The mock controller drops the link while a scan is acquired: the scan is recorded as not still (link
-  down / gap in the joint history), ``POST /register`` refuses it with the reason, and the link
-  recovers (``/status`` connected again, the next scan registers).
+* The mock controller drops the link (and keeps it silent) while a scan is acquired: the scan is
+  recorded as not still (link down / gap in the joint history), ``POST /register`` refuses it with
+  the reason, and the link recovers (``/status`` connected again, the next scan registers).
 * A burst of 10 scans arriving together is recorded completely (10 complete scans, one event each).
 """
 
@@ -112,9 +112,15 @@ def test_link_dropped_mid_scan_is_refused_with_the_reason_and_recovers(
     loose = {"stillness.window_s": 1.2, "stillness.max_gap_s": 0.3}
     with in_process_service(tmp_path, phantom, RobotModel.load("tx60"), **loose) as svc:
         svc.wait_still()
-        svc.mock.disconnect(down_s=0.8)  # the link drops while the O-arm acquires
-        uid = _export(svc, small_scan, "scan-drop")
-        scan = svc.scan_where(lambda s: s["series_uid"] == uid, "the scan recorded")
+        # the link drops while the O-arm acquires, and stays silent (no frames after the reconnect)
+        # until the scan is recorded: the joint snapshot surely covers the outage
+        svc.mock.stall()
+        svc.mock.disconnect(down_s=0.3)
+        try:
+            uid = _export(svc, small_scan, "scan-drop")
+            scan = svc.scan_where(lambda s: s["series_uid"] == uid, "the scan recorded")
+        finally:
+            svc.mock.resume()
         assert scan["joints"]["still"] is False, scan["joints"]
         r = svc.client.post("/register", json={"scan_id": scan["id"]})
         assert r.status_code == 409, r.text
