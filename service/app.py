@@ -157,8 +157,13 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         w = settings.watcher
         ctx.watcher = SeriesWatcher(
             settings.watch_dir,
-            on_series=or_int.folder_intake(Intake(ctx.db, ctx.capture, ctx.volumes, or_int.publish)),
+            on_series=or_int.folder_intake(
+                Intake(
+                    ctx.db, ctx.capture, ctx.volumes, or_int.publish, withdraw=ctx.orchestrator.withdraw_scan
+                )
+            ),
             is_known=ctx.db.scans.has_complete,
+            recorded_slices=ctx.db.scans.recorded_slices,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,
@@ -170,6 +175,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
             "authentication is OFF (api.auth = 'none-loopback-only'): any local process or user can change "
             "the current registration; set api_token and api.auth = 'token' for clinical use"
         )
+    ctx.retention_task = asyncio.create_task(_retention_loop(ctx), name="oarmreg-retention")
     log.info(
         "oarmreg %s serving: watch %s, data %s, robot %s (%s), auth %s",
         __version__, settings.watch_dir, settings.data_dir, settings.robot.link_url, settings.robot.model,
@@ -188,7 +194,27 @@ async def _watch_database(ctx: ServiceContext) -> None:
         await asyncio.sleep(interval_s)
 
 
+async def _retention_loop(ctx: ServiceContext) -> None:
+    """Run the retention policy at start-up, then every ``retention.interval_s``; never dies."""
+    from service.retention import run_retention
+
+    r = ctx.settings.retention
+    while True:
+        try:
+            await asyncio.to_thread(
+                run_retention, ctx.db, ctx.settings.watch_dir, ctx.bus.publish,
+                max_age_days=r.max_age_days, max_disk_mb=r.max_disk_mb,
+            )  # fmt: skip
+        except Exception:
+            log.exception("retention: the policy run failed; retrying in %.0f s", r.interval_s)
+        await asyncio.sleep(r.interval_s)  # a period, not synchronisation
+
+
 async def _stop(ctx: ServiceContext) -> None:
+    if ctx.retention_task is not None:
+        ctx.retention_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await ctx.retention_task
     ctx.bus.close()
     if ctx.or_integration is not None:
         await ctx.or_integration.stop()

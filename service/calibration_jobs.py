@@ -441,12 +441,6 @@ class _Refusal(Exception):
         self.req, self.scans, self.error = req, scans, error
 
 
-def active_calibration_scans(db: Database) -> set[int]:
-    """The scans behind the active calibration: a retention ``Protector`` (keep their files)."""
-    act = db.calibrations.active()
-    return set(act.scan_ids) if act is not None else set()
-
-
 def _request_json(req: CalibrationRequest) -> dict[str, Any]:
     return {
         "scan_ids": None if req.scan_ids is None else list(req.scan_ids),

@@ -42,6 +42,7 @@ class ServiceContext:
     db_watch_task: asyncio.Task[None] | None = None
     tickets: TicketBook = field(default_factory=TicketBook)
     """Single-use tickets for GET /events?ticket= (service.security)."""
+    retention_task: asyncio.Task[None] | None = None
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""

@@ -26,7 +26,14 @@ from dataclasses import dataclass
 
 from drivers.errors import LinkConfigError, RobotLinkError
 from registration.errors import AccuracyGateError, ConfigError, OarmRegError, RegistrationError
-from service.errors import AuthError, DatabaseGoneError, InternalError, NoScanError, NotFoundError
+from service.errors import (
+    AuthError,
+    DatabaseGoneError,
+    InternalError,
+    NoScanError,
+    NotFoundError,
+    StorageFullError,
+)
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -58,6 +65,7 @@ ERROR_MAP: dict[type, ErrorClass] = {
     DatabaseGoneError: ErrorClass(503, EXIT_CONFIG, "Database unavailable"),
     RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK, "Robot link error"),
     LinkConfigError: ErrorClass(422, EXIT_CONFIG, "Invalid robot link configuration"),
+    StorageFullError: ErrorClass(507, EXIT_CONFIG, "Data folder full"),
 }
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)

@@ -44,3 +44,10 @@ class DatabaseGoneError(OarmRegError):
     """The database file was deleted or replaced while the service ran (answered 503)."""
 
     title = "Database unavailable"
+
+
+class StorageFullError(OarmRegError):
+    """The data folder is full (SQLite ``SQLITE_FULL`` / ``ENOSPC``): the write was rolled back, nothing
+    stored before it is lost.  Answered 507 Insufficient Storage."""
+
+    title = "Data folder full"

@@ -48,6 +48,9 @@ EVENT_NAMES = (
     "calibration_refused",
     "calibration_activated",
     "registration_retired",
+    "scan_reopened",  # late slices of a recorded series (issue #13)
+    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
+    "scan_files_deleted",  # the retention policy deleted a scan's folder
 )
 
 

@@ -61,11 +61,14 @@ class Intake:
         capture: SnapshotSource,
         volumes: VolumeCache,
         publish: Callable[[str, dict[str, Any]], None],
+        withdraw: Callable[[int, str], object] | None = None,
     ) -> None:
         self.db = db
         self.capture = capture
         self.volumes = volumes
         self.publish = publish
+        self.withdraw = withdraw
+        """``withdraw(scan_id, reason)``: :meth:`service.orchestrator.Orchestrator.withdraw_scan`."""
 
     def __call__(self, arrival: SeriesArrival) -> None:
         uid = arrival.series_uid
@@ -78,6 +81,9 @@ class Intake:
             )
         )
         scan = new_scan(arrival, snap)
+        if arrival.reopened:
+            self._reopen(arrival, scan)
+            return
         scan_id, created = self.db.scans.upsert(scan)
         if not created:
             return
@@ -94,3 +100,30 @@ class Intake:
             self.publish("scan_invalid", {**data, "reason": arrival.error})
         else:
             self.publish("scan_arrived", {**data, "n_slices": scan.n_slices})
+
+    def _reopen(self, arrival: SeriesArrival, scan: NewScan) -> None:
+        """Late slices of a recorded series: replace its record and volume, withdraw what was made of it."""
+        uid = arrival.series_uid
+        self.volumes.discard(uid)
+        scan_id, before = self.db.scans.reopen(scan)
+        if arrival.volume is not None:
+            self.volumes.put(uid, arrival.volume)
+        now = f"{scan.n_slices} slices" if not arrival.error else f"now invalid: {arrival.error}"
+        reason = (
+            f"scan {scan_id} (series {uid}) was recorded with {before} slices, then more slices arrived in "
+            f"{arrival.folder} ({now}): the earlier record was incomplete. Register the completed scan again."
+        )
+        self.publish(
+            "scan_reopened",
+            {
+                "scan_id": scan_id,
+                "series_uid": uid,
+                "folder": str(arrival.folder),
+                "previous_slices": before,
+                "n_slices": scan.n_slices,
+                "status": scan.status,
+                "reason": reason,
+            },
+        )
+        if self.withdraw is not None:
+            self.withdraw(scan_id, reason)

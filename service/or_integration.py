@@ -147,7 +147,10 @@ class OrIntegration:
             self._registrar = _started(ThreadPoolExecutor(1, thread_name_prefix="oarmreg-autoreg"))
         d = self.settings.dicom
         if d.enabled:
-            self.intake = Intake(self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish)
+            self.intake = Intake(
+                self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish,
+                withdraw=self.ctx.orchestrator.withdraw_scan,
+            )  # fmt: skip
             self._decoder = _started(ThreadPoolExecutor(1, thread_name_prefix="oarmreg-dicom-decode"))
             cfg = DicomScpConfig(
                 enabled=True, host=d.host, ae_title=d.ae_title, port=d.port,

@@ -131,6 +131,34 @@ class Orchestrator:
                 self._current = None
             return out
 
+    @property
+    def no_current_reason(self) -> str:
+        """Why nothing is current: the newest withdrawal's reason if that is why, else ``""``."""
+        if self._current is not None:
+            return ""
+        w = self.db.registrations.latest_withdrawn()
+        return "" if w is None else f"registration {w.id} was withdrawn: {w.reason}"
+
+    def withdraw_scan(self, scan_id: int, reason: str) -> list[int]:
+        """Withdraw the registrations made from ``scan_id`` (design §9: its scan turned out incomplete
+        or damaged).  Waits for a registration in progress; if the current one is withdrawn nothing is
+        current afterwards (every push channel INVALID).  Publishes ``registration_withdrawn``."""
+        with self._lock:
+            ids, was_current = self.db.registrations.withdraw_for_scan(scan_id, reason)
+            if was_current or (self._current is not None and self._current.id in ids):
+                self._current = None
+        if ids:
+            log.warning(
+                "registration(s) %s withdrawn (scan %d)%s: %s",
+                ", ".join(map(str, ids)), scan_id, " (the current one among them)" if was_current else "",
+                reason,
+            )  # fmt: skip
+            self.publish(
+                "registration_withdrawn",
+                {"registration_ids": ids, "scan_id": scan_id, "was_current": was_current, "reason": reason},
+            )
+        return ids
+
     def wait_idle(self) -> None:
         """Return once no registration or verification is running."""
         with self._lock:

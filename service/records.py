@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 ScanStatus = Literal["complete", "invalid"]
-RegistrationStatus = Literal["accepted", "refused", "retired"]
+RegistrationStatus = Literal["accepted", "refused", "retired", "withdrawn"]
 
 Matrix4 = tuple[tuple[float, ...], ...]
 """4 × 4 row-major transform, mm."""
@@ -255,6 +255,8 @@ class RegistrationRecord:
     retired_at: str | None = None
     """When activating calibration ``retired_by_calibration`` retired it (status ``retired``)."""
     retired_by_calibration: int | None = None
+    withdrawn_at: str | None = None
+    """When it stopped being usable (status ``withdrawn``; ``reason`` says why)."""
 
 
 # ---- verifications -------------------------------------------------------------------------

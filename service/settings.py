@@ -136,6 +136,14 @@ class WatcherSettings(_Section):
     use_polling_only: bool = False
 
 
+class RetentionSettings(_Section):
+    """Deleting old intake scans (``service.retention``); both limits off by default."""
+
+    max_age_days: float | None = Field(default=None, gt=0, le=36500)
+    max_disk_mb: float | None = Field(default=None, gt=0)
+    interval_s: float = Field(default=3600.0, ge=1, le=86400)
+
+
 class DetectionSettings(_Section):
     method: Literal["default", "subvoxel", "paper"] = "default"
     use_mar: bool = True
@@ -309,6 +317,7 @@ class Settings(BaseSettings):
     igtl: IgtlSettings = IgtlSettings()
     tls: TlsSettings = TlsSettings()
     service: ServiceSection = ServiceSection()
+    retention: RetentionSettings = RetentionSettings()
 
     @classmethod
     def settings_customise_sources(

@@ -28,6 +28,11 @@ class VolumeCache:
             while len(self._volumes) > self._size:
                 self._volumes.popitem(last=False)
 
+    def discard(self, series_uid: str) -> None:
+        """Forget a volume (its series was reopened or its files deleted)."""
+        with self._lock:
+            self._volumes.pop(series_uid, None)
+
     def get(self, series_uid: str) -> Volume | None:
         with self._lock:
             return self._volumes.get(series_uid)

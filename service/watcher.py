@@ -15,10 +15,19 @@ fallback for network shares, inotify limits and lost events).
 Handled and logged: several series at once (one folder or many), a re-export
 of a series already recorded (deduplicated by SeriesInstanceUID), files
 vanishing while a series loads (retried after the next quiet period), junk
-files (a folder with no DICOM is recorded nowhere; an unloadable series is
-recorded as ``invalid`` with the reason).  Series already present when the
-watcher starts are flagged ``preexisting``: the joints at their acquisition
-are unknown.
+(an unloadable series is recorded as ``invalid`` with the reason; so is a folder
+with no readable series at all, under the key ``folder:<path>``).  Series
+already present when the watcher starts are flagged ``preexisting``: the joints
+at their acquisition are unknown.
+
+Issue #13: a quiet period alone does not make a series complete.  The loader
+refuses a stack with fewer slices than its ImagesInAcquisition announces, and
+late slices of a series already recorded *reopen* it (delivered ``reopened``;
+the intake replaces the record and withdraws the registrations made from the
+short version) instead of being dropped as a re-export.  Nothing but regular
+files is ever opened (``registration.dicom.files``); one folder that raises is
+recorded invalid and never stops the others; :meth:`SeriesWatcher.health` says
+``stopped`` / ``stalled`` / ``erroring`` when the watcher is not doing its job.
 """
 
 from __future__ import annotations
@@ -63,6 +72,19 @@ class SeriesArrival:
     error: str = ""
     duplicate: bool = False
     preexisting: bool = False
+    reopened: bool = False
+    """Late slices of a series recorded before: the earlier record was incomplete (issue #13 item 3)."""
+    previous_slices: int = 0
+    """Slices of the earlier record when ``reopened``."""
+
+
+FOLDER_UID_PREFIX = "folder:"
+"""Series UID under which a folder with no readable series is recorded (``folder:<path>``)."""
+
+
+def folder_uid(folder: Path) -> str:
+    """The scan key of a folder that holds no readable series (junk, NUL files, link loops, ...)."""
+    return FOLDER_UID_PREFIX + str(folder)
 
 
 @dataclass
@@ -83,6 +105,9 @@ class WatcherStats:
     invalid: int = 0
     retries: int = 0
     junk_folders: int = 0
+    folder_errors: int = 0
+    reopened: int = 0
+    failed_ticks: int = 0
     last_error: str = ""
     last_scan_at: str = ""
     pending: list[str] = field(default_factory=list)
@@ -105,8 +130,14 @@ def _n_files(summary: Any) -> int:
     return int(v or 0)
 
 
+def _n_slices(summary: Any) -> int:
+    v = getattr(summary, "n_slices", None)
+    return int(v) if v is not None else _n_files(summary)
+
+
 def snapshot_dir(path: Path) -> tuple[frozenset[tuple[str, int, int]], int]:
-    """Entries of one folder as ``(name, size, mtime_ns)``; returns (snapshot, n_visible_files).
+    """Non-folder entries of one folder as ``(name, size, mtime_ns)`` from ``lstat`` (nothing is opened);
+    returns (snapshot, n_visible_files).
 
     Hidden entries (``.*``, e.g. ``.x.dcm.part`` temp files) are part of the snapshot, so an
     export in progress is never stable, but are not counted as series files.
@@ -117,8 +148,10 @@ def snapshot_dir(path: Path) -> tuple[frozenset[tuple[str, int, int]], int]:
         with os.scandir(path) as it:
             for e in it:
                 try:
-                    if not e.is_file(follow_symlinks=False):
+                    if e.is_dir(follow_symlinks=False):
                         continue
+                    # files, links, FIFOs, devices: lstat only (never opened), so a folder holding only
+                    # hostile entries is still seen and recorded invalid
                     st = e.stat(follow_symlinks=False)
                 except FileNotFoundError:
                     continue  # vanished between listing and stat
@@ -147,6 +180,12 @@ class SeriesWatcher:
         Stability period and rescan interval, s.
     use_polling_only : bool
         Never use OS file-system events.
+    recorded_slices : callable, optional
+        ``recorded_slices(series_uid)`` → slices of its complete record, or None.  When given, a
+        recorded series that grew (late slices) is reloaded and delivered ``reopened`` instead of
+        being dropped as a re-export.
+    stall_after_s : float
+        :meth:`state` reports ``health = "stalled"`` while one folder has been processed for longer.
     """
 
     def __init__(
@@ -158,6 +197,8 @@ class SeriesWatcher:
         quiet_period_s: float = 2.0,
         poll_interval_s: float = 1.0,
         use_polling_only: bool = False,
+        recorded_slices: Callable[[str], int | None] | None = None,
+        stall_after_s: float = 120.0,
     ) -> None:
         self.watch_dir = Path(watch_dir)
         self.on_series = on_series
@@ -165,6 +206,9 @@ class SeriesWatcher:
         self.quiet_period_s = quiet_period_s
         self.poll_interval_s = poll_interval_s
         self.use_polling_only = use_polling_only
+        self.recorded_slices = recorded_slices
+        self.stall_after_s = stall_after_s
+        self._busy: tuple[Path, float] | None = None
         self.mode = "stopped"
         self.stats = WatcherStats()
         self._dirs: dict[Path, _DirState] = {}
@@ -228,12 +272,36 @@ class SeriesWatcher:
             self._thread = None
         self.mode = "stopped"
 
+    def health(self) -> tuple[str, str]:
+        """``(health, why)``: ``ok``, ``stopped`` (thread not alive), ``stalled`` (one folder busy for
+        more than ``stall_after_s``) or ``erroring`` (the last scan of the tree failed)."""
+        if self._thread is None or not self._thread.is_alive():
+            return "stopped", "the watcher thread is not running; restart the service"
+        busy = self._busy
+        if busy is not None and time.monotonic() - busy[1] > self.stall_after_s:
+            return "stalled", (
+                f"processing {busy[0]} for {time.monotonic() - busy[1]:.0f} s "
+                f"(more than {self.stall_after_s:g} s); "
+                "no other folder is scanned meanwhile: check that folder for files that cannot be read"
+            )
+        if self.stats.failed_ticks:
+            return "erroring", f"the last scan of {self.watch_dir} failed: {self.stats.last_error}"
+        return "ok", ""
+
     def state(self) -> dict[str, Any]:
+        health, why = self.health()
+        busy = self._busy
         with self._lock:
             return {
                 "watch_dir": str(self.watch_dir),
                 "mode": self.mode,
-                "running": self._thread is not None and self._thread.is_alive(),
+                "running": health in ("ok", "erroring"),
+                "health": health,
+                "health_reason": why,
+                "busy_folder": "" if busy is None else str(busy[0]),
+                "folder_errors": self.stats.folder_errors,
+                "junk_folders": self.stats.junk_folders,
+                "reopened": self.stats.reopened,
                 "quiet_period_s": self.quiet_period_s,
                 "series_recorded": self.stats.series_recorded,
                 "duplicates": self.stats.duplicates,
@@ -250,10 +318,13 @@ class SeriesWatcher:
         while not self._stop.is_set():
             try:
                 next_due = self.tick(time.monotonic())
-            except Exception as e:  # never let the watcher die
+                with self._lock:
+                    self.stats.failed_ticks = 0
+            except Exception as e:  # never let the watcher die; /status says "erroring"
                 log.exception("watcher: unexpected error while scanning %s", self.watch_dir)
                 with self._lock:
                     self.stats.last_error = f"{type(e).__name__}: {e}"
+                    self.stats.failed_ticks += 1
                 next_due = None
             timeout = self.poll_interval_s
             if next_due is not None:
@@ -273,33 +344,15 @@ class SeriesWatcher:
         first = self._first_tick
         self._first_tick = False
         for folder in self._folders():
-            snap, n_visible = snapshot_dir(folder)
-            if n_visible == 0:
-                continue
-            seen.add(folder)
-            st = self._dirs.get(folder)
-            if st is None:
-                st = _DirState(snap, now_t_s, now_t_s, datetime.now(UTC), preexisting=first)
-                self._dirs[folder] = st
-                if not first:
-                    log.info("watcher: new files in %s", folder)
-            elif snap != st.snapshot:
-                if st.processed is not None and st.processed != snap and st.snapshot == st.processed:
-                    # new content after a processed state: a new arrival (e.g. re-export)
-                    st.first_seen_t_s = now_t_s
-                    st.first_seen_at = datetime.now(UTC)
-                    st.preexisting = False
-                st.snapshot = snap
-                st.changed_t_s = now_t_s
-            if st.processed == st.snapshot:
-                continue
-            due = st.changed_t_s + self.quiet_period_s
-            if now_t_s < due:
-                next_due = due if next_due is None else min(next_due, due)
-                continue
-            self._process(folder, st)
-            if st.processed != st.snapshot:
-                due = st.changed_t_s + self.quiet_period_s
+            self._busy = (folder, time.monotonic())
+            try:
+                due = self._tick_folder(folder, now_t_s, first, seen)
+            except Exception as e:  # one bad folder never stops the others (MemoryError included)
+                due = None
+                self._folder_failed(folder, e)
+            finally:
+                self._busy = None
+            if due is not None:
                 next_due = due if next_due is None else min(next_due, due)
         for gone in set(self._dirs) - seen:
             del self._dirs[gone]
@@ -307,6 +360,65 @@ class SeriesWatcher:
             self.stats.pending = sorted(str(p) for p, s in self._dirs.items() if s.processed != s.snapshot)
             self.stats.last_scan_at = datetime.now(UTC).isoformat()
         return next_due
+
+    def _tick_folder(self, folder: Path, now_t_s: float, first: bool, seen: set[Path]) -> float | None:
+        """Snapshot one folder, process it once quiet; the time its quiet period ends (None: done)."""
+        snap, n_visible = snapshot_dir(folder)
+        if n_visible == 0:
+            return None
+        seen.add(folder)
+        st = self._dirs.get(folder)
+        if st is None:
+            st = _DirState(snap, now_t_s, now_t_s, datetime.now(UTC), preexisting=first)
+            self._dirs[folder] = st
+            if not first:
+                log.info("watcher: new files in %s", folder)
+        elif snap != st.snapshot:
+            if st.processed is not None and st.processed != snap and st.snapshot == st.processed:
+                # new content after a processed state: a new arrival (late slices, a re-export)
+                st.first_seen_t_s = now_t_s
+                st.first_seen_at = datetime.now(UTC)
+                st.preexisting = False
+            st.snapshot = snap
+            st.changed_t_s = now_t_s
+        if st.processed == st.snapshot:
+            return None
+        due = st.changed_t_s + self.quiet_period_s
+        if now_t_s < due:
+            return due
+        self._process(folder, st)
+        return st.changed_t_s + self.quiet_period_s if st.processed != st.snapshot else None
+
+    def _folder_failed(self, folder: Path, e: BaseException) -> None:
+        """Record a folder whose processing raised as ``invalid`` (not retried until it changes)."""
+        log.exception("watcher: processing %s failed", folder)
+        why = (
+            f"processing the folder failed ({type(e).__name__}: {e}); the watcher carries on with the other "
+            "folders. Remove or re-export this folder."
+        )
+        with self._lock:
+            self.stats.folder_errors += 1
+            self.stats.last_error = f"{folder}: {type(e).__name__}: {e}"
+        st = self._dirs.get(folder)
+        if st is None:
+            return
+        st.processed = st.snapshot
+        self._deliver_folder_invalid(folder, st, why)
+
+    def _deliver_folder_invalid(self, folder: Path, st: _DirState, reason: str) -> None:
+        """Record a folder with no readable series as an ``invalid`` scan (key :func:`folder_uid`)."""
+        self._deliver(
+            SeriesArrival(
+                series_uid=folder_uid(folder),
+                folder=folder,
+                first_seen_t_s=st.first_seen_t_s,
+                last_change_t_s=st.changed_t_s,
+                first_seen_at=st.first_seen_at,
+                n_files=snapshot_dir(folder)[1],
+                error=reason,
+                preexisting=st.preexisting,
+            )
+        )
 
     def _folders(self) -> list[Path]:
         out = []
@@ -325,28 +437,31 @@ class SeriesWatcher:
         log.warning("watcher: %s; retrying %s after the next quiet period", why, folder)
 
     def _process(self, folder: Path, st: _DirState) -> None:
-        from registration.dicom import list_series
+        from registration.dicom import read_series_headers
 
         before = st.snapshot
         try:
-            summaries = list_series(folder)
+            scan = read_series_headers(folder)
         except DicomSeriesError as e:
             if snapshot_dir(folder)[0] != before:
                 self._retry_later(folder, st, f"files in {folder} changed while listing ({e})")
                 return
-            log.warning("watcher: ignoring %s: no usable DICOM series (%s)", folder, e)
-            with self._lock:
-                self.stats.junk_folders += 1
-            st.processed = before
+            log.warning("watcher: %s holds no usable DICOM series (%s)", folder, e)
+            self._junk(folder, st, before, f"no usable DICOM series: {e}")
             return
         except OSError as e:
             self._retry_later(folder, st, f"cannot list {folder}: {e}")
             return
+        summaries = list(scan.series)
         if not summaries:
-            log.info("watcher: %s holds no DICOM series (junk files only?); ignored", folder)
-            with self._lock:
-                self.stats.junk_folders += 1
-            st.processed = before
+            shown = "; ".join(f"{sk.path.name}: {sk.reason}" for sk in scan.skipped[:4])
+            more = f" (+{len(scan.skipped) - 4} more)" if len(scan.skipped) > 4 else ""
+            log.info("watcher: %s holds no DICOM series (junk files only?)", folder)
+            self._junk(
+                folder, st, before,
+                f"no readable CT series in {folder}: {len(scan.skipped)} file(s) skipped: {shown}{more}. "
+                "Remove the folder or export the series again.",
+            )  # fmt: skip
             return
         retry = False
         for summary in summaries:
@@ -360,6 +475,12 @@ class SeriesWatcher:
             self._retry_later(folder, st, f"recording a series from {folder} failed ({why})")
         else:
             st.processed = before
+
+    def _junk(self, folder: Path, st: _DirState, before: frozenset[tuple[str, int, int]], why: str) -> None:
+        with self._lock:
+            self.stats.junk_folders += 1
+        st.processed = before
+        self._deliver_folder_invalid(folder, st, why)
 
     def _process_series(
         self, folder: Path, st: _DirState, summary: Any, before: frozenset[tuple[str, int, int]]
@@ -378,11 +499,20 @@ class SeriesWatcher:
             "n_files": _n_files(summary),
             "preexisting": st.preexisting,
         }
-        if self.is_known(uid):
+        recorded = self._recorded(uid)
+        if recorded is not None and _n_slices(summary) <= recorded:
             log.info("watcher: series %s in %s is already recorded (re-export); not reloaded", uid, folder)
             with self._lock:
                 self.stats.duplicates += 1
             return self._deliver(SeriesArrival(**arrival_kw, duplicate=True))
+        if recorded is not None:  # late slices of a recorded series: it was incomplete
+            log.warning(
+                "watcher: series %s in %s grew from %d to %d slices after it was recorded; reopening it",
+                uid, folder, recorded, _n_slices(summary),
+            )  # fmt: skip
+            with self._lock:
+                self.stats.reopened += 1
+            arrival_kw.update(reopened=True, previous_slices=recorded)
         problem = str(getattr(summary, "problem", "") or "")
         if problem:
             if snapshot_dir(folder)[0] != before:
@@ -413,6 +543,12 @@ class SeriesWatcher:
         with self._lock:
             self.stats.series_recorded += 1
         return self._deliver(SeriesArrival(**arrival_kw, volume=volume))
+
+    def _recorded(self, uid: str) -> int | None:
+        """Slices of the complete record of ``uid`` (None: not recorded; huge: recorded, count unknown)."""
+        if self.recorded_slices is not None:
+            return self.recorded_slices(uid)
+        return 1 << 30 if self.is_known(uid) else None
 
     def _deliver(self, arrival: SeriesArrival) -> bool:
         try:

@@ -115,3 +115,27 @@ class PixelDataError(SeriesError):
     """Pixel data could not be read or decoded, or has an unsupported format."""
 
     title = "Unreadable pixel data"
+
+
+class VolumeTooLargeError(PixelDataError):
+    """Rows x Columns x slices is more than :data:`MAX_VOLUME_BYTES` (or more than the memory left)."""
+
+    title = "Volume too large"
+
+
+class InvalidRescaleError(SeriesError):
+    """RescaleSlope (0028,1053) is zero or RescaleSlope / RescaleIntercept (0028,1052) is not finite."""
+
+    title = "Invalid rescale"
+
+
+class IncompleteSeriesError(MissingSliceError):
+    """Fewer slices than the headers announce (ImagesInAcquisition (0020,1002)): the export is unfinished."""
+
+    title = "Incomplete series"
+
+
+class NotRegularFileError(SeriesError):
+    """The path is a FIFO, device, socket, symlink loop or points outside the folder: never opened."""
+
+    title = "Not a regular file"

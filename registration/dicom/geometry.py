@@ -30,7 +30,9 @@ from registration.dicom.errors import (
     MAX_FILES_IN_MESSAGE,
     DuplicatePositionError,
     GantryTiltError,
+    IncompleteSeriesError,
     InconsistentImageSizeError,
+    InvalidRescaleError,
     MissingGeometryError,
     MissingSliceError,
     MixedFrameOfReferenceError,
@@ -38,6 +40,7 @@ from registration.dicom.errors import (
     SeriesError,
     SingleSliceError,
     UnevenSpacingError,
+    VolumeTooLargeError,
     file_names,
 )
 from registration.dicom.headers import SliceHeader, slice_name
@@ -71,6 +74,12 @@ SHEAR_TOLERANCE_MM: Final = 0.02
 """Max sideways offset (mm) of any slice origin from the line through the first origin along the slice
 normal.  5 % of a 0.415 mm pixel, 4x the 0.005 mm DS rounding; a 1° gantry tilt already gives
 0.015 mm per 0.833 mm step and 2.8 mm over 192 slices."""
+
+MAX_VOLUME_BYTES: Final = 4 * 1024**3
+"""Largest volume the loader allocates (bytes, counted at 4 bytes per voxel since the output may become
+float32).  4 GiB is a 1024³ float32 volume, 20x the commonly quoted 512 x 512 x 192 O-arm volume
+(image-side.md §1.1) as float32.  Encapsulated PixelData is not size-checked before decoding, so a damaged
+header's Rows / Columns would otherwise ask for tens of GiB before the decoder notices."""
 
 AXIAL_MIN_NORMAL_Z: Final = math.cos(math.radians(45.0))
 """A stack counts as axial when |n_z| of its slice normal is at least cos 45°; axial stacks are
@@ -142,7 +151,14 @@ def check_series_geometry(slices: Sequence[SliceHeader], series_uid: str = "") -
        (:func:`check_no_missing_slices`);
     9. every step, and every position against the uniform grid, within
        ``max(SPACING_TOLERANCE_FRACTION · spacing, SPACING_TOLERANCE_MIN_MM)``
-       → :class:`UnevenSpacingError` (:func:`check_even_steps`, :func:`check_uniform_grid`).
+       → :class:`UnevenSpacingError` (:func:`check_even_steps`, :func:`check_uniform_grid`);
+    10. as many slices as ImagesInAcquisition (0020,1002) announces, when a slice carries it
+        → :class:`IncompleteSeriesError` (:func:`check_announced_count`).
+
+    Between rules 4 and 5: the whole volume within :data:`MAX_VOLUME_BYTES`
+    → :class:`VolumeTooLargeError` (:func:`check_volume_size`), and every slice's
+    RescaleSlope (0028,1053) finite and non-zero, RescaleIntercept (0028,1052) finite
+    → :class:`InvalidRescaleError` (:func:`check_rescale`).
 
     Slices are sorted by ``s = IPP · n`` with ``n = row × col`` (the row and
     column direction cosines of (0020,0037)).  The affine maps the index
@@ -160,6 +176,8 @@ def check_series_geometry(slices: Sequence[SliceHeader], series_uid: str = "") -
     check_frame_of_reference(slices, series_uid)
     check_image_size(slices, series_uid)
     check_pixel_spacing(slices, series_uid)
+    check_volume_size(slices, series_uid)
+    check_rescale(slices, series_uid)
     check_orientation(slices, series_uid)
     stack = sort_along_normal(slices)
     check_no_duplicates(stack, series_uid)
@@ -169,6 +187,7 @@ def check_series_geometry(slices: Sequence[SliceHeader], series_uid: str = "") -
     check_no_missing_slices(stack, nominal_mm, tol_mm, series_uid)
     check_even_steps(stack, nominal_mm, tol_mm, series_uid)
     spacing_mm = check_uniform_grid(stack, tol_mm, series_uid)
+    check_announced_count(stack, series_uid)
     return SeriesGeometry(
         slices=stack.slices,
         image_from_voxel=image_from_voxel(stack, slices[0].pixel_spacing_mm or (0.0, 0.0)),
@@ -288,6 +307,59 @@ def _check_close(
         "Expected one value for the whole stack: remove the stray files (a scout or a reformat?) or "
         "re-export the series.",
         files=[h.path for h in off],
+        series_uid=series_uid,
+    )
+
+
+def check_volume_size(slices: Sequence[SliceHeader], series_uid: str) -> None:
+    """Refuse a stack whose voxels (at 4 bytes each) would exceed :data:`MAX_VOLUME_BYTES`."""
+    h = slices[0]
+    n_bytes = len(slices) * h.rows * h.columns * 4
+    if n_bytes > MAX_VOLUME_BYTES:
+        raise VolumeTooLargeError(
+            f"series {series_uid}: {len(slices)} slices of {h.rows} x {h.columns} pixels would need "
+            f"{n_bytes / 1024**3:.1f} GiB as float32, more than the loader's limit of "
+            f"{MAX_VOLUME_BYTES / 1024**3:.1f} GiB (a 1024³ volume). Rows (0028,0010) / Columns (0028,0011) "
+            f"of {slice_name(h)} are probably damaged; re-export the series.",
+            files=[h.path],
+            series_uid=series_uid,
+        )
+
+
+def check_rescale(slices: Sequence[SliceHeader], series_uid: str) -> None:
+    """Refuse slices whose Modality LUT would turn every voxel into one value, NaN or infinity."""
+    bad = [h for h in slices if h.slope == 0.0 or not (math.isfinite(h.slope) and math.isfinite(h.intercept))]
+    if not bad:
+        return
+    values = sorted({f"({h.slope:g}, {h.intercept:g})" for h in bad})  # text: NaN != NaN in a set
+    raise InvalidRescaleError(
+        f"series {series_uid}: {len(bad)} slice(s) have an unusable rescale (RescaleSlope (0028,1053), "
+        f"RescaleIntercept (0028,1052)) = {', '.join(values[:MAX_FILES_IN_MESSAGE])} "
+        f"({file_names([h.path for h in bad])}); HU = slope · stored + intercept needs a finite, non-zero "
+        "slope and a finite intercept. The headers are damaged; re-export the series.",
+        files=[h.path for h in bad],
+        series_uid=series_uid,
+    )
+
+
+def check_announced_count(stack: SortedStack, series_uid: str) -> None:
+    """Rule 10: as many slices as ImagesInAcquisition (0020,1002) says, when any slice says it.
+
+    A contiguous stack can still be the first half of an export that paused (issue #13 item 3);
+    only the count the scanner announces tells.  Several announced values: the largest counts.
+    """
+    announced = [h.expected_slices for h in stack.slices if h.expected_slices is not None]
+    if not announced:
+        return
+    expected, found = max(announced), len(stack.slices)
+    if found == expected:
+        return
+    more = "fewer" if found < expected else "more"
+    raise IncompleteSeriesError(
+        f"series {series_uid}: {found} slices found, {more} than the {expected} that ImagesInAcquisition "
+        f"(0020,1002) announces (positions {stack.s_mm[0]:.2f}..{stack.s_mm[-1]:.2f} mm along the normal). "
+        "The export is unfinished or mixed: wait for it to finish, or re-export the series.",
+        files=[h.path for h in stack.slices[:1]],
         series_uid=series_uid,
     )
 

@@ -28,6 +28,9 @@ from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
 from pydicom.uid import UID
 
+from registration.dicom.errors import NotRegularFileError
+from registration.dicom.files import open_regular
+
 log = logging.getLogger(__name__)
 
 CT_IMAGE_STORAGE: Final = "1.2.840.10008.5.1.4.1.1.2"
@@ -104,6 +107,9 @@ class SliceHeader:
     manufacturer: str = ""
     acquisition: str = ""
     pixel_vr: str = ""
+    expected_slices: int | None = None
+    """ImagesInAcquisition (0020,1002) when present and positive: how many slices the scanner says the
+    acquisition has (a folder export with fewer is unfinished)."""
 
 
 def slice_name(h: SliceHeader) -> str:
@@ -146,10 +152,12 @@ def read_headers(
     if path.name.endswith(TEMP_FILE_SUFFIXES):
         return _skip(path, "temporary file still being written (*.part)")
     try:
-        with path.open("rb") as f:
+        with open_regular(path) as f:
             ds = dcmread(f, stop_before_pixels=True, defer_size=HEADER_DEFER_SIZE_BYTES)
             file_size = os.fstat(f.fileno()).st_size
             pixels = _pixel_element(f, ds, file_size)
+    except NotRegularFileError as exc:
+        return _skip(path, str(exc).removeprefix(f"{path}: "), damaged=True)
     except InvalidDicomError:
         return _skip(path, "not a DICOM Part-10 file (no 'DICM' marker at byte 128)")
     except OSError as exc:
@@ -335,6 +343,7 @@ def _common_fields(
         "transfer_syntax_uid": str(meta.get("TransferSyntaxUID", "")) if meta else "",
         "pixel_offset": pixels.offset,
         "pixel_vr": pixels.vr,
+        "expected_slices": _announced_count(ds),
         "manufacturer": " ".join(t for k in ("Manufacturer", "ManufacturerModelName") if (t := _text(ds, k))),
         "acquisition": " ".join(
             t
@@ -416,6 +425,12 @@ def _enhanced_frames(ds: Dataset, common: dict[str, Any]) -> list[SliceHeader]:
             )
         )
     return out
+
+
+def _announced_count(ds: _Values) -> int | None:
+    """ImagesInAcquisition (0020,1002) if it is a positive integer, else None (absent or unusable)."""
+    n = _opt_int(ds.get("ImagesInAcquisition"))
+    return n if n is not None and n > 0 else None
 
 
 def _as_list(value: Any) -> list[Any]:

@@ -19,7 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydicom.uid import UID
 
-from registration.dicom.errors import PixelDataError, SeriesError
+from registration.dicom.errors import PixelDataError, SeriesError, VolumeTooLargeError
+from registration.dicom.files import open_regular
 from registration.dicom.headers import SliceHeader, slice_name
 
 log = logging.getLogger(__name__)
@@ -34,12 +35,28 @@ def output_dtype(slices: Sequence[SliceHeader]) -> type[np.int16] | type[np.floa
 def read_voxels(slices: Sequence[SliceHeader], series_uid: str) -> NDArray[Any]:
     """Fill one preallocated (n, rows, columns) array slice by slice, rescaled to HU."""
     n, rows, columns = len(slices), slices[0].rows, slices[0].columns
-    out: NDArray[Any] = np.empty((n, rows, columns), dtype=output_dtype(slices))
+    try:
+        out: NDArray[Any] = np.empty((n, rows, columns), dtype=output_dtype(slices))
+    except MemoryError as exc:  # below MAX_VOLUME_BYTES but more than this machine has left
+        raise VolumeTooLargeError(
+            f"series {series_uid}: not enough memory for {n} slices of {rows} x {columns} pixels "
+            f"({type(exc).__name__}: {exc}). Close other programs or load the series on a machine with "
+            "more memory.",
+            files=[slices[0].path],
+            series_uid=series_uid,
+        ) from exc
     for k, h in enumerate(slices):
         try:
             raw = decode_frame(h)
         except SeriesError:
             raise
+        except MemoryError as exc:  # a damaged header asked the decoder for more than is left
+            raise VolumeTooLargeError(
+                f"series {series_uid}: decoding {slice_name(h)} ran out of memory ({exc}); its Rows / "
+                "Columns / BitsAllocated are probably damaged. Re-export the series.",
+                files=[h.path],
+                series_uid=series_uid,
+            ) from exc
         except Exception as exc:
             raise PixelDataError(
                 f"series {series_uid}: cannot read the pixel data of {slice_name(h)} (transfer syntax "
@@ -104,7 +121,7 @@ def decode_frame(h: SliceHeader) -> NDArray[Any]:
         "transfer_syntax_uid": UID(h.transfer_syntax_uid),
         "view_only": True,  # native data: no writeable copy, the frame is copied into the volume anyway
     }
-    with h.path.open("rb") as f:
+    with open_regular(h.path) as f:
         f.seek(h.pixel_offset)  # the decoder reads from a file positioned at the Pixel Data value
         arr, _ = decoder.as_array(f, index=h.frame, validate=True, **opts)
     if arr.shape != (h.rows, h.columns):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
 from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -23,9 +24,11 @@ from pydicom import dcmread
 from registration.dicom.errors import (
     AmbiguousSeriesError,
     NoCtSeriesError,
+    NotRegularFileError,
     SeriesError,
     SeriesNotFoundError,
 )
+from registration.dicom.files import kind_of, regular_file_problem
 from registration.dicom.geometry import SeriesGeometry, check_series_geometry, is_axial
 from registration.dicom.headers import (
     CT_IMAGE_STORAGE,
@@ -106,10 +109,9 @@ class FolderScan:
 
 
 def scan_folder(root: Path) -> tuple[list[SliceHeader], list[SkippedFile]]:
-    """Header pass over every candidate file under ``root``."""
-    paths = _candidate_files(root)
+    """Header pass over every candidate file under ``root``; refused paths are skipped files."""
+    paths, skipped = _candidate_files(root)
     headers: list[SliceHeader] = []
-    skipped: list[SkippedFile] = []
     memo: dict[tuple[Any, ...], Any] = {}
     for p in paths:
         result = read_headers(p, memo)
@@ -120,41 +122,84 @@ def scan_folder(root: Path) -> tuple[list[SliceHeader], list[SkippedFile]]:
     return headers, skipped
 
 
-def _candidate_files(root: Path) -> list[Path]:
-    """Files to look at: the File-set's instances when there is a DICOMDIR, else every file under ``root``."""
-    if not root.exists():
+def _root_kind(root: Path) -> str:
+    """``"dir"``, ``"file"`` (regular), or raise the refusal for anything else (never opened)."""
+    try:
+        st = os.stat(root)
+    except FileNotFoundError:
         raise NoCtSeriesError(
             f"{root}: no such file or folder; expected a folder of DICOM files or a DICOMDIR.",
             files=[root],
-        )
-    if root.is_file():
+        ) from None
+    except OSError as exc:
+        raise NotRegularFileError(
+            f"{root}: cannot be examined ({type(exc).__name__}: {exc.strerror}); expected a folder of DICOM "
+            "files or a DICOMDIR.",
+            files=[root],
+        ) from None
+    if stat.S_ISDIR(st.st_mode):
+        return "dir"
+    if stat.S_ISREG(st.st_mode):
+        return "file"
+    raise NotRegularFileError(
+        f"{root}: {kind_of(st.st_mode)}, neither a folder nor a regular file; never opened. Point the "
+        "loader at the O-arm export folder (or its DICOMDIR).",
+        files=[root],
+    )
+
+
+def _candidate_files(root: Path) -> tuple[list[Path], list[SkippedFile]]:
+    """Files to look at (the File-set's instances when there is a DICOMDIR, else every regular file
+    under ``root``) and the paths refused without opening them (FIFOs, devices, link loops, links or
+    DICOMDIR references leaving the folder: :mod:`registration.dicom.files`)."""
+    if _root_kind(root) == "file":
         if root.name.upper() == "DICOMDIR":
-            return _fileset_files(root)
-        return [root]
-    dicomdir = next((p for p in root.iterdir() if p.name.upper() == "DICOMDIR" and p.is_file()), None)
+            return _checked(_fileset_files(root), root.parent)
+        return [root], []
+    dicomdir = next(
+        (p for p in root.iterdir() if p.name.upper() == "DICOMDIR" and not regular_file_problem(p, root)),
+        None,
+    )
     if dicomdir is not None:
-        return _fileset_files(dicomdir)
+        return _checked(_fileset_files(dicomdir), root)
     out: list[Path] = []
-    for dirpath, dirnames, filenames in os.walk(root):
+    for dirpath, dirnames, filenames in os.walk(root):  # never follows links to folders
         dirnames.sort()
         out.extend(Path(dirpath) / f for f in sorted(filenames))
-    return out
+    return _checked(out, root)
+
+
+def _checked(paths: Sequence[Path], inside: Path) -> tuple[list[Path], list[SkippedFile]]:
+    """Split ``paths`` into those safe to open and the refused ones (with the reason, logged)."""
+    ok: list[Path] = []
+    refused: list[SkippedFile] = []
+    for p in paths:
+        problem = regular_file_problem(p, inside)
+        if problem:
+            log.warning("skipping %s: %s", p, problem)
+            refused.append(SkippedFile(path=p, reason=problem))
+        else:
+            ok.append(p)
+    return ok, refused
 
 
 def _fileset_files(dicomdir: Path) -> list[Path]:
     """Paths of every instance a DICOMDIR references (PS3.10 File-set)."""
     from pydicom.fileset import FileSet
 
+    problem = regular_file_problem(dicomdir)
+    if problem:
+        raise NotRegularFileError(f"{dicomdir}: {problem}", files=[dicomdir])
     try:
-        ds = dcmread(dicomdir)
+        ds = dcmread(dicomdir)  # FileSet needs the dataset's filename (checked regular just above)
         fs = FileSet(ds)
+        paths = [Path(instance.path) for instance in fs]
     except Exception as exc:  # pydicom raises many types for a damaged DICOMDIR
         raise NoCtSeriesError(
             f"{dicomdir}: cannot read the DICOMDIR file-set ({type(exc).__name__}: {exc}); "
             "point the loader at the folder of image files instead, or re-export the media.",
             files=[dicomdir],
         ) from exc
-    paths = [Path(instance.path) for instance in fs]
     log.info("DICOMDIR %s references %d instance(s)", dicomdir, len(paths))
     return paths
 

@@ -43,7 +43,8 @@ router = APIRouter(tags=["events"])
         "Authenticate with the Bearer header or, from a browser's `EventSource` (which cannot send "
         "headers), with `?ticket=` from `POST /events/ticket`.  "
         "A `text/event-stream` of service events: `scan_arrived`, `scan_invalid`, `registration_done`, "
-        "`registration_refused`, `verification_done`, `link_state`.  `data` is a JSON object, e.g. "
+        "`registration_refused`, `verification_done`, `link_state`, `scan_reopened`, "
+        "`registration_withdrawn`, `scan_files_deleted`.  `data` is a JSON object, e.g. "
         '`event: registration_done` / `data: {"registration_id": 3, "scan_id": 2, "fre_mm": 0.08}`.'
     ),
     response_class=StreamingResponse,

@@ -242,8 +242,8 @@ class RegistrationOut(_Out):
     )
 
     id: int
-    status: str = Field(description="accepted | refused | retired")
-    reason: str = Field(description="Why it was refused (empty when accepted).")
+    status: str = Field(description="accepted | refused | retired | withdrawn")
+    reason: str = Field(description="Why it was refused or withdrawn (empty when accepted).")
     problem_title: str = ""
     is_current: bool
     scan_id: int | None

@@ -50,6 +50,9 @@ async def current(ctx: CtxDep) -> Response:
     # gives the error answers.  Pre-encoded JSON, re-encoded only when the current one changes.
     body = ctx.current_registration_json()
     if body is None:
+        withdrawn = ctx.orchestrator.no_current_reason
+        if withdrawn:
+            raise NoCurrentRegistrationError(f"no current registration: {withdrawn}; POST /register again")
         raise NoCurrentRegistrationError("no registration has been accepted yet; POST /register after a scan")
     return Response(body, media_type="application/json")
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import sqlite3
 import threading
@@ -10,6 +12,18 @@ from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from service.errors import StorageFullError
+
+SQLITE_FULL = 13
+"""SQLite's primary result code for "database or disk is full"."""
+
+
+def _is_disk_full(e: BaseException) -> bool:
+    if isinstance(e, OSError):
+        return e.errno == errno.ENOSPC
+    code = getattr(e, "sqlite_errorcode", None)
+    return (code is not None and code & 0xFF == SQLITE_FULL) or "disk is full" in str(e)
 
 
 def utc_now() -> str:
@@ -46,6 +60,8 @@ class Connection:
 
         Raises
         ------
+        StorageFullError
+            The disk holding the database is full (``SQLITE_FULL``, ``ENOSPC``); rolled back.
         DatabaseGoneError
             The database file was deleted or replaced since it was opened (nothing is written).
         """
@@ -55,13 +71,25 @@ class Connection:
 
             raise DatabaseGoneError(problem)
         with self.lock:
-            self.raw.execute("BEGIN IMMEDIATE")
             try:
-                yield self.raw
-            except BaseException:
-                self.raw.execute("ROLLBACK")
-                raise
-            self.raw.execute("COMMIT")
+                self.raw.execute("BEGIN IMMEDIATE")
+                try:
+                    yield self.raw
+                except BaseException:
+                    if self.raw.in_transaction:
+                        self.raw.execute("ROLLBACK")
+                    raise
+                self.raw.execute("COMMIT")
+            except (sqlite3.OperationalError, OSError) as e:
+                if not _is_disk_full(e):
+                    raise
+                with contextlib.suppress(sqlite3.Error):
+                    if self.raw.in_transaction:
+                        self.raw.execute("ROLLBACK")
+                raise StorageFullError(
+                    f"the data folder {self.path.parent} is full ({e}); the write was rolled back, nothing "
+                    "stored before is lost. Free disk space there (or lower retention.max_disk_mb) and retry."
+                ) from e
 
     def query(self, sql: str, args: tuple[object, ...] = ()) -> list[sqlite3.Row]:
         with self.lock:

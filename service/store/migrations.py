@@ -9,7 +9,8 @@
 ``registrations``
     every POST /register, accepted or refused: ``image_from_robot``, quality figures,
     provenance (series UID, joints and their timestamp, config hash, software version),
-    status ``accepted`` / ``refused`` + reason.
+    status ``accepted`` / ``refused`` + reason; ``withdrawn_at`` / ``withdrawn_reason`` (schema 2)
+    mark an accepted one withdrawn (its scan was reopened: incomplete when registered).
 ``verifications``
     every POST /verify: per-sphere errors, mean / RMS / max, histogram path.
 ``current_registration``
@@ -25,6 +26,8 @@
 ``calibrations``, ``active_calibration``
     every POST /calibrations (running / done / refused + reason, figures, URDF) and the active one;
     ``registrations.retired_at`` marks the registrations its activation retired.
+``retention_log`` (schema 2)
+    every scan folder the retention policy deleted, with its size and why.
 """
 
 from __future__ import annotations
@@ -178,6 +181,28 @@ registrations retired by activating a calibration (design.md §9).  SQLite canno
 reports its status as ``retired``.  Appended after the tuple so branches adding their own migrations
 merge without reordering: it is always the last one."""
 MIGRATIONS = (*MIGRATIONS, CALIBRATIONS_MIGRATION)
+
+WITHDRAWN_AND_RETENTION_MIGRATION = """
+    ALTER TABLE registrations ADD COLUMN withdrawn_at TEXT;
+    ALTER TABLE registrations ADD COLUMN withdrawn_reason TEXT NOT NULL DEFAULT '';
+    ALTER TABLE scans ADD COLUMN reopened_count INTEGER NOT NULL DEFAULT 0;
+    ALTER TABLE scans ADD COLUMN files_deleted_at TEXT;
+    ALTER TABLE scans ADD COLUMN files_deleted_reason TEXT NOT NULL DEFAULT '';
+    CREATE TABLE retention_log (
+        id INTEGER PRIMARY KEY,
+        deleted_at TEXT NOT NULL,
+        scan_id INTEGER REFERENCES scans(id),
+        folder TEXT NOT NULL,
+        bytes INTEGER NOT NULL,
+        reason TEXT NOT NULL
+    );
+"""
+"""Issue #13: a registration can be withdrawn (its scan turned out incomplete, design §9), a scan
+reopened (late slices) and its files deleted by the retention policy (the row stays).  SQLite cannot
+widen the CHECK on ``registrations.status`` in place (the table would have to be rebuilt under
+foreign keys), so "withdrawn" is an accepted row with ``withdrawn_at`` set; the store reports its
+status as ``withdrawn`` (before ``retired``)."""
+MIGRATIONS = (*MIGRATIONS, WITHDRAWN_AND_RETENTION_MIGRATION)
 
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""

@@ -52,6 +52,30 @@ class RegistrationStore:
                 )
             return reg_id
 
+    def withdraw_for_scan(self, scan_id: int, reason: str) -> tuple[list[int], bool]:
+        """Withdraw every accepted registration of ``scan_id`` (one transaction).
+
+        Returns the withdrawn ids and whether the current one was among them (the current pointer is
+        then removed: no registration is current, every push channel says INVALID).
+        """
+        now = utc_now()
+        with self._db.transaction() as c:
+            ids = [int(r[0]) for r in c.execute(_Withdraw.SELECT, (scan_id,)).fetchall()]
+            for reg_id in ids:
+                c.execute(_Withdraw.UPDATE, (now, reason, reg_id))
+            row = c.execute("SELECT registration_id FROM current_registration WHERE singleton = 1").fetchone()
+            was_current = row is not None and int(row[0]) in ids
+            if was_current:
+                c.execute("DELETE FROM current_registration WHERE singleton = 1")
+            return ids, was_current
+
+    def latest_withdrawn(self) -> RegistrationRecord | None:
+        rows = self._db.query(
+            "SELECT * FROM registrations WHERE withdrawn_at IS NOT NULL ORDER BY withdrawn_at DESC, id DESC "
+            "LIMIT 1"
+        )
+        return _record(rows[0], self.current_id()) if rows else None
+
     def current_id(self) -> int | None:
         rows = self._db.query("SELECT registration_id FROM current_registration WHERE singleton = 1")
         return int(rows[0][0]) if rows else None
@@ -71,6 +95,13 @@ class RegistrationStore:
             "SELECT * FROM registrations ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset)
         )
         return [_record(r, cur) for r in rows]
+
+
+class _Withdraw:
+    """SQL of :meth:`RegistrationStore.withdraw_for_scan`."""
+
+    SELECT = "SELECT id FROM registrations WHERE scan_id = ? AND status = 'accepted' AND withdrawn_at IS NULL"
+    UPDATE = "UPDATE registrations SET withdrawn_at = ?, withdrawn_reason = ? WHERE id = ?"
 
 
 def _values(r: RegistrationRecord) -> tuple[object, ...]:
@@ -98,13 +129,19 @@ def _record(r: sqlite3.Row, current_id: int | None) -> RegistrationRecord:
     matrix = loads(r["image_from_robot_json"])
     figures = loads(r["figures_json"])
     targets = loads(r["targets_image_mm_json"])
+    withdrawn = r["withdrawn_at"] is not None
     return RegistrationRecord(
         id=int(r["id"]),
         created_at=r["created_at"],
         scan_id=r["scan_id"],
         series_uid=r["series_uid"],
-        status="retired" if r["retired_at"] is not None else cast(RegistrationStatus, r["status"]),
-        reason=r["reason"],
+        status=(
+            "withdrawn" if withdrawn
+            else "retired" if r["retired_at"] is not None
+            else cast(RegistrationStatus, r["status"])
+        ),
+        reason=r["withdrawn_reason"] if withdrawn else r["reason"],
+        withdrawn_at=r["withdrawn_at"],
         problem_title=r["problem_title"],
         http_status=r["http_status"],
         image_from_robot=None if matrix is None else matrix4(matrix),

@@ -59,6 +59,67 @@ class ScanStore:
                 _insert_snapshot(c, scan_id, scan.snapshot, now)
             return scan_id, True
 
+    def reopen(self, scan: NewScan) -> tuple[int, int]:
+        """Replace the record of a series recorded before (late slices arrived: it was incomplete).
+
+        The row keeps its id (registrations point to it), takes the new slice count, geometry, status
+        and joint snapshot, and counts the reopening.  Returns ``(scan_id, previous n_slices)``.
+        A series not recorded yet is inserted as by :meth:`upsert`.
+        """
+        now = utc_now()
+        with self._db.transaction() as c:
+            row = c.execute(
+                "SELECT id, n_slices FROM scans WHERE series_uid = ?", (scan.series_uid,)
+            ).fetchone()
+            if row is None:
+                values = _scan_values(scan, now)
+                cur = c.execute(
+                    f"INSERT INTO scans ({_SCAN_COLUMNS}, series_uid) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (*values, scan.series_uid),
+                )
+                scan_id, before = int(cur.lastrowid or 0), 0
+            else:
+                scan_id, before = int(row["id"]), int(row["n_slices"])
+                assignments = ", ".join(f"{col.strip()}=?" for col in _SCAN_COLUMNS.split(","))
+                c.execute(
+                    f"UPDATE scans SET {assignments}, reopened_count = reopened_count + 1 WHERE id = ?",
+                    (*_scan_values(scan, now), scan_id),
+                )
+                c.execute("DELETE FROM joint_snapshots WHERE scan_id = ?", (scan_id,))
+            if scan.snapshot is not None:
+                _insert_snapshot(c, scan_id, scan.snapshot, now)
+            return scan_id, before
+
+    def recorded_slices(self, series_uid: str) -> int | None:
+        """Slices of the complete record of ``series_uid`` (None when there is none)."""
+        rows = self._db.query(
+            "SELECT n_slices FROM scans WHERE series_uid = ? AND status = 'complete'", (series_uid,)
+        )
+        return int(rows[0][0]) if rows else None
+
+    def mark_files_deleted(self, scan_id: int, folder: str, n_bytes: int, reason: str) -> None:
+        """Record that the retention policy deleted a scan's files (the row and its history stay)."""
+        now = utc_now()
+        with self._db.transaction() as c:
+            c.execute(
+                "UPDATE scans SET files_deleted_at = ?, files_deleted_reason = ?, updated_at = ? "
+                "WHERE id = ?",
+                (now, reason, now, scan_id),
+            )
+            c.execute(
+                "INSERT INTO retention_log (deleted_at, scan_id, folder, bytes, reason) "
+                "VALUES (?, ?, ?, ?, ?)",
+                (now, scan_id, folder, n_bytes, reason),
+            )
+
+    def with_files(self) -> list[tuple[int, str, str]]:
+        """``(id, folder, arrived_at)`` of every scan whose files were not deleted yet, oldest first."""
+        rows = self._db.query(
+            "SELECT id, folder, arrived_at FROM scans WHERE files_deleted_at IS NULL ORDER BY arrived_at, id"
+        )
+        return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
+
     def has_complete(self, series_uid: str) -> bool:
         rows = self._db.query(
             "SELECT 1 FROM scans WHERE series_uid = ? AND status = 'complete'", (series_uid,)

@@ -366,7 +366,10 @@ def test_bad_scan_folder_is_422_and_service_keeps_serving(
     assert_problem(svc.client.post("/register", json={"targets_mm": [[1, 2]]}), 422)
     status = svc.client.get("/status").json()
     assert status["watcher"]["running"] and status["link"]["state"] == "connected"
-    assert all("junk" not in s["folder"] for s in svc.client.get("/scans").json())
+    # issue #13 item 8: a folder with no readable series is recorded as invalid, with the reason
+    (junk_scan,) = [s for s in svc.client.get("/scans").json() if s["folder"] == str(svc.watch / "junk")]
+    assert junk_scan["status"] == "invalid" and "no readable CT series" in junk_scan["reason"]
+    assert_problem(svc.client.post("/register", json={"scan_id": junk_scan["id"]}), 422)
 
 
 def test_robot_moving_during_scan_is_refused(svc: Service, world: World, baseline: Baseline) -> None:

@@ -118,7 +118,8 @@ def test_reexport_of_same_uid_is_a_duplicate(tmp_path: Path) -> None:
     assert w.state()["duplicates"] == 1
 
 
-def test_junk_files_are_logged_and_skipped(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_junk_folder_is_reported_invalid(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # issue #13 item 8: a folder with no readable series is recorded (invalid, with the reason)
     w, sink, watch = make(tmp_path)
     j = watch / "junk"
     j.mkdir()
@@ -129,7 +130,10 @@ def test_junk_files_are_logged_and_skipped(tmp_path: Path, caplog: pytest.LogCap
     with caplog.at_level("INFO", logger="service.watcher"):
         w.tick(10.0)
         w.tick(11.5)
-    assert [a.series_uid for a in sink.arrivals] == ["1.2.3.30"] and not sink.arrivals[0].error
+    by_uid = {a.series_uid: a for a in sink.arrivals}
+    assert set(by_uid) == {"1.2.3.30", f"folder:{j}"} and not by_uid["1.2.3.30"].error
+    junk = by_uid[f"folder:{j}"]
+    assert "no readable CT series" in junk.error and "broken.dcm" in junk.error and junk.volume is None
     assert w.stats.junk_folders == 1 and "junk" in caplog.text
 
 
