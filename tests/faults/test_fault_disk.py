@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _service import Events, Svc, factory_series, in_process_service, wait_for
 
 from registration.frames import transform_from_xyz_rpy
+from tests.faults._service import Events, Svc, factory_series, in_process_service, wait_for
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
 TMPFS_SIZE = "4m"

@@ -24,9 +24,18 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from _service import DEADLINE_S, Q1, TOKEN, ForkedServe, ServeProcess, free_port, wait_for, write_config
 
 from registration.frames import invert, transform_from_xyz_rpy
+from tests.faults._service import (
+    DEADLINE_S,
+    Q1,
+    TOKEN,
+    ForkedServe,
+    ServeProcess,
+    free_port,
+    wait_for,
+    write_config,
+)
 
 KILLS = int(os.environ.get("OARMREG_FAULT_KILLS", "20"))
 """Kill / restart cycles (the README's "kills survived")."""
