@@ -30,6 +30,8 @@ from registration import frames
 TOKEN = "calibration-test-token-0123456789"
 WINDOW_S = 0.6
 DEADLINE_S = 120.0
+JSON = {"Content-Type": "application/json"}
+"""Bodiless POSTs carry it too: the service refuses any mutating request without it (CSRF, issue #13)."""
 N_POSES = 8
 START_JOINTS_RAD = (0.2, -0.15, 1.75, 0.3, 0.6, -0.9)
 FOR_UID = "1.2.826.0.1.3680043.8.498.77"
@@ -223,7 +225,7 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     assert urdf.status_code == 200 and "<robot" in urdf.text and f"calibration {cal_id}" in urdf.text
 
     act, events = _stream_until(
-        c, lambda: c.post(f"/calibrations/{cal_id}/activate"), {"registration_retired"}
+        c, lambda: c.post(f"/calibrations/{cal_id}/activate", headers=JSON), {"registration_retired"}
     )
     assert act.status_code == 200 and act.json()["is_active"], act.text
     retired = events[-1][1]
@@ -255,7 +257,7 @@ def _assert_refused_and_stored(c: httpx.Client, body: dict[str, Any], title: str
     assert p["title"] == title and words in p["detail"]
     stored = c.get(f"/calibrations/{p['calibration_id']}").json()
     assert stored["status"] == "refused" and stored["reason"] == p["detail"] and stored["urdf_url"] is None
-    assert c.post(f"/calibrations/{p['calibration_id']}/activate").status_code == 409
+    assert c.post(f"/calibrations/{p['calibration_id']}/activate", headers=JSON).status_code == 409
 
 
 def test_fewer_than_six_scans_are_refused_and_stored(session: Session) -> None:
