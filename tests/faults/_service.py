@@ -11,7 +11,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -21,6 +20,8 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+
+from tests.integration.polling import poll_until
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit"))
 
@@ -32,16 +33,8 @@ Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 
 
 def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until truthy; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    ev = threading.Event()
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        ev.wait(0.05)
+    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
+    return poll_until(pred, what, timeout_s, interval_s=0.05)
 
 
 def overrides(watch: Path, data: Path, link_url: str, **kw: Any) -> dict[str, Any]:

@@ -1,10 +1,12 @@
-"""Deadline polling for the link tests: wait on a condition, never sleep a fixed time."""
+"""Deadline polling for the tests: wait on a condition, never sleep a fixed time."""
 
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 DEADLINE_S = 5.0
 
@@ -16,3 +18,18 @@ async def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = DEA
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         await asyncio.sleep(0.002)
+
+
+def poll_until(pred: Callable[[], Any], what: str, timeout_s: float, interval_s: float = 0.05) -> Any:
+    """Call ``pred`` until it returns something truthy and return that; fail naming ``what`` after
+    ``timeout_s``.  For threads and blocking clients (the service tests); a deadline, never a sleep
+    standing in for synchronisation."""
+    deadline = time.monotonic() + timeout_s
+    tick = threading.Event()
+    while True:
+        v = pred()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        tick.wait(interval_s)

@@ -14,7 +14,6 @@ No sleeps: waits poll with deadlines or read server-sent events.
 from __future__ import annotations
 
 import json
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -26,6 +25,7 @@ import numpy as np
 import pytest
 
 from registration import frames
+from tests.integration.polling import poll_until
 
 TOKEN = "calibration-test-token-0123456789"
 WINDOW_S = 0.6
@@ -39,15 +39,8 @@ OTHER_FOR_UID = "1.2.826.0.1.3680043.8.498.78"
 
 
 def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    deadline = time.monotonic() + timeout_s
-    ev = threading.Event()
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        ev.wait(0.05)
+    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
+    return poll_until(pred, what, timeout_s, interval_s=0.05)
 
 
 @dataclass

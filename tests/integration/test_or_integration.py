@@ -13,8 +13,6 @@ import shutil
 import socket
 import ssl
 import subprocess
-import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +26,7 @@ from pydicom.uid import CTImageStorage, MRImageStorage, generate_uid
 from pynetdicom import AE
 
 from registration.frames import invert, transform_from_xyz_rpy
+from tests.integration.polling import poll_until
 
 pyigtl = pytest.importorskip("pyigtl")
 
@@ -45,15 +44,8 @@ STORESCU, ECHOSCU, DCIODVFY, CURL, OPENSSL = (
 
 
 def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    deadline = time.monotonic() + timeout_s
-    ev = threading.Event()
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        ev.wait(0.02)
+    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
+    return poll_until(pred, what, timeout_s, interval_s=0.02)
 
 
 def make_tls(folder: Path) -> tuple[Path, Path, Path]:

@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 
 from registration.frames import apply, invert, transform_from_xyz_rpy
+from tests.integration.polling import poll_until
 
 TOKEN = "integration-test-token-0123456789"
 WINDOW_S = 0.6
@@ -43,16 +44,8 @@ IMAGE_FROM_PHANTOM_1 = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.
 
 
 def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until it returns a truthy value; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    ev = threading.Event()
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        ev.wait(0.05)
+    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
+    return poll_until(pred, what, timeout_s, interval_s=0.05)
 
 
 @dataclass
