@@ -95,3 +95,9 @@ class ImproperRotationError(RegistrationError):
     """The registered rotation is not proper (det R ≠ +1): an internal fault, refused, never stored."""
 
     title = "Improper rotation"
+
+
+class PosesFileError(PointsFileError):
+    """A calibration POSES.json or a JOINTS.json is malformed (too few poses, wrong joint count)."""
+
+    title = "Invalid poses file"

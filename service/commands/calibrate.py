@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
@@ -94,13 +95,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _config_error(msg: str) -> Exception:
-    from registration.errors import PointsFileError
+    from registration.errors import PosesFileError
 
-    return PointsFileError(msg)
+    return PosesFileError(msg)
+
+
+N_JOINTS = 6
+"""Joints of the Stäubli TX60 / TX2-60 (both URDFs): one angle each per pose."""
 
 
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
     """(robot_model, [(name, scan_dir, joints_rad)]) from POSES.json; paths resolved against its folder."""
+    from registration.calibration import MIN_POSES  # checked here before any scan is read
     from registration.points_io import _load_json
 
     obj = _load_json(path)
@@ -115,10 +121,23 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
         if not isinstance(p, dict) or "scan_dir" not in p or "joints_rad" not in p:
             raise _config_error(f'{path}: poses[{i}] needs "scan_dir" and "joints_rad"')
         joints = p["joints_rad"]
-        if not isinstance(joints, list) or not all(isinstance(v, int | float) for v in joints):
-            raise _config_error(f"{path}: poses[{i}].joints_rad must be a list of numbers (radians)")
+        if (
+            not isinstance(joints, list)
+            or len(joints) != N_JOINTS
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in joints)
+            or not all(math.isfinite(v) for v in joints)
+        ):
+            raise _config_error(
+                f"{path}: poses[{i}].joints_rad must be {N_JOINTS} finite numbers (radians, J1…J6), "
+                f"got {joints!r}"
+            )
         out.append(
             (str(p["scan_dir"]), (path.parent / str(p["scan_dir"])).resolve(), [float(v) for v in joints])
+        )
+    if len(out) < MIN_POSES:
+        raise _config_error(
+            f"{path}: {len(out)} pose(s); a calibration needs at least {MIN_POSES} scans at poses spread "
+            "over orientation and the wrist joints (plan them with `oarmreg calibrate plan`)"
         )
     model = obj.get("robot_model")
     return (str(model) if model is not None else None), out

@@ -111,3 +111,23 @@ def test_register_with_a_missing_calibration_is_a_config_error(tmp_path: Path, c
     )
     assert rc == 3
     assert "no calibration.json; run `oarmreg calibrate run`" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("poses", "words"),
+    [
+        ([{"scan_dir": "p1", "joints_rad": [0.0, 0.0, 1.5, 0.0, 0.7]}] * 6, "must be 6 finite numbers"),
+        ([{"scan_dir": "p1", "joints_rad": [0.0, 0.0, 1.5, 0.0, 0.7, True]}] * 6, "must be 6 finite numbers"),
+        ([{"scan_dir": "p1", "joints_rad": START_JOINTS_RAD}] * 5, "needs at least 6 scans"),
+    ],
+)
+def test_calibrate_run_refuses_a_bad_poses_file_before_reading_scans(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], poses: list[dict[str, Any]], words: str
+) -> None:
+    """The folders named do not exist: the file's own problem must be reported, not the scans'."""
+    f = tmp_path / "POSES.json"
+    f.write_text(json.dumps({"robot_model": "tx60", "poses": poses}))
+    assert main(["calibrate", "run", str(f), "--out", str(tmp_path / "cal")]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert "Invalid poses file" in err and words in err and "No CT series" not in err
+    assert not (tmp_path / "cal").exists()
