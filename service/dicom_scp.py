@@ -61,6 +61,7 @@ from pynetdicom import AE, evt
 from pynetdicom.dimse_primitives import C_STORE
 
 from registration.errors import ConfigError
+from service.netaddr import is_loopback
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ class DicomScpConfig:
         if not 0 <= self.port <= 65535:
             raise DicomScpConfigError(f"dicom.port must be 0–65535, got {self.port}")
         self.networks()
-        if not _is_loopback(self.host) and not (
+        if not is_loopback(self.host) and not (
             self.allowed_calling_ae_titles or self.allowed_peer_addresses
         ):
             raise DicomScpConfigError(
@@ -134,15 +135,6 @@ class DicomScpConfig:
             return tuple(ipaddress.ip_network(a, strict=False) for a in self.allowed_peer_addresses)
         except ValueError as e:
             raise DicomScpConfigError(f"dicom.allowed_peer_addresses: {e}") from None
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 @dataclass(frozen=True)

@@ -49,6 +49,7 @@ from registration.errors import ConfigError
 from registration.register import RegistrationParams
 from registration.resources import default_phantom
 from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
+from service.netaddr import is_loopback
 
 _REG_DEFAULTS = RegistrationParams()
 """The registration dataclass carries the defaults (one source of truth, configs/oarmreg.toml agrees)."""
@@ -453,16 +454,6 @@ class _RelativePathsToml(TomlConfigSettingsSource):
                 assert isinstance(sub, dict)
                 data[section] = {**sub, key: str((self._base_dir / value).resolve())}
         return data
-
-
-def is_loopback(host: str) -> bool:
-    """True for 127.0.0.0/8, ::1 and ``localhost``."""
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
 
 
 def _nest(overrides: dict[str, Any]) -> dict[str, Any]:

@@ -45,6 +45,7 @@ import numpy.typing as npt
 
 from registration.errors import ConfigError
 from service.igtl import wire
+from service.netaddr import is_loopback
 
 log = logging.getLogger(__name__)
 
@@ -167,15 +168,6 @@ class IgtlServerConfig:
             return tuple(ipaddress.ip_network(a, strict=False) for a in self.allowed_peer_addresses)
         except ValueError as e:
             raise IgtlConfigError(f"igtl.allowed_peer_addresses: {e}") from None
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 # --------------------------------------------------------------------------- messages
