@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mocks.cell import CellErrorSizes, SimulatedPose, TrueCell, simulate_pose_scan
+from mocks.cell import SPREAD_JOINTS_RAD, CellErrorSizes, SimulatedPose, TrueCell, simulate_pose_scan
 from mocks.oarm.simulator import AcquisitionSettings
 from registration import frames
 from registration.calibration import CalibrationParams, CalibrationResult, MatchedPose, calibrate, match_pose
@@ -213,20 +213,7 @@ def held_out_errors(s: Session, rng: np.random.Generator) -> dict[str, F64]:
 
 
 SYNTHETIC_Y = frames.transform_from_xyz_rpy([300.0, -100.0, 500.0], [10.0, 80.0, -30.0])
-SYNTHETIC_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3]) + np.array(
-    [
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
-        [-1.1, 0.7, -0.8, -1.3, 0.6, -1.8],
-        [0.6, 1.0, -1.2, 2.2, 0.9, 0.5],
-        [-0.5, -1.0, 0.9, -2.1, -1.2, -0.7],
-        [1.4, 0.4, 0.7, -0.6, 1.3, 1.2],
-        [-1.4, -0.3, -0.5, 0.7, -1.4, -1.3],
-        [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
-        [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
-        [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
-    ]
-)
+SYNTHETIC_JOINTS_RAD = SPREAD_JOINTS_RAD
 """The poses of tests/unit/test_calibration_cell.py (well-conditioned for the full set)."""
 SYNTHETIC_FLE_RMS_MM = 0.07
 

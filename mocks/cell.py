@@ -39,6 +39,24 @@ from registration.urdf_writer import SerialChain, read_chain, rotation_about
 F64 = NDArray[np.float64]
 
 
+SPREAD_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3]) + np.array(
+    [
+        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
+        [-1.1, 0.7, -0.8, -1.3, 0.6, -1.8],
+        [0.6, 1.0, -1.2, 2.2, 0.9, 0.5],
+        [-0.5, -1.0, 0.9, -2.1, -1.2, -0.7],
+        [1.4, 0.4, 0.7, -0.6, 1.3, 1.2],
+        [-1.4, -0.3, -0.5, 0.7, -1.4, -1.3],
+        [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
+        [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
+        [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
+    ]
+)
+"""Ten TX60 poses spread over every joint (rad), for synthetic calibration sessions in tests and
+benchmarks: well conditioned for the 18-parameter robot set."""
+
+
 @dataclass(frozen=True)
 class CellErrorSizes:
     """Sizes of the true cell's deviations from nominal (units in the names)."""

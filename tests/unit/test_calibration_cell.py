@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mocks.cell import CellErrorSizes, ExactCell, TrueCell
+from mocks.cell import SPREAD_JOINTS_RAD, CellErrorSizes, ExactCell, TrueCell
 from registration import frames
 from registration.calibration import MatchedPose, calibrate
 from registration.kinematics import RobotModel, default_tool0_from_phantom
@@ -17,20 +17,7 @@ from registration.rigid import rotation_difference_deg
 from registration.urdf_writer import read_chain
 
 Y = frames.transform_from_xyz_rpy([300.0, -100.0, 500.0], [10.0, 80.0, -30.0])
-JOINTS = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3]) + np.array(
-    [
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
-        [-1.1, 0.7, -0.8, -1.3, 0.6, -1.8],
-        [0.6, 1.0, -1.2, 2.2, 0.9, 0.5],
-        [-0.5, -1.0, 0.9, -2.1, -1.2, -0.7],
-        [1.4, 0.4, 0.7, -0.6, 1.3, 1.2],
-        [-1.4, -0.3, -0.5, 0.7, -1.4, -1.3],
-        [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
-        [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
-        [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
-    ]
-)
+JOINTS = SPREAD_JOINTS_RAD
 NO_NOISE = CellErrorSizes(sag_j2j3_rms_deg=0.0, repeatability_mm=0.0, encoder_noise_rad=0.0)
 
 

@@ -6,25 +6,13 @@ from typing import Any
 
 import numpy as np
 
+from mocks.cell import SPREAD_JOINTS_RAD
 from registration import frames
 from registration.calibration import CalibrationParams, MatchedPose, _sphere_soft_l1, calibrate
 from registration.kinematics import RobotModel, default_tool0_from_phantom
 from registration.urdf_writer import read_chain
 
-JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3]) + np.array(
-    [
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
-        [-1.1, 0.7, -0.8, -1.3, 0.6, -1.8],
-        [0.6, 1.0, -1.2, 2.2, 0.9, 0.5],
-        [-0.5, -1.0, 0.9, -2.1, -1.2, -0.7],
-        [1.4, 0.4, 0.7, -0.6, 1.3, 1.2],
-        [-1.4, -0.3, -0.5, 0.7, -1.4, -1.3],
-        [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
-        [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
-        [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
-    ]
-)
+JOINTS_RAD = SPREAD_JOINTS_RAD
 """The poses of tests/unit/test_calibration.py (well-conditioned for the full set)."""
 
 
