@@ -39,7 +39,10 @@ from registration.urdf_writer import SerialChain, read_chain, rotation_about
 F64 = NDArray[np.float64]
 
 
-SPREAD_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3]) + np.array(
+SPREAD_BASE_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3])
+"""A TX60 configuration inside every joint's limits, the centre of the spread poses (rad)."""
+
+SPREAD_OFFSETS_RAD = np.array(
     [
         [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
         [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
@@ -51,8 +54,14 @@ SPREAD_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3]) + np.array(
         [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
         [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
         [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
+        [-0.8, 0.9, -0.2, -0.4, -0.8, 1.7],
+        [0.1, 0.2, -1.0, 1.0, 1.4, -1.0],
     ]
 )
+"""Twelve hand-picked offsets from :data:`SPREAD_BASE_JOINTS_RAD` (rad) spreading every joint by
+≥ ± 1 rad: a well-conditioned set for the 18-parameter robot calibration."""
+
+SPREAD_JOINTS_RAD = SPREAD_BASE_JOINTS_RAD + SPREAD_OFFSETS_RAD[:10]
 """Ten TX60 poses spread over every joint (rad), for synthetic calibration sessions in tests and
 benchmarks: well conditioned for the 18-parameter robot set."""
 

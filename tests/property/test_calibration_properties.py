@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
+from mocks.cell import SPREAD_BASE_JOINTS_RAD, SPREAD_OFFSETS_RAD
 from registration import frames
 from registration.calibration import CalibrationParams, MatchedPose, calibrate, predict_image_mm
 from registration.kinematics import RobotModel, default_tool0_from_phantom
@@ -26,23 +27,8 @@ SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[Healt
 EXACT_MM = 1e-6
 NOMINAL = read_chain(RobotModel.load("tx60").urdf_path)
 PTS = load_phantom(CONFIGS / "phantoms" / "bai2018_cube.toml").centres_phantom_mm
-BASE_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3])
-TEMPLATE_RAD = np.array(
-    [
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
-        [-1.1, 0.7, -0.8, -1.3, 0.6, -1.8],
-        [0.6, 1.0, -1.2, 2.2, 0.9, 0.5],
-        [-0.5, -1.0, 0.9, -2.1, -1.2, -0.7],
-        [1.4, 0.4, 0.7, -0.6, 1.3, 1.2],
-        [-1.4, -0.3, -0.5, 0.7, -1.4, -1.3],
-        [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
-        [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
-        [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
-        [-0.8, 0.9, -0.2, -0.4, -0.8, 1.7],
-        [0.1, 0.2, -1.0, 1.0, 1.4, -1.0],
-    ]
-)
+BASE_JOINTS_RAD = SPREAD_BASE_JOINTS_RAD
+TEMPLATE_RAD = SPREAD_OFFSETS_RAD
 """A spread of every joint by ≥ ±1 rad; each drawn pose set moves these by up to ±0.35 rad per joint
 (a pose set with all poses alike is a refusal case, tested in tests/unit)."""
 POSE_JITTER_RAD = 0.35

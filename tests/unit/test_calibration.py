@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from mocks.cell import SPREAD_BASE_JOINTS_RAD, SPREAD_OFFSETS_RAD
 from registration import frames
 from registration.calibration import (
     CalibrationParams,
@@ -37,24 +38,8 @@ from registration.kinematics import RobotModel, default_tool0_from_phantom
 from registration.urdf_writer import SerialChain, read_chain, rotation_about
 
 F64 = NDArray[np.float64]
-BASE_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3])
-# Fixed, hand-picked pose offsets (rad) spreading every joint by ≥ ±1 rad: a well-conditioned set.
-POSE_OFFSETS_RAD = np.array(
-    [
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        [1.2, -0.6, 0.4, 1.4, -0.9, 2.0],
-        [-1.1, 0.7, -0.8, -1.3, 0.6, -1.8],
-        [0.6, 1.0, -1.2, 2.2, 0.9, 0.5],
-        [-0.5, -1.0, 0.9, -2.1, -1.2, -0.7],
-        [1.4, 0.4, 0.7, -0.6, 1.3, 1.2],
-        [-1.4, -0.3, -0.5, 0.7, -1.4, -1.3],
-        [0.3, 1.2, 0.2, -1.5, 0.3, 2.6],
-        [-0.2, -1.2, -1.3, 1.6, -0.4, -2.4],
-        [0.9, -0.9, 1.1, 0.3, 1.1, -0.2],
-        [-0.8, 0.9, -0.2, -0.4, -0.8, 1.7],
-        [0.1, 0.2, -1.0, 1.0, 1.4, -1.0],
-    ]
-)
+BASE_JOINTS_RAD = SPREAD_BASE_JOINTS_RAD
+POSE_OFFSETS_RAD = SPREAD_OFFSETS_RAD
 HELD_OUT_OFFSETS_RAD = POSE_OFFSETS_RAD[::-1] * 0.7 + 0.15
 IMAGE_FROM_ROBOT = frames.transform_from_xyz_rpy([300.0, -100.0, 500.0], [10.0, 80.0, -30.0])
 EXACT_MM = 1e-6
