@@ -21,7 +21,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.integration.polling import poll_until
+from tests.integration.polling import poll_until, wait_robot_still
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit"))
 
@@ -73,17 +73,7 @@ class Svc:
         return wait_for(lambda: next((s for s in self.scans() if pred(s)), None), what)  # type: ignore[no-any-return]
 
     def wait_still(self) -> None:
-        end = self.robot.motion_end_t_s()
-
-        def ok() -> bool:
-            st = self.client.get("/status").json()["link"]
-            return (
-                st["state"] == "connected"
-                and st["history_s"] > WINDOW_S
-                and time.monotonic() > end + WINDOW_S
-            )
-
-        wait_for(ok, "the robot to be still with joint history covering the stillness window")
+        wait_robot_still(self.client, self.robot, WINDOW_S, DEADLINE_S)
 
 
 @contextlib.contextmanager

@@ -33,3 +33,16 @@ def poll_until(pred: Callable[[], Any], what: str, timeout_s: float, interval_s:
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         tick.wait(interval_s)
+
+
+def wait_robot_still(client: Any, robot: Any, window_s: float, timeout_s: float) -> None:
+    """Wait until the mock ``robot`` has been still for ``window_s`` and the service's link
+    (``GET /status`` through the httpx ``client``) is connected with that much joint history."""
+    end = robot.motion_end_t_s()
+
+    def ok() -> bool:
+        st = client.get("/status").json()["link"]
+        covered = st["history_s"] > window_s and time.monotonic() > end + window_s
+        return bool(st["state"] == "connected" and covered)
+
+    poll_until(ok, "the robot to be still with joint history covering the stillness window", timeout_s)

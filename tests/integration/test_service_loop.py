@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from registration.frames import apply, invert, transform_from_xyz_rpy
-from tests.integration.polling import poll_until
+from tests.integration.polling import poll_until, wait_robot_still
 
 TOKEN = "integration-test-token-0123456789"
 WINDOW_S = 0.6
@@ -116,17 +116,7 @@ class Service:
 
     def wait_still(self) -> None:
         """Wait until the robot has been still for the stillness window and the link buffered it."""
-        end = self.robot.motion_end_t_s()
-
-        def ok() -> bool:
-            st = self.client.get("/status").json()["link"]
-            return (
-                st["state"] == "connected"
-                and st["history_s"] > WINDOW_S
-                and time.monotonic() > end + WINDOW_S
-            )
-
-        wait_for(ok, "the robot to be still with joint history covering the stillness window")
+        wait_robot_still(self.client, self.robot, WINDOW_S, DEADLINE_S)
 
     def hold_at(self, joints_rad: tuple[float, ...]) -> None:
         """Put the robot at ``joints_rad`` (at once if it is elsewhere) and wait until it is still there."""
