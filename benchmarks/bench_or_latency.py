@@ -8,7 +8,9 @@ holding still, DICOM SCP + OpenIGTLink on port 0, ``service.auto_register = true
 ``scan_arrived`` and ``registration_done`` events (its event bus, in-process), and the moment
 pyigtl's ``OpenIGTLinkClient`` returns the ``RobotToImage`` of the new registration (pyigtl
 polls every 10 ms, so that step carries up to ~10 ms of client-side delay).  Prints the medians
-of ``--runs`` and the C-STORE throughput.
+of ``--runs``, the C-STORE throughput and the 1-minute load average before the first run and after the last
+(the machine is shared: the figure is only meaningful with it; the 1-minute average still carries
+some of this process's own simulation).
 
 Run: ``.venv/bin/python -m benchmarks.bench_or_latency [--preset oarm] [--runs 3]``
 """
@@ -16,6 +18,7 @@ Run: ``.venv/bin/python -m benchmarks.bench_or_latency [--preset oarm] [--runs 3
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -116,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                     lambda: client.get("/status").json()["link"]["history_s"] > WINDOW_S * 2, "joint history"
                 )
                 igtl = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=lst["igtl"]["port"])
+                load_before = os.getloadavg()[0]  # after the simulation, which loads the machine itself
                 try:
                     rows = [
                         _one_run(i, root, datasets, lst, events, igtl, client, send_series)
@@ -124,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
                 finally:
                     igtl.stop()
                     client.close()
-    _report(rows, args.preset, len(datasets))
+    _report(rows, args.preset, len(datasets), (load_before, os.getloadavg()[0]))
     return 0
 
 
@@ -163,7 +167,7 @@ def _one_run(
     return row
 
 
-def _report(rows: list[dict[str, float]], preset: str, n_slices: int) -> None:
+def _report(rows: list[dict[str, float]], preset: str, n_slices: int, load: tuple[float, float]) -> None:
     keys = list(rows[0])
     med = {k: statistics.median(r[k] for r in rows) for k in keys}
     print_table(
@@ -175,7 +179,8 @@ def _report(rows: list[dict[str, float]], preset: str, n_slices: int) -> None:
     sys.stdout.write(
         f"\nrelease → TRANSFORM at the client: {med['release_to_igtl_s']:.3f} s ({verdict} the 0.5 s target; "
         f"of which the registration pipeline {med['pipeline_s']:.3f} s, release → scan recorded "
-        f"{med['release_to_scan_s']:.3f} s); C-STORE {med['cstore_mb_s']:.1f} MB/s\n"
+        f"{med['release_to_scan_s']:.3f} s); C-STORE {med['cstore_mb_s']:.1f} MB/s; "
+        f"load average (1 min) {load[0]:.2f} before, {load[1]:.2f} after\n"
     )
 
 

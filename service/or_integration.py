@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -88,6 +88,10 @@ log = logging.getLogger(__name__)
 
 INTAKE_FOLDER = "dicom-intake"
 """Under ``data_dir``: where C-STORE instances are written."""
+
+DECODE_WORKERS = 2
+"""Threads decoding C-STORE instances as they arrive (one per core of the 2-core reference machine:
+under load one fell behind the SCU, so release waited for its backlog)."""
 
 
 class OrIntegration:
@@ -151,7 +155,9 @@ class OrIntegration:
                 self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish,
                 withdraw=self.ctx.orchestrator.withdraw_scan,
             )  # fmt: skip
-            self._decoder = _started(ThreadPoolExecutor(1, thread_name_prefix="oarmreg-dicom-decode"))
+            self._decoder = _started(
+                ThreadPoolExecutor(DECODE_WORKERS, thread_name_prefix="oarmreg-dicom-decode")
+            )
             cfg = DicomScpConfig(
                 enabled=True, host=d.host, ae_title=d.ae_title, port=d.port,
                 allowed_calling_ae_titles=d.allowed_calling_ae_titles,
@@ -320,7 +326,9 @@ class OrIntegration:
             self.intake(arrival)
             outcome = "invalid" if error else "complete"
         if volume is not None:
-            self.store_instances(uid, [Path(f) for f in volume.meta.get("files", ())])
+            self.store_instances(
+                uid, [Path(f) for f in volume.meta.get("files", ())], sop_uids=volume.meta.get("sop_uids")
+            )
         scan = db.scans.by_series_uid(uid)
         self.ctx.bus.publish(
             "dicom_association_released",
@@ -354,10 +362,12 @@ class OrIntegration:
                 {"series_uid": series_dir.name, "n_instances": n, "reason": reason},
             )
 
-    def store_instances(self, series_uid: str, files: list[Path]) -> None:
+    def store_instances(
+        self, series_uid: str, files: list[Path], *, sop_uids: Sequence[tuple[str, str]] | None = None
+    ) -> None:
         """Record what an SRO references of the series (logged, never raised: the scan is stored)."""
         try:
-            self.ctx.db.scan_instances.put(scan_instances_from_files(series_uid, files))
+            self.ctx.db.scan_instances.put(scan_instances_from_files(series_uid, files, sop_uids=sop_uids))
         except Exception:
             log.exception(
                 "series %s: could not store its instance UIDs; its SRO will be unavailable", series_uid
@@ -409,8 +419,15 @@ def _started(ex: ThreadPoolExecutor) -> ThreadPoolExecutor:
     return ex
 
 
-def scan_instances_from_files(series_uid: str, files: list[Path]) -> ScanInstances:
-    """Read the headers an SRO needs from the series' files (slice order kept, multi-frame deduplicated)."""
+def scan_instances_from_files(
+    series_uid: str, files: list[Path], *, sop_uids: Sequence[tuple[str, str]] | None = None
+) -> ScanInstances:
+    """Read the headers an SRO needs from the series' files (slice order kept, multi-frame deduplicated).
+
+    ``sop_uids``: the (SOP Instance UID, SOP Class UID) of each slice in slice order when the header
+    pass already read them (:mod:`service.series_accumulator`); then only the first file is read, for
+    the patient / study attributes (a 192-slice series: 1 file read instead of 192).
+    """
     from pydicom import dcmread
 
     tags = [
@@ -422,10 +439,15 @@ def scan_instances_from_files(series_uid: str, files: list[Path]) -> ScanInstanc
     ]
     seen: dict[str, str] = {}
     first: Any = None
+    if sop_uids is not None:
+        for inst, cls in sop_uids:
+            seen.setdefault(inst, cls)
+        files = files[:1]
     for f in dict.fromkeys(files):
         ds = dcmread(f, stop_before_pixels=True, specific_tags=tags)
         first = first if first is not None else ds
-        seen.setdefault(str(ds.SOPInstanceUID), str(ds.SOPClassUID))
+        if sop_uids is None:
+            seen.setdefault(str(ds.SOPInstanceUID), str(ds.SOPClassUID))
     if first is None:
         raise OarmRegError(f"series {series_uid}: no files to read the instance UIDs from")
     attrs = {k: str(first.get(k, "")) for k in SRO_PATIENT_STUDY_KEYS if k in first}
