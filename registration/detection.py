@@ -36,9 +36,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
+import cc3d
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from registration.circles import CircleParams, find_circles
 from registration.errors import DetectionError
@@ -292,7 +292,7 @@ def _group_hits(flat: NDArray[np.intp], shape: tuple[int, int, int]) -> list[tup
     cell = (k // ck, j // cj, i // ci)
     occ = np.zeros(grid_shape, dtype=bool)
     occ[cell] = True
-    labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, n = cc3d.connected_components(occ, connectivity=26, return_N=True)
     hit_label = labels[cell]
     boxes: list[tuple[slice, slice, slice]] = []
     order = np.argsort(hit_label, kind="stable")
@@ -716,12 +716,23 @@ def find_blobs(
     for box in boxes:
         crop_box = _expand(box, (margin[0], margin[1], margin[2]), shape)
         crop = vox[crop_box]
-        labels, _ = ndimage.label(crop >= threshold_hu, structure=np.ones((3, 3, 3), dtype=bool))
-        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
-            if sl is not None:
-                blobs.append(_measure_component(crop, labels[sl] == lab, sl, crop_box, spacing))
+        labels, boxes_in_crop = components_26(crop >= threshold_hu)
+        for lab, sl in enumerate(boxes_in_crop, start=1):
+            blobs.append(_measure_component(crop, labels[sl] == lab, sl, crop_box, spacing))
     blobs.sort(key=lambda b: (b.box[0].start, b.box[1].start, b.box[2].start))
     return blobs
+
+
+def components_26(mask: NDArray[np.bool_]) -> tuple[NDArray[Any], list[tuple[slice, ...]]]:
+    """26-connected components of a 3-D mask: labels 1 … n (0 outside) and each one's (k, j, i) box.
+
+    :func:`cc3d.connected_components` numbers them in raster order, as ``scipy.ndimage.label``
+    with a 3 × 3 × 3 structure does (and the boxes equal ``scipy.ndimage.find_objects``), without
+    scipy.ndimage's import (0.3–1 s, more than the detection of a 512² × 192 scan; measured by
+    benchmarks/bench_detect_process.py).
+    """
+    labels, n = cc3d.connected_components(mask, connectivity=26, return_N=True)
+    return labels, (list(cc3d.statistics(labels)["bounding_boxes"][1 : n + 1]) if n else [])
 
 
 def _measure_component(
@@ -775,6 +786,8 @@ def split_blob(
     by them, fall apart into cores; a rod stays one elongated component.  Returns the cores as
     blobs (measured on the opened mask, peak from the raw voxels), in (k, j, i) order.
     """
+    from scipy import ndimage  # here only: an oversized blob is rare, the import costs 0.3–1 s
+
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     rho_mm = params.split_core_fraction * params.radius_mm
     semi = (rho_mm / float(spacing[2]), rho_mm / float(spacing[1]), rho_mm / float(spacing[0]))

@@ -1,8 +1,9 @@
 """``oarmreg detect`` imports only what detection needs (issue #11: whole-process detect time).
 
 Checked in a fresh interpreter on ``sys.modules`` after the command ran (not by timing): the
-service's web, DICOM-network, robot-model and plotting stacks, and ``scipy.optimize`` (the
-``model`` method's optimiser, ~0.3 s to import), stay out of the default detect path.
+service's web, DICOM-network, robot-model and plotting stacks, ``scipy.optimize`` (the ``model``
+method's optimiser, ~0.3 s to import) and ``scipy.ndimage`` (0.3–1 s; only the split of an
+oversized blob imports it, on demand) stay out of the default detect path.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ NOT_FOR_DETECT = (
     "service.orchestrator",
     "service.settings",
     "scipy.optimize",
+    "scipy.ndimage",
     "mocks",
 )
 """Modules (or packages) a default ``oarmreg detect`` must not import."""
