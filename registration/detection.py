@@ -36,9 +36,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
+import cc3d
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from registration.circles import CircleParams, find_circles
 from registration.errors import DetectionError
@@ -292,7 +292,7 @@ def _group_hits(flat: NDArray[np.intp], shape: tuple[int, int, int]) -> list[tup
     cell = (k // ck, j // cj, i // ci)
     occ = np.zeros(grid_shape, dtype=bool)
     occ[cell] = True
-    labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, n = cc3d.connected_components(occ, connectivity=26, return_N=True)
     hit_label = labels[cell]
     boxes: list[tuple[slice, slice, slice]] = []
     order = np.argsort(hit_label, kind="stable")
@@ -682,7 +682,23 @@ def threshold_hits(vox: NDArray[Any], threshold_hu: float) -> tuple[NDArray[np.i
     thr_cast = float(np.ceil(threshold_hu)) if integer else float(threshold_hu)
     if integer and thr_cast > np.iinfo(vox.dtype).max:
         return np.zeros(0, dtype=np.intp), thr_cast
-    return np.flatnonzero(vox >= np.asarray(thr_cast).astype(vox.dtype)), thr_cast
+    thr = np.asarray(thr_cast).astype(vox.dtype)
+    # Slab by slab into one small reused mask: a whole-volume mask (50 MB for 512² × 192) costs
+    # more in first-touch page faults than the comparison itself (benchmarks/bench_detect_process.py).
+    per_slice = int(np.prod(vox.shape[1:]))
+    n_slab = max(1, THRESHOLD_SLAB_VOXELS // max(per_slice, 1))
+    mask = np.empty((min(n_slab, vox.shape[0]), *vox.shape[1:]), dtype=bool)
+    hits: list[NDArray[np.intp]] = []
+    for k0 in range(0, vox.shape[0], n_slab):
+        slab = vox[k0 : k0 + n_slab]
+        m = mask[: slab.shape[0]]
+        np.greater_equal(slab, thr, out=m)
+        hits.append(np.flatnonzero(m) + k0 * per_slice)
+    return (np.concatenate(hits) if hits else np.zeros(0, dtype=np.intp)), thr_cast
+
+
+THRESHOLD_SLAB_VOXELS: Final = 1 << 21
+"""Voxels per slab of :func:`threshold_hits` (8 slices of 512²: a 2 MB mask, cache-sized)."""
 
 
 def find_blobs(
@@ -700,12 +716,23 @@ def find_blobs(
     for box in boxes:
         crop_box = _expand(box, (margin[0], margin[1], margin[2]), shape)
         crop = vox[crop_box]
-        labels, _ = ndimage.label(crop >= threshold_hu, structure=np.ones((3, 3, 3), dtype=bool))
-        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
-            if sl is not None:
-                blobs.append(_measure_component(crop, labels[sl] == lab, sl, crop_box, spacing))
+        labels, boxes_in_crop = components_26(crop >= threshold_hu)
+        for lab, sl in enumerate(boxes_in_crop, start=1):
+            blobs.append(_measure_component(crop, labels[sl] == lab, sl, crop_box, spacing))
     blobs.sort(key=lambda b: (b.box[0].start, b.box[1].start, b.box[2].start))
     return blobs
+
+
+def components_26(mask: NDArray[np.bool_]) -> tuple[NDArray[Any], list[tuple[slice, ...]]]:
+    """26-connected components of a 3-D mask: labels 1 … n (0 outside) and each one's (k, j, i) box.
+
+    :func:`cc3d.connected_components` numbers them in raster order, as ``scipy.ndimage.label``
+    with a 3 × 3 × 3 structure does (and the boxes equal ``scipy.ndimage.find_objects``), without
+    scipy.ndimage's import (0.3–1 s, more than the detection of a 512² × 192 scan; measured by
+    benchmarks/bench_detect_process.py).
+    """
+    labels, n = cc3d.connected_components(mask, connectivity=26, return_N=True)
+    return labels, (list(cc3d.statistics(labels)["bounding_boxes"][1 : n + 1]) if n else [])
 
 
 def _measure_component(
@@ -759,6 +786,8 @@ def split_blob(
     by them, fall apart into cores; a rod stays one elongated component.  Returns the cores as
     blobs (measured on the opened mask, peak from the raw voxels), in (k, j, i) order.
     """
+    from scipy import ndimage  # here only: an oversized blob is rare, the import costs 0.3–1 s
+
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     rho_mm = params.split_core_fraction * params.radius_mm
     semi = (rho_mm / float(spacing[2]), rho_mm / float(spacing[1]), rho_mm / float(spacing[0]))

@@ -25,8 +25,6 @@ from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
-from scipy.special import erf
 
 F64 = NDArray[np.float64]
 
@@ -65,6 +63,8 @@ class SphereFit:
 
 def blurred_ball(r_mm: F64, radius_mm: float, sigma_mm: float) -> F64:
     """Radial profile (0 … 1) of a unit ball of ``radius_mm`` convolved with a Gaussian of ``sigma_mm``."""
+    from scipy.special import erf  # here, not at module level: see fit_sphere_model
+
     r = np.maximum(np.asarray(r_mm, dtype=np.float64), SMALL_R_MM)
     s = sigma_mm
     a = (radius_mm - r) / (s * SQRT2)
@@ -119,6 +119,10 @@ def fit_sphere_model(
     saturation_hu : float
         Value at which the export clips (3071 HU for 12-bit CT); the model is clipped there too.
     """
+    # scipy.optimize costs ~0.3 s to import; only the ``model`` method needs it, so ``oarmreg
+    # detect`` with the default method does not pay for it (benchmarks/bench_detect_process.py).
+    from scipy.optimize import least_squares
+
     v = np.asarray(values_hu, dtype=np.float64)
     x = np.asarray(coords_mm, dtype=np.float64)
     start = np.asarray(start_mm, dtype=np.float64)

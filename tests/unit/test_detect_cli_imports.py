@@ -1,0 +1,57 @@
+"""``oarmreg detect`` imports only what detection needs (issue #11: whole-process detect time).
+
+Checked in a fresh interpreter on ``sys.modules`` after the command ran (not by timing): the
+service's web, DICOM-network, robot-model and plotting stacks, ``scipy.optimize`` (the ``model``
+method's optimiser, ~0.3 s to import) and ``scipy.ndimage`` (0.3–1 s; only the split of an
+oversized blob imports it, on demand) stay out of the default detect path.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+NOT_FOR_DETECT = (
+    "fastapi",
+    "uvicorn",
+    "pydantic",
+    "pydantic_settings",
+    "starlette",
+    "pynetdicom",
+    "pinocchio",
+    "matplotlib",
+    "httpx",
+    "watchdog",
+    "service.app",
+    "service.orchestrator",
+    "service.settings",
+    "scipy.optimize",
+    "scipy.ndimage",
+    "mocks",
+)
+"""Modules (or packages) a default ``oarmreg detect`` must not import."""
+
+PROBE = """
+import contextlib, io, json, sys
+from service.cli import main
+with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    code = main(["detect", sys.argv[1]])
+print(json.dumps({"code": code, "modules": sorted(sys.modules)}))
+"""
+
+
+def test_detect_does_not_import_the_service_stack(tmp_path: Path) -> None:
+    # An empty folder: the command imports detection and the loader, then refuses the folder (exit 4).
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, str(tmp_path)], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    doc = json.loads(out.stdout)
+    modules = set(doc["modules"])
+    assert doc["code"] == 4
+    assert {"registration.detection", "registration.dicom.loader"} <= modules  # the probe ran detect
+    loaded = sorted(m for m in modules if any(m == n or m.startswith(n + ".") for n in NOT_FOR_DETECT))
+    assert loaded == []
