@@ -121,9 +121,7 @@ class DicomScpConfig:
         if not 0 <= self.port <= 65535:
             raise DicomScpConfigError(f"dicom.port must be 0–65535, got {self.port}")
         self.networks()
-        if not is_loopback(self.host) and not (
-            self.allowed_calling_ae_titles or self.allowed_peer_addresses
-        ):
+        if not is_loopback(self.host) and not (self.allowed_calling_ae_titles or self.allowed_peer_addresses):
             raise DicomScpConfigError(
                 f"refusing to accept DICOM on {self.host!r} with both allow-lists empty: set "
                 "dicom.allowed_calling_ae_titles (the O-arm's AE title) and/or "

@@ -136,8 +136,10 @@ def _record(r: sqlite3.Row, current_id: int | None) -> RegistrationRecord:
         scan_id=r["scan_id"],
         series_uid=r["series_uid"],
         status=(
-            "withdrawn" if withdrawn
-            else "retired" if r["retired_at"] is not None
+            "withdrawn"
+            if withdrawn
+            else "retired"
+            if r["retired_at"] is not None
             else cast(RegistrationStatus, r["status"])
         ),
         reason=r["withdrawn_reason"] if withdrawn else r["reason"],
