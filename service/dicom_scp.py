@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import ipaddress
 import logging
 import os
 import re
@@ -61,7 +60,7 @@ from pynetdicom import AE, evt
 from pynetdicom.dimse_primitives import C_STORE
 
 from registration.errors import ConfigError
-from service.netaddr import is_loopback
+from service.netaddr import Network, in_networks, is_loopback, parse_networks
 
 log = logging.getLogger(__name__)
 
@@ -128,11 +127,11 @@ class DicomScpConfig:
                 "dicom.allowed_peer_addresses, or bind 127.0.0.1"
             )
 
-    def networks(self) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+    def networks(self) -> tuple[Network, ...]:
         try:
-            return tuple(ipaddress.ip_network(a, strict=False) for a in self.allowed_peer_addresses)
+            return parse_networks(self.allowed_peer_addresses, "dicom.allowed_peer_addresses")
         except ValueError as e:
-            raise DicomScpConfigError(f"dicom.allowed_peer_addresses: {e}") from None
+            raise DicomScpConfigError(str(e)) from None
 
 
 @dataclass(frozen=True)
@@ -310,13 +309,7 @@ class StorageScp:
                 log.exception("DICOM SCP: on_refused callback failed")
 
     def _peer_allowed(self, host: str) -> bool:
-        if not self._networks:
-            return True
-        try:
-            ip = ipaddress.ip_address(host)
-        except ValueError:
-            return False
-        return any(ip in n for n in self._networks)
+        return not self._networks or in_networks(host, self._networks)
 
     def _on_requested(self, event: evt.Event) -> None:
         assoc = event.assoc

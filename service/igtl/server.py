@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import logging
 import math
 import socket
@@ -45,7 +44,7 @@ import numpy.typing as npt
 
 from registration.errors import ConfigError
 from service.igtl import wire
-from service.netaddr import is_loopback
+from service.netaddr import Network, in_networks, is_loopback, parse_networks
 
 log = logging.getLogger(__name__)
 
@@ -163,11 +162,11 @@ class IgtlServerConfig:
                 "or bind 127.0.0.1"
             )
 
-    def allowed_networks(self) -> tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]:
+    def allowed_networks(self) -> tuple[Network, ...]:
         try:
-            return tuple(ipaddress.ip_network(a, strict=False) for a in self.allowed_peer_addresses)
+            return parse_networks(self.allowed_peer_addresses, "igtl.allowed_peer_addresses")
         except ValueError as e:
-            raise IgtlConfigError(f"igtl.allowed_peer_addresses: {e}") from None
+            raise IgtlConfigError(str(e)) from None
 
 
 # --------------------------------------------------------------------------- messages
@@ -403,11 +402,7 @@ class IgtlServer:
     def _peer_allowed(self, host: str) -> bool:
         if not self._networks:
             return is_loopback(host)
-        try:
-            ip = ipaddress.ip_address(host.split("%")[0])
-        except ValueError:
-            return False
-        return any(ip in net for net in self._networks)
+        return in_networks(host, self._networks)
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
