@@ -23,21 +23,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 
-MIN_SHELL_VOXELS: Final = 20
-"""Shell voxels needed for the 4-parameter background plane (5 per parameter), as the default
-centroid (``LINEAR_BACKGROUND_MIN_VOXELS``); fewer give the shell's median."""
-
 
 @dataclass(frozen=True)
 class CoreParams:
-    """Weights of the core centroid (mm and fractions of the clipped contrast).
+    """What the core centroid changes from the default centroid (mm, fraction of the clipped contrast).
 
     Attributes
     ----------
@@ -49,19 +44,23 @@ class CoreParams:
         Voxels count above this fraction of the sphere's contrast (clipped at saturation);
         0.85 measured best of 0.2 / 0.35 / 0.5 / 0.7 / 0.85 (mean 0.060 … 0.053 mm at the
         default ball, 0.049 mm with the 1.0 mm ball).
-    margin_hu : float
-        The margin is at least this (HU), as the default centroid's ``centroid_margin_hu``.
-    shell_mm : float
-        Thickness of the background shell outside the ball (as ``background_shell_mm``).
-    iterations : int
-        Re-centrings of the ball.
     """
 
     bloom_mm: float = 1.0
     margin_fraction: float = 0.85
-    margin_hu: float = 300.0
-    shell_mm: float = 1.5
-    iterations: int = 3
+
+
+@dataclass(frozen=True)
+class CoreWeights:
+    """Everything :func:`core_centroid` needs: :class:`CoreParams` plus what it shares with the
+    default centroid (``registration.detection.DetectionParams``: ``centroid_margin_hu``,
+    ``background_shell_mm``, ``centroid_iterations``, ``LINEAR_BACKGROUND_MIN_VOXELS``)."""
+
+    core: CoreParams
+    margin_hu: float
+    shell_mm: float
+    iterations: int
+    min_shell_voxels: int
 
 
 def core_centroid(
@@ -70,7 +69,7 @@ def core_centroid(
     start_mm: F64,
     radius_mm: float,
     saturation_hu: float,
-    params: CoreParams = CoreParams(),
+    weights: CoreWeights,
 ) -> F64 | None:
     """Weighted centroid (mm, the axis order of ``coords_mm``) of the core of a sphere.
 
@@ -80,17 +79,17 @@ def core_centroid(
     voxel gets a weight.  The voxels must hold the whole ball and shell (a sphere near an edge
     of the imaged region is the caller's to keep out).
     """
-    r_ball = radius_mm + params.bloom_mm
-    r_shell = r_ball + params.shell_mm
+    r_ball = radius_mm + weights.core.bloom_mm
+    r_shell = r_ball + weights.shell_mm
     c = np.asarray(start_mm, dtype=np.float64).copy()
-    for _ in range(max(1, params.iterations)):
+    for _ in range(max(1, weights.iterations)):
         off = coords_mm - c
         d2 = np.einsum("ij,ij->i", off, off)
         ball = d2 <= r_ball**2
         shell = (d2 > r_ball**2) & (d2 <= r_shell**2)
         if not ball.any() or not shell.any():
             return None
-        if int(shell.sum()) > MIN_SHELL_VOXELS:
+        if int(shell.sum()) > weights.min_shell_voxels:
             a = np.c_[np.ones(int(shell.sum())), off[shell]]
             coef = np.linalg.lstsq(a, values_hu[shell], rcond=None)[0]
             bg = coef[0] + off[ball] @ coef[1:]
@@ -98,7 +97,7 @@ def core_centroid(
             bg = np.full(int(ball.sum()), float(np.median(values_hu[shell])))
         signal = values_hu[ball] - bg
         cap = saturation_hu - float(bg.max()) if math.isfinite(saturation_hu) else float(signal.max())
-        margin = max(params.margin_hu, params.margin_fraction * cap)
+        margin = max(weights.margin_hu, weights.core.margin_fraction * cap)
         w = np.clip(np.minimum(signal, cap) - margin, 0.0, None)
         total = float(w.sum())
         if total <= 0.0:

@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from registration.circles import CircleParams, find_circles
-from registration.core_centroid import CoreParams, core_centroid
+from registration.core_centroid import CoreParams, CoreWeights, core_centroid
 from registration.errors import DetectionError
 from registration.mar import MarParams, reduce_metal_artifacts
 from registration.sphere_fit import FitParams, fit_sphere_model
@@ -944,8 +944,9 @@ class SpherePatch:
 
     ``values_hu`` (V,) and ``coords_mm`` (V, 3) = voxel index (i, j, k) × spacing; ``spacing_mm``
     (i, j, k); ``saturation_hu`` (inf if the crop is not clipped); ``radius_mm`` nominal;
-    ``near_edge``: the sphere is within the patch radius of an edge of the imaged region (slab
-    end, matrix edge, circular FOV), so the patch is cut or holds padding.
+    ``core``: the ``core`` method's weights; ``near_edge``: the sphere is within the patch
+    radius of an edge of the imaged region (slab end, matrix edge, circular FOV), so the patch is
+    cut or holds padding.
     """
 
     values_hu: F64
@@ -954,7 +955,7 @@ class SpherePatch:
     saturation_hu: float
     radius_mm: float
     fit: FitParams = field(default_factory=FitParams)
-    core: CoreParams = field(default_factory=CoreParams)
+    core: CoreWeights | None = None
     near_edge: bool = False
 
 
@@ -974,8 +975,15 @@ def sphere_patch(vox: NDArray[Any], centre_ijk: F64, spacing: F64, params: Detec
     values = crop.ravel()[keep]
     peak = float(values.max()) if len(values) else math.nan
     saturated = len(values) > 0 and int(np.count_nonzero(values == peak)) >= SATURATION_MIN_VOXELS
+    core = CoreWeights(
+        params.core,
+        margin_hu=params.centroid_margin_hu,
+        shell_mm=params.background_shell_mm,
+        iterations=params.centroid_iterations,
+        min_shell_voxels=LINEAR_BACKGROUND_MIN_VOXELS,
+    )
     return SpherePatch(
-        values, coords[keep], spacing, peak if saturated else math.inf, params.radius_mm, core=params.core
+        values, coords[keep], spacing, peak if saturated else math.inf, params.radius_mm, core=core
     )
 
 
@@ -1040,7 +1048,7 @@ def _core_estimate(
 ) -> tuple[F64 | None, str]:
     """Centroid of the saturated core (:mod:`registration.core_centroid`), from the sub-voxel
     centre; near an edge of the imaged region the edge-corrected sub-voxel centre is kept."""
-    if patch is None or patch.near_edge:
+    if patch is None or patch.core is None or patch.near_edge:
         return centre_sv, ""
     c = core_centroid(
         patch.values_hu,

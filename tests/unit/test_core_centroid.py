@@ -8,8 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_detection import SPACING, make_volume
 
-from registration.core_centroid import CoreParams, core_centroid
+from registration.core_centroid import CoreParams, CoreWeights, core_centroid
 from registration.detection import (
+    LINEAR_BACKGROUND_MIN_VOXELS,
     METHOD_FOR_MATERIAL,
     METHODS,
     DetectionParams,
@@ -23,6 +24,14 @@ SAT_HU = 3071.0
 RADIUS_MM = 1.25
 INPLANE_TOL_MM, SLICE_TOL_MM = 0.07, 0.10
 """Bounds on the sampling error of one noise-free synthetic sphere (see the property test)."""
+_D = DetectionParams()
+WEIGHTS = CoreWeights(
+    CoreParams(),
+    _D.centroid_margin_hu,
+    _D.background_shell_mm,
+    _D.centroid_iterations,
+    LINEAR_BACKGROUND_MIN_VOXELS,
+)
 
 
 def _opaque_sphere(
@@ -59,7 +68,7 @@ def test_core_centroid_finds_a_clipped_opaque_sphere(
     centre = (np.array([40.0, 50.0, 30.0]) + np.asarray(offset)) * np.asarray(SPACING)
     values, coords = _opaque_sphere(centre, contrast_hu, sigma_mm, bg_hu, np.asarray(grad))
     start = centre + np.array([0.3, -0.25, 0.35])
-    got = core_centroid(values, coords, start, RADIUS_MM, SAT_HU)
+    got = core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS)
     assert got is not None
     # An exact blurred ball on a tilted plane: only the voxel sampling of the clipped core errs.
     # Over 300 random draws it erred at most 0.058 mm in-plane and 0.084 mm along the 0.833 mm
@@ -72,7 +81,7 @@ def test_core_centroid_finds_a_clipped_opaque_sphere(
 def test_core_centroid_is_exact_on_a_symmetrically_sampled_sphere() -> None:
     centre = np.array([40.0, 50.0, 30.0]) * np.asarray(SPACING)
     values, coords = _opaque_sphere(centre, 1.0e5, 0.3, 100.0, np.zeros(3))
-    got = core_centroid(values, coords, centre + np.array([0.3, -0.25, 0.35]), RADIUS_MM, SAT_HU)
+    got = core_centroid(values, coords, centre + np.array([0.3, -0.25, 0.35]), RADIUS_MM, SAT_HU, WEIGHTS)
     assert got is not None
     np.testing.assert_allclose(got, centre, atol=1e-9)
 
@@ -80,7 +89,7 @@ def test_core_centroid_is_exact_on_a_symmetrically_sampled_sphere() -> None:
 def test_core_centroid_without_a_core_gives_none() -> None:
     coords = np.stack(np.meshgrid(*(np.arange(-5.0, 5.0, 0.5),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     values = np.full(len(coords), 100.0)
-    assert core_centroid(values, coords, np.zeros(3), RADIUS_MM, np.inf) is None
+    assert core_centroid(values, coords, np.zeros(3), RADIUS_MM, np.inf, WEIGHTS) is None
 
 
 def test_core_params_reach_the_patch() -> None:
