@@ -946,7 +946,8 @@ class SpherePatch:
     (i, j, k); ``saturation_hu`` (inf if the crop is not clipped); ``radius_mm`` nominal;
     ``core``: the ``core`` method's weights; ``near_edge``: the sphere is within the patch
     radius of an edge of the imaged region (slab end, matrix edge, circular FOV), so the patch is
-    cut or holds padding.
+    cut or holds padding; ``edge_centre_ijk``: then the ``core`` method's centre, measured on the
+    volume with the symmetric edge window (:func:`core_edge_centre`).
     """
 
     values_hu: F64
@@ -957,6 +958,7 @@ class SpherePatch:
     fit: FitParams = field(default_factory=FitParams)
     core: CoreWeights | None = None
     near_edge: bool = False
+    edge_centre_ijk: F64 | None = None
 
 
 def sphere_patch(vox: NDArray[Any], centre_ijk: F64, spacing: F64, params: DetectionParams) -> SpherePatch:
@@ -1047,8 +1049,11 @@ def _core_estimate(
     patch: SpherePatch | None = None,
 ) -> tuple[F64 | None, str]:
     """Centroid of the saturated core (:mod:`registration.core_centroid`), from the sub-voxel
-    centre; near an edge of the imaged region the edge-corrected sub-voxel centre is kept."""
-    if patch is None or patch.core is None or patch.near_edge:
+    centre; near an edge of the imaged region the core's edge-corrected centre
+    (``patch.edge_centre_ijk``), else the sub-voxel one."""
+    if patch is not None and patch.near_edge:
+        return (centre_sv if patch.edge_centre_ijk is None else patch.edge_centre_ijk), ""
+    if patch is None or patch.core is None:
         return centre_sv, ""
     c = core_centroid(
         patch.values_hu,
@@ -1099,6 +1104,24 @@ def _near_edge(
         edge_mm - float(u @ (centre_ijk * spacing)) <= reach_mm
         for _, u, edge_mm, _ in _boundaries(centre_ijk, shape, spacing, fov_radius_mm)
     )
+
+
+def core_edge_centre(
+    vox: NDArray[Any],
+    centre_ijk: F64,
+    spacing: F64,
+    params: DetectionParams,
+    fov_radius_mm: float | None,
+    support: Support | None = None,
+) -> F64:
+    """The ``core`` method's centre of a sphere near an edge of the imaged region: the default
+    centroid and its symmetric edge window (:func:`edge_refined_centre`) with the core's ball and
+    margin (``params.core``).  On the cached tungsten-carbide sweep scans, 6 spheres near an edge:
+    mean / max 0.048 / 0.113 mm against 0.067 / 0.181 mm for the default ball and margin."""
+    cp = replace(params, bloom_mm=params.core.bloom_mm, centroid_margin_fraction=params.core.margin_fraction)
+    c, _, _ = _subvoxel_centre(vox, centre_ijk, spacing, cp, support)
+    c, _ = edge_refined_centre(vox, c, spacing, cp, fov_radius_mm, support)
+    return c
 
 
 def sphere_score(
@@ -1168,7 +1191,13 @@ def _measure_sphere(
     patch = sphere_patch(vox, centre_sv, spacing, params) if params.method in PATCH_METHODS else None
     if patch is not None:
         reach_mm = params.radius_mm + params.bloom_mm + params.background_shell_mm
-        patch = replace(patch, near_edge=_near_edge(centre_sv, shape, spacing, scan.fov_radius_mm, reach_mm))
+        near = _near_edge(centre_sv, shape, spacing, scan.fov_radius_mm, reach_mm)
+        edge_c = (
+            core_edge_centre(vox, centre_sv, spacing, params, scan.fov_radius_mm, b.support)
+            if near and params.method == "core"
+            else None
+        )
+        patch = replace(patch, near_edge=near, edge_centre_ijk=edge_c)
     with timer.stage("centres_s"):
         centre, reason = CENTRE_ESTIMATORS[params.method](circles, centre_sv, radius_fit, scan.dz_mm, patch)
     if centre is None:

@@ -14,6 +14,7 @@ from registration.detection import (
     METHOD_FOR_MATERIAL,
     METHODS,
     DetectionParams,
+    core_edge_centre,
     detect_spheres,
     method_for_material,
 )
@@ -97,7 +98,7 @@ def test_core_params_reach_the_patch() -> None:
     assert params.core.bloom_mm == 0.8
 
 
-def test_core_method_finds_every_sphere_and_keeps_the_edge_estimate_near_an_edge() -> None:
+def test_core_method_finds_every_sphere_and_uses_the_edge_window_near_an_edge() -> None:
     # Spheres well inside, and one 1.9 mm inside the first slice (its patch reaches past the edge).
     centres = np.array([[40.0, 40.0, 24.0], [75.0, 55.0, 30.0], [60.0, 70.0, 2.3]])
     vol = make_volume(centres)
@@ -105,11 +106,18 @@ def test_core_method_finds_every_sphere_and_keeps_the_edge_estimate_near_an_edge
     core = detect_spheres(vol, DetectionParams(method="core"))
     assert len(core.spheres) == len(sub.spheres) == 3
     truth = centres * np.asarray(SPACING)
+    params = DetectionParams(method="core")
     for s_sub, s_core in zip(sub.spheres, core.spheres, strict=True):
-        if s_core.center_voxel[2] < 4.0:  # near the first slice: the sub-voxel estimate, kept
-            np.testing.assert_allclose(s_core.center_voxel, s_sub.center_voxel)
+        err = np.linalg.norm(truth - s_core.center_image_mm, axis=1).min()
+        if s_core.center_voxel[2] < 4.0:
+            # Near the first slice: the core weights with the symmetric edge window, started from
+            # the sub-voxel estimate.  This synthetic steel sphere (15000 HU, not opaque) errs
+            # 0.093 mm along k there (the default weights: 0.066 mm).
+            edge = core_edge_centre(vol.voxels, s_sub.center_voxel, np.asarray(SPACING), params, None)
+            np.testing.assert_allclose(s_core.center_voxel, edge)
+            assert err <= 0.15, err
         else:
-            assert np.linalg.norm(truth - s_core.center_image_mm, axis=1).min() <= 0.01
+            assert err <= 0.01, err
 
 
 @pytest.mark.parametrize("material", SPHERE_MATERIALS)
