@@ -472,11 +472,14 @@ def _hard_outcome(phantom: Any, scan: Any, centres: np.ndarray) -> tuple[str, fl
 
 
 def hard_sweep(
-    n_scans: int, cache_dir: Path | None = None, method: str = "subvoxel", background_model: str = "linear"
+    n_scans: int, cache_dir: Path | None = None, method: str | None = None, background_model: str = "linear"
 ) -> None:
-    """Issue #11 conditions: spheres found / expected, false positives, FLE, TRE, registration outcome."""
+    """Issue #11 conditions: spheres found / expected, false positives, FLE, TRE, registration outcome.
+
+    ``method`` None: the centre estimator for each scan's sphere material, as the service chooses
+    it from the phantom file (:func:`registration.detection.method_for_material`)."""
     from mocks.oarm.simulator import scan_to_volume
-    from registration.detection import DetectionParams, detect_spheres
+    from registration.detection import DetectionParams, detect_spheres, method_for_material
 
     rows: dict[str, dict[str, Any]] = {}
     for n in range(n_scans):
@@ -485,7 +488,7 @@ def hard_sweep(
         res = detect_spheres(
             scan_to_volume(scan),
             DetectionParams(
-                method=method,
+                method=method or method_for_material(scan.sphere_material),
                 sphere_diameter_mm=phantom.sphere_diameter_mm,
                 background_model=background_model,
             ),
@@ -505,7 +508,8 @@ def hard_sweep(
         if outcome != "refused":
             row["tre"].append(tre)
     print_table(
-        f"Hard-scan sweep ({n_scans} scans, 256² × 0.415 × 0.833 mm; {method}, {background_model} bg)",
+        f"Hard-scan sweep ({n_scans} scans, 256² × 0.415 × 0.833 mm; "
+        f"{method or 'method by sphere material'}, {background_model} bg)",
         [
             "condition",
             "scans",
@@ -548,7 +552,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--skip-sweep", action="store_true")
     ap.add_argument("--hard", type=int, default=0, help="issue #11 hard-scan sweep over this many scans")
     ap.add_argument("--cache-dir", type=Path, default=None, help="pickle the hard scans here and reuse them")
-    ap.add_argument("--method", default="subvoxel", help="centre estimator of the hard sweep")
+    ap.add_argument(
+        "--method", default=None, help="centre estimator of the hard sweep (default: by sphere material)"
+    )
     ap.add_argument("--background-model", default="linear", help="background under a sphere (hard sweep)")
     args = ap.parse_args(argv)
     if not args.skip_speed:

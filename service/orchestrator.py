@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from drivers.errors import RobotLinkError
 from registration import __version__
-from registration.detection import DetectionParams
+from registration.detection import DetectionParams, method_for_material
 from registration.errors import OarmRegError
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
@@ -55,7 +55,11 @@ Publish = Callable[[str, dict[str, Any]], None]
 def pipeline_params(settings: Settings, phantom: Phantom) -> PipelineParams:
     """The pipeline's parameters from the service settings."""
     ds, q = settings.detection, settings.quality
-    detection = DetectionParams(use_mar=ds.use_mar, sphere_diameter_mm=float(phantom.sphere_diameter_mm))
+    detection = DetectionParams(
+        use_mar=ds.use_mar,
+        sphere_diameter_mm=float(phantom.sphere_diameter_mm),
+        method=method_for_material(phantom.sphere_material),
+    )
     if ds.method != "default":
         detection = replace(detection, method=ds.method)
     return PipelineParams(

@@ -146,7 +146,9 @@ class RetentionSettings(_Section):
 
 
 class DetectionSettings(_Section):
-    method: Literal["default", "subvoxel", "paper"] = "default"
+    # "default": the centre estimator for the phantom's sphere material
+    # (registration.detection.METHOD_FOR_MATERIAL: "core" for tungsten carbide, else "subvoxel").
+    method: Literal["default", "subvoxel", "paper", "core"] = "default"
     use_mar: bool = True
 
 
