@@ -111,6 +111,12 @@ class DetectionParams:
         smaller blobs are streak crossings or noise.
     min_volume_fraction : float
         Smallest thresholded volume as a fraction of the nominal sphere volume.
+    min_fill_fraction : float
+        Smallest fraction of its bounding box a blob fills.  A thresholded ball fills about
+        π/6 ≈ 0.52; bloom and streak tails took true spheres down to 0.16 (tungsten carbide,
+        SPR 0.3, issue #11 hard sweep); a cone-beam streak fragment between tungsten-carbide
+        spheres, reported as a sphere before this test, filled 0.079.  A sparser blob is split
+        into sphere cores like an oversized one (a streak fragment has none).
     centroid_margin_hu : float
         ``subvoxel``: voxels are weighted by ``HU − (background + margin)``
         (clipped at 0).  The margin keeps noise and streaks (±200 HU in the
@@ -169,6 +175,7 @@ class DetectionParams:
     bloom_mm: float = 1.5
     min_extent_fraction: float = 0.5
     min_volume_fraction: float = 0.25
+    min_fill_fraction: float = 0.12
     centroid_margin_hu: float = 300.0
     centroid_margin_fraction: float = 0.5
     centroid_iterations: int = 3
@@ -805,7 +812,7 @@ class SizeLimits:
 NO_CIRCLE_REASON: Final = "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
 """End of the circle cross-check's rejection; such a blob gets the 3-D core test of a split."""
 
-OVERSIZED_REASONS: Final = ("elongated or oversized metal", "blob volume")
+OVERSIZED_REASONS: Final = ("elongated or oversized metal", "blob volume", "sparse metal")
 """Reasons of :func:`blob_reject_reason` that a split into sphere cores may resolve."""
 
 
@@ -833,6 +840,12 @@ def blob_reject_reason(b: _Blob, limits: SizeLimits, params: DetectionParams) ->
         return (
             f"too small ({size} mm, {vol_mm3:.2f} mm³; a Ø{params.sphere_diameter_mm} mm sphere is "
             f"≥ {limits.ext_min_mm:.2f} mm across): streak crossing or noise"
+        )
+    fill = b.n_voxels / math.prod(s.stop - s.start for s in b.box)
+    if fill < params.min_fill_fraction:
+        return (
+            f"sparse metal (fills {fill:.2f} of its bounding box < {params.min_fill_fraction}; a sphere "
+            "fills about 0.5): streak fragment"
         )
     return None
 

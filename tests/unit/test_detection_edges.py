@@ -14,13 +14,18 @@ from test_detection import SHAPE, SPACING, _add_sphere, make_volume
 
 from registration.detection import (
     MAX_CORE_AXIS_RATIO,
+    OVERSIZED_REASONS,
     DetectedSphere,
     DetectionParams,
+    SizeLimits,
     _ball_weights,
+    _Blob,
     _separate,
     _subvoxel_centre,
+    blob_reject_reason,
     core_axis_ratio,
     detect_spheres,
+    find_blobs,
     edge_refined_centre,
 )
 from registration.errors import DetectionError
@@ -155,3 +160,22 @@ def test_core_axis_ratio_separates_a_sphere_from_a_streak_line() -> None:
     line[20, jj, jj] = 3071  # a diagonal in-plane line, 9.4 mm long
     bw_line = _ball_weights(line, np.array([48.0, 48.0, 20.0]), SP, p, None)
     assert core_axis_ratio(bw_line, SP) > 2 * MAX_CORE_AXIS_RATIO
+
+
+def test_sparse_blob_is_sent_to_the_split_and_a_sphere_blob_is_not() -> None:
+    """Issue #11: a cone-beam streak fragment between tungsten-carbide spheres (19 voxels in a
+    10 × 12 × 2 box, fill 0.079) passed the size and peak tests and displaced the true sphere next
+    to it; a blob that fills less than ``min_fill_fraction`` of its box goes to the core split."""
+    p = DetectionParams()
+    limits = SizeLimits.of(p, SP)
+    box = (slice(20, 22), slice(40, 52), slice(30, 40))
+    fragment = _Blob(box, 19, 3071.0, np.array([35.0, 46.0, 20.5]), np.array([10, 12, 2]) * SP)
+    reason = blob_reject_reason(fragment, limits, p)
+    assert reason is not None and reason.startswith("sparse metal")
+    assert reason.startswith(OVERSIZED_REASONS)
+    vox = make_volume(np.array([[48.3, 47.6, 20.4]])).voxels
+    flat = np.flatnonzero(vox >= p.candidate_threshold_hu)
+    k, j, i = np.unravel_index(flat, vox.shape)
+    boxes = [(slice(k.min(), k.max() + 1), slice(j.min(), j.max() + 1), slice(i.min(), i.max() + 1))]
+    (sphere,) = find_blobs(vox, boxes, p.candidate_threshold_hu, SP, p.crop_margin_mm)
+    assert blob_reject_reason(sphere, limits, p) is None
