@@ -25,8 +25,8 @@ from registration.detection import (
     blob_reject_reason,
     core_axis_ratio,
     detect_spheres,
-    find_blobs,
     edge_refined_centre,
+    find_blobs,
 )
 from registration.errors import DetectionError
 from registration.volume import Volume
