@@ -1204,15 +1204,17 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
     )
     limits = SizeLimits.of(params, spacing)
     spheres: list[DetectedSphere] = []
+    metal_voxels: list[int] = []
     rejections: list[Rejection] = []
     for b in blobs:
         for part, found in _measure_blob(b, scan, limits, params, thr_cast, timer):
             if isinstance(found, DetectedSphere):
                 spheres.append(found)
+                metal_voxels.append(part.n_voxels)
             else:
                 where = volume.voxel_to_image(part.centroid_voxel)
                 rejections.append(Rejection((float(where[0]), float(where[1]), float(where[2])), found))
-    spheres, crowded = _separate(spheres, params.min_separation_mm)
+    spheres, crowded = _separate(spheres, params.min_separation_mm, metal_voxels)
     rejections.extend(crowded)
     timings = dict(timer.seconds)
     timings["total_s"] = time.perf_counter() - t_start
@@ -1228,11 +1230,17 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
 
 
 def _separate(
-    spheres: list[DetectedSphere], min_separation_mm: float
+    spheres: list[DetectedSphere], min_separation_mm: float, metal_voxels: list[int] | None = None
 ) -> tuple[list[DetectedSphere], list[Rejection]]:
-    """Spheres at least ``min_separation_mm`` apart (the one with more circle slices, then the
-    higher score, of a closer pair; input order kept) and a rejection for each one dropped."""
-    rank = sorted(range(len(spheres)), key=lambda n: (-spheres[n].n_slices, -spheres[n].score, n))
+    """Spheres at least ``min_separation_mm`` apart (of a closer pair the one with more metal
+    voxels in its blob or core, then more circle slices, then the higher score; input order kept)
+    and a rejection for each one dropped.
+
+    Metal first: a split core's circle test is not a gate (it may have 0 circle slices), so a
+    streak fragment with one circular slice outranked the tungsten-carbide sphere 4–5 mm from it
+    (issue #11, cone-beam); the sphere holds 5× the fragment's metal."""
+    metal = metal_voxels if metal_voxels is not None else [0] * len(spheres)
+    rank = sorted(range(len(spheres)), key=lambda n: (-metal[n], -spheres[n].n_slices, -spheres[n].score, n))
     kept: list[int] = []
     dropped: list[Rejection] = []
     for n in rank:
@@ -1245,7 +1253,7 @@ def _separate(
         dropped.append(
             Rejection(
                 (float(c[0]), float(c[1]), float(c[2])),
-                f"{d:.1f} mm from a sphere with more circle slices or a higher score (spheres are "
+                f"{d:.1f} mm from a sphere with more metal, circle slices or score (spheres are "
                 f"≥ {min_separation_mm} mm apart): a second core of the same sphere or a streak fragment",
             )
         )

@@ -179,3 +179,11 @@ def test_sparse_blob_is_sent_to_the_split_and_a_sphere_blob_is_not() -> None:
     boxes = [(slice(k.min(), k.max() + 1), slice(j.min(), j.max() + 1), slice(i.min(), i.max() + 1))]
     (sphere,) = find_blobs(vox, boxes, p.candidate_threshold_hu, SP, p.crop_margin_mm)
     assert blob_reject_reason(sphere, limits, p) is None
+
+
+def test_separation_keeps_the_candidate_with_more_metal() -> None:
+    """A split tungsten-carbide core (0 circle slices, 122 metal voxels) and a streak fragment
+    5 mm from it (1 circle slice, 21 voxels): the core is the sphere (issue #11, cone-beam)."""
+    core, fragment = _sphere(0.0, 0, 0.0), _sphere(5.0, 1, 0.0)
+    kept, dropped = _separate([core, fragment], 7.5, [122, 21])
+    assert kept == [core] and len(dropped) == 1 and "more metal" in dropped[0].reason
