@@ -1229,18 +1229,33 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
     return DetectionResult(tuple(spheres), tuple(rejections), params.method, timings)
 
 
+FRAGMENT_METAL_FRACTION: Final = 0.5
+"""A candidate with less than this fraction of the metal voxels of another one closer than the
+phantom allows is a fragment of it (issue #11 sweep: the streak fragments that displaced
+tungsten-carbide spheres held 21–31 voxels, ≤ 0.27 of the sphere's 116–122; two candidates of
+one sphere held 118 and 165, 0.72)."""
+
+
 def _separate(
     spheres: list[DetectedSphere], min_separation_mm: float, metal_voxels: list[int] | None = None
 ) -> tuple[list[DetectedSphere], list[Rejection]]:
-    """Spheres at least ``min_separation_mm`` apart (of a closer pair the one with more metal
-    voxels in its blob or core, then more circle slices, then the higher score; input order kept)
-    and a rejection for each one dropped.
+    """Spheres at least ``min_separation_mm`` apart and a rejection for each one dropped.
 
-    Metal first: a split core's circle test is not a gate (it may have 0 circle slices), so a
-    streak fragment with one circular slice outranked the tungsten-carbide sphere 4–5 mm from it
-    (issue #11, cone-beam); the sphere holds 5× the fragment's metal."""
-    metal = metal_voxels if metal_voxels is not None else [0] * len(spheres)
-    rank = sorted(range(len(spheres)), key=lambda n: (-metal[n], -spheres[n].n_slices, -spheres[n].score, n))
+    Of a closer pair the one kept is not a fragment (:data:`FRAGMENT_METAL_FRACTION` of the
+    other's metal voxels), then has more circle slices, then the higher score; input order kept.
+    The fragment test comes first because a split core's circle test is not a gate (it may have 0
+    circle slices): a streak fragment with one circular slice outranked the tungsten-carbide
+    sphere 5 mm from it (issue #11, cone-beam).
+    """
+    metal = np.asarray(metal_voxels if metal_voxels is not None else [0] * len(spheres), dtype=np.float64)
+    centres = np.array([sp.center_image_mm for sp in spheres]).reshape(-1, 3)
+    close = np.linalg.norm(centres[:, None] - centres[None], axis=2) < min_separation_mm
+    fragment = metal < FRAGMENT_METAL_FRACTION * np.max(
+        np.where(close, metal[None, :], 0.0), axis=1, initial=0.0
+    )
+    rank = sorted(
+        range(len(spheres)), key=lambda n: (bool(fragment[n]), -spheres[n].n_slices, -spheres[n].score, n)
+    )
     kept: list[int] = []
     dropped: list[Rejection] = []
     for n in rank:

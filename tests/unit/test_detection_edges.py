@@ -181,9 +181,17 @@ def test_sparse_blob_is_sent_to_the_split_and_a_sphere_blob_is_not() -> None:
     assert blob_reject_reason(sphere, limits, p) is None
 
 
-def test_separation_keeps_the_candidate_with_more_metal() -> None:
+def test_separation_keeps_the_sphere_over_a_streak_fragment_of_it() -> None:
     """A split tungsten-carbide core (0 circle slices, 122 metal voxels) and a streak fragment
     5 mm from it (1 circle slice, 21 voxels): the core is the sphere (issue #11, cone-beam)."""
     core, fragment = _sphere(0.0, 0, 0.0), _sphere(5.0, 1, 0.0)
     kept, dropped = _separate([core, fragment], 7.5, [122, 21])
     assert kept == [core] and len(dropped) == 1 and "more metal" in dropped[0].reason
+
+
+def test_separation_ranks_comparable_candidates_by_circle_slices() -> None:
+    """Two candidates of one sphere with comparable metal (118 and 165 voxels): the one with more
+    circle slices stays, as before the fragment test."""
+    good, other = _sphere(0.0, 4, 0.94), _sphere(0.2, 2, 0.39)
+    kept, _ = _separate([good, other], 7.5, [118, 165])
+    assert kept == [good]
