@@ -291,7 +291,7 @@ HARD_CONDITIONS: list[dict[str, Any]] = [
     # issue #11 Done-when: beam (parallel / cone) × material × scatter × dose × partial FOV × rod /
     # vertebra.  "x_mm" shifts the phantom off axis and "slices" cuts the slab, so fewer spheres are
     # fully imaged.  Cone-beam scans (mocks/oarm/cbct.py, numpy FDK) use the O-arm voxel size on
-    # a 256² × 96 grid with 180 views.
+    # a 256² × 96 grid with the O-arm's 391 views over 360° ("views" overrides: 745).
     dict(name="steel spr0.1 1e4", phantom="bai2018_cube", material="steel", spr=0.1, photons=1e4),
     dict(
         name="steel spr0.3 1e3 rod+vert",
@@ -356,8 +356,9 @@ HARD_CONDITIONS: list[dict[str, Any]] = [
         photons=1e3,
     ),
     dict(
-        name="CB steel spr0.3 1e5 rod+vert",
+        name="CB steel spr0.3 1e5 rod+vert 745 views",
         beam="cone",
+        views=745,
         phantom="bai2018_cube",
         material="steel",
         spr=0.3,
@@ -405,7 +406,7 @@ def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
             rows=256,
             columns=256,
             n_slices=96,
-            n_views=180,
+            n_views=int(cond.get("views", 391)),
             det_cols=384,
             det_rows=256,
             subrays=2,

@@ -124,6 +124,12 @@ class DetectionParams:
         smaller blobs are streak crossings or noise.
     min_volume_fraction : float
         Smallest thresholded volume as a fraction of the nominal sphere volume.
+    min_fill_fraction : float
+        Smallest fraction of its bounding box a blob fills.  A thresholded ball fills about
+        π/6 ≈ 0.52; bloom and streak tails took true spheres down to 0.16 (tungsten carbide,
+        SPR 0.3, issue #11 hard sweep); a cone-beam streak fragment between tungsten-carbide
+        spheres, reported as a sphere before this test, filled 0.079.  A sparser blob is split
+        into sphere cores like an oversized one (a streak fragment has none).
     centroid_margin_hu : float
         ``subvoxel``: voxels are weighted by ``HU − (background + margin)``
         (clipped at 0).  The margin keeps noise and streaks (±200 HU in the
@@ -184,6 +190,7 @@ class DetectionParams:
     bloom_mm: float = 1.5
     min_extent_fraction: float = 0.5
     min_volume_fraction: float = 0.25
+    min_fill_fraction: float = 0.12
     centroid_margin_hu: float = 300.0
     centroid_margin_fraction: float = 0.5
     centroid_iterations: int = 3
@@ -850,7 +857,7 @@ class SizeLimits:
 NO_CIRCLE_REASON: Final = "wrong shape for a sphere (bone edge, streak crossing or merged objects)"
 """End of the circle cross-check's rejection; such a blob gets the 3-D core test of a split."""
 
-OVERSIZED_REASONS: Final = ("elongated or oversized metal", "blob volume")
+OVERSIZED_REASONS: Final = ("elongated or oversized metal", "blob volume", "sparse metal")
 """Reasons of :func:`blob_reject_reason` that a split into sphere cores may resolve."""
 
 
@@ -878,6 +885,12 @@ def blob_reject_reason(b: _Blob, limits: SizeLimits, params: DetectionParams) ->
         return (
             f"too small ({size} mm, {vol_mm3:.2f} mm³; a Ø{params.sphere_diameter_mm} mm sphere is "
             f"≥ {limits.ext_min_mm:.2f} mm across): streak crossing or noise"
+        )
+    fill = b.n_voxels / math.prod(s.stop - s.start for s in b.box)
+    if fill < params.min_fill_fraction:
+        return (
+            f"sparse metal (fills {fill:.2f} of its bounding box < {params.min_fill_fraction}; a sphere "
+            "fills about 0.5): streak fragment"
         )
     return None
 
@@ -1319,15 +1332,17 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
     )
     limits = SizeLimits.of(params, spacing)
     spheres: list[DetectedSphere] = []
+    metal_voxels: list[int] = []
     rejections: list[Rejection] = []
     for b in blobs:
         for part, found in _measure_blob(b, scan, limits, params, thr_cast, timer):
             if isinstance(found, DetectedSphere):
                 spheres.append(found)
+                metal_voxels.append(part.n_voxels)
             else:
                 where = volume.voxel_to_image(part.centroid_voxel)
                 rejections.append(Rejection((float(where[0]), float(where[1]), float(where[2])), found))
-    spheres, crowded = _separate(spheres, params.min_separation_mm)
+    spheres, crowded = _separate(spheres, params.min_separation_mm, metal_voxels)
     rejections.extend(crowded)
     timings = dict(timer.seconds)
     timings["total_s"] = time.perf_counter() - t_start
@@ -1342,12 +1357,33 @@ def detect_spheres(volume: Volume, params: DetectionParams = DetectionParams()) 
     return DetectionResult(tuple(spheres), tuple(rejections), params.method, timings)
 
 
+FRAGMENT_METAL_FRACTION: Final = 0.5
+"""A candidate with less than this fraction of the metal voxels of another one closer than the
+phantom allows is a fragment of it (issue #11 sweep: the streak fragments that displaced
+tungsten-carbide spheres held 21–31 voxels, ≤ 0.27 of the sphere's 116–122; two candidates of
+one sphere held 118 and 165, 0.72)."""
+
+
 def _separate(
-    spheres: list[DetectedSphere], min_separation_mm: float
+    spheres: list[DetectedSphere], min_separation_mm: float, metal_voxels: list[int] | None = None
 ) -> tuple[list[DetectedSphere], list[Rejection]]:
-    """Spheres at least ``min_separation_mm`` apart (the one with more circle slices, then the
-    higher score, of a closer pair; input order kept) and a rejection for each one dropped."""
-    rank = sorted(range(len(spheres)), key=lambda n: (-spheres[n].n_slices, -spheres[n].score, n))
+    """Spheres at least ``min_separation_mm`` apart and a rejection for each one dropped.
+
+    Of a closer pair the one kept is not a fragment (:data:`FRAGMENT_METAL_FRACTION` of the
+    other's metal voxels), then has more circle slices, then the higher score; input order kept.
+    The fragment test comes first because a split core's circle test is not a gate (it may have 0
+    circle slices): a streak fragment with one circular slice outranked the tungsten-carbide
+    sphere 5 mm from it (issue #11, cone-beam).
+    """
+    metal = np.asarray(metal_voxels if metal_voxels is not None else [0] * len(spheres), dtype=np.float64)
+    centres = np.array([sp.center_image_mm for sp in spheres]).reshape(-1, 3)
+    close = np.linalg.norm(centres[:, None] - centres[None], axis=2) < min_separation_mm
+    fragment = metal < FRAGMENT_METAL_FRACTION * np.max(
+        np.where(close, metal[None, :], 0.0), axis=1, initial=0.0
+    )
+    rank = sorted(
+        range(len(spheres)), key=lambda n: (bool(fragment[n]), -spheres[n].n_slices, -spheres[n].score, n)
+    )
     kept: list[int] = []
     dropped: list[Rejection] = []
     for n in rank:
@@ -1360,7 +1396,7 @@ def _separate(
         dropped.append(
             Rejection(
                 (float(c[0]), float(c[1]), float(c[2])),
-                f"{d:.1f} mm from a sphere with more circle slices or a higher score (spheres are "
+                f"{d:.1f} mm from a sphere with more metal, circle slices or score (spheres are "
                 f"≥ {min_separation_mm} mm apart): a second core of the same sphere or a streak fragment",
             )
         )

@@ -18,17 +18,34 @@ simulator: the chords of the plastic cube, the optional steel rod (finite cylind
 sphere and empty hole (its projected disc plus 1.5 pixels) ``subrays`` × ``subrays`` rays per
 pixel through every object whose shadow overlaps in that view, their transmitted intensities
 averaged before the log.  Then kernel scatter (SPR), Poisson noise, scintillator light spread,
-detector lag (recursive, first-frame lag ``lag_fraction``: 2–10 % in a-Si panels, Siewerdsen &
-Jaffray, Med Phys 26:1624 (1999), doi:10.1118/1.598657), electronic noise, the log, water
-linearisation and FDK (Feldkamp, Davis, Kress, JOSA A 1:612 (1984), doi:10.1364/JOSAA.1.000612),
-no apodisation window, inside the cylinder every view sees (the rest is air, −1024 HU).
+detector lag, electronic noise, the scanner's own lag correction, the log, water linearisation and
+FDK (Feldkamp, Davis, Kress, JOSA A 1:612 (1984), doi:10.1364/JOSAA.1.000612), no apodisation
+window, inside the cylinder every view sees (the rest is air, −1024 HU).
 
-Validation (noise-free, monochromatic, 0.15 mm ROI voxels, 0.3·max intensity-weighted
-centroids): spheres alone in air within 0.005 mm at the isocentre, 30 mm off-axis and 35 mm
-off-plane; the cube's flush steel spheres at z = 0 and 35 mm within 0.0024 mm at 391 views
-(polychromatic 0.0016 mm; at 120 views the other spheres' view-aliasing streaks reach 0.012 mm).
-Centroids of the *stored* HU (clipped at 3071) thresholded at 1500 HU move 0.01–0.017 mm towards
-the plastic: the saturated plateau leaves the weights in the edge ring, brighter on that side.
+Detector lag (:func:`apply_lag`) is a linear, time-invariant multi-exponential impulse response,
+the model a-Si flat panels are measured with: a fraction w_n of each frame's charge is trapped
+and released over the following frames with per-frame retention r_n (first-frame lag Σ w_n;
+2–10 % in a-Si panels, Siewerdsen & Jaffray, Med Phys 26:1624 (1999), doi:10.1118/1.598657;
+four exponentials fit the Varian 4030CB, Starman et al., Med Phys 38:2398 (2011),
+doi:10.1118/1.3574873).  :data:`DETECTOR_LAG` is representative of those ranges, not fitted to
+a particular panel.  A CBCT scanner corrects lag before reconstruction, otherwise it shows as a
+rotation of the image and "radar" arcs; the simulated scanner does so with the recursive
+deconvolution of Hsieh et al. (Proc. SPIE 3977:298 (2000), doi:10.1117/12.384505;
+:func:`correct_lag`) of its *calibrated* model, :data:`SCANNER_LAG_MODEL`: three exponentials
+fitted to a step response, so the slowest two true terms are merged and the amplitudes are a few
+per cent off — a residual lag remains, as Starman et al. report for every LTI correction.
+Uncorrected, this lag rotates the image by its mean delay (0.34 frames); after the correction
+the first-frame lag is 0.15 % instead of 3.6 % and the 50th-frame lag 0.025 % instead of 0.15 %.
+Not modelled: the exposure dependence of lag (non-LTI, Starman et al. 2011's NLCSC), ghosting.
+
+Slice thickness: the FDK point-samples the 0.833 mm slices (``slice_thickness_mm`` = 0), as
+RTK does, with the panel's 0.44 mm axial PSF at the isocentre, which aliases: on noise-free,
+lag-free steel scans the detection's centres are pulled towards the nearest slice centre (axial
+RMS 0.034 mm; 0.060 mm with a 2 × 2-binned 0.388 mm panel; 0.019 mm on 0.4165 mm slices).
+Averaging the rows over the slice thickness first (:func:`slab_filter_rows`, ``slice_thickness_mm``
+= 0.833, the slice-wise simulator's convention) flips that bias (centres pushed towards the slice
+boundaries, axial RMS 0.039 mm) rather than removing it: the bias is the centre estimator's on a
+clipped sphere sampled every 0.833 mm.  What the O-arm's reconstructor does here is not known.
 
 O-arm numbers (research note calibration.md §4, **unverified**): SID ≈ 650 mm, SDD ≈ 1150 mm,
 40 × 30 cm panel (PaxScan 4030CB-like; here 4 × 4 binned to 0.776 mm), 391 views over 360°.
@@ -80,6 +97,66 @@ def _rtk() -> Any:
     return itk, RTK
 
 
+LagModel = tuple[tuple[float, float], ...]
+"""Multi-exponential lag: (trapped fraction w_n, per-frame retention r_n) per term."""
+
+DETECTOR_LAG: LagModel = ((0.020, 0.30), (0.010, 0.80), (0.004, 0.95), (0.002, 0.99))
+"""The simulated panel's true lag: first-frame lag 3.6 %, 50th-frame lag 0.16 % (step response
+falling edge; a-Si panels: 2–10 % and tenths of a per cent, Siewerdsen & Jaffray 1999, Starman et
+al. 2011).  Representative, not a measured panel."""
+
+SCANNER_LAG_MODEL: LagModel = ((0.0195, 0.33), (0.0095, 0.78), (0.0055, 0.97))
+"""The simulated scanner's calibrated lag model (three exponentials, as if fitted to a measured
+step response): fast amplitudes 5 % off, one rate 0.02 off, the two slow true terms merged into
+one.  Its residual against :data:`DETECTOR_LAG` is what a real LTI correction leaves."""
+
+
+def _valid_lag(model: LagModel) -> bool:
+    return all(w >= 0.0 and 0.0 <= r < 1.0 for w, r in model) and sum(w for w, _ in model) < 1.0
+
+
+def apply_lag(frames_in: F32, model: LagModel) -> F32:
+    """Detector lag on a time series of frames (V, ...), in place; returns the array.
+
+    Per term n, a store Q_n (charge per pixel): at each frame it releases (1 − r_n) Q_n and traps
+    w_n of the new charge x_k, so the frame reads y_k = (1 − Σ w_n) x_k + Σ (1 − r_n) Q_n.  The
+    store starts empty (the panel was dark before the scan); Σ of the impulse response is 1.
+    """
+    if not model:
+        return frames_in
+    stores = [np.zeros(frames_in.shape[1:], np.float32) for _ in model]
+    prompt = np.float32(1.0 - sum(w for w, _ in model))
+    for k in range(frames_in.shape[0]):
+        x = frames_in[k].copy()
+        frames_in[k] *= prompt
+        for (w, r), q in zip(model, stores, strict=True):
+            frames_in[k] += np.float32(1.0 - r) * q
+            q *= np.float32(r)
+            q += np.float32(w) * x
+    return frames_in
+
+
+def correct_lag(frames_in: F32, model: LagModel) -> F32:
+    """The exact inverse of :func:`apply_lag` for ``model`` (Hsieh et al. 2000), in place.
+
+    x̂_k = (y_k − Σ (1 − r_n) Q̂_n) / (1 − Σ w_n), then Q̂_n ← r_n Q̂_n + w_n x̂_k; with the true
+    model this returns the lag-free frames to rounding, with a calibrated one a residual remains.
+    """
+    if not model:
+        return frames_in
+    stores = [np.zeros(frames_in.shape[1:], np.float32) for _ in model]
+    inv_prompt = np.float32(1.0 / (1.0 - sum(w for w, _ in model)))
+    for k in range(frames_in.shape[0]):
+        y = frames_in[k]
+        for (_, r), q in zip(model, stores, strict=True):
+            y -= np.float32(1.0 - r) * q
+        y *= inv_prompt
+        for (w, r), q in zip(model, stores, strict=True):
+            q *= np.float32(r)
+            q += np.float32(w) * y
+    return frames_in
+
+
 @dataclass(frozen=True)
 class ConeBeamSettings:
     """Cone-beam acquisition and reconstruction grid (grid fields as in ``AcquisitionSettings``)."""
@@ -103,7 +180,11 @@ class ConeBeamSettings:
     scatter_spr: float = 0.2
     scatter_kernel_fwhm_mm: float = 60.0
     light_spread_fwhm_mm: float = 0.6
-    lag_fraction: float = 0.03
+    lag_components: LagModel = DETECTOR_LAG
+    """The panel's true lag (:func:`apply_lag`); ``()`` for none."""
+    lag_correction_model: LagModel = SCANNER_LAG_MODEL
+    """The scanner's calibrated lag model, deconvolved before the log (:func:`correct_lag`);
+    ``()`` for no correction (set it to ``()`` too when switching the lag off)."""
     kvp: float = physics.DEFAULT_KVP
     filter_al_mm: float = physics.DEFAULT_FILTER_AL_MM
     energy_bin_edges_kev: tuple[float, ...] = physics.K_EDGE_BIN_EDGES_KEV
@@ -114,6 +195,10 @@ class ConeBeamSettings:
     preset_name: str = "custom-cbct"
     monochromatic_kev: float | None = None
     """Validation only: one photon energy (keV) instead of the spectrum, so no beam hardening."""
+    slice_thickness_mm: float = 0.0
+    """Reconstructed slice thickness (mm) by averaging the projections over the voxel's axial
+    footprint (:func:`slab_filter_rows`); 0 (default) = point sampling, as RTK's voxel-driven FDK
+    does.  See the module notes: the detection's axial bias changes sign with it."""
     hann_cut: float = 0.0
     """Ramp apodisation, RTK's ``HannCutFrequency``: 0 = plain ramp (default); c > 0 multiplies
     rfft bin i < round(c·n) by 0.5(1 + cos(π i / round(c·n))) and zeroes the rest (n bins)."""
@@ -127,10 +212,14 @@ class ConeBeamSettings:
             problems.append(f"need 0 < sid_mm < sdd_mm, got {self.sid_mm}, {self.sdd_mm}")
         if self.n_views < 8 or self.subrays < 1 or min(self.det_cols, self.det_rows) < 8:
             problems.append("need n_views >= 8, subrays >= 1 and a detector of >= 8 × 8 pixels")
-        if not 0.0 <= self.lag_fraction < 1.0 or not 0.0 <= self.scatter_spr <= 2.0:
-            problems.append("lag_fraction must be in [0, 1) and scatter_spr in [0, 2]")
+        if not 0.0 <= self.scatter_spr <= 2.0:
+            problems.append(f"scatter_spr={self.scatter_spr} outside [0, 2]")
+        if not (_valid_lag(self.lag_components) and _valid_lag(self.lag_correction_model)):
+            problems.append("lag models need w_n >= 0, 0 <= r_n < 1 and sum(w_n) < 1")
         if self.orientation not in ORIENTATIONS:
             problems.append(f"orientation {self.orientation!r} not one of {sorted(ORIENTATIONS)}")
+        if not 0.0 <= self.slice_thickness_mm <= 10.0:
+            problems.append(f"slice_thickness_mm={self.slice_thickness_mm} outside [0, 10] mm")
         if not 0.0 <= self.hann_cut <= 1.0:
             problems.append(f"hann_cut={self.hann_cut} outside [0, 1]")
         if self.reconstructor not in ("numpy", "rtk"):
@@ -425,14 +514,14 @@ def project_view(
 
 
 def _detect_views(trans: F32, s: ConeBeamSettings, wcorr: physics.WaterCorrection) -> F32:
-    """In place over views (V, rows, cols): scatter, Poisson, light spread, lag, electronics, log."""
+    """In place over views (V, rows, cols): scatter, Poisson, light spread, lag, electronics, the
+    scanner's lag correction, the log and water linearisation."""
     import cv2
 
     rng = np.random.default_rng(s.seed)
     n0 = np.float32(s.photons_per_ray)
     det_iso_mm = s.det_pitch_mm / s.magnification
     sigma_px = s.light_spread_fwhm_mm / 2.3548 / s.det_pitch_mm
-    previous: F32 | None = None
     for i in range(trans.shape[0]):
         prim = trans[i]
         scatter = (
@@ -446,14 +535,16 @@ def _detect_views(trans: F32, s: ConeBeamSettings, wcorr: physics.WaterCorrectio
         counts = rng.poisson(lam).astype(np.float32) if s.noise else lam.astype(np.float32)
         if sigma_px > 0:
             counts = cv2.GaussianBlur(counts, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
-        if s.lag_fraction > 0 and previous is not None:
-            counts = (1.0 - s.lag_fraction) * counts + s.lag_fraction * previous
-        previous = counts
-        if s.noise and s.electronic_noise_photons > 0:
-            counts = counts + np.float32(s.electronic_noise_photons) * rng.standard_normal(
-                counts.shape, np.float32
+        trans[i] = counts
+    apply_lag(trans, s.lag_components)
+    if s.noise and s.electronic_noise_photons > 0:
+        for i in range(trans.shape[0]):
+            trans[i] += np.float32(s.electronic_noise_photons) * rng.standard_normal(
+                trans.shape[1:], np.float32
             )
-        np.maximum(counts, np.float32(s.min_count_photons), out=counts)
+    correct_lag(trans, s.lag_correction_model)
+    for i in range(trans.shape[0]):
+        counts = np.maximum(trans[i], np.float32(s.min_count_photons))
         trans[i] = wcorr.apply((-np.log(counts / n0)).astype(np.float32))
     return trans
 
@@ -540,6 +631,30 @@ def filter_projections(line_integrals: F32, s: ConeBeamSettings) -> F32:
         spec = sfft.rfft(line_integrals[i] * weight, n=n_pad, axis=-1, workers=-1)
         spec *= kernel[None, :]
         line_integrals[i] = sfft.irfft(spec, n=n_pad, axis=-1, workers=-1)[:, : s.det_cols]
+    return line_integrals
+
+
+def slab_filter_rows(line_integrals: F32, s: ConeBeamSettings) -> F32:
+    """Average each view's rows over the reconstructed slice thickness projected at the isocentre.
+
+    A box of ``slice_thickness_mm`` × SDD / SID on the panel (fractional pixel overlaps), along v:
+    the reconstructor's slice-thickness filter, so the 0.833 mm slices of the O-arm grid integrate
+    the axial profile instead of point-sampling it (magnification varies by ±8 % over ±50 mm of
+    depth, so the effective thickness does too).  Returns ``line_integrals`` filtered in place.
+    """
+    from scipy import ndimage
+
+    width_px = s.slice_thickness_mm * s.magnification / s.det_pitch_mm
+    if width_px <= 1.0:
+        return line_integrals
+    half = width_px / 2.0
+    n = math.ceil(half - 0.5)
+    taps = np.arange(-n, n + 1, dtype=np.float64)
+    kernel = np.clip(np.minimum(taps + 0.5, half) - np.maximum(taps - 0.5, -half), 0.0, None)
+    kernel /= kernel.sum()
+    ndimage.convolve1d(
+        line_integrals, kernel.astype(np.float32), axis=1, output=line_integrals, mode="nearest"
+    )
     return line_integrals
 
 
@@ -752,7 +867,7 @@ def simulate_cbct_mu(
     origin, half, grid_centre = _grid_rtk(s)
     grid = ((s.columns, s.n_slices, s.rows), (s.pixel_mm, s.slice_spacing_mm, s.pixel_mm))
     fdk = fdk_rtk if s.reconstructor == "rtk" else fdk_numpy
-    arr = fdk(views, s, origin, *grid)
+    arr = fdk(slab_filter_rows(views, s), s, origin, *grid)
     del views
     timings["fdk_s"] = time.perf_counter() - t0
     mu_vol = np.ascontiguousarray(arr.transpose(1, 0, 2)[:, ::-1, :])  # [z_r, y_r, x_r] → [k, j, i]

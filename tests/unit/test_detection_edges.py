@@ -14,14 +14,19 @@ from test_detection import SHAPE, SPACING, _add_sphere, make_volume
 
 from registration.detection import (
     MAX_CORE_AXIS_RATIO,
+    OVERSIZED_REASONS,
     DetectedSphere,
     DetectionParams,
+    SizeLimits,
     _ball_weights,
+    _Blob,
     _separate,
     _subvoxel_centre,
+    blob_reject_reason,
     core_axis_ratio,
     detect_spheres,
     edge_refined_centre,
+    find_blobs,
 )
 from registration.errors import DetectionError
 from registration.volume import Volume
@@ -155,3 +160,38 @@ def test_core_axis_ratio_separates_a_sphere_from_a_streak_line() -> None:
     line[20, jj, jj] = 3071  # a diagonal in-plane line, 9.4 mm long
     bw_line = _ball_weights(line, np.array([48.0, 48.0, 20.0]), SP, p, None)
     assert core_axis_ratio(bw_line, SP) > 2 * MAX_CORE_AXIS_RATIO
+
+
+def test_sparse_blob_is_sent_to_the_split_and_a_sphere_blob_is_not() -> None:
+    """Issue #11: a cone-beam streak fragment between tungsten-carbide spheres (19 voxels in a
+    10 × 12 × 2 box, fill 0.079) passed the size and peak tests and displaced the true sphere next
+    to it; a blob that fills less than ``min_fill_fraction`` of its box goes to the core split."""
+    p = DetectionParams()
+    limits = SizeLimits.of(p, SP)
+    box = (slice(20, 22), slice(40, 52), slice(30, 40))
+    fragment = _Blob(box, 19, 3071.0, np.array([35.0, 46.0, 20.5]), np.array([10, 12, 2]) * SP)
+    reason = blob_reject_reason(fragment, limits, p)
+    assert reason is not None and reason.startswith("sparse metal")
+    assert reason.startswith(OVERSIZED_REASONS)
+    vox = make_volume(np.array([[48.3, 47.6, 20.4]])).voxels
+    flat = np.flatnonzero(vox >= p.candidate_threshold_hu)
+    k, j, i = np.unravel_index(flat, vox.shape)
+    boxes = [(slice(k.min(), k.max() + 1), slice(j.min(), j.max() + 1), slice(i.min(), i.max() + 1))]
+    (sphere,) = find_blobs(vox, boxes, p.candidate_threshold_hu, SP, p.crop_margin_mm)
+    assert blob_reject_reason(sphere, limits, p) is None
+
+
+def test_separation_keeps_the_sphere_over_a_streak_fragment_of_it() -> None:
+    """A split tungsten-carbide core (0 circle slices, 122 metal voxels) and a streak fragment
+    5 mm from it (1 circle slice, 21 voxels): the core is the sphere (issue #11, cone-beam)."""
+    core, fragment = _sphere(0.0, 0, 0.0), _sphere(5.0, 1, 0.0)
+    kept, dropped = _separate([core, fragment], 7.5, [122, 21])
+    assert kept == [core] and len(dropped) == 1 and "more metal" in dropped[0].reason
+
+
+def test_separation_ranks_comparable_candidates_by_circle_slices() -> None:
+    """Two candidates of one sphere with comparable metal (118 and 165 voxels): the one with more
+    circle slices stays, as before the fragment test."""
+    good, other = _sphere(0.0, 4, 0.94), _sphere(0.2, 2, 0.39)
+    kept, _ = _separate([good, other], 7.5, [118, 165])
+    assert kept == [good]
