@@ -57,7 +57,14 @@ class CoreParams:
         converged: 0.043 / 0.124 · 0.050 / 0.175 · 0.067 / 0.198; windowed 1.0 / 1.25 / 1.5 /
         2.0 mm: 0.045 / 0.121 · 0.052 / 0.191 · 0.059 / 0.159; 0.043 / 0.133 · 0.049 / 0.193 ·
         0.060 / 0.164; 0.042 / 0.131 · 0.046 / 0.174 · 0.062 / 0.159; 0.046 / 0.097 ·
-        0.046 / 0.135 · 0.067 / 0.151.  1.5 mm has the lowest mean over all 426 WC spheres.  A
+        0.046 / 0.135 · 0.067 / 0.151.  1.5 mm has the lowest mean over all 426 WC spheres.
+        Re-measured on the same scans simulated with 4 rays per detector pixel and axis
+        (``WC_SUBRAYS`` in benchmarks/bench_detection.py; 2 quantised the opaque edge):
+        unwindowed 1.0 mm ball, 3 re-centrings 0.042 / 0.119 · 0.049 / 0.171 · 0.065 / 0.261;
+        converged 0.042 / 0.119 · 0.049 / 0.171 · 0.064 / 0.156; windowed 1.0 / 1.25 / 1.5 /
+        2.0 mm 0.046 / 0.130 · 0.052 / 0.166 · 0.056 / 0.132; 0.043 / 0.127 · 0.048 / 0.177 ·
+        0.057 / 0.138; 0.042 / 0.117 · 0.044 / 0.158 · 0.058 / 0.131; 0.045 / 0.100 · 0.043 /
+        0.120 · 0.062 / 0.152 (1.5 mm again the lowest mean over the 426 spheres).  A
         Gaussian window (σ 0.8 mm in a 1.5 mm ball: 0.049 / 0.118 · 0.057 / 0.197 · 0.063 /
         0.209) measured worse; restricting the weights to a split core's support (its opened
         metal mask, dilated) too (0.044 / 0.115 · 0.049 / 0.192 · 0.072 / 0.301).  With 745
