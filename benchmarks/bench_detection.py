@@ -402,14 +402,8 @@ def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
         from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
 
         cb = ConeBeamSettings.preset(
-            "oarm-cbct",
-            rows=256,
-            columns=256,
-            n_slices=96,
+            "oarm-cbct-roi",
             n_views=int(cond.get("views", 391)),
-            det_cols=384,
-            det_rows=256,
-            subrays=2,
             scatter_spr=cond["spr"],
             photons_per_ray=cond["photons"],
             seed=seed,

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=PRESET_NAMES + CBCT_PRESET_NAMES,
         default="demo-realistic",
         help="acquisition preset; *-realistic add kernel scatter (SPR 0.2), light spread and a 0.8 mm "
-        "PSF; oarm-cbct (512 x 512 x 192, 391 views) and cbct-ci are cone-beam (mocks/oarm/cbct.py); "
+        "PSF; oarm-cbct (512 x 512 x 192, 391 views), oarm-cbct-roi, cbct-ci are cone-beam (cbct.py); "
         "oarm, demo, small are the gentler legacy presets (default: %(default)s)",
     )
     parser.add_argument(
