@@ -19,18 +19,20 @@ cbct = pytest.importorskip("mocks.oarm.cbct", reason="needs the cone-beam simula
 
 from mocks.oarm.simulator import SceneExtras, scan_to_volume  # noqa: E402
 from registration import frames  # noqa: E402
-from registration.detection import DetectionParams, detect_spheres, method_for_material  # noqa: E402
+from registration.detection import detect_spheres  # noqa: E402
 from registration.phantom import load_phantom  # noqa: E402
 from registration.register import register_points  # noqa: E402
+from tests.accuracy.test_hard_scans import (  # noqa: E402
+    TARGETS_PHANTOM_MM,
+    WRONG_TRE_FACTOR,
+    _correct,
+    _match,
+    _params,
+)
 from tests.conftest import CONFIGS  # noqa: E402
 
-MAX_MATCH_MM = 1.0
-"""A detection within this distance of a truth centre is a hit (spheres are ≥ 15 mm apart)."""
 STEEL_CB_MEAN_MM, STEEL_CB_MAX_MM = 0.04, 0.12
 """Issue #11 Done-when: FLE mean / max for steel cone-beam."""
-WRONG_TRE_FACTOR = 5.0
-"""design.md §8: wrong if the error at a target exceeds this many times its predicted TRE."""
-TARGETS_PHANTOM_MM = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0]])
 
 
 @pytest.fixture(scope="module")
@@ -39,23 +41,13 @@ def cone_beam_scan():  # type: ignore[no-untyped-def]
     settings = cbct.ConeBeamSettings.preset("oarm-cbct-roi", scatter_spr=0.1, photons_per_ray=1e4, seed=5)
     pose = frames.transform_from_xyz_rpy((1.5, -2.0, 1.0), (6.0, -5.0, 140.0))
     scan = cbct.simulate_cbct(phantom, pose, settings, SceneExtras(sphere_material="steel"))
-    params = DetectionParams(
-        method=method_for_material(phantom.sphere_material), sphere_diameter_mm=phantom.sphere_diameter_mm
-    )
-    return phantom, scan, detect_spheres(scan_to_volume(scan), params)
-
-
-def _errors(scan, result) -> tuple[np.ndarray, int, int]:  # type: ignore[no-untyped-def]
-    c, truth = result.centres_image_mm, scan.spheres_image_mm
-    d = np.linalg.norm(c[:, None, :] - truth[None], axis=2)
-    hit = d.min(axis=1) < MAX_MATCH_MM
-    return d.min(axis=1)[hit], len(truth) - len(set(d.argmin(axis=1)[hit].tolist())), int((~hit).sum())
+    return phantom, scan, detect_spheres(scan_to_volume(scan), _params(phantom))
 
 
 def test_cone_beam_steel_every_sphere_and_a_correct_registration(cone_beam_scan) -> None:  # type: ignore[no-untyped-def]
     phantom, scan, result = cone_beam_scan
     assert len(scan.spheres_image_mm) >= 20
-    _, misses, false_pos = _errors(scan, result)
+    _, misses, false_pos = _match(result, scan.spheres_image_mm)
     assert misses == 0, [r.reason for r in result.rejections]
     assert false_pos == 0
     reg = register_points(
@@ -64,11 +56,7 @@ def test_cone_beam_steel_every_sphere_and_a_correct_registration(cone_beam_scan)
         phantom=phantom,
         targets_robot_mm=TARGETS_PHANTOM_MM,
     )
-    truth = frames.apply(scan.image_from_phantom, phantom.centres_phantom_mm)
-    assert all(
-        np.linalg.norm(truth[a] - result.centres_image_mm[b]) < MAX_MATCH_MM
-        for a, b in zip(reg.robot_indices, reg.image_indices, strict=True)
-    )
+    assert _correct(phantom, scan, result, reg)
     tre = np.linalg.norm(
         frames.apply(reg.image_from_robot, TARGETS_PHANTOM_MM)
         - frames.apply(scan.image_from_phantom, TARGETS_PHANTOM_MM),
@@ -84,5 +72,5 @@ def test_cone_beam_steel_every_sphere_and_a_correct_registration(cone_beam_scan)
 )
 def test_cone_beam_steel_meets_the_fle_target(cone_beam_scan) -> None:  # type: ignore[no-untyped-def]
     _, scan, result = cone_beam_scan
-    err, _, _ = _errors(scan, result)
+    err, _, _ = _match(result, scan.spheres_image_mm)
     assert err.mean() <= STEEL_CB_MEAN_MM and err.max() <= STEEL_CB_MAX_MM, (err.mean(), err.max())
