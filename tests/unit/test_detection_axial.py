@@ -1,4 +1,4 @@
-"""The slice coordinate from the per-slice weight profile (:func:`registration.detection.axial_profile_position`).
+"""The slice coordinate from the per-slice weight profile (``axial_profile_position``).
 
 A sphere blurred by an isotropic PSF and clipped (saturation, margin) has centroid weights
 w(r) that depend only on the distance r from its centre.  Their sum over a slice at height u is
@@ -36,8 +36,9 @@ def _slice_sums(u_mm: F64, r1_mm: float, ramp_mm: float) -> F64:
     """m(u) / W of the radial plateau-and-ramp weights (module docstring), mm²."""
     r2 = r1_mm + ramp_mm
     a = np.clip(np.abs(u_mm), r1_mm, r2)
-    ramp = (2.0 * math.pi / ramp_mm) * (r2**3 / 6.0 - r2 * a * a / 2.0 + a**3 / 3.0)
-    return np.where(np.abs(u_mm) <= r1_mm, math.pi * (r1_mm**2 - u_mm**2), 0.0) + ramp
+    ramp: F64 = (2.0 * math.pi / ramp_mm) * (r2**3 / 6.0 - r2 * a * a / 2.0 + a**3 / 3.0)
+    inside: F64 = np.where(np.abs(u_mm) <= r1_mm, math.pi * (r1_mm**2 - u_mm**2), 0.0)
+    return inside + ramp
 
 
 def _profile(centre_k: float, r1_mm: float, ramp_mm: float, n_slices: int = 15) -> tuple[_BallWeights, F64]:
