@@ -18,7 +18,8 @@ Pipeline (only small crops are ever copied or converted to float):
    (connecting rod, bone edge, streak crossing, blob cut by the volume edge);
 3. **per slice**: a patch around the component, MAR (optional), circles;
 4. **centre**: ``subvoxel`` = intensity-weighted 3-D centroid of the raw
-   voxels above ``background + margin`` inside a ball, iterated; ``paper`` =
+   voxels above ``background + margin`` inside a ball, iterated, its slice coordinate then from
+   a quadratic fit to the weights' per-slice sums (:func:`axial_profile_position`); ``paper`` =
    per-slice Pythagorean depth with a per-sphere fitted radius.
 
 Coordinates: the work is done in voxel indices (i, j, k) = (column, row,
