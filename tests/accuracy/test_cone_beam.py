@@ -65,11 +65,6 @@ def test_cone_beam_steel_every_sphere_and_a_correct_registration(cone_beam_scan)
     assert np.all(tre <= WRONG_TRE_FACTOR * reg.predicted_tre_mm), (tre, reg.predicted_tre_mm)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue #11 steel cone-beam FLE mean not met: this scan measures 0.042 / max 0.071 mm "
-    "(axial sub-slice phase bias on 0.833 mm slices)",
-)
 def test_cone_beam_steel_meets_the_fle_target(cone_beam_scan) -> None:  # type: ignore[no-untyped-def]
     _, scan, result = cone_beam_scan
     err, _, _ = _match(result, scan.spheres_image_mm)
