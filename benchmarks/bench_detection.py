@@ -303,8 +303,8 @@ HARD_CONDITIONS: list[dict[str, Any]] = [
     # vertebra.  "x_mm" shifts the phantom off axis and "slices" cuts the slab, so fewer spheres are
     # fully imaged.  Cone-beam scans (mocks/oarm/cbct.py, numpy FDK) use the O-arm voxel size on
     # a 256² × 96 grid with the O-arm's 391 views over 360° ("views" overrides: 745).  "subrays":
-    # rays per detector pixel (per axis) averaged before the log, the pixel's aperture (default
-    # 2); tungsten carbide gets WC_SUBRAYS.
+    # rays per detector pixel (per axis) averaged before the log, the pixel's aperture (default:
+    # the preset's, 2); tungsten carbide gets WC_SUBRAYS.
     dict(name="steel spr0.1 1e4", phantom="bai2018_cube", material="steel", spr=0.1, photons=1e4),
     dict(
         name="steel spr0.3 1e3 rod+vert",
@@ -425,14 +425,9 @@ def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
         from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
 
         cb = ConeBeamSettings.preset(
-            "oarm-cbct",
-            rows=256,
-            columns=256,
-            n_slices=96,
+            "oarm-cbct-roi",
             n_views=int(cond.get("views", 391)),
-            det_cols=384,
-            det_rows=256,
-            subrays=int(cond.get("subrays", 2)),
+            **({"subrays": int(cond["subrays"])} if "subrays" in cond else {}),
             scatter_spr=cond["spr"],
             photons_per_ray=cond["photons"],
             seed=seed,
@@ -446,7 +441,7 @@ def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
         slice_spacing_mm=0.833,
         n_slices=int(cond.get("slices", 120)),
         n_views=240,
-        detector_subsamples=int(cond.get("subrays", 2)),
+        **({"detector_subsamples": int(cond["subrays"])} if "subrays" in cond else {}),
         scatter_spr=cond["spr"],
         photons_per_ray=cond["photons"],
         seed=seed,

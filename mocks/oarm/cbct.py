@@ -234,9 +234,20 @@ class ConeBeamSettings:
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> ConeBeamSettings:
         """``oarm-cbct``: 512 × 512 × 192 at 0.415 × 0.833 mm, 391 views, 512 × 384 panel.
+        ``oarm-cbct-roi``: the same voxels, views and panel pitch on a 256 × 256 × 96 region
+        (106 × 106 × 80 mm, the phantom and its surroundings) with a 384 × 256 panel and 2 × 2
+        sub-rays: the hard-scan sweep's and CI's cone-beam scans.
         ``cbct-ci``: 128 × 128 × 48 at 0.8 mm, 120 views, 256 × 192 panel at 1.552 mm."""
         presets: dict[str, dict[str, Any]] = {
             "oarm-cbct": {},
+            "oarm-cbct-roi": {
+                "rows": 256,
+                "columns": 256,
+                "n_slices": 96,
+                "det_cols": 384,
+                "det_rows": 256,
+                "subrays": 2,
+            },
             "cbct-ci": {
                 "n_views": 120,
                 "det_cols": 256,
@@ -272,7 +283,7 @@ class ConeBeamSettings:
         return dataclasses.asdict(self)
 
 
-CBCT_PRESET_NAMES = ("oarm-cbct", "cbct-ci")
+CBCT_PRESET_NAMES = ("oarm-cbct", "oarm-cbct-roi", "cbct-ci")
 
 
 def rotation_rtk(theta_rad: float) -> F64:

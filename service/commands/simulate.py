@@ -16,6 +16,7 @@ DEFAULT_PHANTOM = default_phantom()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from mocks.oarm.cbct import CBCT_PRESET_NAMES
     from mocks.oarm.physics import SPHERE_MATERIALS
     from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, ORIENTATIONS, PRESET_NAMES
 
@@ -31,10 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--preset",
-        choices=PRESET_NAMES,
+        choices=PRESET_NAMES + CBCT_PRESET_NAMES,
         default="demo-realistic",
         help="acquisition preset; *-realistic add kernel scatter (SPR 0.2), light spread and a 0.8 mm "
-        "PSF; oarm, demo, small are the gentler legacy presets (default: %(default)s)",
+        "PSF; oarm-cbct (512 x 512 x 192, 391 views), oarm-cbct-roi, cbct-ci are cone-beam (cbct.py); "
+        "oarm, demo, small are the gentler legacy presets (default: %(default)s)",
     )
     parser.add_argument(
         "--material",
@@ -76,7 +78,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _overrides(args: argparse.Namespace, base_photons_per_ray: float) -> dict[str, object]:
+    """The settings the flags change, for either simulator."""
+    overrides: dict[str, object] = {
+        "seed": args.seed,
+        "photons_per_ray": base_photons_per_ray * args.dose,
+        "orientation": args.orientation,
+    }
+    if args.views:
+        overrides["n_views"] = args.views
+    if args.slices:
+        overrides["n_slices"] = args.slices
+    if args.scatter_spr is not None:
+        overrides["scatter_spr"] = args.scatter_spr
+    return overrides
+
+
 def run(args: argparse.Namespace) -> int:
+    from mocks.oarm.cbct import CBCT_PRESET_NAMES, ConeBeamSettings, simulate_cbct
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, pose_from_string, simulate_scan
     from registration.errors import ConfigError
@@ -86,19 +105,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--dose must be > 0, got {args.dose}")
     phantom = load_phantom(args.phantom)
     pose = pose_from_string(args.pose)
-    base = AcquisitionSettings.preset(args.preset)
-    overrides: dict[str, object] = {
-        "seed": args.seed,
-        "photons_per_ray": base.photons_per_ray * args.dose,
-        "orientation": args.orientation,
-    }
-    if args.views:
-        overrides["n_views"] = args.views
-    if args.slices:
-        overrides["n_slices"] = args.slices
-    if args.scatter_spr is not None:
-        overrides["scatter_spr"] = args.scatter_spr
-    settings = AcquisitionSettings.preset(args.preset, **overrides)
     extras = SceneExtras(
         vertebra=args.vertebra,
         rod=args.rod,
@@ -107,21 +113,27 @@ def run(args: argparse.Namespace) -> int:
         hole_tolerance_mm=args.hole_tolerance_mm,
     )
     err = sys.stderr
-    last = [-1]
-    t0 = time.perf_counter()
+    if args.preset in CBCT_PRESET_NAMES:
+        cb = ConeBeamSettings.preset(args.preset)
+        cb = ConeBeamSettings.preset(args.preset, **_overrides(args, cb.photons_per_ray))
+        err.write(f"simulating {cb.preset_name} {cb.columns}x{cb.rows}x{cb.n_slices}, {cb.n_views} views\n")
+        scan = simulate_cbct(phantom, pose, cb, extras)
+    else:
+        base = AcquisitionSettings.preset(args.preset)
+        settings = AcquisitionSettings.preset(args.preset, **_overrides(args, base.photons_per_ray))
+        label = f"{settings.preset_name} {settings.columns}x{settings.rows}x{settings.n_slices}"
+        last = [-1]
+        t0 = time.perf_counter()
 
-    def progress(f: float) -> None:
-        pct = int(f * 100) // 5 * 5
-        if pct != last[0]:
-            last[0] = pct
-            err.write(
-                f"\rsimulating {settings.preset_name} {settings.columns}x{settings.rows}x"
-                f"{settings.n_slices}: {pct:3d} %  ({time.perf_counter() - t0:5.1f} s)"
-            )
-            err.flush()
+        def progress(f: float) -> None:
+            pct = int(f * 100) // 5 * 5
+            if pct != last[0]:
+                last[0] = pct
+                err.write(f"\rsimulating {label}: {pct:3d} %  ({time.perf_counter() - t0:5.1f} s)")
+                err.flush()
 
-    scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
-    err.write("\n")
+        scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
+        err.write("\n")
     res = write_dicom_series(
         scan, args.out, reverse_order=args.reverse_order, unsigned=args.unsigned, bits_stored=args.bits_stored
     )

@@ -48,3 +48,20 @@ def test_detect_refuses_a_folder_without_ct(tmp_path: Path, capsys) -> None:  # 
     assert main(["detect", str(tmp_path)]) == EXIT_INPUT
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no CT image series found" in err and "notes.txt" in err
+
+
+def test_simulate_cone_beam_preset_then_detect(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """``oarmreg simulate --preset cbct-ci`` (the cone-beam simulator, numpy FDK) writes a series
+    that ``oarmreg detect`` reads: every fully imaged sphere of truth.json found, nothing else."""
+    series, out = tmp_path / "cbct", tmp_path / "det.json"
+    assert main(["simulate", "--out", str(series), "--preset", "cbct-ci", "--seed", "4"]) == 0
+    truth = json.loads((series / "truth.json").read_text())
+    assert truth["settings"]["preset_name"] == "cbct-ci" and truth["settings"]["n_views"] == 120
+    assert main(["detect", str(series), "--json", str(out)]) == 0
+    capsys.readouterr()
+    centres = np.array([s["center_mm"] for s in json.loads(out.read_text())["spheres"]])
+    expected = np.array(truth["spheres_image_mm"])
+    assert len(expected) >= 20
+    d, idx = cKDTree(centres).query(expected)
+    assert len(centres) == len(expected) and len(set(idx)) == len(idx)
+    assert d.max() < MATCH_MM
