@@ -1087,7 +1087,6 @@ def sphere_patch(vox: NDArray[Any], centre_ijk: F64, spacing: F64, params: Detec
         params.core,
         margin_hu=params.centroid_margin_hu,
         shell_mm=params.background_shell_mm,
-        iterations=params.centroid_iterations,
         min_shell_voxels=LINEAR_BACKGROUND_MIN_VOXELS,
     )
     return SpherePatch(

@@ -9,7 +9,8 @@ O-arm pixels (0.415 × 0.833 mm) on a 256 × 256 matrix with the ``small-realist
   §8: every sphere on its own hole, TRE ≤ 5 × predicted).  The issue's FLE target for WC under
   strong scatter (mean ≤ 0.05, max ≤ 0.15 mm): with the default ``subvoxel`` centroid this scan
   measured 0.063 / 0.318 mm; with the ``core`` estimator chosen for tungsten carbide
-  (registration/core_centroid.py) 0.049 / 0.116 mm — a thin margin on the mean.
+  (registration/core_centroid.py) 0.049 / 0.116 mm, with its window 0.044 / 0.092 mm (2 rays per
+  detector bin as here; 0.041 / 0.070 mm with the hard sweep's 4, ``WC_SUBRAYS``).
 * partial FOV: ``bai2018_cube`` shifted 40 mm off axis, 60 slices (11 of 28 spheres fully imaged).
   Before the image-side base triples, correspondence matched 0 and refused.  Every imaged sphere
   found and matched to its own hole; steel FLE max ≤ 0.12 mm (issue target).
