@@ -494,19 +494,28 @@ def _hard_outcome(phantom: Any, scan: Any, centres: np.ndarray) -> tuple[str, fl
 
 
 def hard_sweep(
-    n_scans: int, cache_dir: Path | None = None, method: str | None = None, background_model: str = "linear"
+    n_scans: int,
+    cache_dir: Path | None = None,
+    method: str | None = None,
+    background_model: str = "linear",
+    seed_offset: int = 0,
+    only: str | None = None,
 ) -> None:
     """Issue #11 conditions: spheres found / expected, false positives, FLE, TRE, registration outcome.
 
     ``method`` None: the centre estimator for each scan's sphere material, as the service chooses
-    it from the phantom file (:func:`registration.detection.method_for_material`)."""
+    it from the phantom file (:func:`registration.detection.method_for_material`).  Scan ``n``
+    has condition ``n mod 12`` and seed ``seed_offset + n`` (another offset = scans no setting
+    was chosen on); ``only`` keeps the conditions whose name contains it."""
     from mocks.oarm.simulator import scan_to_volume
     from registration.detection import DetectionParams, detect_spheres, method_for_material
 
     rows: dict[str, dict[str, Any]] = {}
     for n in range(n_scans):
         cond = HARD_CONDITIONS[n % len(HARD_CONDITIONS)]
-        phantom, scan = _cached_hard_scan(cond, n, cache_dir)
+        if only is not None and only not in cond["name"]:
+            continue
+        phantom, scan = _cached_hard_scan(cond, seed_offset + n, cache_dir)
         res = detect_spheres(
             scan_to_volume(scan),
             DetectionParams(
@@ -578,13 +587,15 @@ def main(argv: list[str] | None = None) -> None:
         "--method", default=None, help="centre estimator of the hard sweep (default: by sphere material)"
     )
     ap.add_argument("--background-model", default="linear", help="background under a sphere (hard sweep)")
+    ap.add_argument("--seed-offset", type=int, default=0, help="hard sweep: scan n gets seed offset + n")
+    ap.add_argument("--only", default=None, help="hard sweep: only conditions whose name contains this")
     args = ap.parse_args(argv)
     if not args.skip_speed:
         speed()
     if not args.skip_sweep:
         accuracy_sweep(args.scans, args.quick)
     if args.hard:
-        hard_sweep(args.hard, args.cache_dir, args.method, args.background_model)
+        hard_sweep(args.hard, args.cache_dir, args.method, args.background_model, args.seed_offset, args.only)
 
 
 if __name__ == "__main__":
