@@ -12,7 +12,6 @@ simulator: a hypothesis about a real O-arm, not a measurement of one.
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 cbct = pytest.importorskip("mocks.oarm.cbct", reason="needs the cone-beam simulator (issue #11)")
@@ -24,7 +23,7 @@ from registration.phantom import load_phantom  # noqa: E402
 from registration.register import register_points  # noqa: E402
 from tests.accuracy.test_hard_scans import (  # noqa: E402
     TARGETS_PHANTOM_MM,
-    WRONG_TRE_FACTOR,
+    _assert_tre_within_predicted,
     _correct,
     _match,
     _params,
@@ -57,12 +56,7 @@ def test_cone_beam_steel_every_sphere_and_a_correct_registration(cone_beam_scan)
         targets_robot_mm=TARGETS_PHANTOM_MM,
     )
     assert _correct(phantom, scan, result, reg)
-    tre = np.linalg.norm(
-        frames.apply(reg.image_from_robot, TARGETS_PHANTOM_MM)
-        - frames.apply(scan.image_from_phantom, TARGETS_PHANTOM_MM),
-        axis=1,
-    )
-    assert np.all(tre <= WRONG_TRE_FACTOR * reg.predicted_tre_mm), (tre, reg.predicted_tre_mm)
+    _assert_tre_within_predicted(scan, reg)
 
 
 def test_cone_beam_steel_meets_the_fle_target(cone_beam_scan) -> None:  # type: ignore[no-untyped-def]

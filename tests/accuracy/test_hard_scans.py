@@ -85,6 +85,16 @@ WRONG_TRE_FACTOR = 5.0
 TARGETS_PHANTOM_MM = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0]])
 
 
+def _assert_tre_within_predicted(scan, reg) -> None:  # type: ignore[no-untyped-def]
+    """design.md §8: not wrong — the error at the targets within WRONG_TRE_FACTOR × predicted TRE."""
+    tre = np.linalg.norm(
+        frames.apply(reg.image_from_robot, TARGETS_PHANTOM_MM)
+        - frames.apply(scan.image_from_phantom, TARGETS_PHANTOM_MM),
+        axis=1,
+    )
+    assert np.all(tre <= WRONG_TRE_FACTOR * reg.predicted_tre_mm), (tre, reg.predicted_tre_mm)
+
+
 @pytest.fixture(scope="module")
 def wc_scan():  # type: ignore[no-untyped-def]
     phantom, scan = _scan("wc_rows40.toml", (2, -3, 1, 5, -4, 30), scatter_spr=0.3)
@@ -106,12 +116,7 @@ def test_tungsten_carbide_strong_scatter_neighbouring_spheres(wc_scan) -> None: 
     )
     assert _correct(phantom, scan, result, reg)
     assert reg.n_matched >= 38
-    tre = np.linalg.norm(
-        frames.apply(reg.image_from_robot, TARGETS_PHANTOM_MM)
-        - frames.apply(scan.image_from_phantom, TARGETS_PHANTOM_MM),
-        axis=1,
-    )
-    assert np.all(tre <= WRONG_TRE_FACTOR * reg.predicted_tre_mm), (tre, reg.predicted_tre_mm)
+    _assert_tre_within_predicted(scan, reg)
 
 
 def test_tungsten_carbide_strong_scatter_meets_the_fle_target(wc_scan) -> None:  # type: ignore[no-untyped-def]
