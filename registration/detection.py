@@ -61,8 +61,9 @@ METHODS: Final = ("subvoxel", "model", "paper", "core")
 
 METHOD_FOR_MATERIAL: Final[Mapping[str, str]] = {"tungsten_carbide": "core"}
 """Centre estimator per sphere material (``registration.phantom``'s names) where it is not the
-default ``subvoxel``: on the simulator's tungsten-carbide scans ``core`` measured 0.049 mm mean
-against 0.060 mm (306 spheres), on steel and titanium worse (:mod:`registration.core_centroid`)."""
+default ``subvoxel``: on the simulator's tungsten-carbide scans ``core`` measures better (README
+hard-scan table, ``python -m benchmarks.bench_detection --hard 40``; ``--method subvoxel`` for the
+comparison), on steel and titanium worse (:mod:`registration.core_centroid`)."""
 
 
 def method_for_material(material: str) -> str:
