@@ -21,6 +21,7 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import poll_until, wait_robot_still
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit"))
@@ -38,18 +39,7 @@ def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) 
 
 
 def overrides(watch: Path, data: Path, link_url: str, **kw: Any) -> dict[str, Any]:
-    return {
-        "watch_dir": watch,
-        "data_dir": data,
-        "api_token": TOKEN,
-        "robot.link_url": link_url,
-        "robot.connect_timeout_s": 2.0,
-        "stillness.window_s": WINDOW_S,
-        "stillness.max_gap_s": 0.25,
-        "watcher.quiet_period_s": 0.3,
-        "watcher.poll_interval_s": 0.2,
-        **kw,
-    }
+    return fast_overrides(watch, data, link_url, TOKEN, WINDOW_S, **kw)
 
 
 @dataclass

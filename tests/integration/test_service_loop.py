@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 
 from registration.frames import apply, invert, transform_from_xyz_rpy
+from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import poll_until, wait_robot_still
 
 TOKEN = "integration-test-token-0123456789"
@@ -138,21 +139,7 @@ class Baseline:
 def make_settings(watch: Path, data: Path, link_url: str, **kw: Any) -> Any:
     from service.settings import load_settings
 
-    return load_settings(
-        None,
-        {
-            "watch_dir": watch,
-            "data_dir": data,
-            "api_token": TOKEN,
-            "robot.link_url": link_url,
-            "robot.connect_timeout_s": 2.0,
-            "stillness.window_s": WINDOW_S,
-            "stillness.max_gap_s": 0.25,
-            "watcher.quiet_period_s": 0.3,
-            "watcher.poll_interval_s": 0.2,
-            **kw,
-        },
-    )
+    return load_settings(None, fast_overrides(watch, data, link_url, TOKEN, WINDOW_S, **kw))
 
 
 @pytest.fixture(scope="module")
