@@ -20,11 +20,8 @@ from mocks.oarm.simulator import SceneExtras, scan_to_volume  # noqa: E402
 from registration import frames  # noqa: E402
 from registration.detection import detect_spheres  # noqa: E402
 from registration.phantom import load_phantom  # noqa: E402
-from registration.register import register_points  # noqa: E402
 from tests.accuracy.test_hard_scans import (  # noqa: E402
-    TARGETS_PHANTOM_MM,
-    _assert_tre_within_predicted,
-    _correct,
+    _every_sphere_and_a_correct_registration,
     _match,
     _params,
 )
@@ -46,17 +43,7 @@ def cone_beam_scan():  # type: ignore[no-untyped-def]
 def test_cone_beam_steel_every_sphere_and_a_correct_registration(cone_beam_scan) -> None:  # type: ignore[no-untyped-def]
     phantom, scan, result = cone_beam_scan
     assert len(scan.spheres_image_mm) >= 20
-    _, misses, false_pos = _match(result, scan.spheres_image_mm)
-    assert misses == 0, [r.reason for r in result.rejections]
-    assert false_pos == 0
-    reg = register_points(
-        phantom.centres_phantom_mm,
-        result.centres_image_mm,
-        phantom=phantom,
-        targets_robot_mm=TARGETS_PHANTOM_MM,
-    )
-    assert _correct(phantom, scan, result, reg)
-    _assert_tre_within_predicted(scan, reg)
+    _every_sphere_and_a_correct_registration(phantom, scan, result)
 
 
 def test_cone_beam_steel_meets_the_fle_target(cone_beam_scan) -> None:  # type: ignore[no-untyped-def]
