@@ -101,6 +101,16 @@ def _session_image_from_robot(cell: TrueCell, q0: F64, rotation_deg: tuple[float
     return image_from_phantom @ frames.invert(cell.robot_from_tool0_true(q0) @ cell.tool0_from_phantom)
 
 
+def _true_cell(seed: int) -> tuple[Any, RobotModel, Any, F64, TrueCell, np.random.Generator]:
+    """The phantom, the nominal TX60 (model and chain), the nominal rod, the true cell drawn from
+    ``seed`` and the session's noise generator: what every benchmark session starts from."""
+    phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
+    model = RobotModel.load("tx60")
+    rod = default_tool0_from_phantom()
+    cell = TrueCell.sample(seed, model, rod, CellErrorSizes())
+    return phantom, model, read_chain(model.urdf_path), rod, cell, np.random.default_rng(seed + 1000)
+
+
 def run_session(
     *,
     seed: int,
@@ -112,12 +122,7 @@ def run_session(
     log: Any = None,
 ) -> Session:
     """The whole session of the module docstring; scans go under ``work``."""
-    phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
-    model = RobotModel.load("tx60")
-    chain = read_chain(model.urdf_path)
-    rod = default_tool0_from_phantom()
-    cell = TrueCell.sample(seed, model, rod, CellErrorSizes())
-    rng = np.random.default_rng(seed + 1000)
+    phantom, model, chain, rod, cell, rng = _true_cell(seed)
     pts = phantom.centres_phantom_mm
     q0 = np.array(START_JOINTS_RAD)
     y = _session_image_from_robot(cell, q0, (10.0, -5.0, 30.0))
@@ -244,12 +249,7 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
     from benchmarks.common import median_time_s, print_table
     from registration import calibration as new
 
-    phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
-    model = RobotModel.load("tx60")
-    chain = read_chain(model.urdf_path)
-    rod = default_tool0_from_phantom()
-    cell = TrueCell.sample(seed, model, rod, CellErrorSizes())
-    rng = np.random.default_rng(seed + 1000)
+    phantom, model, chain, rod, cell, rng = _true_cell(seed)
     pts = phantom.centres_phantom_mm
     joints = np.clip(SYNTHETIC_JOINTS_RAD[:n_poses], model.lower_rad, model.upper_rad)
     sd = SYNTHETIC_FLE_RMS_MM / math.sqrt(3.0)
