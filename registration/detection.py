@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from registration.circles import CircleParams, find_circles
 from registration.core_centroid import CoreParams, CoreWeights, core_centroid
+from registration.edge_profile import DataRegion, image_reaches_edge
 from registration.errors import DetectionError
 from registration.mar import MarParams, reduce_metal_artifacts
 from registration.sphere_fit import FitParams, fit_sphere_model
@@ -654,10 +655,18 @@ def edge_refined_centre(
     r_ball = params.radius_mm + params.bloom_mm
     centre = centre_ijk.astype(np.float64).copy()
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
+    region = DataRegion(shape, spacing, fov_radius_mm)
     for name, u, edge_mm, step_mm in _boundaries(centre, shape, spacing, fov_radius_mm):
         t_c = float(u @ (centre * spacing))
         if edge_mm - t_c > r_ball + step_mm:
             continue
+        if u[2] == 0.0 and image_reaches_edge(
+            vox, centre, spacing, u, params.radius_mm, r_ball, params.background_shell_mm, region
+        ):
+            return centre, (
+                f"cut by the {name}: the sphere's image is above its half level where the image "
+                "ends (the sphere is cut, or whole but too close to the edge to be located)"
+            )
         bw = _ball_weights(vox, centre, spacing, params, support)
         t = sum(float(u[a] * spacing[a]) * bw.ijk[a] for a in range(3))
         w, t_all = np.broadcast_arrays(bw.w, t)
