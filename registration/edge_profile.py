@@ -1,4 +1,4 @@
-"""Whether a sphere's image runs into an in-plane edge of the imaged region (FOV circle, matrix edge).
+"""Whether a sphere's clipped plateau runs into an in-plane edge of the imaged region (FOV, matrix).
 
 Where the circular field of view (or the matrix edge) cuts a sphere's image — the sphere itself,
 or only the bloom around a whole sphere close to the edge — the voxels past the edge hold
@@ -9,8 +9,10 @@ fixed point of the re-centring (a sphere cut by 0.85 mm was reported 0.87 mm ins
 position, far enough to pass "centre a radius inside the edge"; issue #11 held-out seeds).  Nor
 does the inner edge say where the centre is: the bloom is anisotropic (a tungsten-carbide sphere
 near the FOV edge reached its half level 2.6 mm inwards along the normal and 1.4 mm across it).
-So a sphere whose image is still above its half level where the data end is refused: it is cut,
-or whole but too close to the edge to be located.
+Where the plateau ends inside the data, the symmetric window holds both of its ends and locates
+the sphere (:func:`registration.detection.edge_refined_centre`).  So a sphere whose image is still
+near its peak where the data end is refused: it is cut, or whole but too close to the edge to be
+located.
 
 Everything here works in voxel indices (i, j, k) and mm along unit directions given in the
 (i, j, k)-scaled mm space, as :mod:`registration.detection` does.
@@ -34,7 +36,7 @@ between samples adds nothing to the trilinear interpolation of the voxels."""
 BUNDLE_OFFSET_FRACTION: Final = 0.25
 """The profile is the mean of a 3 × 3 bundle of parallel lines offset by ± this fraction of the
 nominal radius across it (in-plane and axially): 9 lines average the noise that could end a
-single line's profile below the half level early."""
+single line's profile below the level early."""
 
 
 @dataclass(frozen=True)
@@ -57,20 +59,25 @@ class DataRegion:
 
 
 def sample_trilinear(vox: NDArray[Any], ijk: F64, region: DataRegion) -> F64:
-    """(N,) trilinear samples of ``vox`` [k, j, i] at (N, 3) positions; NaN where any of the 8
-    voxels it interpolates between is outside ``region`` (padding must not leak into a profile)."""
+    """(N,) samples of ``vox`` [k, j, i] at (N, 3) positions, trilinear over the corners inside
+    ``region`` (weights renormalised, so padding never leaks into a profile); NaN where the
+    nearest voxel is outside it.  The samples thus reach the last image voxel."""
     base = np.floor(ijk).astype(np.int64)
     frac = ijk - base
-    out = np.zeros(len(ijk), np.float64)
-    valid = np.ones(len(ijk), bool)
+    acc = np.zeros(len(ijk), np.float64)
+    wsum = np.zeros(len(ijk), np.float64)
     last = np.array([region.shape_kji[2] - 1, region.shape_kji[1] - 1, region.shape_kji[0] - 1])
     for corner in np.ndindex(2, 2, 2):
         idx = base + np.array(corner)
-        valid &= region.contains(idx.astype(np.float64))
-        idx = np.clip(idx, 0, last)
         w = np.prod(np.where(np.array(corner) == 1, frac, 1.0 - frac), axis=1)
-        out += w * np.asarray(vox[idx[:, 2], idx[:, 1], idx[:, 0]], dtype=np.float64)
-    out[~valid] = np.nan
+        w = np.where(region.contains(idx.astype(np.float64)), w, 0.0)
+        idx = np.clip(idx, 0, last)
+        acc += w * np.asarray(vox[idx[:, 2], idx[:, 1], idx[:, 0]], dtype=np.float64)
+        wsum += w
+    near_ok = region.contains(np.rint(ijk))
+    out = np.full(len(ijk), np.nan)
+    good = near_ok & (wsum > 0.0)
+    out[good] = acc[good] / wsum[good]
     return out
 
 
@@ -115,9 +122,17 @@ def first_crossing(t: F64, profile: F64, level: float, sign: int) -> float | Non
     return None
 
 
-def half_level(vox: NDArray[Any], centre_ijk: F64, spacing: F64, r_ball_mm: float, shell_mm: float, region: DataRegion) -> float:
-    """Half-way between the background (median of the shell between ``r_ball_mm`` and
-    ``r_ball_mm + shell_mm``, image data only) and the brightest voxel of the ball."""
+def plateau_level(
+    vox: NDArray[Any],
+    centre_ijk: F64,
+    spacing: F64,
+    r_ball_mm: float,
+    shell_mm: float,
+    region: DataRegion,
+    fraction: float,
+) -> float:
+    """``fraction`` of the way from the background (median of the shell between ``r_ball_mm``
+    and ``r_ball_mm + shell_mm``, image data only) to the brightest voxel of the ball."""
     r_shell = r_ball_mm + shell_mm
     half = np.ceil(r_shell / spacing).astype(int) + 1
     c = np.rint(centre_ijk).astype(int)
@@ -135,10 +150,10 @@ def half_level(vox: NDArray[Any], centre_ijk: F64, spacing: F64, r_ball_mm: floa
     if not shell.any() or not ball.any():
         return math.nan
     bg = float(np.median(vals[shell]))
-    return bg + 0.5 * (float(vals[ball].max()) - bg)
+    return bg + fraction * (float(vals[ball].max()) - bg)
 
 
-def image_reaches_edge(
+def plateau_reaches_edge(
     vox: NDArray[Any],
     centre_ijk: F64,
     spacing: F64,
@@ -147,17 +162,17 @@ def image_reaches_edge(
     r_ball_mm: float,
     shell_mm: float,
     region: DataRegion,
+    fraction: float,
 ) -> bool:
     """Whether the sphere's image, followed from ``centre_ijk`` along the in-plane edge normal
-    ``u``, is still above its half level (:func:`half_level`) where the image data end: the edge
-    cuts the sphere or the bloom of a whole sphere close to it."""
-    level = half_level(vox, centre_ijk, spacing, r_ball_mm, shell_mm, region)
+    ``u``, is still above :func:`plateau_level` where the image data end: the edge cuts the
+    sphere, or the clipped plateau of a whole sphere close to it."""
+    level = plateau_level(vox, centre_ijk, spacing, r_ball_mm, shell_mm, region, fraction)
     if math.isnan(level):
         return True
-    v = np.cross(np.array([0.0, 0.0, 1.0]), u)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(z, u)
     v /= np.linalg.norm(v)
-    t, prof = line_profile(
-        vox, centre_ijk, spacing, u, (v, np.array([0.0, 0.0, 1.0])), BUNDLE_OFFSET_FRACTION * radius_mm,
-        r_ball_mm + shell_mm, region,
-    )
+    off = BUNDLE_OFFSET_FRACTION * radius_mm
+    t, prof = line_profile(vox, centre_ijk, spacing, u, (v, z), off, r_ball_mm + shell_mm, region)
     return first_crossing(t, prof, level, +1) is None
