@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import pickle
 import tempfile
+from functools import partial
 from pathlib import Path
 from typing import Any, Final
 
@@ -223,8 +224,8 @@ def accuracy_sweep(n_scans: int, quick: bool) -> None:
         per_scan,
     )
     rows = []
-    for (method, mar), e in errs.items():
-        a = np.asarray(e)
+    for (method, mar), errs_mm in errs.items():
+        a = np.asarray(errs_mm)
         rows.append(
             [
                 method,
@@ -242,6 +243,14 @@ def accuracy_sweep(n_scans: int, quick: bool) -> None:
         ["method", "MAR", "matched", "mean mm", "p95 mm", "max mm", "misses", "false positives"],
         rows,
     )
+
+
+def _load_and_detect(folder: Path, params: Any) -> Any:
+    """The whole in-process path: read the series, detect the spheres."""
+    from registration.detection import detect_spheres
+    from registration.dicom import load_series
+
+    return detect_spheres(load_series(folder), params)
 
 
 def speed() -> None:
@@ -268,9 +277,9 @@ def speed() -> None:
             ("subvoxel, MAR off", DetectionParams(use_mar=False)),
             ("paper, MAR on", DetectionParams(method="paper")),
         ):
-            t_det, _ = median_time_s(lambda p=params: detect_spheres(volume, p), repeats=5)
-            t_all, _ = median_time_s(lambda p=params: detect_spheres(load_series(folder), p), repeats=5)
-            peak = peak_python_memory_bytes(lambda p=params: detect_spheres(load_series(folder), p))
+            t_det, _ = median_time_s(partial(detect_spheres, volume, params), repeats=5)
+            t_all, _ = median_time_s(partial(_load_and_detect, folder, params), repeats=5)
+            peak = peak_python_memory_bytes(partial(_load_and_detect, folder, params))
             rows.append([name, t_floor, t_load, t_det, t_all, t_all / t_floor, peak / vol_bytes])
         print_table(
             "Detection speed, 512 × 512 × 192 series (median of 5, one process)",
