@@ -22,6 +22,7 @@ from registration.detection import (
     SizeLimits,
     _ball_weights,
     _Blob,
+    _circular_fov_radius_mm,
     _separate,
     _subvoxel_centre,
     blob_reject_reason,
@@ -200,13 +201,14 @@ def test_separation_ranks_comparable_candidates_by_circle_slices() -> None:
 
 
 def _fov_volume(
-    margin_mm: float, angle_rad: float, k: float, value_hu: float, seed: int
+    margin_mm: float, angle_rad: float, k: float, value_hu: float, seed: int, fov_fraction: float = 1.0
 ) -> tuple[Volume, np.ndarray]:
     """One sphere (Ø2.5 mm, ``value_hu`` over 100 HU plastic, 0.7 mm PSF, clipped at 3071 HU) whose
     surface is ``margin_mm`` inside the circular FOV (negative: cut by it), padding outside the
-    circle as a scanner stores it.  Returns the volume and the true centre (i, j, k)."""
+    circle as a scanner stores it; the circle is ``fov_fraction`` of the inscribed one.  Returns
+    the volume and the true centre (i, j, k)."""
     c0 = (SHAPE[2] - 1) / 2.0
-    fov_r_px = SHAPE[1] / 2.0
+    fov_r_px = SHAPE[1] / 2.0 * fov_fraction
     rho_px = fov_r_px - (1.25 + margin_mm) / SPACING[0]
     truth = np.array([c0 + rho_px * np.cos(angle_rad), c0 + rho_px * np.sin(angle_rad), k])
     pad = 8
@@ -262,6 +264,27 @@ def test_a_whole_steel_sphere_whose_plateau_ends_inside_the_fov_is_found(
     ends ≈ 0.25 mm outside its surface, inside the image, so the symmetric window locates it —
     found, within the 0.1 mm this grid's sampling and noise allow."""
     vol, truth = _fov_volume(margin_mm, angle, k, 15000.0, seed)
+    result = detect_spheres(vol)
+    assert len(result.spheres) == 1
+    assert _err_mm(result.spheres[0].center_voxel, truth) < 0.1
+
+
+@pytest.mark.parametrize("cut_mm", [0.1, 0.6])
+def test_a_sphere_cut_by_an_fov_smaller_than_the_matrix_is_refused(cut_mm: float) -> None:
+    """The FOV circle at 0.85 of the inscribed one (an O-arm's 200 mm FOV on a 212 mm matrix pads
+    inside the inscribed circle too): the padding's own edge is the FOV, so a sphere it cuts is
+    refused.  Taking the inscribed circle for the FOV, the padding read as image and the sphere
+    was reported."""
+    vol, _ = _fov_volume(-cut_mm, 0.7, 20.0, 60000.0, 3, fov_fraction=0.85)
+    fov_mm = _circular_fov_radius_mm(vol.voxels, SP)
+    assert fov_mm is not None and abs(fov_mm - 0.85 * SHAPE[1] / 2.0 * SPACING[0]) < SPACING[0]
+    result = detect_spheres(vol)
+    assert result.spheres == ()
+    assert any("circular field of view" in r.reason for r in result.rejections)
+
+
+def test_a_whole_sphere_inside_an_fov_smaller_than_the_matrix_is_found() -> None:
+    vol, truth = _fov_volume(1.5, 0.7, 20.0, 15000.0, 3, fov_fraction=0.85)
     result = detect_spheres(vol)
     assert len(result.spheres) == 1
     assert _err_mm(result.spheres[0].center_voxel, truth) < 0.1
