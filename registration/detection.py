@@ -401,8 +401,9 @@ def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
     image reaches it, else the radius of the farthest image voxel inside the smallest radius
     beyond which every one-pixel annulus is padded (:data:`FOV_PADDED_FRACTION`).  The
     simulator pads outside the inscribed circle; a scanner
-    whose FOV is smaller than its matrix (an O-arm's 200 mm on a 512 × 0.415 mm matrix) pads
-    inside the inscribed circle too, and a sphere cut there must not be taken for a whole one.
+    whose FOV is smaller than its matrix (say 200 mm on a 512 × 0.415 mm matrix; the O-arm's FOV
+    diameter is unverified) pads inside the inscribed circle too, and a sphere cut there must not
+    be taken for a whole one.
     """
     k = vox.shape[0] // 2
     sl = vox[k]
