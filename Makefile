@@ -19,10 +19,12 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/oarmreg demo --out demo-output
 
-# mypy settings (--strict for all four packages, the pydantic plugin): pyproject.toml [tool.mypy].
+# mypy settings (--strict for the four packages and the benchmarks, the pydantic plugin):
+# pyproject.toml [tool.mypy].
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/mypy registration drivers service mocks
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy registration drivers service mocks benchmarks
 
 # Build the wheel, install it into a fresh venv outside the checkout, run simulate + detect.
 wheel-smoke: $(STAMP)

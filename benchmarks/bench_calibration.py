@@ -40,6 +40,7 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -292,12 +293,8 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
         y0, x0 = mod._initial_estimate(poses, chain, pts)
         m = mod._Model(y0, x0, chain, res.parameters)
         zeros = np.zeros(len(res.parameters))
-        fit_s, _ = median_time_s(
-            lambda m=m, d=data, z=zeros, mod=mod: mod._fit(m, d, z, no_lopo), repeats=repeats
-        )
-        cal_s, _ = median_time_s(
-            lambda mod=mod: mod.calibrate(poses, chain, rod, pts, no_lopo), repeats=repeats
-        )
+        fit_s, _ = median_time_s(partial(mod._fit, m, data, zeros, no_lopo), repeats=repeats)
+        cal_s, _ = median_time_s(partial(mod.calibrate, poses, chain, rod, pts, no_lopo), repeats=repeats)
         err = np.concatenate(
             [
                 np.linalg.norm(

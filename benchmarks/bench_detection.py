@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import pickle
 import tempfile
+from functools import partial
 from pathlib import Path
 from typing import Any, Final
 
@@ -223,8 +224,8 @@ def accuracy_sweep(n_scans: int, quick: bool) -> None:
         per_scan,
     )
     rows = []
-    for (method, mar), e in errs.items():
-        a = np.asarray(e)
+    for (method, mar), errs_mm in errs.items():
+        a = np.asarray(errs_mm)
         rows.append(
             [
                 method,
@@ -242,6 +243,14 @@ def accuracy_sweep(n_scans: int, quick: bool) -> None:
         ["method", "MAR", "matched", "mean mm", "p95 mm", "max mm", "misses", "false positives"],
         rows,
     )
+
+
+def _load_and_detect(folder: Path, params: Any) -> Any:
+    """The whole in-process path: read the series, detect the spheres."""
+    from registration.detection import detect_spheres
+    from registration.dicom import load_series
+
+    return detect_spheres(load_series(folder), params)
 
 
 def speed() -> None:
@@ -268,9 +277,9 @@ def speed() -> None:
             ("subvoxel, MAR off", DetectionParams(use_mar=False)),
             ("paper, MAR on", DetectionParams(method="paper")),
         ):
-            t_det, _ = median_time_s(lambda p=params: detect_spheres(volume, p), repeats=5)
-            t_all, _ = median_time_s(lambda p=params: detect_spheres(load_series(folder), p), repeats=5)
-            peak = peak_python_memory_bytes(lambda p=params: detect_spheres(load_series(folder), p))
+            t_det, _ = median_time_s(partial(detect_spheres, volume, params), repeats=5)
+            t_all, _ = median_time_s(partial(_load_and_detect, folder, params), repeats=5)
+            peak = peak_python_memory_bytes(partial(_load_and_detect, folder, params))
             rows.append([name, t_floor, t_load, t_det, t_all, t_all / t_floor, peak / vol_bytes])
         print_table(
             "Detection speed, 512 × 512 × 192 series (median of 5, one process)",
@@ -400,7 +409,7 @@ WRONG_TRE_FACTOR: Final = 5.0
 many times its own predicted TRE there."""
 
 
-def _hard_pose(cond: dict[str, Any], seed: int) -> np.ndarray:
+def hard_pose(cond: dict[str, Any], seed: int) -> np.ndarray:
     from registration import frames
 
     rng = np.random.default_rng(seed)
@@ -413,27 +422,11 @@ def _hard_pose(cond: dict[str, Any], seed: int) -> np.ndarray:
     return frames.transform_from_xyz_rpy(pose[:3], pose[3:])
 
 
-def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
-    from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, simulate_scan
-    from registration.phantom import load_phantom
+def hard_settings(cond: dict[str, Any], seed: int) -> Any:
+    """The parallel-beam :class:`~mocks.oarm.simulator.AcquisitionSettings` of a hard condition."""
+    from mocks.oarm.simulator import AcquisitionSettings
 
-    phantom = load_phantom(REPO / "configs" / "phantoms" / f"{cond['phantom']}.toml")
-    ex = SceneExtras(
-        sphere_material=cond["material"], rod=cond.get("rod", False), vertebra=cond.get("vertebra", False)
-    )
-    if cond.get("beam") == "cone":
-        from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
-
-        cb = ConeBeamSettings.preset(
-            "oarm-cbct-roi",
-            n_views=int(cond.get("views", 391)),
-            **({"subrays": int(cond["subrays"])} if "subrays" in cond else {}),
-            scatter_spr=cond["spr"],
-            photons_per_ray=cond["photons"],
-            seed=seed,
-        )
-        return phantom, simulate_cbct(phantom, _hard_pose(cond, seed), cb, ex)
-    s = AcquisitionSettings.preset(
+    return AcquisitionSettings.preset(
         "small-realistic",
         rows=256,
         columns=256,
@@ -446,7 +439,36 @@ def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
         photons_per_ray=cond["photons"],
         seed=seed,
     )
-    return phantom, simulate_scan(phantom, _hard_pose(cond, seed), s, ex)
+
+
+def hard_scene(cond: dict[str, Any]) -> tuple[Any, Any]:
+    """(phantom, :class:`~mocks.oarm.simulator.SceneExtras`) of a hard condition."""
+    from mocks.oarm.simulator import SceneExtras
+    from registration.phantom import load_phantom
+
+    phantom = load_phantom(REPO / "configs" / "phantoms" / f"{cond['phantom']}.toml")
+    return phantom, SceneExtras(
+        sphere_material=cond["material"], rod=cond.get("rod", False), vertebra=cond.get("vertebra", False)
+    )
+
+
+def _hard_scan(cond: dict[str, Any], seed: int) -> tuple[Any, Any]:
+    from mocks.oarm.simulator import simulate_scan
+
+    phantom, ex = hard_scene(cond)
+    if cond.get("beam") == "cone":
+        from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
+
+        cb = ConeBeamSettings.preset(
+            "oarm-cbct-roi",
+            n_views=int(cond.get("views", 391)),
+            **({"subrays": int(cond["subrays"])} if "subrays" in cond else {}),
+            scatter_spr=cond["spr"],
+            photons_per_ray=cond["photons"],
+            seed=seed,
+        )
+        return phantom, simulate_cbct(phantom, hard_pose(cond, seed), cb, ex)
+    return phantom, simulate_scan(phantom, hard_pose(cond, seed), hard_settings(cond, seed), ex)
 
 
 def _cached_hard_scan(cond: dict[str, Any], seed: int, cache_dir: Path | None) -> tuple[Any, Any]:

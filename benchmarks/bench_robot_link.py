@@ -44,7 +44,7 @@ async def _latency(kind: str, seconds: float) -> list[float]:
         seen: dict[tuple[float, ...], float] = {}
         t_end = time.monotonic() + seconds
         async for s in link.stream():
-            seen[tuple(float(v) for v in np.float32(s.joints_rad))] = time.monotonic()
+            seen[tuple(float(v) for v in np.asarray(s.joints_rad, dtype=np.float32))] = time.monotonic()
             if time.monotonic() > t_end:
                 break
         await link.close()

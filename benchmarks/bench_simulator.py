@@ -74,7 +74,7 @@ def fbp_cross_check(window: str = "ramp") -> dict[str, float] | None:
     from mocks.oarm.simulator import fbp
 
     n_views, n_det, px, n = 360, 600, 0.415, 256
-    det = (np.arange(n_det) - (n_det - 1) / 2.0) * px
+    det = ((np.arange(n_det) - (n_det - 1) / 2.0) * px).astype(np.float64)
     discs = [(0.0, 0.0, 45.0, 0.02), (20.3, -10.1, 1.25, 0.6), (-15.2, 25.4, 1.25, 0.6)]
     sino = _disc_sinogram(discs, n_views, det)
     xs = (np.arange(n) - (n - 1) / 2.0) * px

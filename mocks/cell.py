@@ -105,7 +105,8 @@ def _fixed_size_motion(rng: np.random.Generator, translation_mm: float, rotation
 class Cell(Protocol):
     """What the simulator needs from a cell."""
 
-    tool0_from_phantom: F64
+    @property
+    def tool0_from_phantom(self) -> F64: ...
 
     def robot_from_tool0_true(self, joints_rad: ArrayLike, rng: np.random.Generator | None = None) -> F64: ...
 

@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from registration.circles import CircleParams, find_circles
 from registration.core_centroid import CoreParams, CoreWeights, core_centroid
+from registration.edge_profile import DataRegion, plateau_reaches_edge
 from registration.errors import DetectionError
 from registration.mar import MarParams, reduce_metal_artifacts
 from registration.sphere_fit import FitParams, fit_sphere_model
@@ -185,6 +186,15 @@ class DetectionParams:
         left out of its quadratic fit (the tips, rounded by the blur).  0.05 / 0.1 / 0.2 on the same
         sweep: cone-beam steel SPR 0.1 mean 0.031 / 0.031 / 0.032 mm, parallel steel SPR 0.2
         0.028 / 0.027 / 0.025 mm, cone-beam titanium 0.026 / 0.026 / 0.027 mm.
+    edge_plateau_fraction : float
+        Near the FOV circle or the matrix edge, a sphere whose image, followed along the edge
+        normal, is still above this fraction of its contrast where the image data end is refused
+        (:func:`registration.edge_profile.plateau_reaches_edge`): its clipped plateau runs into
+        the edge, so no window says where its centre is along the normal.  On the issue #11
+        held-out seeds a tungsten-carbide sphere cut by 0.85 mm was reported 0.87 mm inside its
+        true position before this test.  0.9 puts the level near the top of the clipped plateau
+        (noise on a 3071 HU plateau is a few HU); where only the falloff below it is cut, the
+        symmetric window holds both ends of the plateau (measured in the partial-FOV sweep rows).
     min_separation_mm : float
         Two reported centres are at least this far apart; of a closer pair only the one with more
         circle slices (then the higher score) is kept.  Half the 15 mm pitch of the Bai 2018 hole
@@ -217,6 +227,7 @@ class DetectionParams:
     background_model: str = "linear"
     axial_profile_margin_fraction: float = 0.15
     axial_profile_min_fraction: float = 0.1
+    edge_plateau_fraction: float = 0.9
     min_separation_mm: float = 7.5
     mar: MarParams = field(default_factory=MarParams)
     circles: CircleParams = field(default_factory=CircleParams)
@@ -375,13 +386,24 @@ class _Blob:
     distort the cross-sections.  None for an unsplit blob."""
 
 
-def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
-    """Radius of the reconstruction's circular field of view, or None if the volume has none.
+FOV_PADDED_FRACTION: Final = 0.99
+"""An annulus (one pixel wide) around the matrix centre is outside the FOV when at least this
+fraction of its voxels holds the padding value.  Air inside the FOV clipped to the same value is
+scattered (noise about −1000 HU crosses −1024 in a fraction of the voxels, not in 99 %)."""
 
-    Scanners (and the simulator) fill the corners outside the inscribed FOV
-    circle with one constant (the lowest stored value).  If the four 3 × 3
-    corner blocks of the middle slice all hold that one value, the FOV is the
-    circle inscribed in the matrix.
+
+def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
+    """Radius of the reconstruction's circular field of view (centred on the matrix), or None.
+
+    Scanners (and the simulator) fill the voxels outside the FOV circle with one constant (the
+    lowest stored value).  If the four 3 × 3 corner blocks of the middle slice all hold that one
+    value, the FOV is the circle inside which the padding stops: the inscribed circle if the
+    image reaches it, else the radius of the farthest image voxel inside the smallest radius
+    beyond which every one-pixel annulus is padded (:data:`FOV_PADDED_FRACTION`).  The
+    simulator pads outside the inscribed circle; a scanner
+    whose FOV is smaller than its matrix (say 200 mm on a 512 × 0.415 mm matrix; the O-arm's FOV
+    diameter is unverified) pads inside the inscribed circle too, and a sphere cut there must not
+    be taken for a whole one.
     """
     k = vox.shape[0] // 2
     sl = vox[k]
@@ -392,7 +414,23 @@ def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
         return None
     if float(v0) > AIR_HU:  # a constant but not air-or-below corner is an image, not padding
         return None
-    return float(min(vox.shape[1] * spacing[1], vox.shape[2] * spacing[0]) / 2.0)
+    inscribed_mm = float(min(vox.shape[1] * spacing[1], vox.shape[2] * spacing[0]) / 2.0)
+    pixel_mm = float(min(spacing[0], spacing[1]))
+    jj, ii = np.indices(sl.shape)
+    r_mm = np.hypot((ii - (sl.shape[1] - 1) / 2.0) * spacing[0], (jj - (sl.shape[0] - 1) / 2.0) * spacing[1])
+    ring = np.floor(r_mm / pixel_mm).astype(np.int64)
+    n_rings = int(inscribed_mm / pixel_mm)
+    inside = ring < n_rings
+    total = np.bincount(ring[inside], minlength=n_rings)
+    padded = np.bincount(ring[inside], weights=(sl[inside] == v0).astype(np.float64), minlength=n_rings)
+    frac = np.divide(padded, total, out=np.zeros(n_rings), where=total > 0)
+    open_rings = np.flatnonzero(frac < FOV_PADDED_FRACTION)
+    if len(open_rings) == 0:
+        return 0.0
+    if open_rings[-1] == n_rings - 1:  # image up to the inscribed circle
+        return inscribed_mm
+    image = inside & (ring <= open_rings[-1]) & (sl != v0)
+    return float(r_mm[image].max()) if image.any() else 0.0
 
 
 # ----------------------------------------------------------------------------- centres
@@ -654,10 +692,27 @@ def edge_refined_centre(
     r_ball = params.radius_mm + params.bloom_mm
     centre = centre_ijk.astype(np.float64).copy()
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
+    region = DataRegion(shape, spacing, fov_radius_mm)
     for name, u, edge_mm, step_mm in _boundaries(centre, shape, spacing, fov_radius_mm):
         t_c = float(u @ (centre * spacing))
         if edge_mm - t_c > r_ball + step_mm:
             continue
+        if u[2] == 0.0 and plateau_reaches_edge(
+            vox,
+            centre,
+            spacing,
+            u,
+            params.radius_mm,
+            r_ball,
+            params.background_shell_mm,
+            region,
+            params.edge_plateau_fraction,
+        ):
+            return centre, (
+                f"cut by the {name}: the sphere's image is still above {params.edge_plateau_fraction:.0%} "
+                "of its peak where the image ends (the sphere is cut, or whole but too close to the "
+                "edge to be located)"
+            )
         bw = _ball_weights(vox, centre, spacing, params, support)
         t = sum(float(u[a] * spacing[a]) * bw.ijk[a] for a in range(3))
         w, t_all = np.broadcast_arrays(bw.w, t)
