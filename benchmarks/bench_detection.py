@@ -267,6 +267,7 @@ def speed() -> None:
             ("subvoxel, MAR on (default)", DetectionParams()),
             ("subvoxel, MAR off", DetectionParams(use_mar=False)),
             ("paper, MAR on", DetectionParams(method="paper")),
+            ("rays, MAR on (steel, titanium by material)", DetectionParams(method="rays")),
         ):
             t_det, _ = median_time_s(lambda p=params: detect_spheres(volume, p), repeats=5)
             t_all, _ = median_time_s(lambda p=params: detect_spheres(load_series(folder), p), repeats=5)

@@ -76,7 +76,7 @@ every steel and titanium condition of that sweep (cone-beam steel SPR 0.3 with r
 mean / max 0.049 / 0.171 → 0.034 / 0.075 mm; parallel steel SPR 0.1 0.020 / 0.039 → 0.018 /
 0.037; titanium SPR 0.2 0.021 / 0.042 → 0.016 / 0.034) and on 24 held-out scans of the same
 conditions (seeds 1000+, ``--seed-offset 1000 --only steel`` / ``--only Ti``; cone-beam steel
-SPR 0.3 0.048 / 0.134 → 0.035 / 0.124 mm); on tungsten carbide worse than ``core``."""
+SPR 0.3 0.048 / 0.134 → 0.035 / 0.128 mm); on tungsten carbide worse than ``core``."""
 
 
 def method_for_material(material: str) -> str:
