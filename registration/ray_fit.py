@@ -25,7 +25,8 @@ for the 90th percentile), so the gain over the centroid comes mostly from locati
 than integrating the window, not from rejecting rays.  The rays' axial offset measured worse than
 the centroid's per-slice profile (the slices are coarse), so the ``rays`` method keeps only the
 in-plane centre (:func:`registration.detection._rays_estimate`).  On tungsten carbide the
-``core`` centroid stays better (cone-beam SPR 0.3: 0.072 / 0.271 mm against 0.062 / 0.159).
+``core`` centroid stays better (cone-beam SPR 0.3, 3.0 mm reach: 0.072 / 0.271 mm against
+0.062 / 0.159).
 
 Coordinates: voxel indices (i, j, k) and mm along unit directions in the (i, j, k)-scaled mm space,
 as :mod:`registration.detection` uses.
@@ -73,7 +74,11 @@ class RayParams:
     simulator's scans), in-plane centre from the rays and slice coordinate from the centroid's
     profile as the ``rays`` method uses them; mean / max FLE mm for cone-beam steel SPR 0.3 rod +
     vertebra (84 spheres) · parallel steel SPR 0.1 (112) · parallel titanium SPR 0.2 (84); the
-    default centroid (``subvoxel``) there: 0.049 / 0.171 · 0.020 / 0.039 · 0.021 / 0.042.
+    default centroid (``subvoxel``) there: 0.049 / 0.171 · 0.020 / 0.039 · 0.021 / 0.042; these
+    defaults in the detection: 0.034 / 0.075 · 0.018 / 0.037 · 0.017 / 0.034 at about 2 ms per
+    sphere (the 28-sphere 512 × 512 × 192 speed series of the same benchmark: detection 0.21 →
+    0.26 s).  The figures below were taken one setting at a time, most before the later ones
+    were fixed (the earlier reach is named where it applies).
 
     Attributes
     ----------
