@@ -276,6 +276,7 @@ def speed() -> None:
             ("subvoxel, MAR on (default)", DetectionParams()),
             ("subvoxel, MAR off", DetectionParams(use_mar=False)),
             ("paper, MAR on", DetectionParams(method="paper")),
+            ("rays, MAR on (steel, titanium by material)", DetectionParams(method="rays")),
         ):
             t_det, _ = median_time_s(partial(detect_spheres, volume, params), repeats=5)
             t_all, _ = median_time_s(partial(_load_and_detect, folder, params), repeats=5)

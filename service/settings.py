@@ -147,8 +147,9 @@ class RetentionSettings(_Section):
 
 class DetectionSettings(_Section):
     # "default": the centre estimator for the phantom's sphere material
-    # (registration.detection.METHOD_FOR_MATERIAL: "core" for tungsten carbide, else "subvoxel").
-    method: Literal["default", "subvoxel", "paper", "core"] = "default"
+    # (registration.detection.METHOD_FOR_MATERIAL: "core" for tungsten carbide, "rays" for steel,
+    # else "subvoxel").
+    method: Literal["default", "subvoxel", "paper", "core", "rays"] = "default"
     use_mar: bool = True
 
 

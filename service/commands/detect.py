@@ -30,11 +30,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", dest="json_out", metavar="OUT", type=Path, help="write the result as JSON")
     parser.add_argument(
         "--method",
-        choices=("subvoxel", "paper", "core"),
+        choices=("subvoxel", "paper", "core", "rays"),
         default=None,
         help="centre estimator: subvoxel (3-D intensity-weighted centroid, default, most accurate) "
         "or paper (per-slice Pythagorean depth, Bai 2018) or core (saturated core of an opaque "
-        "sphere: tungsten carbide)",
+        "sphere: tungsten carbide) or rays (outline of a streaked sphere: steel, titanium)",
     )
     parser.add_argument(
         "--sphere-diameter",

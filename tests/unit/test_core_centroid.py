@@ -134,4 +134,5 @@ def test_every_sphere_material_has_a_known_method(material: str) -> None:
     assert method_for_material(material) in METHODS
     assert set(METHOD_FOR_MATERIAL) <= set(SPHERE_MATERIALS)
     assert method_for_material("tungsten_carbide") == "core"
-    assert method_for_material("steel") == DetectionParams().method
+    assert method_for_material("steel") == "rays"
+    assert method_for_material("titanium") == "rays"
