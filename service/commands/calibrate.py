@@ -22,9 +22,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from registration.resources import default_phantom
+
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
 
-DEFAULT_PHANTOM = Path(__file__).resolve().parents[2] / "configs" / "phantoms" / "bai2018_cube.toml"
+DEFAULT_PHANTOM = default_phantom()
 CALIBRATION_FILE = "calibration.json"
 URDF_FILE = "robot.urdf"
 

@@ -7,8 +7,12 @@ candidates with their reasons; ``--json OUT`` writes::
      "spheres": [{"center_mm": [x, y, z], "radius_mm": r, "n_slices": k, "score": s}, ...],
      "rejected": [{"center_mm": [x, y, z], "reason": ...}, ...]}
 
+The centre estimator and sphere size are the phantom file's (``--phantom``, default the built-in
+Bai 2018 cube), chosen as the service chooses them, unless ``--method`` / ``--sphere-diameter``
+say otherwise.
+
 Exit codes: 0 success (even with no sphere found: the table says so), 4 bad
-input (unreadable / inconsistent series, see :mod:`registration.errors`).
+input (unreadable / inconsistent series or phantom file, see :mod:`registration.errors`).
 """
 
 from __future__ import annotations
@@ -18,7 +22,10 @@ import json
 import sys
 from pathlib import Path
 
+from registration.resources import default_phantom
 from service.commands.argtypes import positive_float
+
+DEFAULT_PHANTOM = default_phantom()
 
 HELP = "detect the calibration spheres in an O-arm DICOM series (centres in LPS mm)"
 
@@ -29,19 +36,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--json", dest="json_out", metavar="OUT", type=Path, help="write the result as JSON")
     parser.add_argument(
+        "--phantom",
+        type=Path,
+        default=DEFAULT_PHANTOM,
+        help="phantom TOML: its sphere material chooses the centre estimator and its sphere "
+        "diameter the expected size, as the service does (default: %(default)s)",
+    )
+    parser.add_argument(
         "--method",
         choices=("subvoxel", "paper", "core", "rays"),
         default=None,
-        help="centre estimator: subvoxel (3-D intensity-weighted centroid, default, most accurate) "
-        "or paper (per-slice Pythagorean depth, Bai 2018) or core (saturated core of an opaque "
-        "sphere: tungsten carbide) or rays (outline of a streaked sphere: steel, titanium)",
+        help="centre estimator instead of the phantom material's (registration.detection."
+        "METHOD_FOR_MATERIAL): subvoxel (3-D intensity-weighted centroid), paper (per-slice "
+        "Pythagorean depth, Bai 2018), core (saturated core of an opaque sphere: tungsten carbide) "
+        "or rays (outline of a streaked sphere: steel, titanium)",
     )
     parser.add_argument(
         "--sphere-diameter",
         metavar="MM",
         type=positive_float,
         default=None,
-        help="sphere diameter in mm (2.5)",
+        help="sphere diameter in mm instead of the phantom's",
     )
     parser.add_argument("--no-mar", action="store_true", help="skip the polar metal artefact reduction")
     parser.add_argument("--series-uid", metavar="UID", default=None, help="pick this SeriesInstanceUID")
@@ -50,10 +65,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from registration.detection import DetectionParams, detect_spheres
+    from registration.detection import DetectionParams, detect_spheres, method_for_material
     from registration.dicom import load_series
+    from registration.phantom import load_phantom
 
-    params = DetectionParams()
+    phantom = load_phantom(args.phantom)
+    params = DetectionParams(
+        method=method_for_material(phantom.sphere_material), sphere_diameter_mm=phantom.sphere_diameter_mm
+    )
     overrides: dict[str, object] = {}
     if args.method is not None:
         overrides["method"] = args.method

@@ -65,3 +65,34 @@ def test_simulate_cone_beam_preset_then_detect(tmp_path: Path, capsys) -> None: 
     d, idx = cKDTree(centres).query(expected)
     assert len(centres) == len(expected) and len(set(idx)) == len(idx)
     assert d.max() < MATCH_MM
+
+
+def test_detect_uses_the_phantom_materials_method_as_the_service_does(export, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """No ``--method``: the estimator the service would use for the phantom's sphere material
+    (steel → ``rays``; a tungsten-carbide phantom file → ``core``); ``--method`` overrides it."""
+    from registration.detection import method_for_material
+    from registration.resources import default_phantom
+
+    folder, _ = export
+    assert main(["detect", str(folder), "--json", str(tmp_path / "a.json")]) == 0
+    assert json.loads((tmp_path / "a.json").read_text())["method"] == method_for_material("steel") == "rays"
+    wc = tmp_path / "wc.toml"
+    text = default_phantom().read_text()
+    assert "sphere_material" not in text  # the default file relies on the default (steel)
+    wc.write_text(text.replace("units = ", 'sphere_material = "tungsten_carbide"\nunits = ', 1))
+    assert main(["detect", str(folder), "--phantom", str(wc), "--json", str(tmp_path / "b.json")]) == 0
+    assert json.loads((tmp_path / "b.json").read_text())["method"] == "core"
+    assert main(["detect", str(folder), "--method", "subvoxel", "--json", str(tmp_path / "c.json")]) == 0
+    assert json.loads((tmp_path / "c.json").read_text())["method"] == "subvoxel"
+    capsys.readouterr()
+
+
+def test_detect_refuses_a_bad_phantom_file_with_the_config_exit_code(export, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from service.error_map import EXIT_CONFIG
+
+    folder, _ = export
+    bad = tmp_path / "bad.toml"
+    bad.write_text("this is = = not toml")
+    assert main(["detect", str(folder), "--phantom", str(bad)]) == EXIT_CONFIG
+    err = capsys.readouterr().err
+    assert "bad.toml" in err
