@@ -1,4 +1,4 @@
-"""``oarmreg mock robot``: run a mock Stäubli controller until Ctrl-C.
+"""``oarmreg mock robot``: run a mock Stäubli controller until Ctrl-C (SIGINT) or SIGTERM.
 
 ::
 
@@ -11,16 +11,54 @@ serial: the pty's slave path) is printed on the first line of stdout, so a
 script can hand it to ``oarmreg robot joints --link``.  Modbus register-map
 options in the URL query configure the served map the same way they configure
 the client.
+
+SIGINT and SIGTERM only raise a flag that the main loop polls, so the server stops through its
+normal path (no KeyboardInterrupt thrown into whatever the main thread was doing, possibly
+holding a lock the shutdown needs); SIGUSR1 dumps every thread's stack to stderr (``faulthandler``)
+for a controller that does not stop.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
+import signal
 import sys
 import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 HELP = "run a mock controller (simple_message / Modbus / serial) until Ctrl-C"
+
+POLL_S = 0.2
+"""How often the main loop looks at the stop flag (s): the latency of a Ctrl-C."""
+
+
+@contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[Callable[[], bool]]:
+    """Yields "should stop?": ``stop`` is set, or SIGINT / SIGTERM arrived (main thread only;
+    the handlers only set a flag, and the previous ones come back on exit)."""
+    flag = [False]
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+
+        def handler(signum: int, frame: object) -> None:
+            flag[0] = True
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+        if hasattr(signal, "SIGUSR1"):
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+    try:
+        yield lambda: flag[0] or stop.is_set()
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
+        if previous and hasattr(signal, "SIGUSR1"):
+            faulthandler.unregister(signal.SIGUSR1)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,12 +101,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     elif kind != "serial":
         raise LinkConfigError(f"unknown mock kind {kind!r}: use simple-message://, modbus:// or serial://")
     stop = stop or threading.Event()
-    with run_mock_controller(kind, robot, host=host, port=port, **options) as mock:
+    with (
+        _stop_on_signals(stop) as should_stop,
+        run_mock_controller(kind, robot, host=host, port=port, **options) as mock,
+    ):
         sys.stdout.write(mock.url + "\n")
         sys.stdout.flush()
-        try:
-            while not stop.wait(0.5):
-                pass
-        except KeyboardInterrupt:
-            pass
+        while not should_stop():
+            time.sleep(POLL_S)
     return 0

@@ -16,6 +16,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -91,18 +92,32 @@ def export(scan: Any, watch: Path, name: str, *, drop_slice: int | None = None, 
 def mock_controller_process() -> Iterator[str]:
     """The mock controller in its own process, as a real controller is: its 50 Hz stream does not
     compete with this process's threads for the GIL, so a gap in the history is the service's."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
-        cwd=REPO_ROOT, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        assert proc.stdout is not None
-        url = proc.stdout.readline().strip()
-        assert url.startswith("simple-message://"), url
-        yield url
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=DEADLINE_S)
+    with tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
+            cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=err, text=True,
+        )  # fmt: skip
+        try:
+            assert proc.stdout is not None
+            url = proc.stdout.readline().strip()
+            assert url.startswith("simple-message://"), url
+            yield url
+        finally:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.communicate(timeout=DEADLINE_S)
+            except subprocess.TimeoutExpired:
+                proc.send_signal(signal.SIGUSR1)  # the mock's faulthandler: every thread's stack
+                try:
+                    proc.communicate(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.communicate()
+                err.seek(0)
+                raise AssertionError(
+                    f"the mock controller did not stop within {DEADLINE_S} s of SIGINT; its stderr:\n"
+                    + err.read()[-20000:]
+                ) from None
 
 
 @pytest.fixture(scope="module")
