@@ -715,6 +715,8 @@ def edge_refined_centre(
         t_c = float(u @ (centre * spacing))
         if edge_mm - t_c > r_ball + step_mm:
             continue
+        # In-plane edges only: at the slab ends the same test refused 4 more whole spheres on
+        # the 12 partial-FOV sweep scans and no false one (the symmetric window below holds there).
         if u[2] == 0.0 and plateau_reaches_edge(
             vox,
             centre,

@@ -170,9 +170,15 @@ def plateau_reaches_edge(
     level = plateau_level(vox, centre_ijk, spacing, r_ball_mm, shell_mm, region, fraction)
     if math.isnan(level):
         return True
-    z = np.array([0.0, 0.0, 1.0])
-    v = np.cross(z, u)
-    v /= np.linalg.norm(v)
     off = BUNDLE_OFFSET_FRACTION * radius_mm
-    t, prof = line_profile(vox, centre_ijk, spacing, u, (v, z), off, r_ball_mm + shell_mm, region)
+    t, prof = line_profile(vox, centre_ijk, spacing, u, _across(u), off, r_ball_mm + shell_mm, region)
     return first_crossing(t, prof, level, +1) is None
+
+
+def _across(u: F64) -> tuple[F64, F64]:
+    """Two unit directions perpendicular to the unit ``u`` and to each other (for an in-plane
+    ``u``: the in-plane one and the slice axis)."""
+    ref = np.array([0.0, 0.0, 1.0]) if abs(float(u[2])) < 0.9 else np.array([1.0, 0.0, 0.0])
+    v = np.cross(ref, u)
+    v /= np.linalg.norm(v)
+    return v, np.cross(u, v)
