@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -210,11 +211,23 @@ def load_phantom(path: str | Path) -> Phantom:
         below ``min_symmetry_margin`` (the message names the rotation and the
         holes to fill).
     """
+    from registration.dicom.errors import NotRegularFileError
+    from registration.dicom.files import kind_of, open_regular
+
     p = Path(path)
+    if not os.path.lexists(p):
+        raise PhantomDefinitionError(f"phantom file not found: {p}")
     try:
-        d = tomllib.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PhantomDefinitionError(f"phantom file not found: {p}") from None
+        with open_regular(p) as f:  # stat before open, O_NONBLOCK: a FIFO or device is never read
+            text = f.read().decode("utf-8")
+        d = tomllib.loads(text)
+    except NotRegularFileError as e:
+        kind = kind_of(os.stat(p).st_mode) if p.exists() else "a dangling or looping link"
+        raise PhantomDefinitionError(
+            f"phantom file {p} is {kind}, not a regular file: not read; point it at the phantom's TOML file"
+        ) from e
+    except OSError as e:
+        raise PhantomDefinitionError(f"cannot read phantom file {p}: {e.strerror or e}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise PhantomDefinitionError(f"{p}: not valid TOML: {e}") from None
     return phantom_from_dict(d, source=p)

@@ -430,9 +430,13 @@ class Settings(BaseSettings):
         h = hashlib.sha256(
             json.dumps(self.model_dump(mode="json", exclude={"api_token"}), sort_keys=True).encode()
         )
+        from registration.dicom.errors import NotRegularFileError
+        from registration.dicom.files import open_regular
+
         try:
-            h.update(self.phantom_file.read_bytes())
-        except OSError:
+            with open_regular(self.phantom_file) as f:  # never blocks on a FIFO or reads a device
+                h.update(f.read())
+        except (OSError, NotRegularFileError):
             h.update(b"<phantom file unreadable>")
         return h.hexdigest()[:16]
 

@@ -245,3 +245,39 @@ def test_late_slices_reopen_the_scan_and_withdraw_its_registration(
 
 def test_refusal_figures() -> None:
     print(f"\nrefused by the file tests: {REFUSED}")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder", "device"])
+def test_a_phantom_file_that_is_not_a_regular_file_is_refused_unread(tmp_path: Path, kind: str) -> None:
+    """``--phantom`` (and the service's ``phantom_file``) pointed at a FIFO, a folder or a device:
+    a configuration error naming what it is, exit 3, never a hang on the FIFO or a traceback."""
+    import threading
+
+    from registration.errors import PhantomDefinitionError
+    from registration.phantom import load_phantom
+    from service.cli import main
+    from service.error_map import EXIT_CONFIG
+
+    path = {"fifo": tmp_path / "phantom.toml", "folder": tmp_path, "device": Path("/dev/zero")}[kind]
+    if kind == "fifo":
+        os.mkfifo(path)
+    outcome: list[BaseException | None] = []
+
+    def attempt() -> None:
+        try:
+            load_phantom(path)
+            outcome.append(None)
+        except BaseException as e:
+            outcome.append(e)
+
+    t = threading.Thread(target=attempt, daemon=True)
+    t.start()
+    t.join(DEADLINE_S)
+    if t.is_alive():  # blocked opening the FIFO: release it so the thread ends, then fail
+        with open(path, "w"):
+            pass
+        pytest.fail(f"load_phantom blocked on {kind} {path}")
+    assert isinstance(outcome[0], PhantomDefinitionError), outcome
+    assert "not a regular file" in str(outcome[0]) and str(path) in str(outcome[0])
+    assert main(["detect", str(tmp_path), "--phantom", str(path)]) == EXIT_CONFIG
+    REFUSED["files"] += 1
