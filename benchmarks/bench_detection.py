@@ -531,7 +531,7 @@ def hard_sweep(
     has condition ``n mod 12`` and seed ``seed_offset + n`` (another offset = scans no setting
     was chosen on); ``only`` keeps the conditions whose name contains it."""
     from mocks.oarm.simulator import scan_to_volume
-    from registration.detection import DetectionParams, detect_spheres, method_for_material
+    from registration.detection import detect_spheres, params_for_spheres
 
     rows: dict[str, dict[str, Any]] = {}
     for n in range(n_scans):
@@ -541,10 +541,11 @@ def hard_sweep(
         phantom, scan = _cached_hard_scan(cond, seed_offset + n, cache_dir)
         res = detect_spheres(
             scan_to_volume(scan),
-            DetectionParams(
-                method=method or method_for_material(scan.sphere_material),
-                sphere_diameter_mm=phantom.sphere_diameter_mm,
+            params_for_spheres(
+                scan.sphere_material,
+                phantom.sphere_diameter_mm,
                 background_model=background_model,
+                **({} if method is None else {"method": method}),
             ),
         )
         err, miss, fp = _match(res.centres_image_mm, scan.spheres_image_mm)

@@ -76,14 +76,11 @@ def score(phantom: Any, scan: Any) -> list[tuple[float, float | None]]:
     """(margin mm, error mm of the reported centre or None) of every sphere near the circle."""
     from mocks.oarm.simulator import scan_to_volume
     from registration import frames
-    from registration.detection import DetectionParams, detect_spheres, method_for_material
+    from registration.detection import detect_spheres, params_for_spheres
 
     s = scan.settings
     res = detect_spheres(
-        scan_to_volume(scan),
-        DetectionParams(
-            method=method_for_material(scan.sphere_material), sphere_diameter_mm=phantom.sphere_diameter_mm
-        ),
+        scan_to_volume(scan), params_for_spheres(scan.sphere_material, phantom.sphere_diameter_mm)
     )
     c = frames.apply(scan.image_from_phantom, scan.extras.actual_centres_phantom_mm(phantom))
     half_z = (s.n_slices - 1) / 2.0 * s.slice_spacing_mm

@@ -291,7 +291,7 @@ def simulate_pose_scan(
     """
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import simulate_scan
-    from registration.detection import DetectionParams, detect_spheres, method_for_material
+    from registration.detection import detect_spheres, params_for_spheres
     from registration.dicom import load_series
 
     truth = cell.image_from_phantom_true(image_from_robot, joints_rad, rng)
@@ -301,12 +301,8 @@ def simulate_pose_scan(
     set_frame_of_reference(out_dir, frame_of_reference_uid)
     t0 = time.perf_counter()
     volume = load_series(out_dir)
-    det = detect_spheres(  # the estimator and size the service chooses for this phantom
-        volume,
-        DetectionParams(
-            method=method_for_material(phantom.sphere_material), sphere_diameter_mm=phantom.sphere_diameter_mm
-        ),
-    )
+    # the estimator and size the service chooses for this phantom
+    det = detect_spheres(volume, params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm))
     return SimulatedPose(
         name=name or out_dir.name,
         joints_reported_rad=reported,

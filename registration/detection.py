@@ -85,6 +85,15 @@ def method_for_material(material: str) -> str:
     return METHOD_FOR_MATERIAL.get(material, DetectionParams.method)
 
 
+def params_for_spheres(material: str, sphere_diameter_mm: float, **overrides: Any) -> DetectionParams:
+    """Detection settings for spheres of ``material`` and ``sphere_diameter_mm`` (a phantom file's
+    or a scan's): the estimator :func:`method_for_material` chooses, as the service does, with
+    ``overrides`` (any other :class:`DetectionParams` field)."""
+    return DetectionParams(
+        **{"method": method_for_material(material), "sphere_diameter_mm": sphere_diameter_mm, **overrides}
+    )
+
+
 BACKGROUND_MODELS: Final = ("linear", "constant")
 """Background under a sphere for the centroid weights (:class:`DetectionParams`)."""
 

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from drivers.errors import RobotLinkError
 from registration import __version__
-from registration.detection import DetectionParams, method_for_material
+from registration.detection import params_for_spheres
 from registration.errors import OarmRegError
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
@@ -55,10 +55,8 @@ Publish = Callable[[str, dict[str, Any]], None]
 def pipeline_params(settings: Settings, phantom: Phantom) -> PipelineParams:
     """The pipeline's parameters from the service settings."""
     ds, q = settings.detection, settings.quality
-    detection = DetectionParams(
-        use_mar=ds.use_mar,
-        sphere_diameter_mm=float(phantom.sphere_diameter_mm),
-        method=method_for_material(phantom.sphere_material),
+    detection = params_for_spheres(
+        phantom.sphere_material, float(phantom.sphere_diameter_mm), use_mar=ds.use_mar
     )
     if ds.method != "default":
         detection = replace(detection, method=ds.method)

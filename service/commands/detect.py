@@ -65,14 +65,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from registration.detection import DetectionParams, detect_spheres, method_for_material
+    from registration.detection import detect_spheres, params_for_spheres
     from registration.dicom import load_series
     from registration.phantom import load_phantom
 
     phantom = load_phantom(args.phantom)
-    params = DetectionParams(
-        method=method_for_material(phantom.sphere_material), sphere_diameter_mm=phantom.sphere_diameter_mm
-    )
+    params = params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm)
     overrides: dict[str, object] = {}
     if args.method is not None:
         overrides["method"] = args.method
