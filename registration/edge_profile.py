@@ -166,7 +166,10 @@ def plateau_reaches_edge(
 ) -> bool:
     """Whether the sphere's image, followed from ``centre_ijk`` along the in-plane edge normal
     ``u``, is still above :func:`plateau_level` where the image data end: the edge cuts the
-    sphere, or the clipped plateau of a whole sphere close to it."""
+    sphere, or the clipped plateau of a whole sphere close to it.  Also True (refused) when the
+    image at ``centre_ijk`` is itself below the level, or no background is left: an estimate that
+    is not on the sphere's plateau cannot be checked against the edge, and refusing is the safe
+    side (not seen on the simulator's scans, where the estimate is always on the plateau)."""
     level = plateau_level(vox, centre_ijk, spacing, r_ball_mm, shell_mm, region, fraction)
     if math.isnan(level):
         return True
