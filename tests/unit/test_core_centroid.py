@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_detection import SPACING, make_volume
 
-from registration.core_centroid import CoreParams, CoreWeights, core_centroid
+from registration.core_centroid import CoreParams, CoreWeights, core_centroid, windowed_core_centroid
 from registration.detection import (
     LINEAR_BACKGROUND_MIN_VOXELS,
     METHOD_FOR_MATERIAL,
@@ -136,3 +136,20 @@ def test_every_sphere_material_has_a_known_method(material: str) -> None:
     assert method_for_material("tungsten_carbide") == "core"
     assert method_for_material("steel") == "rays"
     assert method_for_material("titanium") == "rays"
+
+
+def test_core_centroid_averages_its_levels_and_leaves_out_an_empty_one() -> None:
+    centre = (np.array([40.0, 50.0, 30.0]) + np.array([0.31, 0.62, 0.27])) * np.asarray(SPACING)
+    values, coords = _opaque_sphere(centre, 5.0e4, 0.3, 100.0, np.array([20.0, -30.0, 10.0]))
+    start = centre + np.array([0.3, -0.25, 0.35])
+    levels = WEIGHTS.core.averaged_margin_fractions
+    each = [windowed_core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS, f) for f in levels]
+    assert all(c is not None for c in each)
+    # Off-grid, the levels do not agree (else averaging them would change nothing).
+    assert float(np.ptp(np.array(each), axis=0).max()) > 1e-4
+    np.testing.assert_allclose(
+        core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS), np.mean(each, axis=0)
+    )
+    # A margin above the clipped contrast weights nothing: that level drops out of the mean.
+    one = replace(WEIGHTS, core=replace(WEIGHTS.core, averaged_margin_fractions=(levels[0], 1.5)))
+    np.testing.assert_allclose(core_centroid(values, coords, start, RADIUS_MM, SAT_HU, one), each[0])
