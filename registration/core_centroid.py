@@ -89,7 +89,8 @@ class CoreParams:
         column error 0.94 between 0.5 and 0.7, 0.67 between 0.5 and 0.95, cone-beam SPR 0.3), so
         the mean cancels part of each level's sampling and streak error.  Mean / max mm on the
         cached hard-sweep WC scans (cone-beam SPR 0.3 · parallel SPR 0.3 · parallel SPR 0.2 1e3
-        rod, 120 / 160 / 120 spheres) and on held-out seeds (cone-beam · both parallel, 120 / 240):
+        rod, 120 / 160 / 120 spheres; the cone-beam scans at the earlier 0.61 mm PSF, mocks/oarm/cbct.py
+        ``light_spread_fwhm_mm``) and on held-out seeds (cone-beam · both parallel, 120 / 240):
         0.85 alone 0.058 / 0.131 · 0.042 / 0.117 · 0.045 / 0.158, held-out 0.058 / 0.156 ·
         0.042 / 0.107; (0.5, 0.7, 0.85, 0.95) 0.054 / 0.129 · 0.040 / 0.117 · 0.044 / 0.160,
         held-out 0.056 / 0.157 · 0.040 / 0.119; with 0.3 added 0.053 / 0.139 · 0.040 / 0.123 ·
