@@ -73,10 +73,10 @@ def test_core_centroid_finds_a_clipped_opaque_sphere(
     got = core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS)
     assert got is not None
     # An exact blurred ball on a tilted plane: only the voxel sampling of the clipped core errs.
-    # Over 300 random draws it erred at most 0.043 mm in-plane and 0.078 mm along the 0.833 mm
-    # slices (one margin, 85 %: 0.060 / 0.081 mm; unwindowed 1.0 mm ball: 0.058 / 0.084 mm; the
-    # default centroid's ball and margin: 0.042 / 0.073 mm), so these bounds catch a wrong frame,
-    # a lost background or a diverging iteration, not that sampling bias.
+    # Over 300 random draws it erred at most 0.044 mm in-plane and 0.079 mm along the 0.833 mm
+    # slices (one 85 % margin, 1.5 mm window: 0.060 / 0.081 mm; unwindowed 1.0 mm ball: 0.058 /
+    # 0.084 mm; the default centroid's ball and margin: 0.042 / 0.073 mm), so these bounds catch a
+    # wrong frame, a lost background or a diverging iteration, not that sampling bias.
     err = np.abs(got - centre)
     assert max(err[0], err[1]) <= INPLANE_TOL_MM and err[2] <= SLICE_TOL_MM, (got, centre)
 
