@@ -214,9 +214,16 @@ class DetectionParams:
         (:func:`registration.edge_profile.plateau_reaches_edge`): its clipped plateau runs into
         the edge, so no window says where its centre is along the normal.  On the issue #11
         held-out seeds a tungsten-carbide sphere cut by 0.85 mm was reported 0.87 mm inside its
-        true position before this test.  0.9 puts the level near the top of the clipped plateau
+        true position before this test.  The level sits near the top of the clipped plateau
         (noise on a 3071 HU plateau is a few HU); where only the falloff below it is cut, the
         symmetric window holds both ends of the plateau (measured in the partial-FOV sweep rows).
+        On ``benchmarks/bench_fov_edge.py --seeds 4`` (96 scans, 65 cut spheres, 23 whole ones
+        with their surface within 0.2 mm of the circle) 0.5 / 0.9 / 0.95 / 0.98 reported 0 / 0 /
+        0 / 0 cut spheres and 0 / 0 / 3 / 8 of those whole ones (steel 0 / 0 / 2 / 4 of 11,
+        tungsten carbide 0 / 0 / 1 / 4 of 12; at 0.2–0.4 mm 3 / 8 / 8 / 9 of 10 tungsten-carbide
+        spheres).  0.95 keeps a margin below the highest level that leaked none, against a dip in
+        a cut sphere's plateau (a dark band across it) that a level nearer 1 would mistake for its
+        end.
     min_separation_mm : float
         Two reported centres are at least this far apart; of a closer pair only the one with more
         circle slices (then the higher score) is kept.  Half the 15 mm pitch of the Bai 2018 hole
@@ -251,7 +258,7 @@ class DetectionParams:
     background_model: str = "linear"
     axial_profile_margin_fraction: float = 0.15
     axial_profile_min_fraction: float = 0.1
-    edge_plateau_fraction: float = 0.9
+    edge_plateau_fraction: float = 0.95
     min_separation_mm: float = 7.5
     mar: MarParams = field(default_factory=MarParams)
     circles: CircleParams = field(default_factory=CircleParams)
