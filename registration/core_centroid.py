@@ -159,12 +159,14 @@ def core_centroid(
     must hold the whole ball and shell (a sphere near an edge of the imaged region is the
     caller's to keep out).
     """
+    r_ball = radius_mm + weights.core.window_mm
+    r_shell = r_ball + weights.shell_mm
     centres = [
         c
         for fraction in weights.core.averaged_margin_fractions
         if (
-            c := windowed_core_centroid(
-                values_hu, coords_mm, start_mm, radius_mm, saturation_hu, weights, fraction
+            c := _windowed_centroid(
+                values_hu, coords_mm, start_mm, (r_ball, r_shell), saturation_hu, weights, fraction
             )
         )
         is not None
@@ -172,20 +174,19 @@ def core_centroid(
     return np.mean(centres, axis=0) if centres else None
 
 
-def windowed_core_centroid(
+def _windowed_centroid(
     values_hu: F64,
     coords_mm: F64,
     start_mm: F64,
-    radius_mm: float,
+    ball_shell_mm: tuple[float, float],
     saturation_hu: float,
     weights: CoreWeights,
     margin_fraction: float,
 ) -> F64 | None:
     """The windowed, weighted centroid of the core at one margin (``margin_fraction`` of the
-    sphere's clipped contrast), re-centred until it moves less than the tolerance; arguments as
-    :func:`core_centroid`."""
-    r_ball = radius_mm + weights.core.window_mm
-    r_shell = r_ball + weights.shell_mm
+    sphere's clipped contrast) in a ball and background shell of the given outer radii (mm),
+    re-centred until it moves less than the tolerance; the rest as :func:`core_centroid`."""
+    r_ball, r_shell = ball_shell_mm
     c = np.asarray(start_mm, dtype=np.float64).copy()
     for _ in range(max(1, weights.core.max_iterations)):
         off = coords_mm - c

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_detection import SPACING, make_volume
 
-from registration.core_centroid import CoreParams, CoreWeights, core_centroid, windowed_core_centroid
+from registration.core_centroid import CoreParams, CoreWeights, core_centroid
 from registration.detection import (
     LINEAR_BACKGROUND_MIN_VOXELS,
     METHOD_FOR_MATERIAL,
@@ -143,7 +143,12 @@ def test_core_centroid_averages_its_levels_and_leaves_out_an_empty_one() -> None
     values, coords = _opaque_sphere(centre, 5.0e4, 0.3, 100.0, np.array([20.0, -30.0, 10.0]))
     start = centre + np.array([0.3, -0.25, 0.35])
     levels = WEIGHTS.core.averaged_margin_fractions
-    each = [windowed_core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS, f) for f in levels]
+
+    def at(*fractions: float) -> np.ndarray | None:
+        w = replace(WEIGHTS, core=replace(WEIGHTS.core, averaged_margin_fractions=fractions))
+        return core_centroid(values, coords, start, RADIUS_MM, SAT_HU, w)
+
+    each = [at(f) for f in levels]
     assert all(c is not None for c in each)
     # Off-grid, the levels do not agree (else averaging them would change nothing).
     assert float(np.ptp(np.array(each), axis=0).max()) > 1e-4
@@ -151,5 +156,5 @@ def test_core_centroid_averages_its_levels_and_leaves_out_an_empty_one() -> None
         core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS), np.mean(each, axis=0)
     )
     # A margin above the clipped contrast weights nothing: that level drops out of the mean.
-    one = replace(WEIGHTS, core=replace(WEIGHTS.core, averaged_margin_fractions=(levels[0], 1.5)))
-    np.testing.assert_allclose(core_centroid(values, coords, start, RADIUS_MM, SAT_HU, one), each[0])
+    assert at(1.5) is None
+    np.testing.assert_allclose(at(levels[0], 1.5), each[0])
