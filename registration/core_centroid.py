@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.errors import DetectionError
+
 F64 = NDArray[np.float64]
 
 
@@ -103,9 +105,10 @@ class CoreParams:
         The centroids at neighbouring levels err alike but not identically (correlation of the
         column error 0.94 between 0.5 and 0.7, 0.67 between 0.5 and 0.95, cone-beam SPR 0.3), so
         the mean cancels part of each level's sampling and streak error.  Mean / max mm on the
-        cached hard-sweep WC scans (cone-beam SPR 0.3 · parallel SPR 0.3 · parallel SPR 0.2 1e3
-        rod, 120 / 160 / 120 spheres; the cone-beam scans at the earlier 0.61 mm PSF, mocks/oarm/cbct.py
-        ``light_spread_fwhm_mm``) and on held-out seeds (cone-beam · both parallel, 120 / 240):
+        cached hard-sweep WC scans, window 1.5 mm (cone-beam SPR 0.3 · parallel SPR 0.3 · parallel
+        SPR 0.2 1e3 rod, 120 / 160 / 120 spheres; the cone-beam scans at the earlier 0.61 mm PSF,
+        mocks/oarm/cbct.py ``light_spread_fwhm_mm``) and on held-out seeds (cone-beam · both
+        parallel, 120 / 240):
         0.85 alone 0.058 / 0.131 · 0.042 / 0.117 · 0.045 / 0.158, held-out 0.058 / 0.156 ·
         0.042 / 0.107; (0.5, 0.7, 0.85, 0.95) 0.054 / 0.129 · 0.040 / 0.117 · 0.044 / 0.160,
         held-out 0.056 / 0.157 · 0.040 / 0.119; with 0.3 added 0.053 / 0.139 · 0.040 / 0.123 ·
@@ -127,6 +130,14 @@ class CoreParams:
     averaged_margin_fractions: tuple[float, ...] = (0.5, 0.7, 0.85, 0.95)
     max_iterations: int = 10
     tolerance_mm: float = 1.0e-3
+
+    def __post_init__(self) -> None:
+        levels = self.averaged_margin_fractions
+        if not levels or not all(0.0 < f < 1.0 for f in (*levels, self.margin_fraction)):
+            raise DetectionError(
+                f"core margins {self.margin_fraction} / {levels} must be fractions of the clipped "
+                "contrast in (0, 1), at least one to average (defaults 0.85 / (0.5, 0.7, 0.85, 0.95))"
+            )
 
 
 @dataclass(frozen=True)

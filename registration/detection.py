@@ -276,6 +276,11 @@ class DetectionParams:
                 f"min_separation_mm {self.min_separation_mm} is implausible: expected 0 … 1000 mm "
                 "(half the phantom's hole pitch, 7.5 mm for Bai 2018; 0 turns the rule off)"
             )
+        if not 0.0 < self.edge_plateau_fraction < 1.0:
+            raise DetectionError(
+                f"edge_plateau_fraction {self.edge_plateau_fraction} must be in (0, 1): the fraction of "
+                "a sphere's contrast above which its image running into the FOV edge counts as cut (0.95)"
+            )
         if self.method not in METHODS:
             raise DetectionError(
                 f"unknown detection method {self.method!r}: expected one of {', '.join(METHODS)}"

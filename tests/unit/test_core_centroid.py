@@ -20,6 +20,7 @@ from registration.detection import (
     detect_spheres,
     method_for_material,
 )
+from registration.errors import DetectionError
 from registration.phantom import SPHERE_MATERIALS
 from registration.sphere_fit import blurred_ball
 
@@ -138,7 +139,7 @@ def test_every_sphere_material_has_a_known_method(material: str) -> None:
     assert method_for_material("titanium") == "rays"
 
 
-def test_core_centroid_averages_its_levels_and_leaves_out_an_empty_one() -> None:
+def test_core_centroid_averages_its_levels() -> None:
     centre = (np.array([40.0, 50.0, 30.0]) + np.array([0.31, 0.62, 0.27])) * np.asarray(SPACING)
     values, coords = _opaque_sphere(centre, 5.0e4, 0.3, 100.0, np.array([20.0, -30.0, 10.0]))
     start = centre + np.array([0.3, -0.25, 0.35])
@@ -155,6 +156,18 @@ def test_core_centroid_averages_its_levels_and_leaves_out_an_empty_one() -> None
     np.testing.assert_allclose(
         core_centroid(values, coords, start, RADIUS_MM, SAT_HU, WEIGHTS), np.mean(each, axis=0)
     )
-    # A margin above the clipped contrast weights nothing: that level drops out of the mean.
-    assert at(1.5) is None
-    np.testing.assert_allclose(at(levels[0], 1.5), each[0])
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"averaged_margin_fractions": ()}, {"averaged_margin_fractions": (0.5, 1.2)}, {"margin_fraction": 0.0}],
+)
+def test_core_params_refuse_margins_outside_the_contrast(kwargs: dict[str, object]) -> None:
+    with pytest.raises(DetectionError, match="fractions of the clipped contrast"):
+        CoreParams(**kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("fraction", [0.0, 1.0, 95.0])
+def test_edge_plateau_fraction_must_be_a_fraction(fraction: float) -> None:
+    with pytest.raises(DetectionError, match="edge_plateau_fraction"):
+        DetectionParams(edge_plateau_fraction=fraction)
