@@ -61,7 +61,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="drop robot parameters the poses do not excite instead of refusing",
     )
-    run_p.add_argument("--method", help="sphere detection method (default: detection's)")
+    run_p.add_argument(
+        "--method",
+        choices=("subvoxel", "paper", "core", "rays"),
+        default=None,
+        help="centre estimator instead of the phantom material's (the material's other detection "
+        "settings are kept)",
+    )
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
     plan_p.add_argument("--n", type=int, default=10, help="number of poses (default %(default)s, at least 6)")
@@ -147,13 +153,12 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
 
 def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, Any]) -> Any:
     from registration.calibration import match_pose
-    from registration.detection import DetectionParams, detect_spheres
+    from registration.detection import detect_spheres
     from registration.dicom import load_series
     from registration.kinematics import sphere_centres_robot_mm
 
     volume = load_series(scan_dir)
-    dparams = DetectionParams() if ctx["method"] is None else DetectionParams(method=ctx["method"])
-    det = detect_spheres(volume, dparams)
+    det = detect_spheres(volume, ctx["detection"])
     q = ctx["model"].check_joints(joints)
     robot_mm = sphere_centres_robot_mm(ctx["model"], q, ctx["rod"], ctx["phantom"].centres_phantom_mm)
     return match_pose(
@@ -188,7 +193,10 @@ def run_calibration(args: argparse.Namespace) -> int:
     model = RobotModel.load(args.robot or robot_name or "tx60")
     phantom = load_phantom(args.phantom)
     rod = default_tool0_from_phantom()
-    ctx = {"model": model, "rod": rod, "phantom": phantom, "method": args.method}
+    from service.commands.detect import detection_params_for_phantom
+
+    detection = detection_params_for_phantom(phantom, method=args.method)
+    ctx = {"model": model, "rod": rod, "phantom": phantom, "detection": detection}
     matched = [_detect_pose(d, q, name, ctx) for name, d, q in poses]
     params = CalibrationParams(
         parameter_set=args.parameter_set,

@@ -21,9 +21,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from registration.resources import default_phantom
 from service.commands.argtypes import positive_float
+
+if TYPE_CHECKING:
+    from registration.detection import DetectionParams
+    from registration.phantom import Phantom
 
 DEFAULT_PHANTOM = default_phantom()
 
@@ -62,24 +67,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--series-uid", metavar="UID", default=None, help="pick this SeriesInstanceUID")
 
 
+def detection_params_for_phantom(
+    phantom: Phantom | str | Path | None, *, method: str | None = None, **overrides: object
+) -> DetectionParams:
+    """The detection settings every command uses: the phantom's sphere material and diameter
+    through :func:`registration.detection.params_for_spheres`, as the service chooses them.
+
+    ``phantom`` is a loaded phantom or its TOML path; None or ``"none"`` means the built-in
+    phantom.  ``method`` (a ``--method`` flag) replaces only the centre estimator and keeps the
+    material's other settings; ``overrides`` are other
+    :class:`~registration.detection.DetectionParams` fields.
+    """
+    from registration.detection import params_for_spheres
+    from registration.phantom import Phantom, load_phantom
+
+    if not isinstance(phantom, Phantom):
+        phantom = load_phantom(
+            DEFAULT_PHANTOM if phantom is None or str(phantom).lower() == "none" else phantom
+        )
+    if method is not None:
+        overrides["method"] = method
+    return params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm, **overrides)
+
+
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
-    from registration.detection import detect_spheres, params_for_spheres
+    from registration.detection import detect_spheres
     from registration.dicom import load_series
-    from registration.phantom import load_phantom
 
-    phantom = load_phantom(args.phantom)
-    params = params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm)
     overrides: dict[str, object] = {}
-    if args.method is not None:
-        overrides["method"] = args.method
     if args.sphere_diameter is not None:
         overrides["sphere_diameter_mm"] = args.sphere_diameter
     if args.no_mar:
         overrides["use_mar"] = False
-    if overrides:
-        params = replace(params, **overrides)  # type: ignore[arg-type]
+    params = detection_params_for_phantom(args.phantom, method=args.method, **overrides)
 
     volume = load_series(args.dicom_dir, series_uid=args.series_uid)
     result = detect_spheres(volume, params)

@@ -29,7 +29,18 @@ def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--series-uid", help="SeriesInstanceUID to use when the folder holds several series")
     parser.add_argument(
-        "--method", help="sphere detection method (e.g. 'subvoxel' or 'paper'; default: detection's)"
+        "--method",
+        choices=("subvoxel", "paper", "core", "rays"),
+        default=None,
+        help="centre estimator instead of the phantom material's (as `oarmreg detect --method`); the "
+        "material's other detection settings are kept",
+    )
+    parser.add_argument(
+        "--phantom",
+        default=str(DEFAULT_PHANTOM),
+        help="phantom TOML: its sphere material and diameter choose the detection settings as the "
+        "service does; register also checks its symmetry twins explicitly ('none' skips that check "
+        "and detects with the built-in phantom's settings; default: %(default)s)",
     )
     parser.add_argument(
         "--robot-points",
@@ -88,12 +99,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="R:I,R:I,R:I,R:I",
         help="paper pre-registration: 4 pairs robot sphere index : image point index (non-coplanar)",
     )
-    parser.add_argument(
-        "--phantom",
-        default=str(DEFAULT_PHANTOM),
-        help="phantom TOML whose symmetry twins are checked explicitly "
-        "('none' to skip; default: %(default)s)",
-    )
     parser.add_argument("--max-fre-mm", type=positive_float, help="override the FRE gate (mm, > 0)")
     parser.add_argument(
         "--min-margin", type=positive_int, help="override the symmetry margin (matched spheres, ≥ 1)"
@@ -134,14 +139,15 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
             sha256_of(args.image_points) if args.image_points.is_file() else None
         )
         return read_points(args.image_points, min_points=0)
-    from registration.detection import DetectionParams, detect_spheres
+    from registration.detection import detect_spheres
     from registration.dicom import load_series
+    from service.commands.detect import detection_params_for_phantom
 
+    dparams = detection_params_for_phantom(args.phantom, method=args.method)
     t0 = time.perf_counter()
     volume = load_series(args.dicom_dir, series_uid=args.series_uid)
     timings["load_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    dparams = DetectionParams() if args.method is None else DetectionParams(method=args.method)
     det = detect_spheres(volume, dparams)
     timings["detect_s"] = time.perf_counter() - t0
     provenance.update(

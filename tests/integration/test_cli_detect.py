@@ -96,3 +96,48 @@ def test_detect_refuses_a_bad_phantom_file_with_the_config_exit_code(export, tmp
     assert main(["detect", str(folder), "--phantom", str(bad)]) == EXIT_CONFIG
     err = capsys.readouterr().err
     assert "bad.toml" in err
+
+
+@pytest.fixture(scope="module")
+def wc_export(tmp_path_factory: pytest.TempPathFactory, phantom):  # type: ignore[no-untyped-def]
+    """A tungsten-carbide series and the phantom file that names the material."""
+    from mocks.oarm.simulator import SceneExtras
+    from registration.resources import default_phantom
+
+    settings = AcquisitionSettings.preset("demo", rows=256, columns=256, n_views=180)
+    scan = simulate_scan(phantom, demo_pose(), settings, SceneExtras(sphere_material="tungsten_carbide"))
+    root = tmp_path_factory.mktemp("cli-detect-wc")
+    write_dicom_series(scan, root / "series")
+    toml = root / "wc.toml"
+    toml.write_text(
+        default_phantom().read_text().replace("units = ", 'sphere_material = "tungsten_carbide"\nunits = ', 1)
+    )
+    return root / "series", toml
+
+
+@pytest.mark.parametrize("material", ["steel", "tungsten_carbide"])
+def test_detect_and_register_find_the_same_spheres(  # type: ignore[no-untyped-def]
+    material: str, export, wc_export, phantom, tmp_path: Path, capsys
+) -> None:
+    """``oarmreg detect`` and ``oarmreg register`` choose detection settings in one place (the
+    phantom file's material, as the service): on the same series they report the same estimator
+    and the same sphere centres, for steel (``rays``) and tungsten carbide (``core``)."""
+    from registration.detection import method_for_material
+    from registration.points_io import write_json
+    from registration.resources import default_phantom
+
+    folder, phantom_file = (export[0], default_phantom()) if material == "steel" else wc_export
+    det_json, reg_json, robot_json = tmp_path / "det.json", tmp_path / "reg.json", tmp_path / "robot.json"
+    # robot frame = phantom frame: any rigid pose of the phantom registers
+    write_json(robot_json, {"spheres_mm": phantom.centres_phantom_mm.tolist()})
+    assert main(["detect", str(folder), "--phantom", str(phantom_file), "--json", str(det_json)]) == 0
+    args = ["register", str(folder), "--robot-points", str(robot_json), "--json", str(reg_json)]
+    assert main([*args, "--phantom", str(phantom_file)]) == 0
+    capsys.readouterr()
+    det, reg = json.loads(det_json.read_text()), json.loads(reg_json.read_text())
+    assert det["method"] == reg["provenance"]["detection_method"] == method_for_material(material)
+    detected = np.array([s["center_mm"] for s in det["spheres"]])
+    used = np.array([s["image_mm"] for s in reg["spheres"]])
+    assert reg["n_detected"] == len(detected) == reg["n_matched"] == len(phantom.centres_phantom_mm)
+    order = np.lexsort(detected.T)
+    assert np.array_equal(detected[order], used[np.lexsort(used.T)])
