@@ -5,7 +5,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test lint wheel-smoke bench clean
+.PHONY: setup demo test test-fast lint wheel-smoke bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ wheel-smoke: $(STAMP)
 test: lint
 	$(BIN)/python -m pytest
 	$(MAKE) wheel-smoke
+
+# The edit loop: lint, then every test but the simulator-driven accuracy ones (marker `slow`).
+test-fast: lint
+	$(BIN)/python -m pytest -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIGS = REPO / "configs"
+from tests.helpers.paths import CONFIGS, REPO
+
+__all__ = ["CONFIGS", "REPO"]
 LEAK_GRACE_S = 5.0
 """A thread or task still alive this long after its test (or module) ended counts as leaked."""
 LEAK_POLL_S = 0.01

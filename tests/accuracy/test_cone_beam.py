@@ -14,18 +14,13 @@ from __future__ import annotations
 
 import pytest
 
-cbct = pytest.importorskip("mocks.oarm.cbct", reason="needs the cone-beam simulator (issue #11)")
-
-from mocks.oarm.simulator import SceneExtras, scan_to_volume  # noqa: E402
-from registration import frames  # noqa: E402
-from registration.detection import detect_spheres  # noqa: E402
-from registration.phantom import load_phantom  # noqa: E402
-from tests.accuracy.test_hard_scans import (  # noqa: E402
-    _every_sphere_and_a_correct_registration,
-    _match,
-    _params,
-)
-from tests.conftest import CONFIGS  # noqa: E402
+from mocks.oarm import cbct
+from mocks.oarm.simulator import SceneExtras, scan_to_volume
+from registration import frames
+from registration.detection import detect_spheres
+from registration.phantom import load_phantom
+from tests.helpers.accuracy import _every_sphere_and_a_correct_registration, _match, _params
+from tests.helpers.paths import CONFIGS
 
 STEEL_CB_MEAN_MM, STEEL_CB_MAX_MM = 0.04, 0.12
 """Issue #11 Done-when: FLE mean / max for steel cone-beam."""

@@ -30,7 +30,7 @@ from mocks.oarm.simulator import (
     simulate_scan,
 )
 from registration import frames
-from registration.detection import detect_spheres
+from registration.detection import detect_spheres, params_for_spheres
 from registration.dicom import load_series
 from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 from registration.register import RegistrationResult, register_points
@@ -138,7 +138,9 @@ def _run(case: Case, phantom: Any, model: RobotModel, out: Path) -> Outcome:
     )
     scan = simulate_scan(phantom, image_from_phantom, settings, SceneExtras(rod=case.rod))
     write_dicom_series(scan, out, reverse_order=case.reverse_order, unsigned=case.unsigned)
-    det = detect_spheres(load_series(out)).centres_image_mm
+    det = detect_spheres(
+        load_series(out), params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm)
+    ).centres_image_mm
     labels = np.full(len(det), -1, dtype=np.int64)
     if len(det):
         dist, nearest = cKDTree(scan.spheres_image_mm).query(det)

@@ -20,7 +20,7 @@ from registration.calibration import CalibrationParams, MatchedPose, calibrate, 
 from registration.kinematics import RobotModel, default_tool0_from_phantom
 from registration.phantom import load_phantom
 from registration.urdf_writer import read_chain, rotation_about
-from tests.conftest import CONFIGS
+from tests.helpers.paths import CONFIGS
 
 F64 = NDArray[np.float64]
 SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])

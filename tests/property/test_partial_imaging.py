@@ -39,7 +39,7 @@ ORACLE_TOL_MM = 0.3
 
 @pytest.fixture(scope="module")
 def cube():  # type: ignore[no-untyped-def]
-    from tests.conftest import CONFIGS
+    from tests.helpers.paths import CONFIGS
 
     return load_phantom(CONFIGS / "phantoms" / "bai2018_cube.toml")
 

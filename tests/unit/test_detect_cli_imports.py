@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 NOT_FOR_DETECT = (
@@ -44,14 +46,25 @@ print(json.dumps({"code": code, "modules": sorted(sys.modules)}))
 """
 
 
-def test_detect_does_not_import_the_service_stack(tmp_path: Path) -> None:
-    # An empty folder: the command imports detection and the loader, then refuses the folder (exit 4).
+@pytest.fixture(scope="module")
+def small_series(tmp_path_factory: pytest.TempPathFactory, phantom) -> Path:  # type: ignore[no-untyped-def]
+    """A real simulated series of the built-in (steel) phantom: detect runs its whole path."""
+    from mocks.oarm.dicom_export import write_dicom_series
+    from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
+
+    out = tmp_path_factory.mktemp("detect-imports") / "series"
+    write_dicom_series(simulate_scan(phantom, demo_pose(), AcquisitionSettings.preset("small")), out)
+    return out
+
+
+def test_detect_does_not_import_the_service_stack(small_series: Path) -> None:
     out = subprocess.run(
-        [sys.executable, "-c", PROBE, str(tmp_path)], cwd=ROOT, capture_output=True, text=True, check=True
+        [sys.executable, "-c", PROBE, str(small_series)], cwd=ROOT, capture_output=True, text=True, check=True
     )
     doc = json.loads(out.stdout)
     modules = set(doc["modules"])
-    assert doc["code"] == 4
-    assert {"registration.detection", "registration.dicom.loader"} <= modules  # the probe ran detect
+    assert doc["code"] == 0
+    # the probe ran the whole detect path: loader, detection and the steel estimator
+    assert {"registration.detection", "registration.dicom.loader", "registration.ray_fit"} <= modules
     loaded = sorted(m for m in modules if any(m == n or m.startswith(n + ".") for n in NOT_FOR_DETECT))
     assert loaded == []

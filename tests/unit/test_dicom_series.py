@@ -483,8 +483,9 @@ def test_simulator_export_round_trips(
     tmp_path: Path, orientation: str, reverse: bool, unsigned: bool
 ) -> None:
     """The O-arm simulator's export reads back to its own voxels and geometry (truth maps to same voxels)."""
-    sim = pytest.importorskip("mocks.oarm.simulator")
-    export = pytest.importorskip("mocks.oarm.dicom_export")
+    from mocks.oarm import dicom_export as export
+    from mocks.oarm import simulator as sim
+
     settings = sim.AcquisitionSettings(
         rows=16, columns=20, n_slices=7, pixel_mm=0.415, slice_spacing_mm=0.833, orientation=orientation
     )

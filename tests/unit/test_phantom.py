@@ -98,7 +98,7 @@ def test_sphere_material_defaults_to_steel(phantom) -> None:
 
 def test_tungsten_carbide_rows_phantom() -> None:
     """40 WC spheres with rows of 3–4 neighbours at 15 mm pitch, still unambiguous (margin >= 6)."""
-    from tests.conftest import CONFIGS
+    from tests.helpers.paths import CONFIGS
 
     ph = load_phantom(CONFIGS / "phantoms" / "wc_rows40.toml")
     assert ph.sphere_material == "tungsten_carbide" and ph.n_spheres == 40
