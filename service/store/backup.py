@@ -24,9 +24,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import service.store.integrity as integrity
 from registration import __version__
 from registration.errors import ConfigError
-from service.store import integrity
 
 BACKUP_FORMAT = "oarmreg-backup"
 BACKUP_FORMAT_VERSION = 1

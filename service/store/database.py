@@ -6,8 +6,9 @@ import sqlite3
 from pathlib import Path
 from typing import IO
 
+import service.store.integrity as integrity
+import service.store.migrations as migrations
 from registration.errors import ConfigError
-from service.store import integrity, migrations
 from service.store.audit import AuditStore
 from service.store.base import Connection
 from service.store.calibrations import CalibrationStore

@@ -6,6 +6,11 @@
   functions and ``TYPE_CHECKING`` blocks too: a lazy import hides a cycle, it does not remove it.
 * ``service/api/*`` never imports ``service.app`` (the routes get the context from
   :mod:`service.context`).
+* Production code imports ``mocks`` only in the commands that exist to run mocks
+  (:data:`MOCK_COMMANDS`); ``mocks`` itself never imports ``service``.
+* ``from pkg import name`` runs ``pkg/__init__.py`` and reads ``name`` from it, so it counts as an
+  import of the package too: a package ``__init__`` that imports a module importing the package
+  that way is a cycle (``import pkg.mod`` / ``from pkg.mod import x`` are not).
 """
 
 from __future__ import annotations
@@ -17,7 +22,16 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("registration", "drivers", "service")
+PACKAGES = ("registration", "drivers", "service", "mocks")
+MOCK_COMMANDS = frozenset(
+    {
+        "service.commands.demo",
+        "service.commands.demo_calibrate",
+        "service.commands.simulate",
+        "service.commands.mock",
+    }
+)
+"""The only production modules that may import ``mocks``: the commands that run the mocks."""
 
 
 def module_name(path: Path) -> str:
@@ -38,9 +52,8 @@ def imports_of(path: Path, known: set[str]) -> set[str]:
         if isinstance(node, ast.Import):
             out.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            for a in node.names:
-                sub = f"{node.module}.{a.name}"
-                out.add(sub if sub in known else node.module)
+            out.add(node.module)  # its __init__ runs and each name is read from it
+            out.update(f"{node.module}.{a.name}" for a in node.names)
     return {m for m in out if m in known}
 
 
@@ -83,7 +96,21 @@ def test_the_checker_finds_a_cycle() -> None:
     assert find_cycle({"a": {"b"}, "b": set()}, {"a", "b"}) is None
 
 
-@pytest.mark.parametrize("pkg", ["service", "drivers", "registration"])
+def test_from_package_import_counts_as_importing_the_package(tmp_path: Path) -> None:
+    """``pkg/__init__.py`` importing ``pkg.db``, which does ``from pkg import util``: a cycle
+    through the package ``__init__``; ``import pkg.util`` in ``pkg.db`` is none."""
+    known = {"pkg", "pkg.db", "pkg.util"}
+    init, db = tmp_path / "init.py", tmp_path / "db.py"
+    init.write_text("from pkg.db import Database\n")
+    db.write_text("from pkg import util\n")
+    g = {"pkg": imports_of(init, known), "pkg.db": imports_of(db, known), "pkg.util": set()}
+    assert find_cycle(g, known) == ["pkg", "pkg.db", "pkg"]
+    db.write_text("import pkg.util\n")
+    g["pkg.db"] = imports_of(db, known)
+    assert find_cycle(g, known) is None
+
+
+@pytest.mark.parametrize("pkg", ["service", "drivers", "registration", "mocks"])
 def test_no_import_cycle(pkg: str) -> None:
     g = graph()
     cycle = find_cycle(g, set(in_package(g, pkg)))
@@ -91,7 +118,12 @@ def test_no_import_cycle(pkg: str) -> None:
 
 
 @pytest.mark.parametrize(
-    ("pkg", "forbidden"), [("registration", ("service", "drivers")), ("drivers", ("service", "registration"))]
+    ("pkg", "forbidden"),
+    [
+        ("registration", ("service", "drivers", "mocks")),
+        ("drivers", ("service", "registration", "mocks")),
+        ("mocks", ("service",)),
+    ],
 )
 def test_lower_layers_do_not_import_upper_ones(pkg: str, forbidden: tuple[str, ...]) -> None:
     g = graph()
@@ -107,4 +139,17 @@ def test_lower_layers_do_not_import_upper_ones(pkg: str, forbidden: tuple[str, .
 def test_api_does_not_import_the_app() -> None:
     g = graph()
     bad = sorted(m for m in in_package(g, "service.api") if "service.app" in g[m])
+    assert bad == []
+
+
+def test_production_code_imports_mocks_only_in_the_mock_commands() -> None:
+    g = graph()
+    bad = sorted(
+        f"{m} imports {dep}"
+        for pkg in ("service", "drivers", "registration")
+        for m in in_package(g, pkg)
+        if m not in MOCK_COMMANDS
+        for dep in g[m]
+        if dep == "mocks" or dep.startswith("mocks.")
+    )
     assert bad == []
