@@ -24,8 +24,6 @@ import pytest
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import poll_until, wait_robot_still
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit"))
-
 REPO = Path(__file__).resolve().parents[2]
 TOKEN = "fault-suite-token-0123456789abcdef"
 WINDOW_S = 0.6
@@ -128,8 +126,8 @@ class Events:
 
 
 def factory_series(folder: Path, n: int = 6, **kw: Any) -> list[Path]:
-    """A small valid CT series (``tests/unit/dicom_factory``), 8 x 8 pixels."""
-    from dicom_factory import ramp_volume, write_series
+    """A small valid CT series (``tests/helpers/dicom_factory``), 8 x 8 pixels."""
+    from tests.helpers.dicom_factory import ramp_volume, write_series
 
     return list(write_series(folder, ramp_volume(n, 8, 8), **kw))
 

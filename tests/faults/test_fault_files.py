@@ -24,8 +24,6 @@ from registration.frames import transform_from_xyz_rpy
 from tests.faults._service import DEADLINE_S, Events, Svc, factory_series, in_process_service, wait_for
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-REFUSED: dict[str, int] = {"folders": 0, "files": 0}
-"""Folders recorded invalid and hostile files refused by this module (the README's figures)."""
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +67,6 @@ def test_fifo_in_the_watch_folder_never_stops_the_watcher(svc: Svc, tmp_path: Pa
         assert scan["status"] == "complete" and scan["n_slices"] == 6, scan
     w = _status_watcher(svc)
     assert w["running"] is True and w["health"] == "ok", w
-    REFUSED["files"] += 1
 
 
 def test_detect_refuses_a_fifo_and_dev_without_opening_them(tmp_path: Path) -> None:
@@ -79,7 +76,6 @@ def test_detect_refuses_a_fifo_and_dev_without_opening_them(tmp_path: Path) -> N
     os.mkfifo(fifo)
     assert main(["detect", str(fifo)]) == 4  # EXIT_INPUT, not a traceback and not a hang
     assert main(["detect", "/dev"]) == 4  # every device skipped unopened: no CT series
-    REFUSED["files"] += 2
 
 
 def test_watcher_health_is_stopped_when_its_thread_is_gone(tmp_path: Path) -> None:
@@ -173,7 +169,6 @@ def test_folders_without_a_readable_series_are_recorded_invalid(svc: Svc, tmp_pa
     for folder in expected:
         scan = by_uid[f"folder:{folder}"]
         assert scan["status"] == "invalid" and scan["folder"] == str(folder), scan
-        REFUSED["folders"] += 1
     assert "no readable CT series" in by_uid[f"folder:{svc.watch / f'nul-{tmp_path.name}'}"]["reason"]
     assert "ELOOP" in by_uid[f"folder:{svc.watch / f'loop-{tmp_path.name}'}"]["reason"]
     assert "FIFO" in by_uid[f"folder:{svc.watch / f'fifo-only-{tmp_path.name}'}"]["reason"]
@@ -243,10 +238,6 @@ def test_late_slices_reopen_the_scan_and_withdraw_its_registration(
     assert r2.status_code == 200 and r2.json()["is_current"], r2.text
 
 
-def test_refusal_figures() -> None:
-    print(f"\nrefused by the file tests: {REFUSED}")
-
-
 @pytest.mark.parametrize("kind", ["fifo", "folder", "device"])
 def test_a_phantom_file_that_is_not_a_regular_file_is_refused_unread(tmp_path: Path, kind: str) -> None:
     """``--phantom`` (and the service's ``phantom_file``) pointed at a FIFO, a folder or a device:
@@ -280,4 +271,3 @@ def test_a_phantom_file_that_is_not_a_regular_file_is_refused_unread(tmp_path: P
     assert isinstance(outcome[0], PhantomDefinitionError), outcome
     assert "not a regular file" in str(outcome[0]) and str(path) in str(outcome[0])
     assert main(["detect", str(tmp_path), "--phantom", str(path)]) == EXIT_CONFIG
-    REFUSED["files"] += 1

@@ -177,7 +177,7 @@ def write_scan(svc: Service, scan: Any, name: str) -> tuple[str, list[Path]]:
 
 def synthetic_512(folder: Path, n_slices: int) -> tuple[str, list[Path]]:
     """A 512 × 512 × ``n_slices`` CT series (noise), as a thin O-arm slab."""
-    from tests.unit.dicom_factory import write_series
+    from tests.helpers.dicom_factory import write_series
 
     rng = np.random.default_rng(7)
     stored = rng.integers(-1000, 2000, size=(n_slices, 512, 512), dtype=np.int16)
@@ -236,7 +236,7 @@ def test_dcmtk_echoscu_and_storescu_512_series_is_recorded(svc: Service) -> None
 
 
 def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: Service) -> None:
-    from tests.unit.dicom_factory import ramp_volume, write_series
+    from tests.helpers.dicom_factory import ramp_volume, write_series
 
     out = svc.root / "outbox"
     good_files = sorted(Path(p) for p in write_series(out / "good", ramp_volume(6, 32, 32)))
@@ -312,7 +312,7 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
 
 
 def test_folder_and_cstore_paths_run_at_once(svc: Service) -> None:
-    from tests.unit.dicom_factory import ramp_volume, write_series
+    from tests.helpers.dicom_factory import ramp_volume, write_series
 
     staging = svc.root / "staging-folder-path"
     folder_files = write_series(staging, ramp_volume(6, 32, 32))
@@ -425,7 +425,7 @@ def test_sro_from_the_api_has_no_dciodvfy_errors(svc: Service, current: Current,
 
 
 def test_refused_registration_has_no_sro(svc: Service) -> None:
-    from tests.unit.dicom_factory import ramp_volume, write_series
+    from tests.helpers.dicom_factory import ramp_volume, write_series
 
     files = sorted(Path(p) for p in write_series(svc.root / "outbox" / "nospheres", ramp_volume(6, 32, 32)))
     uid = str(pydicom.dcmread(files[0]).SeriesInstanceUID)

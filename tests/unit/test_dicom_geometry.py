@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dicom_factory import slice_header, slice_stack
 
 from registration.dicom import geometry as g
 from registration.dicom.errors import (
@@ -26,6 +25,7 @@ from registration.dicom.errors import (
     SingleSliceError,
     UnevenSpacingError,
 )
+from tests.helpers.dicom_factory import slice_header, slice_stack
 
 UID = "1.2.3.4"
 

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dicom_factory import ramp_volume, write_series
 from pydicom.uid import JPEG2000Lossless, RLELossless
 
 from registration.dicom import SliceHeader, load_series
 from registration.dicom.headers import read_headers
 from registration.dicom.pixels import decode_frame
+from tests.helpers.dicom_factory import ramp_volume, write_series
 
 N = 4
 

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dicom_factory import ct_dataset, ramp_volume, write_series
 from pydicom.uid import RLELossless, SecondaryCaptureImageStorage, generate_uid
 
 from registration.dicom import (
@@ -34,6 +33,7 @@ from registration.dicom import (
 )
 from registration.errors import DicomSeriesError
 from service.error_map import EXIT_INPUT, exit_code_of
+from tests.helpers.dicom_factory import ct_dataset, ramp_volume, write_series
 
 N = 6  # slices per test series
 SPACING = 0.8  # mm, the factory's default slice step

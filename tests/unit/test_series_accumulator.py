@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pydicom
 import pytest
-from dicom_factory import ramp_volume, write_series
 
 import service.series_accumulator as acc_mod
 from registration.dicom import InconsistentImageSizeError, load_series
 from registration.volume import Volume
 from service.or_integration import scan_instances_from_files
 from service.series_accumulator import SeriesAccumulator
+from tests.helpers.dicom_factory import ramp_volume, write_series
 
 
 def _assembled(folder: Path, arrival: list[Path], *, workers: int = 1) -> Volume:

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from dicom_factory import ramp_volume, write_series
 
 from service.watcher import SeriesArrival, SeriesWatcher, snapshot_dir
+from tests.helpers.dicom_factory import ramp_volume, write_series
 
 QUIET_S = 1.0
 
