@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.resources import default_phantom
+from service.commands.detect import add_method_argument
 
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
 
@@ -61,13 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="drop robot parameters the poses do not excite instead of refusing",
     )
-    run_p.add_argument(
-        "--method",
-        choices=("subvoxel", "paper", "core", "rays"),
-        default=None,
-        help="centre estimator instead of the phantom material's (the material's other detection "
-        "settings are kept)",
-    )
+    add_method_argument(run_p)
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
     plan_p.add_argument("--n", type=int, default=10, help="number of poses (default %(default)s, at least 6)")

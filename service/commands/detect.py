@@ -35,6 +35,20 @@ DEFAULT_PHANTOM = default_phantom()
 HELP = "detect the calibration spheres in an O-arm DICOM series (centres in LPS mm)"
 
 
+def add_method_argument(parser: argparse.ArgumentParser) -> None:
+    """``--method``, the same for every command that detects: an override of the estimator only."""
+    parser.add_argument(
+        "--method",
+        choices=("subvoxel", "paper", "core", "rays"),
+        default=None,
+        help="centre estimator instead of the phantom material's (registration.detection."
+        "METHOD_FOR_MATERIAL), keeping the material's other detection settings: subvoxel (3-D "
+        "intensity-weighted centroid), paper (per-slice Pythagorean depth, Bai 2018), core (saturated "
+        "core of an opaque sphere: tungsten carbide) or rays (outline of a streaked sphere: steel, "
+        "titanium)",
+    )
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "dicom_dir", metavar="DICOM_DIR", type=Path, help="folder (or DICOMDIR) holding the series"
@@ -47,15 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="phantom TOML: its sphere material chooses the centre estimator and its sphere "
         "diameter the expected size, as the service does (default: %(default)s)",
     )
-    parser.add_argument(
-        "--method",
-        choices=("subvoxel", "paper", "core", "rays"),
-        default=None,
-        help="centre estimator instead of the phantom material's (registration.detection."
-        "METHOD_FOR_MATERIAL): subvoxel (3-D intensity-weighted centroid), paper (per-slice "
-        "Pythagorean depth, Bai 2018), core (saturated core of an opaque sphere: tungsten carbide) "
-        "or rays (outline of a streaked sphere: steel, titanium)",
-    )
+    add_method_argument(parser)
     parser.add_argument(
         "--sphere-diameter",
         metavar="MM",

@@ -12,6 +12,7 @@ from typing import Any
 
 from registration.resources import default_phantom
 from service.commands.argtypes import float_below, positive_float, positive_int
+from service.commands.detect import add_method_argument
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
 
@@ -28,13 +29,7 @@ def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
         help='detected centres in the image frame, {"spheres_mm": [[x, y, z], ...]}, instead of DICOM_DIR',
     )
     parser.add_argument("--series-uid", help="SeriesInstanceUID to use when the folder holds several series")
-    parser.add_argument(
-        "--method",
-        choices=("subvoxel", "paper", "core", "rays"),
-        default=None,
-        help="centre estimator instead of the phantom material's (as `oarmreg detect --method`); the "
-        "material's other detection settings are kept",
-    )
+    add_method_argument(parser)
     parser.add_argument(
         "--phantom",
         default=str(DEFAULT_PHANTOM),
