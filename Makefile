@@ -30,13 +30,18 @@ lint: $(STAMP)
 wheel-smoke: $(STAMP)
 	.ci/wheel-smoke $(BIN)/python
 
+# Two workers, each module on one of them (module-scoped services and the per-module leak guard
+# stay whole); `PYTEST_WORKERS=0 make test` runs it in one process.
+PYTEST_WORKERS ?= 2
+PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
+
 test: lint
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL)
 	$(MAKE) wheel-smoke
 
 # The edit loop: lint, then every test but the simulator-driven accuracy ones (marker `slow`).
 test-fast: lint
-	$(BIN)/python -m pytest -m "not slow"
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
