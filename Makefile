@@ -5,7 +5,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-fast lint wheel-smoke bench clean
+.PHONY: setup demo test test-fast coverage lint wheel-smoke bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -42,6 +42,10 @@ test: lint
 # The edit loop: lint, then every test but the simulator-driven accuracy ones (marker `slow`).
 test-fast: lint
 	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not slow"
+
+# Line coverage of the four packages over the whole suite (not in .ci/run: the tracer is slow).
+coverage: $(STAMP)
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -q --cov=registration --cov=drivers --cov=service --cov=mocks --cov-report=term:skip-covered
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
