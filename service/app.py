@@ -37,6 +37,7 @@ from service.event_bus import EventBus
 from service.intake import Intake
 from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
+from service.scan_lifecycle import ScanLifecycle
 from service.security import SecurityGate
 from service.settings import Settings
 from service.store import Database
@@ -151,6 +152,8 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
     )
     ctx.calibrations.restore()
+    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, or_int.publish, ctx.orchestrator.withdraw_scan)
+    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # issue 19: crash order
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
     if start_watcher:
@@ -159,11 +162,17 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
             settings.watch_dir,
             on_series=or_int.folder_intake(
                 Intake(
-                    ctx.db, ctx.capture, ctx.volumes, or_int.publish, withdraw=ctx.orchestrator.withdraw_scan
+                    ctx.db,
+                    ctx.capture,
+                    ctx.volumes,
+                    or_int.publish,
+                    withdraw=ctx.orchestrator.withdraw_scan,
+                    lifecycle=or_int.lifecycle,
                 )
             ),
             is_known=ctx.db.scans.has_complete,
             recorded_slices=ctx.db.scans.recorded_slices,
+            recorded_content=ctx.db.scans.recorded_content,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,
