@@ -205,15 +205,20 @@ async def _watch_database(ctx: ServiceContext) -> None:
 
 async def _retention_loop(ctx: ServiceContext) -> None:
     """Run the retention policy at start-up, then every ``retention.interval_s``; never dies."""
-    from service.retention import run_retention
+    from service.or_integration import INTAKE_FOLDER
+    from service.retention import quota_problem, run_retention
 
     r = ctx.settings.retention
+    roots = (ctx.settings.data_dir / INTAKE_FOLDER,)  # issue 19: C-STORE scans too
     while True:
         try:
             await asyncio.to_thread(
                 run_retention, ctx.db, ctx.settings.watch_dir, ctx.bus.publish,
-                max_age_days=r.max_age_days, max_disk_mb=r.max_disk_mb,
+                max_age_days=r.max_age_days, max_disk_mb=r.max_disk_mb, extra_roots=roots,
             )  # fmt: skip
+            ctx.retention_problem = await asyncio.to_thread(
+                quota_problem, ctx.db, ctx.settings.watch_dir, max_disk_mb=r.max_disk_mb, extra_roots=roots
+            )
         except Exception:
             log.exception("retention: the policy run failed; retrying in %.0f s", r.interval_s)
         await asyncio.sleep(r.interval_s)  # a period, not synchronisation
