@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -452,9 +453,19 @@ class OrIntegration:
 
 
 def _started(ex: ThreadPoolExecutor) -> ThreadPoolExecutor:
-    """Start the executor's worker now (it would start on first use), so it lives as long as the service."""
-    ex.submit(lambda: None).result()
+    """Start every worker of the executor now (each would start on first busy use), so they all live
+    as long as the service: one blocking task per worker until all of them run."""
+    n = int(getattr(ex, "_max_workers", 1))
+    barrier = threading.Barrier(n + 1)
+    futures = [ex.submit(barrier.wait, DEADLINE_START_S) for _ in range(n)]
+    barrier.wait(DEADLINE_START_S)
+    for f in futures:
+        f.result()
     return ex
+
+
+DEADLINE_START_S = 30.0
+"""How long starting the executors' workers may take (threads: instant unless the machine is stuck)."""
 
 
 def scan_instances_from_files(
