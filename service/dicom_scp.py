@@ -277,7 +277,7 @@ def atomic_copy(
 
 def _raw_length(ds: Any, keyword: str) -> int:
     """Length of an element read with ``defer_size`` without loading its value."""
-    item = ds.get_item(keyword)
+    item = ds.get_item(keyword, keep_deferred=True)  # a RawDataElement: its value stays on disk
     n = getattr(item, "length", None)
     return int(n) if n is not None else len(item.value or b"")
 
