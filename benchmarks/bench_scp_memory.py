@@ -84,8 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         stored = len(list(intake.rglob("*.dcm")))
     print(
         f"{a.associations} concurrent associations x {a.mb} MB ({total / 1024**2:.0f} MB sent, "
-        f"{stored} stored, exit codes {codes}): SCP peak RSS {(peak_kb - rest_kb) / 1024:.0f} MB above its resting "
-        f"{rest_kb / 1024:.0f} MB"
+        f"{stored} stored, exit codes {codes}): SCP peak RSS {(peak_kb - rest_kb) / 1024:.0f} MB "
+        f"above its resting {rest_kb / 1024:.0f} MB"
     )
     return 0 if stored == a.associations else 1
 
