@@ -288,6 +288,32 @@ def test_item4_an_extra_instance_that_cannot_load_makes_the_series_invalid(lc: L
     assert r2.status_code == 422 and "unusable" in r2.json()["detail"], r2.text
 
 
+def test_folder_path_same_rule_a_file_replaced_in_place_withdraws_its_registration(lc: Lc) -> None:
+    """The watch folder follows the same content rule: one slice re-exported with other bytes (same
+    name, same count; before issue 19 only a growing slice count reopened a folder series)."""
+    import os
+
+    uid, files = lc.export("folder-staging")
+    lc.svc.wait_still()
+    folder = lc.svc.watch / "folder-scan"
+    lc.svc.watch.mkdir(parents=True, exist_ok=True)
+    os.replace(files[0].parent, folder)  # the O-arm's folder export, atomically
+    scan = lc.scan_of(uid, "complete")
+    r = lc.client.post("/register", json={"scan_id": scan["id"]})
+    assert r.status_code == 200, r.text
+    victim = sorted(folder.glob("*.dcm"))[40]
+    ds = pydicom.dcmread(victim)
+    px = bytearray(ds.PixelData)
+    px[100:104] = b"\xff\x0f\xff\x0f"
+    ds.PixelData = bytes(px)
+    tmp = victim.with_name(f".{victim.name}.part")
+    ds.save_as(tmp, enforce_file_format=True)
+    os.replace(tmp, victim)
+    detail = lc.wait_withdrawn(scan["id"], int(r.json()["id"]))
+    assert "replaced" in detail and victim.name in detail, detail
+    assert lc.scan_of(uid, "complete")["id"] == scan["id"]  # judged again: complete, new content
+
+
 # ---------------------------------------------------------------------------- item 6
 
 
