@@ -37,6 +37,7 @@ from service.event_bus import EventBus
 from service.intake import Intake
 from service.or_integration import OrIntegration
 from service.orchestrator import Orchestrator
+from service.scan_lifecycle import ScanLifecycle
 from service.security import SecurityGate
 from service.settings import Settings
 from service.store import Database
@@ -151,6 +152,8 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
         settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
     )
     ctx.calibrations.restore()
+    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, or_int.publish, ctx.orchestrator.withdraw_scan)
+    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # issue 19: crash order
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
     if start_watcher:
@@ -159,11 +162,17 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
             settings.watch_dir,
             on_series=or_int.folder_intake(
                 Intake(
-                    ctx.db, ctx.capture, ctx.volumes, or_int.publish, withdraw=ctx.orchestrator.withdraw_scan
+                    ctx.db,
+                    ctx.capture,
+                    ctx.volumes,
+                    or_int.publish,
+                    withdraw=ctx.orchestrator.withdraw_scan,
+                    lifecycle=or_int.lifecycle,
                 )
             ),
             is_known=ctx.db.scans.has_complete,
             recorded_slices=ctx.db.scans.recorded_slices,
+            recorded_content=ctx.db.scans.recorded_content,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,
@@ -196,15 +205,20 @@ async def _watch_database(ctx: ServiceContext) -> None:
 
 async def _retention_loop(ctx: ServiceContext) -> None:
     """Run the retention policy at start-up, then every ``retention.interval_s``; never dies."""
-    from service.retention import run_retention
+    from service.or_integration import INTAKE_FOLDER
+    from service.retention import quota_problem, run_retention
 
     r = ctx.settings.retention
+    roots = (ctx.settings.data_dir / INTAKE_FOLDER,)  # issue 19: C-STORE scans too
     while True:
         try:
             await asyncio.to_thread(
                 run_retention, ctx.db, ctx.settings.watch_dir, ctx.bus.publish,
-                max_age_days=r.max_age_days, max_disk_mb=r.max_disk_mb,
+                max_age_days=r.max_age_days, max_disk_mb=r.max_disk_mb, extra_roots=roots,
             )  # fmt: skip
+            ctx.retention_problem = await asyncio.to_thread(
+                quota_problem, ctx.db, ctx.settings.watch_dir, max_disk_mb=r.max_disk_mb, extra_roots=roots
+            )
         except Exception:
             log.exception("retention: the policy run failed; retrying in %.0f s", r.interval_s)
         await asyncio.sleep(r.interval_s)  # a period, not synchronisation

@@ -43,6 +43,8 @@ class ServiceContext:
     tickets: TicketBook = field(default_factory=TicketBook)
     """Single-use tickets for GET /events?ticket= (service.security)."""
     retention_task: asyncio.Task[None] | None = None
+    retention_problem: str | None = None
+    """Set by the retention loop: why the scan folders exceed ``retention.max_disk_mb`` (``/status``)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""

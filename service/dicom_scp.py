@@ -41,6 +41,7 @@ import os
 import re
 import threading
 import uuid
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,10 +58,12 @@ from pydicom.uid import (
     JPEGLSLossless,
 )
 from pynetdicom import AE, evt
+from pynetdicom import _config as _pn_config
 from pynetdicom.dimse_primitives import C_STORE
 
 from registration.errors import ConfigError
 from service.netaddr import Network, in_networks, is_loopback, parse_networks
+from service.scan_lifecycle import OfferTally
 
 log = logging.getLogger(__name__)
 
@@ -97,10 +100,21 @@ _REQUIRED: dict[str, tuple[str, ...]] = {
 loader needs; a dataset lacking one does not match its SOP class."""
 
 
+class _NotStored(Exception):
+    """The instance was received but must not be stored (the service could not record the change)."""
+
+
 class DicomScpConfigError(ConfigError):
     """The DICOM Storage SCP configuration is unsafe or invalid."""
 
     title = "Invalid DICOM SCP configuration"
+
+
+def _default(name: str) -> Any:
+    """A ``[dicom]`` setting's default (:class:`service.settings.DicomSettings`: one source of truth)."""
+    from service.settings import DicomSettings
+
+    return DicomSettings.model_fields[name].default
 
 
 @dataclass(frozen=True)
@@ -113,12 +127,37 @@ class DicomScpConfig:
     """Calling AE titles accepted (empty: any)."""
     allowed_peer_addresses: tuple[str, ...] = ()
     """Peer IP addresses or networks (CIDR) accepted (empty: any that can reach the bind)."""
+    acse_timeout_s: float = _default("acse_timeout_s")
+    """Association negotiation / release (pynetdicom's ARTIM timer; its default is 30 s)."""
+    dimse_timeout_s: float = _default("dimse_timeout_s")
+    """Between DIMSE messages of an established association (pynetdicom's default)."""
+    network_timeout_s: float = _default("network_timeout_s")
+    """An established association with no traffic at all is aborted (pynetdicom's default)."""
+    socket_timeout_s: float = _default("socket_timeout_s")
+    """Per accepted connection: a ``recv`` / ``send`` that makes no progress for this long drops the
+    peer (a half-sent PDU otherwise blocks its thread and slot forever, issue 19 item 6)."""
+    maximum_associations: int = _default("maximum_associations")
+    """Concurrent associations (pynetdicom's default); one more is rejected "local limit exceeded"."""
+    max_instance_mb: float = _default("max_instance_mb")
+    """Largest instance accepted; larger ones are answered 0xA700 (received to a temp file, never held
+    in memory)."""
 
     def __post_init__(self) -> None:
         if not (0 < len(self.ae_title) <= 16 and self.ae_title.isascii() and self.ae_title.strip()):
             raise DicomScpConfigError(f"dicom.ae_title must be 1–16 ASCII characters, got {self.ae_title!r}")
         if not 0 <= self.port <= 65535:
             raise DicomScpConfigError(f"dicom.port must be 0–65535, got {self.port}")
+        for name in ("acse_timeout_s", "dimse_timeout_s", "network_timeout_s", "socket_timeout_s"):
+            if not 0 < float(getattr(self, name)) <= 3600:
+                raise DicomScpConfigError(f"dicom.{name} must be in (0, 3600] s, got {getattr(self, name)}")
+        if not 1 <= self.maximum_associations <= 1000:
+            raise DicomScpConfigError(
+                f"dicom.maximum_associations must be 1–1000, got {self.maximum_associations}"
+            )
+        if not 0 < self.max_instance_mb <= 65536:
+            raise DicomScpConfigError(
+                f"dicom.max_instance_mb must be in (0, 65536], got {self.max_instance_mb}"
+            )
         self.networks()
         if not is_loopback(self.host) and not (self.allowed_calling_ae_titles or self.allowed_peer_addresses):
             raise DicomScpConfigError(
@@ -155,6 +194,15 @@ class ScpCallbacks:
     on_instance_stored: Callable[[Path, str], None] | None = None
     """``(path, outcome)`` after each instance is on disk; outcome ``stored``, ``duplicates`` or
     ``replaced`` (lets the service decode slices as they arrive)."""
+    before_replace: Callable[[Path, str], None] | None = None
+    """``(path, outcome)`` once a new (``stored``) or different (``replaced``) instance is written and
+    fsynced beside its target, before it is renamed into place: the service commits the withdrawal of
+    what was made from the series' earlier content here (issue 19, crash order).  If it raises the
+    instance is not stored (0xA700)."""
+    on_series_settled: Callable[[Path, int, str, OfferTally], None] | None = None
+    """Like ``on_series_released`` plus the association's :class:`~service.scan_lifecycle.OfferTally`
+    for the series (instances offered, stored, refused and why); used instead when set.  Series whose
+    every instance was refused are settled too."""
 
 
 # --------------------------------------------------------------------------- writing
@@ -192,6 +240,61 @@ def atomic_write(path: Path, data: bytes, *, write: Writer = os.write) -> None:
     _fsync_dir(path.parent)
 
 
+def atomic_copy(
+    src: Path,
+    path: Path,
+    *,
+    write: Writer = os.write,
+    before_replace: Callable[[], None] | None = None,
+) -> None:
+    """:func:`atomic_write` of the file ``src``, streamed in 1 MiB chunks (never all in memory);
+    ``before_replace()`` runs after the fsync, before the rename (if it raises, nothing is renamed)."""
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.part")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        with open(src, "rb") as f:
+            while chunk := f.read(1 << 20):
+                view = memoryview(chunk)
+                while view:
+                    n = write(fd, view)
+                    if n <= 0:
+                        raise OSError(errno.EIO, f"write returned {n}")
+                    view = view[n:]
+        os.fsync(fd)
+        os.close(fd)
+        fd = -1
+        if before_replace is not None:
+            before_replace()
+        os.replace(tmp, path)
+    except BaseException:
+        if fd >= 0:
+            os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
+
+
+def _raw_length(ds: Any, keyword: str) -> int:
+    """Length of an element read with ``defer_size`` without loading its value."""
+    item = ds.get_item(keyword, keep_deferred=True)  # a RawDataElement: its value stays on disk
+    n = getattr(item, "length", None)
+    return int(n) if n is not None else len(item.value or b"")
+
+
+def _same_file_content(a: Path, b: Path) -> bool:
+    """Byte-for-byte equal (sizes first, then 1 MiB chunks)."""
+    if a.stat().st_size != b.stat().st_size:
+        return False
+    with open(a, "rb") as fa, open(b, "rb") as fb:
+        while True:
+            ca, cb = fa.read(1 << 20), fb.read(1 << 20)
+            if ca != cb:
+                return False
+            if not ca:
+                return True
+
+
 def _fsync_dir(d: Path) -> None:
     fd = os.open(d, os.O_RDONLY)
     try:
@@ -208,6 +311,9 @@ class _AssocState:
     calling_ae: str
     peer: str
     series: dict[Path, int] = field(default_factory=dict)
+    tallies: dict[Path, OfferTally] = field(default_factory=dict)
+    unattributed: Counter[str] = field(default_factory=Counter)
+    """Refusals whose series could not be read (charged to every series of the association)."""
 
 
 class StorageScp:
@@ -259,11 +365,20 @@ class StorageScp:
     def start(self) -> None:
         """Bind and serve in pynetdicom's threads (returns at once)."""
         self.intake_dir.mkdir(parents=True, exist_ok=True)
-        ae = AE(ae_title=self.config.ae_title)
+        # receive each C-STORE dataset into a temp file instead of memory (issue 19 item 6): a
+        # process-wide pynetdicom switch; this service's only SCP is this one
+        _pn_config.STORE_RECV_CHUNKED_DATASET = True
+        c = self.config
+        ae = AE(ae_title=c.ae_title)
+        ae.acse_timeout, ae.dimse_timeout, ae.network_timeout = (
+            c.acse_timeout_s, c.dimse_timeout_s, c.network_timeout_s,
+        )  # fmt: skip
+        ae.maximum_associations = c.maximum_associations
         for sop in STORAGE_CLASSES:
             ae.add_supported_context(sop, list(TRANSFER_SYNTAXES))
         ae.add_supported_context(VERIFICATION)
         handlers: list[Any] = [
+            (evt.EVT_CONN_OPEN, self._on_conn_open),
             (evt.EVT_REQUESTED, self._on_requested),
             (evt.EVT_ACCEPTED, self._on_accepted),
             (evt.EVT_C_ECHO, self._on_echo),
@@ -307,6 +422,14 @@ class StorageScp:
                 self.callbacks.on_refused(refusal)
             except Exception:
                 log.exception("DICOM SCP: on_refused callback failed")
+
+    def _on_conn_open(self, event: evt.Event) -> None:
+        """Bound every blocking read / write of this connection: pynetdicom applies its
+        ``network_timeout`` to the listening socket only, so a peer that stops half-way through a PDU
+        would hold its thread and association slot forever (issue 19 item 6)."""
+        sock = getattr(getattr(event.assoc.dul, "socket", None), "socket", None)
+        if sock is not None:
+            sock.settimeout(self.config.socket_timeout_s)
 
     def _peer_allowed(self, host: str) -> bool:
         return not self._networks or in_networks(host, self._networks)
@@ -357,23 +480,32 @@ class StorageScp:
         with self._lock:
             state = self._assocs.get(id(assoc)) or _AssocState("", "")
         sop = str(cast(C_STORE, event.request).AffectedSOPInstanceUID or "")
-        status, reason, target = self._check(event, sop)
+        status, reason, target, series_dir = self._check(event, sop)
         if target is None:
             self._refuse(ScpRefusal("dataset", reason, state.calling_ae, state.peer, sop, status))
+            self._tally_failed(state, series_dir, f"0x{status:04X} {reason}")
             return status
-        data = event.encoded_dataset(include_meta=True)
         try:
-            outcome = self._store(target, data, event.encoded_dataset(include_meta=False))
+            outcome = self._store(target, event.dataset_path)
         except OSError as e:
             reason = f"cannot write {target} ({e.strerror or e}); check free space on {self.intake_dir}"
             self._refuse(
                 ScpRefusal("disk", reason, state.calling_ae, state.peer, sop, STATUS_OUT_OF_RESOURCES)
             )
+            self._tally_failed(state, target.parent, f"0x{STATUS_OUT_OF_RESOURCES:04X} {reason}")
+            return STATUS_OUT_OF_RESOURCES
+        except _NotStored as e:
+            reason = f"{sop} not stored: {e}"
+            self._refuse(
+                ScpRefusal("disk", reason, state.calling_ae, state.peer, sop, STATUS_OUT_OF_RESOURCES)
+            )
+            self._tally_failed(state, target.parent, f"0x{STATUS_OUT_OF_RESOURCES:04X} {reason}")
             return STATUS_OUT_OF_RESOURCES
         with self._lock:
             self.counters[outcome] += 1
-            self.counters["bytes"] += len(data) if outcome != "duplicates" else 0
+            self.counters["bytes"] += target.stat().st_size if outcome != "duplicates" else 0
             state.series[target.parent] = state.series.get(target.parent, 0) + 1
+            state.tallies.setdefault(target.parent, OfferTally()).add_stored()
         if self.callbacks.on_instance_stored is not None:
             try:
                 self.callbacks.on_instance_stored(target, outcome)
@@ -381,44 +513,88 @@ class StorageScp:
                 log.exception("DICOM SCP: on_instance_stored callback failed")
         return STATUS_SUCCESS
 
-    def _check(self, event: evt.Event, sop: str) -> tuple[int, str, Path | None]:
-        """``(status, reason, target path or None)`` for one C-STORE request."""
+    def _tally_failed(self, state: _AssocState, series_dir: Path | None, why: str) -> None:
+        with self._lock:
+            if series_dir is None:
+                state.unattributed[why] += 1
+            else:
+                state.tallies.setdefault(series_dir, OfferTally()).add_failed(why)
+
+    def _check(self, event: evt.Event, sop: str) -> tuple[int, str, Path | None, Path | None]:
+        """``(status, reason, target path or None, series folder or None)`` for one C-STORE request."""
+        from pydicom import dcmread
+
+        path = Path(event.dataset_path)
+        size = path.stat().st_size
+        limit = int(self.config.max_instance_mb * 1024**2)
+        series_dir: Path | None = None
         try:
-            ds = event.dataset
+            ds = dcmread(path, defer_size=4096)  # large values (Pixel Data) stay on disk
             cls = str(ds.get("SOPClassUID", ""))
             inst = str(ds.get("SOPInstanceUID", ""))
             modality = str(ds.get("Modality", ""))
-            missing = [k for k in _REQUIRED.get(cls, ()) if k not in ds or ds[k].is_empty]
+            missing = [
+                k for k in _REQUIRED.get(cls, ())
+                if k not in ds or (_raw_length(ds, k) == 0 if k == "PixelData" else ds[k].is_empty)
+            ]  # fmt: skip
             study, series = str(ds.get("StudyInstanceUID", "")), str(ds.get("SeriesInstanceUID", ""))
         except Exception as e:
             return (
                 STATUS_CANNOT_UNDERSTAND,
                 f"dataset {sop} cannot be decoded ({type(e).__name__}: {e})",
                 None,
+                None,
             )
+        uids_ok = all(UID_RE.match(u) and len(u) <= 64 for u in (study, series, sop))
+        if uids_ok:
+            series_dir = self.intake_dir / study / series
         req_cls = str(cast(C_STORE, event.request).AffectedSOPClassUID or "")
+        if size > limit:
+            return (
+                STATUS_OUT_OF_RESOURCES,
+                f"{sop}: {size / 1024**2:.0f} MB is more than dicom.max_instance_mb = "
+                f"{self.config.max_instance_mb:g}",
+                None,
+                series_dir,
+            )
         if cls != req_cls or inst != sop:
             why = f"dataset says SOP Class {cls!r} / Instance {inst!r}, the request {req_cls!r} / {sop!r}"
         elif modality != "CT":
             why = f"Modality is {modality!r}, a CT image needs 'CT'"
         elif missing:
             why = f"required attribute(s) missing or empty: {', '.join(missing)}"
-        elif not all(UID_RE.match(u) and len(u) <= 64 for u in (study, series, sop)):
+        elif not uids_ok:
             why = f"malformed UID among Study {study!r}, Series {series!r}, SOP {sop!r}"
         else:
-            return STATUS_SUCCESS, "", self.intake_dir / study / series / f"{sop}.dcm"
-        return STATUS_DATASET_MISMATCH, f"{UID(req_cls).name or req_cls} {sop}: {why}", None
+            assert series_dir is not None
+            return STATUS_SUCCESS, "", series_dir / f"{sop}.dcm", series_dir
+        return STATUS_DATASET_MISMATCH, f"{UID(req_cls).name or req_cls} {sop}: {why}", None, series_dir
 
-    def _store(self, target: Path, data: bytes, dataset_part: bytes) -> str:
-        """Write one instance; returns the counter to bump (stored / duplicates / replaced)."""
+    def _store(self, target: Path, received: Path) -> str:
+        """Put one received instance (pynetdicom's temp file, DICOM File Format) in place; returns
+        the counter to bump (stored / duplicates / replaced)."""
         target.parent.mkdir(parents=True, exist_ok=True)
         outcome = "stored"
         if target.exists():
-            if target.read_bytes().endswith(dataset_part):
+            if _same_file_content(target, received):
                 return "duplicates"
             log.warning("DICOM SCP: %s re-sent with different content; replacing", target.name)
             outcome = "replaced"
-        atomic_write(target, data, write=self._write)
+        hook = self.callbacks.before_replace
+
+        def before() -> None:
+            if hook is None:
+                return
+            try:
+                hook(target, outcome)
+            except Exception as e:
+                log.exception("DICOM SCP: before_replace failed for %s", target)
+                raise _NotStored(
+                    f"the change of series {target.parent.name} could not be recorded ({e}); nothing was "
+                    "replaced"
+                ) from e
+
+        atomic_copy(received, target, write=self._write, before_replace=before)
         return outcome
 
     # ---- end of association -------------------------------------------------------
@@ -433,11 +609,20 @@ class StorageScp:
             return
         with self._lock:
             self.counters["released"] += 1
-        for series_dir in sorted(state.series):
+        for series_dir in sorted(set(state.series) | set(state.tallies)):
             n = sum(1 for _ in series_dir.glob("*.dcm"))
             log.info("DICOM SCP: series %s released by %s with %d instance(s) on disk",
                      series_dir.name, state.calling_ae, n)  # fmt: skip
-            if self.callbacks.on_series_released is not None:
+            tally = state.tallies.get(series_dir, OfferTally())
+            for why, k in state.unattributed.items():
+                tally.failed[why] += k
+                tally.offered += k
+            if self.callbacks.on_series_settled is not None:
+                try:
+                    self.callbacks.on_series_settled(series_dir, n, state.calling_ae, tally)
+                except Exception:
+                    log.exception("DICOM SCP: on_series_settled callback failed")
+            elif self.callbacks.on_series_released is not None:
                 try:
                     self.callbacks.on_series_released(series_dir, n, state.calling_ae)
                 except Exception:

@@ -52,6 +52,12 @@ EVENT_NAMES = (
     "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
     "scan_files_deleted",  # the retention policy deleted a scan's folder
 )
+EVENT_NAMES = (
+    *EVENT_NAMES,
+    # issue 19: the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
+    "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
+    "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
+)
 
 
 class EventBus:

@@ -1,15 +1,17 @@
-"""The watcher's intake: a series arrived → snapshot the joints, record the scan, cache its volume,
-publish the event."""
+"""Both intakes' verdict: a series arrived → snapshot the joints, record the scan (its state, its
+instances' hashes), cache its volume, publish the event (:mod:`service.scan_lifecycle`)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from service.records import JointSnapshot, NewScan, ScanGeometry, matrix4
+from service.scan_lifecycle import ContentChange, ScanLifecycle, diff, hash_files
 from service.store import Database
 from service.volume_cache import VolumeCache
 from service.watcher import SeriesArrival
@@ -53,7 +55,12 @@ def new_scan(arrival: SeriesArrival, snapshot: JointSnapshot) -> NewScan:
 
 
 class Intake:
-    """``SeriesWatcher``'s ``on_series`` callback (runs on the watcher thread)."""
+    """The verdict on a delivered series, for both intakes: ``SeriesWatcher``'s ``on_series`` callback
+    (watcher thread) and the C-STORE path's release (a worker thread).  One rule set
+    (:mod:`service.scan_lifecycle`): the arrival's ``error`` is the failed completeness rule (the
+    loader's, or the C-STORE offer tally's); a series recorded before whose content changed is first
+    moved to ``reopened`` / ``replaced`` (withdrawing what was made from it), then recorded
+    ``complete`` or ``invalid`` with its instances' hashes."""
 
     def __init__(
         self,
@@ -62,6 +69,7 @@ class Intake:
         volumes: VolumeCache,
         publish: Callable[[str, dict[str, Any]], None],
         withdraw: Callable[[int, str], object] | None = None,
+        lifecycle: ScanLifecycle | None = None,
     ) -> None:
         self.db = db
         self.capture = capture
@@ -69,6 +77,7 @@ class Intake:
         self.publish = publish
         self.withdraw = withdraw
         """``withdraw(scan_id, reason)``: :meth:`service.orchestrator.Orchestrator.withdraw_scan`."""
+        self.lifecycle = lifecycle or ScanLifecycle(db, volumes, publish, withdraw)
 
     def __call__(self, arrival: SeriesArrival) -> None:
         uid = arrival.series_uid
@@ -81,13 +90,30 @@ class Intake:
             )
         )
         scan = new_scan(arrival, snap)
-        if arrival.reopened:
-            self._reopen(arrival, scan)
-            return
-        scan_id, created = self.db.scans.upsert(scan)
-        if not created:
-            return
-        if arrival.volume is not None:
+        files = arrival.files
+        if files is None:
+            files = (
+                hash_files(Path(f) for f in arrival.volume.meta.get("files", ())) if arrival.volume else {}
+            )
+        prev = self.db.scans.by_series_uid(uid)
+        source = "dicom" if arrival.source == "dicom" else "folder"
+        previous_slices = 0 if prev is None else prev.n_slices
+        if prev is not None and prev.status in ("complete", "invalid"):
+            # a series judged before: what differs (the folder path sees a change only now)
+            change = arrival.change or diff(self.db.scans.files(prev.id), files)
+            if prev.status == "complete" and not change.changed and not arrival.error:
+                self.db.scans.upsert(NewScan(series_uid=uid, folder=str(arrival.folder), status="complete"))
+                return
+            if not change.changed:  # a re-check without a named change (a refusal, an unreadable file)
+                change = (
+                    ContentChange(replaced=("(unreadable or refused instances)",))
+                    if arrival.error
+                    else change
+                )
+            self.lifecycle.changing(prev, change, f"{source}: {arrival.folder}")
+        scan_id, before = self.db.scans.record(scan, files=files)
+        self.volumes.discard(uid)
+        if arrival.volume is not None and not arrival.error:
             self.volumes.put(uid, arrival.volume)
         data: dict[str, Any] = {
             "scan_id": scan_id,
@@ -95,35 +121,11 @@ class Intake:
             "folder": str(arrival.folder),
             "still": snap.still,
             "link_state": snap.link_state,
+            "source": source,
         }
+        if before in ("reopened", "replaced"):
+            data.update(reopened=True, previous_status=before, previous_slices=previous_slices)
         if arrival.error:
             self.publish("scan_invalid", {**data, "reason": arrival.error})
         else:
             self.publish("scan_arrived", {**data, "n_slices": scan.n_slices})
-
-    def _reopen(self, arrival: SeriesArrival, scan: NewScan) -> None:
-        """Late slices of a recorded series: replace its record and volume, withdraw what was made of it."""
-        uid = arrival.series_uid
-        self.volumes.discard(uid)
-        scan_id, before = self.db.scans.reopen(scan)
-        if arrival.volume is not None:
-            self.volumes.put(uid, arrival.volume)
-        now = f"{scan.n_slices} slices" if not arrival.error else f"now invalid: {arrival.error}"
-        reason = (
-            f"scan {scan_id} (series {uid}) was recorded with {before} slices, then more slices arrived in "
-            f"{arrival.folder} ({now}): the earlier record was incomplete. Register the completed scan again."
-        )
-        self.publish(
-            "scan_reopened",
-            {
-                "scan_id": scan_id,
-                "series_uid": uid,
-                "folder": str(arrival.folder),
-                "previous_slices": before,
-                "n_slices": scan.n_slices,
-                "status": scan.status,
-                "reason": reason,
-            },
-        )
-        if self.withdraw is not None:
-            self.withdraw(scan_id, reason)

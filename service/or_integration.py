@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -47,7 +48,8 @@ from service.igtl.server import (
     RegistrationView,
 )
 from service.intake import Intake
-from service.records import JointSnapshot, RegistrationRecord
+from service.records import RegistrationRecord
+from service.scan_lifecycle import ContentChange, OfferTally, ScanLifecycle, hash_files
 from service.series_accumulator import SeriesAccumulator
 from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
 from service.watcher import SeriesArrival
@@ -110,6 +112,8 @@ class OrIntegration:
         self._last_refusal: Refusal | None = None
         self._view: tuple[RegistrationRecord, RegistrationView] | None = None
         self.intake: Intake | None = None
+        self.lifecycle: ScanLifecycle | None = None
+        """Set by the app before :meth:`start` (shared with the folder watcher's intake)."""
 
     @property
     def intake_dir(self) -> Path:
@@ -151,9 +155,13 @@ class OrIntegration:
             self._registrar = _started(ThreadPoolExecutor(1, thread_name_prefix="oarmreg-autoreg"))
         d = self.settings.dicom
         if d.enabled:
+            if self.lifecycle is None:
+                self.lifecycle = ScanLifecycle(
+                    self.ctx.db, self.ctx.volumes, self.publish, self.ctx.orchestrator.withdraw_scan
+                )
             self.intake = Intake(
                 self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish,
-                withdraw=self.ctx.orchestrator.withdraw_scan,
+                withdraw=self.ctx.orchestrator.withdraw_scan, lifecycle=self.lifecycle,
             )  # fmt: skip
             self._decoder = _started(
                 ThreadPoolExecutor(DECODE_WORKERS, thread_name_prefix="oarmreg-dicom-decode")
@@ -162,9 +170,13 @@ class OrIntegration:
                 enabled=True, host=d.host, ae_title=d.ae_title, port=d.port,
                 allowed_calling_ae_titles=d.allowed_calling_ae_titles,
                 allowed_peer_addresses=d.allowed_peer_addresses,
+                acse_timeout_s=d.acse_timeout_s, dimse_timeout_s=d.dimse_timeout_s,
+                network_timeout_s=d.network_timeout_s, socket_timeout_s=d.socket_timeout_s,
+                maximum_associations=d.maximum_associations, max_instance_mb=d.max_instance_mb,
             )  # fmt: skip
             callbacks = ScpCallbacks(
-                on_series_released=self._hop(self._on_released),
+                on_series_settled=self._hop(self._on_released),
+                before_replace=self._before_replace,
                 on_association_aborted=self._hop(self._on_aborted),
                 on_refused=self._hop(self._on_refused),
                 on_instance_stored=self._on_instance_stored,
@@ -254,11 +266,33 @@ class OrIntegration:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def _on_released(self, series_dir: Path, n_instances: int, calling_ae: str) -> None:
+    def _before_replace(self, path: Path, outcome: str) -> None:
+        """On the association thread, before a new or different instance is renamed into place: the
+        series' first instance opens a ``receiving`` record; an instance added to or replacing one of a
+        judged series moves it to ``reopened`` / ``replaced`` and withdraws what was made from it,
+        committed before the file is in place (issue 19, crash order)."""
+        db, series_dir = self.ctx.db, path.parent
+        known = db.scans.status_of(series_dir.name)
+        if known is None:
+            db.scans.start_receiving(series_dir.name, str(series_dir))
+            return
+        scan_id, status = known
+        if status == "receiving" or status == "replaced" or (status == "reopened" and outcome == "stored"):
+            return
+        scan = db.scans.get(scan_id)
+        assert scan is not None and self.lifecycle is not None
+        change = (
+            ContentChange(replaced=(path.name,))
+            if outcome == "replaced"
+            else ContentChange(added=(path.name,))
+        )
+        self.lifecycle.changing(scan, change, f"C-STORE into {series_dir}")
+
+    def _on_released(self, series_dir: Path, n_instances: int, calling_ae: str, tally: OfferTally) -> None:
         acc = self._accumulators.pop(series_dir, None)
         self._spawn(
             f"dicom-release-{series_dir.name}",
-            lambda: self._record_released(series_dir, n_instances, calling_ae, acc),
+            lambda: self._record_released(series_dir, n_instances, calling_ae, acc, tally),
         )
 
     def _on_aborted(self, series_dirs: list[Path], reason: str) -> None:
@@ -278,7 +312,14 @@ class OrIntegration:
     # ---- recording (worker thread) --------------------------------------------------------
 
     def _arrival(
-        self, series_dir: Path, n: int, acc: SeriesAccumulator | None, *, volume: Any = None, error: str = ""
+        self,
+        series_dir: Path,
+        n: int,
+        acc: SeriesAccumulator | None,
+        *,
+        volume: Any = None,
+        error: str = "",
+        files: dict[str, tuple[str, int]] | None = None,
     ) -> SeriesArrival:
         import time
         from datetime import UTC, datetime
@@ -293,39 +334,50 @@ class OrIntegration:
             n_files=n,
             volume=volume,
             error=error,
+            files=files,
+            source="dicom",
         )
 
     def _record_released(
-        self, series_dir: Path, n: int, calling_ae: str, acc: SeriesAccumulator | None
+        self, series_dir: Path, n: int, calling_ae: str, acc: SeriesAccumulator | None, tally: OfferTally
     ) -> None:
+        """The lifecycle's verdict on one series at the end of an association (worker thread)."""
         from registration.dicom import load_series
 
         uid, db = series_dir.name, self.ctx.db
-        known = db.scans.has_complete(uid)
+        prev = db.scans.by_series_uid(uid)
+        problem = tally.problem(uid)
         data: dict[str, Any] = {"series_uid": uid, "calling_ae": calling_ae, "n_instances": n}
-        if known and (acc is None or acc.new_instances == 0):
-            log.info("DICOM: series %s re-sent unchanged by %s; nothing to do", uid, calling_ae)
-            self.ctx.bus.publish("dicom_association_released", {**data, "outcome": "unchanged"})
+        unchanged = acc is None or acc.new_instances == 0
+        if prev is not None and prev.status == "complete" and unchanged:
+            log.info("DICOM: series %s re-sent unchanged by %s; nothing to do%s", uid, calling_ae,
+                     f" ({problem})" if problem else "")  # fmt: skip
+            self.ctx.bus.publish(
+                "dicom_association_released",
+                {**data, "outcome": "unchanged", "scan_id": prev.id, "reason": problem},
+            )
             return
+        if n == 0 and prev is None:  # every instance refused: nothing on disk, nothing to record
+            self.ctx.bus.publish(
+                "dicom_association_released",
+                {**data, "outcome": "refused", "scan_id": None, "reason": problem},
+            )
+            return
+        volume, error = None, ""
         try:
             volume = acc.assemble(uid) if acc is not None else load_series(series_dir, series_uid=uid)
-            error = ""
         except (OarmRegError, OSError) as e:
-            volume, error = None, str(e)
-        arrival = self._arrival(series_dir, n, acc, volume=volume, error=error)
-        if known and error:
-            log.warning(
-                "DICOM: new instances of recorded series %s do not load (%s); the record stays", uid, error
-            )
-            outcome = "reopen_refused"
-        elif known:
-            self._reopen(arrival)
-            outcome = "reopened"
-        else:
-            assert self.intake is not None
-            self.intake(arrival)
-            outcome = "invalid" if error else "complete"
-        if volume is not None:
+            error = str(e)
+        if problem:
+            error = problem if not error else f"{problem}. Also: {error}"
+        files = hash_files(series_dir.glob("*.dcm"))
+        arrival = self._arrival(series_dir, n, acc, volume=volume, error=error, files=files)
+        assert self.intake is not None
+        self.intake(arrival)
+        outcome = "invalid" if error else "complete"
+        if prev is not None and prev.status != "receiving":
+            outcome = "reopened_invalid" if error else "reopened"
+        if volume is not None and not error:
             self.store_instances(
                 uid, [Path(f) for f in volume.meta.get("files", ())], sop_uids=volume.meta.get("sop_uids")
             )
@@ -335,28 +387,15 @@ class OrIntegration:
             {**data, "outcome": outcome, "scan_id": scan.id if scan else None, "reason": error},
         )
 
-    def _reopen(self, arrival: SeriesArrival) -> None:
-        from service.intake import new_scan
-
-        snap = JointSnapshot.from_capture(
-            self.ctx.capture.snapshot(arrival.first_seen_t_s, arrival.last_change_t_s)
-        )
-        scan = new_scan(arrival, snap)
-        scan_id, _ = self.ctx.db.scans.upsert(scan, reopen=True)
-        if arrival.volume is not None:
-            self.ctx.volumes.put(arrival.series_uid, arrival.volume)
-        log.info("DICOM: series %s reopened by new instances (scan %d, %d slices)", arrival.series_uid,
-                 scan_id, scan.n_slices)  # fmt: skip
-        self.publish("scan_arrived", {"scan_id": scan_id, "series_uid": arrival.series_uid,
-                                      "folder": str(arrival.folder), "still": snap.still,
-                                      "link_state": snap.link_state, "n_slices": scan.n_slices,
-                                      "reopened": True})  # fmt: skip
-
     def _record_aborted(self, accs: list[tuple[Path, SeriesAccumulator | None]], reason: str) -> None:
         assert self.intake is not None
         for series_dir, acc in accs:
             n = sum(1 for _ in series_dir.glob("*.dcm"))
-            self.intake(self._arrival(series_dir, n, acc, error=reason))
+            prev = self.ctx.db.scans.status_of(series_dir.name)
+            if prev is not None and prev[1] == "complete" and (acc is None or acc.new_instances == 0):
+                continue  # nothing of a complete series changed: it stays complete
+            files = hash_files(series_dir.glob("*.dcm"))
+            self.intake(self._arrival(series_dir, n, acc, error=reason, files=files))
             self.ctx.bus.publish(
                 "dicom_association_aborted",
                 {"series_uid": series_dir.name, "n_instances": n, "reason": reason},
@@ -414,9 +453,19 @@ class OrIntegration:
 
 
 def _started(ex: ThreadPoolExecutor) -> ThreadPoolExecutor:
-    """Start the executor's worker now (it would start on first use), so it lives as long as the service."""
-    ex.submit(lambda: None).result()
+    """Start every worker of the executor now (each would start on first busy use), so they all live
+    as long as the service: one blocking task per worker until all of them run."""
+    n = int(getattr(ex, "_max_workers", 1))
+    barrier = threading.Barrier(n + 1)
+    futures = [ex.submit(barrier.wait, DEADLINE_START_S) for _ in range(n)]
+    barrier.wait(DEADLINE_START_S)
+    for f in futures:
+        f.result()
     return ex
+
+
+DEADLINE_START_S = 30.0
+"""How long starting the executors' workers may take (threads: instant unless the machine is stuck)."""
 
 
 def scan_instances_from_files(

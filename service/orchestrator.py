@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from drivers.errors import RobotLinkError
 from registration import __version__
 from registration.detection import params_for_spheres
-from registration.errors import OarmRegError
+from registration.errors import DicomSeriesError, OarmRegError
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
 from registration.pipeline import PipelineParams, register_scan, verify_scan
@@ -149,6 +149,15 @@ class Orchestrator:
             ids, was_current = self.db.registrations.withdraw_for_scan(scan_id, reason)
             if was_current or (self._current is not None and self._current.id in ids):
                 self._current = None
+            vers, cals = self.db.registrations.withdraw_derived(scan_id, reason)
+        if vers or cals:
+            log.warning(
+                "scan %d: verification(s) %s and calibration(s) %s withdrawn: %s", scan_id, vers, cals, reason
+            )
+            self.publish(
+                "derived_withdrawn",
+                {"scan_id": scan_id, "verification_ids": vers, "calibration_ids": cals, "reason": reason},
+            )
         if ids:
             log.warning(
                 "registration(s) %s withdrawn (scan %d)%s: %s",
@@ -230,6 +239,15 @@ class Orchestrator:
             )
             self._store_refusal(draft, err, t0)
             raise err from e
+        now = self.db.scans.get(scan.id)
+        if now is None or now.status != "complete":
+            changed = DicomSeriesError(
+                f"scan {scan.id} (series {scan.series_uid}) changed while it was being registered "
+                f"(now {None if now is None else now.status}: {None if now is None else now.reason}); "
+                "register it again once it is complete"
+            )
+            self._store_refusal(draft, changed, t0)
+            raise changed
         reg_id = self.db.registrations.insert(
             replace(accepted, duration_s=time.perf_counter() - t0), make_current=True
         )

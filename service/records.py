@@ -15,7 +15,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-ScanStatus = Literal["complete", "invalid"]
+ScanStatus = Literal["receiving", "complete", "reopened", "replaced", "invalid"]
+"""A scan's state (:mod:`service.scan_lifecycle`, docs/safety.md "Scan lifecycle"); only ``complete``
+can be registered, verified or calibrated with."""
 RegistrationStatus = Literal["accepted", "refused", "retired", "withdrawn"]
 
 Matrix4 = tuple[tuple[float, ...], ...]

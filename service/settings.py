@@ -215,6 +215,21 @@ class DicomSettings(_Section):
     port: int = Field(default=11112, ge=0, le=65535)
     allowed_calling_ae_titles: tuple[str, ...] = ()
     allowed_peer_addresses: tuple[str, ...] = ()
+    # --- bounds (issue 19 item 6); service.dicom_scp.DicomScpConfig takes its defaults from here
+    # association negotiation / release, s (pynetdicom's ARTIM timer; its default 30 s let 30 silent
+    # sockets hold every slot for ~30 s)
+    acse_timeout_s: float = Field(default=10.0, gt=0, le=3600)
+    # between DIMSE messages of an association, s (pynetdicom's default)
+    dimse_timeout_s: float = Field(default=30.0, gt=0, le=3600)
+    # an association without any traffic is aborted after this, s (pynetdicom's default)
+    network_timeout_s: float = Field(default=60.0, gt=0, le=3600)
+    # per connection: a read or write without progress for this long drops the peer, s (a half-sent
+    # A-ASSOCIATE-RQ otherwise held its thread and slot with all three timeouts at 3 s, issue 19)
+    socket_timeout_s: float = Field(default=10.0, gt=0, le=3600)
+    # concurrent associations (pynetdicom's default 10)
+    maximum_associations: int = Field(default=10, ge=1, le=1000)
+    # largest C-STORE instance, MB (a 512 x 512 x 192 Enhanced CT is ~100 MB; received to a temp file)
+    max_instance_mb: float = Field(default=1024.0, gt=0, le=65536)
 
     @field_validator("allowed_peer_addresses")
     @classmethod

@@ -76,6 +76,12 @@ class SeriesArrival:
     """Late slices of a series recorded before: the earlier record was incomplete (issue #13 item 3)."""
     previous_slices: int = 0
     """Slices of the earlier record when ``reopened``."""
+    change: Any = None
+    """:class:`service.scan_lifecycle.ContentChange` from the recorded content, when known."""
+    files: dict[str, tuple[str, int]] | None = None
+    """The instances' hashes when the deliverer computed them (else the intake hashes the volume's files)."""
+    source: str = "folder"
+    """``folder`` or ``dicom``."""
 
 
 FOLDER_UID_PREFIX = "folder:"
@@ -184,6 +190,8 @@ class SeriesWatcher:
         ``recorded_slices(series_uid)`` → slices of its complete record, or None.  When given, a
         recorded series that grew (late slices) is reloaded and delivered ``reopened`` instead of
         being dropped as a re-export.
+    recorded_content : callable, optional
+        ``recorded_content(series_uid)`` → ``{name: (sha256, bytes)}`` of its complete record, or None.
     stall_after_s : float
         :meth:`state` reports ``health = "stalled"`` while one folder has been processed for longer.
     """
@@ -199,6 +207,7 @@ class SeriesWatcher:
         use_polling_only: bool = False,
         recorded_slices: Callable[[str], int | None] | None = None,
         stall_after_s: float = 120.0,
+        recorded_content: Callable[[str], dict[str, tuple[str, int]] | None] | None = None,
     ) -> None:
         self.watch_dir = Path(watch_dir)
         self.on_series = on_series
@@ -207,6 +216,10 @@ class SeriesWatcher:
         self.poll_interval_s = poll_interval_s
         self.use_polling_only = use_polling_only
         self.recorded_slices = recorded_slices
+        self.recorded_content = recorded_content
+        """``recorded_content(series_uid)`` → the instance hashes of its complete record, or None; when
+        given it replaces ``recorded_slices`` (:mod:`service.scan_lifecycle`: any change of content,
+        not only growth, makes the series be judged again)."""
         self.stall_after_s = stall_after_s
         self._busy: tuple[Path, float] | None = None
         self.mode = "stopped"
@@ -499,6 +512,8 @@ class SeriesWatcher:
             "n_files": _n_files(summary),
             "preexisting": st.preexisting,
         }
+        if self.recorded_content is not None and self.recorded_content(uid) != {}:  # {}: hashes not kept
+            return self._process_recorded(folder, st, summary, before, arrival_kw)
         recorded = self._recorded(uid)
         if recorded is not None and _n_slices(summary) <= recorded:
             log.info("watcher: series %s in %s is already recorded (re-export); not reloaded", uid, folder)
@@ -543,6 +558,66 @@ class SeriesWatcher:
         with self._lock:
             self.stats.series_recorded += 1
         return self._deliver(SeriesArrival(**arrival_kw, volume=volume))
+
+    def _process_recorded(
+        self,
+        folder: Path,
+        st: _DirState,
+        summary: Any,
+        before: frozenset[tuple[str, int, int]],
+        arrival_kw: dict[str, Any],
+    ) -> bool | None:
+        """:meth:`_process_series` with the lifecycle's content rule (issue 19): a series recorded
+        complete is a duplicate only if every recorded instance still has its hash and no instance was
+        added; any other difference is delivered ``reopened`` with the change, loaded or not."""
+        from registration.dicom import load_series
+        from service.scan_lifecycle import diff, hash_files, rehash
+
+        assert self.recorded_content is not None
+        uid = str(arrival_kw["series_uid"])
+        recorded = self.recorded_content(uid)
+        if recorded is not None:
+            change = rehash(folder, recorded)
+            if not change.changed and _n_files(summary) == len(recorded):
+                log.info(
+                    "watcher: series %s in %s unchanged since it was recorded; not reloaded", uid, folder
+                )
+                with self._lock:
+                    self.stats.duplicates += 1
+                return self._deliver(SeriesArrival(**arrival_kw, duplicate=True))
+            log.warning(
+                "watcher: series %s in %s changed after it was recorded; judging it again", uid, folder
+            )
+            with self._lock:
+                self.stats.reopened += 1
+            arrival_kw.update(reopened=True, previous_slices=len(recorded), change=change)
+        problem = str(getattr(summary, "problem", "") or "")
+        volume = None
+        try:
+            if problem:
+                raise DicomSeriesError(problem)
+            volume = load_series(folder, series_uid=uid)
+            error = ""
+        except (OarmRegError, OSError) as e:
+            if snapshot_dir(folder)[0] != before or isinstance(e, FileNotFoundError):
+                self._retry_later(
+                    folder, st, f"files of series {uid} in {folder} changed while loading ({e})"
+                )
+                return None
+            log.warning("watcher: series %s in %s is not usable: %s", uid, folder, e)
+            error = str(e)
+        if snapshot_dir(folder)[0] != before:
+            self._retry_later(folder, st, f"files of series {uid} in {folder} changed while loading")
+            return None
+        files = hash_files(Path(f) for f in volume.meta.get("files", ())) if volume is not None else None
+        if recorded is not None and files is not None:
+            arrival_kw["change"] = diff(recorded, files)
+        with self._lock:
+            if error:
+                self.stats.invalid += 1
+            else:
+                self.stats.series_recorded += 1
+        return self._deliver(SeriesArrival(**arrival_kw, volume=volume, error=error, files=files))
 
     def _recorded(self, uid: str) -> int | None:
         """Slices of the complete record of ``uid`` (None: not recorded; huge: recorded, count unknown)."""

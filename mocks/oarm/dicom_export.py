@@ -81,6 +81,7 @@ def write_dicom_series(
     patient_name: str = "Phantom^Calibration",
     series_number: int = 1,
     acquisition_time: dt.datetime | None = None,
+    images_in_acquisition: int | bool = False,
 ) -> ExportResult:
     """Write ``scan`` to ``out_dir`` as one CT Image Storage file per slice.
 
@@ -105,6 +106,10 @@ def write_dicom_series(
         Pause between files (a slow export trickling in; for watcher tests).
     fsync : bool
         fsync each file before renaming it into place.
+    images_in_acquisition : bool or int
+        Write ImagesInAcquisition (0020,1002) in every slice: ``True`` the number of slices written,
+        an int that count (announce more than are written to simulate an unfinished export); the
+        default ``False`` leaves it out, as many exports do (both branches of the loader's count rule).
 
     Raises
     ------
@@ -182,6 +187,8 @@ def write_dicom_series(
         ds.SeriesNumber = series_number
         ds.AcquisitionNumber = 1
         ds.InstanceNumber = inst
+        if images_in_acquisition is not False:
+            ds.ImagesInAcquisition = n if images_in_acquisition is True else int(images_in_acquisition)
         ds.ImagePositionPatient = [_ds(v) for v in ipp]
         ds.ImageOrientationPatient = iop
         ds.FrameOfReferenceUID = for_uid

@@ -199,7 +199,7 @@ class ScanOut(_Out):
         description="Voxel size along (column, row, slice), mm.",
         validation_alias=_from("geometry", "spacing_mm"),
     )
-    status: str = Field(description="complete | invalid")
+    status: str = Field(description="receiving | complete | reopened | replaced | invalid (docs/safety.md)")
     reason: str
     seen_count: int = Field(
         description="How often the series was exported (re-exports are deduplicated by UID)."

@@ -27,8 +27,8 @@ def status(ctx: CtxDep) -> StatusOut:
     cur = ctx.orchestrator.current
     db_problem = ctx.db.health_problem()
     return StatusOut(
-        healthy=db_problem is None,
-        problems=[db_problem] if db_problem else [],
+        healthy=db_problem is None and ctx.retention_problem is None,
+        problems=[p for p in (db_problem, ctx.retention_problem) if p],
         version=__version__,
         started_at=ctx.started_at.isoformat(),
         uptime_s=(datetime.now(UTC) - ctx.started_at).total_seconds(),

@@ -3,7 +3,7 @@
 ``scans``
     one row per series UID (a re-export of the same UID updates nothing but ``seen_count``):
     folder, arrival time, slice count, geometry (``image_from_voxel``), status
-    (``complete`` / ``invalid``) and the reason.
+    (``receiving`` / ``complete`` / ``reopened`` / ``replaced`` / ``invalid``, schema 7) and the reason.
 ``joint_snapshots``
     joints captured at a scan's arrival and the stillness verdict over the window before it.
 ``registrations``
@@ -204,6 +204,69 @@ foreign keys), so "withdrawn" is an accepted row with ``withdrawn_at`` set; the 
 status as ``withdrawn`` (before ``retired``)."""
 MIGRATIONS = (*MIGRATIONS, WITHDRAWN_AND_RETENTION_MIGRATION)
 
+SCAN_LIFECYCLE_MIGRATION = """
+    -- foreign_keys=off: rebuilds scans (the 12-step table change of https://sqlite.org/lang_altertable.html)
+    CREATE TABLE scans_new (
+        id INTEGER PRIMARY KEY,
+        series_uid TEXT NOT NULL UNIQUE,
+        frame_of_reference_uid TEXT NOT NULL DEFAULT '',
+        folder TEXT NOT NULL,
+        arrived_at TEXT NOT NULL,
+        n_files INTEGER NOT NULL DEFAULT 0,
+        n_slices INTEGER NOT NULL DEFAULT 0,
+        rows INTEGER NOT NULL DEFAULT 0,
+        columns INTEGER NOT NULL DEFAULT 0,
+        geometry_json TEXT,
+        status TEXT NOT NULL
+            CHECK (status IN ('receiving', 'complete', 'reopened', 'replaced', 'invalid')),
+        reason TEXT NOT NULL DEFAULT '',
+        seen_count INTEGER NOT NULL DEFAULT 1,
+        updated_at TEXT NOT NULL,
+        reopened_count INTEGER NOT NULL DEFAULT 0,
+        files_deleted_at TEXT,
+        files_deleted_reason TEXT NOT NULL DEFAULT ''
+    );
+    INSERT INTO scans_new (id, series_uid, frame_of_reference_uid, folder, arrived_at, n_files, n_slices,
+        rows, columns, geometry_json, status, reason, seen_count, updated_at, reopened_count,
+        files_deleted_at, files_deleted_reason)
+        SELECT id, series_uid, frame_of_reference_uid, folder, arrived_at, n_files, n_slices, rows, columns,
+        geometry_json, status, reason, seen_count, updated_at, reopened_count, files_deleted_at,
+        files_deleted_reason FROM scans;
+    DROP TABLE scans;
+    ALTER TABLE scans_new RENAME TO scans;
+    CREATE TABLE scan_files (
+        scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+        name TEXT NOT NULL,
+        sha256 TEXT NOT NULL,
+        bytes INTEGER NOT NULL,
+        PRIMARY KEY (scan_id, name)
+    );
+    CREATE TABLE scan_changes (
+        id INTEGER PRIMARY KEY,
+        scan_id INTEGER NOT NULL REFERENCES scans(id) ON DELETE CASCADE,
+        at TEXT NOT NULL,
+        from_status TEXT NOT NULL,
+        to_status TEXT NOT NULL,
+        reason TEXT NOT NULL
+    );
+    CREATE INDEX scan_changes_scan ON scan_changes(scan_id);
+    ALTER TABLE verifications ADD COLUMN withdrawn_at TEXT;
+    ALTER TABLE verifications ADD COLUMN withdrawn_reason TEXT NOT NULL DEFAULT '';
+    ALTER TABLE calibrations ADD COLUMN withdrawn_at TEXT;
+    ALTER TABLE calibrations ADD COLUMN withdrawn_reason TEXT NOT NULL DEFAULT ''
+"""
+"""Issue 19: one scan lifecycle for both intakes (:mod:`service.scan_lifecycle`).  ``scans.status``
+takes ``receiving`` / ``reopened`` / ``replaced``: SQLite cannot widen a CHECK in place, so the table
+is rebuilt (foreign keys off for this migration only, checked with ``PRAGMA foreign_key_check``
+before the commit).  ``scan_files``: the SHA-256 of every stored instance of a scan;
+``scan_changes``: every state change of a scan and why; verifications and calibrations made from a
+scan whose content changed are withdrawn like registrations."""
+MIGRATIONS = (*MIGRATIONS, SCAN_LIFECYCLE_MIGRATION)
+
+FOREIGN_KEYS_OFF = "-- foreign_keys=off"
+"""A migration whose first line is this runs with ``PRAGMA foreign_keys=OFF`` (a table rebuild: with
+them on, ``DROP TABLE`` would cascade into the rows that reference it)."""
+
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""
 
@@ -227,18 +290,37 @@ def migrate(conn: sqlite3.Connection, path: Path) -> None:
             f"({SCHEMA_VERSION}); upgrade oarmreg or use another data_dir"
         )
     for i in range(version, SCHEMA_VERSION):
+        fk_off = MIGRATIONS[i].lstrip().startswith(FOREIGN_KEYS_OFF)
+        fk_was = int(conn.execute("PRAGMA foreign_keys").fetchone()[0])
+        if fk_off:
+            conn.execute("PRAGMA foreign_keys=OFF")  # a no-op inside a transaction: set before BEGIN
         conn.execute("BEGIN IMMEDIATE")
         try:
             for stmt in split_sql(MIGRATIONS[i]):
                 conn.execute(stmt)
+            if fk_off:
+                bad = conn.execute("PRAGMA foreign_key_check").fetchall()
+                if bad:
+                    raise ConfigError(
+                        f"{path}: migration {i + 1} breaks {len(bad)} foreign key(s): {bad[:4]}"
+                    )
             conn.execute(f"PRAGMA user_version = {i + 1}")
             conn.execute("COMMIT")
         except BaseException:
             conn.execute("ROLLBACK")
             raise
+        finally:
+            if fk_off:
+                conn.execute(f"PRAGMA foreign_keys={'ON' if fk_was else 'OFF'}")
         log.info("database %s: migrated to schema version %d", path, i + 1)
 
 
 def split_sql(script: str) -> list[str]:
-    """Split a migration script into statements (no semicolons inside our literals)."""
-    return [s.strip() for s in script.split(";") if s.strip()]
+    """Split a migration script into statements (no semicolons inside our literals; ``--`` comment
+    lines dropped)."""
+    out = []
+    for stmt in script.split(";"):
+        text = "\n".join(ln for ln in stmt.splitlines() if not ln.strip().startswith("--")).strip()
+        if text:
+            out.append(text)
+    return out

@@ -69,6 +69,36 @@ class RegistrationStore:
                 c.execute("DELETE FROM current_registration WHERE singleton = 1")
             return ids, was_current
 
+    def withdraw_derived(self, scan_id: int, reason: str) -> tuple[list[int], list[int]]:
+        """Withdraw the verifications and calibrations made from ``scan_id`` (issue 19: its content
+        changed); returns their ids.  A withdrawn calibration stays active until another is activated
+        (the orchestrator's model is not switched here); its scans are named in the event."""
+        now = utc_now()
+        with self._db.transaction() as c:
+            vers = [
+                int(r[0])
+                for r in c.execute(
+                    "SELECT id FROM verifications WHERE scan_id = ? AND withdrawn_at IS NULL", (scan_id,)
+                )
+            ]
+            c.executemany(
+                "UPDATE verifications SET withdrawn_at = ?, withdrawn_reason = ? WHERE id = ?",
+                [(now, reason, v) for v in vers],
+            )
+            cals = [
+                int(r[0])
+                for r in c.execute(
+                    "SELECT id FROM calibrations WHERE withdrawn_at IS NULL AND EXISTS "
+                    "(SELECT 1 FROM json_each(calibrations.scan_ids_json) WHERE value = ?)",
+                    (scan_id,),
+                )
+            ]
+            c.executemany(
+                "UPDATE calibrations SET withdrawn_at = ?, withdrawn_reason = ? WHERE id = ?",
+                [(now, reason, k) for k in cals],
+            )
+            return vers, cals
+
     def latest_withdrawn(self) -> RegistrationRecord | None:
         rows = self._db.query(
             "SELECT * FROM registrations WHERE withdrawn_at IS NOT NULL ORDER BY withdrawn_at DESC, id DESC "

@@ -91,6 +91,110 @@ class ScanStore:
                 _insert_snapshot(c, scan_id, scan.snapshot, now)
             return scan_id, before
 
+    def record(
+        self, scan: NewScan, *, files: dict[str, tuple[str, int]] | None = None, why: str = ""
+    ) -> tuple[int, str | None]:
+        """Write the verdict on a series (:class:`service.scan_lifecycle.ScanLifecycle`): insert its row
+        or replace every column of it (same id), its joint snapshot and, when given, its instances'
+        hashes (``name → (sha256, bytes)``); a state change is logged in ``scan_changes`` with ``why``
+        (the record's reason when empty).  Returns ``(scan_id, previous status or None)``."""
+        now = utc_now()
+        with self._db.transaction() as c:
+            row = c.execute(
+                "SELECT id, status FROM scans WHERE series_uid = ?", (scan.series_uid,)
+            ).fetchone()
+            values = _scan_values(scan, now)
+            if row is None:
+                cur = c.execute(
+                    f"INSERT INTO scans ({_SCAN_COLUMNS}, series_uid) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (*values, scan.series_uid),
+                )
+                scan_id, before = int(cur.lastrowid or 0), None
+            else:
+                scan_id, before = int(row["id"]), str(row["status"])
+                assignments = ", ".join(f"{col.strip()}=?" for col in _SCAN_COLUMNS.split(","))
+                bump = ", reopened_count = reopened_count + 1" if before in ("reopened", "replaced") else ""
+                c.execute(
+                    f"UPDATE scans SET {assignments}, seen_count = seen_count + 1{bump}, "
+                    "files_deleted_at = NULL, files_deleted_reason = '' WHERE id = ?",
+                    (*values, scan_id),
+                )
+                c.execute("DELETE FROM joint_snapshots WHERE scan_id = ?", (scan_id,))
+            if scan.snapshot is not None:
+                _insert_snapshot(c, scan_id, scan.snapshot, now)
+            if files is not None:
+                c.execute("DELETE FROM scan_files WHERE scan_id = ?", (scan_id,))
+                c.executemany(
+                    "INSERT INTO scan_files (scan_id, name, sha256, bytes) VALUES (?, ?, ?, ?)",
+                    [(scan_id, name, sha, n) for name, (sha, n) in sorted(files.items())],
+                )
+            if before != scan.status:
+                _log_change(c, scan_id, before or "", scan.status, why or scan.reason or "recorded", now)
+            return scan_id, before
+
+    def set_status(self, scan_id: int, status: ScanStatus, reason: str) -> str:
+        """Move one scan to ``status`` with ``reason`` (logged in ``scan_changes``); its previous status."""
+        now = utc_now()
+        with self._db.transaction() as c:
+            row = c.execute("SELECT status FROM scans WHERE id = ?", (scan_id,)).fetchone()
+            if row is None:
+                raise KeyError(scan_id)
+            c.execute(
+                "UPDATE scans SET status = ?, reason = ?, updated_at = ? WHERE id = ?",
+                (status, reason, now, scan_id),
+            )
+            _log_change(c, scan_id, str(row["status"]), status, reason, now)
+            return str(row["status"])
+
+    def start_receiving(self, series_uid: str, folder: str) -> int:
+        """The row of a series whose first instance is arriving (status ``receiving``); its id.  A
+        series recorded before keeps its row (its state is the lifecycle's to change)."""
+        now = utc_now()
+        with self._db.transaction() as c:
+            row = c.execute("SELECT id FROM scans WHERE series_uid = ?", (series_uid,)).fetchone()
+            if row is not None:
+                return int(row["id"])
+            cur = c.execute(
+                "INSERT INTO scans (series_uid, folder, arrived_at, status, reason, updated_at) "
+                "VALUES (?, ?, ?, 'receiving', '', ?)",
+                (series_uid, folder, now, now),
+            )
+            scan_id = int(cur.lastrowid or 0)
+            _log_change(c, scan_id, "", "receiving", "first instance received", now)
+            return scan_id
+
+    def files(self, scan_id: int) -> dict[str, tuple[str, int]]:
+        """``name → (sha256, bytes)`` of the instances recorded with the scan (empty: none recorded)."""
+        rows = self._db.query("SELECT name, sha256, bytes FROM scan_files WHERE scan_id = ?", (scan_id,))
+        return {str(r[0]): (str(r[1]), int(r[2])) for r in rows}
+
+    def changes(self, scan_id: int) -> list[tuple[str, str, str, str]]:
+        """``(at, from, to, reason)`` of every state change of the scan, oldest first."""
+        rows = self._db.query(
+            "SELECT at, from_status, to_status, reason FROM scan_changes WHERE scan_id = ? ORDER BY id",
+            (scan_id,),
+        )
+        return [(str(r[0]), str(r[1]), str(r[2]), str(r[3])) for r in rows]
+
+    def in_status(self, *statuses: ScanStatus) -> list[ScanRecord]:
+        marks = ", ".join("?" for _ in statuses)
+        rows = self._db.query(f"SELECT * FROM scans WHERE status IN ({marks}) ORDER BY id", tuple(statuses))
+        return [self._record(r) for r in rows]
+
+    def recorded_content(self, series_uid: str) -> dict[str, tuple[str, int]] | None:
+        """The instance hashes of the complete record of ``series_uid`` (None when there is none; an
+        empty dict for a record made before hashes were kept)."""
+        rows = self._db.query(
+            "SELECT id FROM scans WHERE series_uid = ? AND status = 'complete'", (series_uid,)
+        )
+        return self.files(int(rows[0][0])) if rows else None
+
+    def status_of(self, series_uid: str) -> tuple[int, str] | None:
+        """``(id, status)`` of the series' record (one query: the SCP asks for every instance)."""
+        rows = self._db.query("SELECT id, status FROM scans WHERE series_uid = ?", (series_uid,))
+        return (int(rows[0][0]), str(rows[0][1])) if rows else None
+
     def recorded_slices(self, series_uid: str) -> int | None:
         """Slices of the complete record of ``series_uid`` (None when there is none)."""
         rows = self._db.query(
@@ -178,6 +282,13 @@ def _scan_values(scan: NewScan, now: str) -> tuple[object, ...]:
         scan.status,
         scan.reason,
         now,
+    )
+
+
+def _log_change(c: sqlite3.Connection, scan_id: int, before: str, after: str, why: str, now: str) -> None:
+    c.execute(
+        "INSERT INTO scan_changes (scan_id, at, from_status, to_status, reason) VALUES (?, ?, ?, ?, ?)",
+        (scan_id, now, before, after, why),
     )
 
 
