@@ -30,6 +30,22 @@ log = logging.getLogger(__name__)
 HEALTH_POLL_S = 0.1
 """Link-health sampling period for ``link_state`` events (5 joint frames at 50 Hz)."""
 
+LATE_FRAME_WAIT_S = 0.5
+"""A snapshot of a streamed link waits up to this long for the first frame stamped after the
+window end, so frames received before the end but not yet handed to the history (a busy process)
+are counted.  Twice the default ``stillness.max_gap_s``; a stopped stream costs this once."""
+
+PERIOD_HISTORY_S = 60.0
+"""Span of the session's history from which a streamed link's frame period is measured (s)."""
+
+
+def _on_event_loop() -> bool:
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
+
 
 class Capture:
     """Owner of the robot link inside the service.
@@ -143,23 +159,35 @@ class Capture:
             "n_samples": 0,
         }
         if preexisting:
+            base["stillness_verdict"] = "incomplete"
             base["stillness_reason"] = (
-                "the series was already in the watch folder when the service started, so the joint angles "
-                "during its acquisition are unknown; re-export or rescan it while the service runs"
+                "joint history incomplete: the series was already in the watch folder when the service "
+                "started, so the joint angles during its acquisition are unknown; re-export or rescan it "
+                "while the service runs"
             )
             return base
         start_t = first_seen_t_s - st.window_s
-        samples = self.link.history(start_t - st.max_gap_s)
+        link = self.link
+        streamed = bool(getattr(link, "streamed", False))
+        wait_past = getattr(link, "wait_past", None)
+        if streamed and wait_past is not None and h["state"] != "down" and not _on_event_loop():
+            wait_past(last_change_t_s, LATE_FRAME_WAIT_S)
+        samples = link.history(start_t - st.max_gap_s)
         samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
         if not samples:
+            base["stillness_verdict"] = "incomplete"
             base["stillness_reason"] = (
-                f"no joint samples from {self.url} between {st.window_s:g} s before the scan arrived and its "
-                f"last file; the robot link is {h['state']} ({h['reason']})"
+                f"joint history incomplete: no joint samples from {self.url} between {st.window_s:g} s "
+                f"before the scan arrived and its last file; the robot link is {h['state']} ({h['reason']})"
             )
             return base
         # the joints "at arrival": the last sample at or before the first file, else the first after it
         before = [s for s in samples if s.t_s <= first_seen_t_s]
         at = before[-1] if before else samples[0]
+        inside = [s for s in samples if start_t <= s.t_s <= last_change_t_s]
+        sessions = {x.number: x for x in getattr(link, "sessions", list)()}
+        first_session = sessions.get(inside[0].session) if inside else None
+        period_s = self._stream_period_s(inside[-1], last_change_t_s) if streamed and inside else None
         t = np.array([s.t_s for s in samples], dtype=np.float64)
         q = np.array([s.joints_rad for s in samples], dtype=np.float64)
         window_s = last_change_t_s - start_t
@@ -170,6 +198,9 @@ class Capture:
             window_s=window_s,
             max_deviation_rad=st.max_deviation_rad,
             max_gap_s=st.max_gap_s,
+            watched_from_t_s=first_session.connected_t_s if first_session is not None else None,
+            sessions=np.array([getattr(s, "session", 0) for s in samples], dtype=np.int64),
+            period_s=period_s,
         )
         base.update(
             joints_rad=[float(v) for v in at.joints_rad],
@@ -179,5 +210,15 @@ class Capture:
             covered_s=float(res.covered_s),
             n_samples=int(res.n_samples),
             stillness_reason=str(res.reason),
+            stillness_verdict=res.verdict,
+            max_receive_gap_s=float(res.max_receive_gap_s),
+            stream_period_s=period_s,
         )
         return base
+
+    def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
+        """The measured frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
+        from registration.stillness import stream_period_s
+
+        same = [s.t_s for s in self.link.history(end_t_s - PERIOD_HISTORY_S) if s.session == last.session]
+        return stream_period_s(same)

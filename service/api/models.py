@@ -177,6 +177,10 @@ class JointSnapshotOut(_Out):
     n_samples: int
     window_s: float
     stillness_reason: str
+    verdict: str = Field(
+        "",
+        description="still | moved | incomplete (docs/safety.md, Stillness and health).",
+    )
 
 
 class ScanOut(_Out):
