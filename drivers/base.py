@@ -201,6 +201,7 @@ class JointRing:
         self._items: deque[JointState] = deque(maxlen=capacity)
         self._lock = threading.Lock()
         self._appended = threading.Condition(self._lock)
+        self._total = 0
 
     @property
     def capacity(self) -> int:
@@ -209,7 +210,24 @@ class JointRing:
     def append(self, state: JointState) -> None:
         with self._lock:
             self._items.append(state)
+            self._total += 1
             self._appended.notify_all()
+
+    def total(self) -> int:
+        """Samples appended since the ring was made (a cursor for :meth:`appended_since`)."""
+        with self._lock:
+            return self._total
+
+    def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
+        """The samples appended after ``cursor`` (those still in the ring), and the new cursor."""
+        with self._lock:
+            k = min(self._total - cursor, len(self._items))
+            return (list(self._items)[-k:] if k > 0 else []), self._total
+
+    def wait_appended(self, cursor: int, timeout_s: float) -> bool:
+        """Block until a sample was appended after ``cursor`` (True) or ``timeout_s`` passed."""
+        with self._appended:
+            return self._appended.wait_for(lambda: self._total > cursor, timeout_s)
 
     def wait_past(self, t_s: float, timeout_s: float) -> bool:
         """Block until a sample received after ``t_s`` is in the ring (True) or ``timeout_s`` passed."""
@@ -504,6 +522,15 @@ class BaseLink:
     def history(self, since_t_s: float) -> list[JointState]:
         """Samples received at or after ``since_t_s`` (``time.monotonic()`` seconds), oldest first."""
         return self._ring.since(since_t_s)
+
+    def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
+        """Samples published after ``cursor`` (0 = from the start) and the new cursor
+        (:meth:`JointRing.appended_since`); for :mod:`drivers.link_process`."""
+        return self._ring.appended_since(cursor)
+
+    def wait_appended(self, cursor: int, timeout_s: float) -> bool:
+        """Block the calling thread until a sample was published after ``cursor`` or ``timeout_s``."""
+        return self._ring.wait_appended(cursor, timeout_s)
 
     def wait_past(self, t_s: float, timeout_s: float) -> bool:
         """Block the calling thread until a sample received after ``t_s`` is in the history (True), at

@@ -68,6 +68,8 @@ class Capture:
         self._task: asyncio.Task[None] | None = None
         self._last_state: tuple[str, str] | None = None
         self._connected_since_t_s: float | None = None
+        self._bad_since_t_s: float | None = time.monotonic()
+        """Since when the reported state has not been ``connected`` (None while it is)."""
 
     @property
     def url(self) -> str:
@@ -77,6 +79,7 @@ class Capture:
 
     async def start(self) -> None:
         """Start the link's reader (it connects and reconnects by itself) and the health watch."""
+        self._bad_since_t_s = time.monotonic()
         self.link.start()
         self._task = asyncio.create_task(self._supervise(), name="oarmreg-capture")
 
@@ -106,6 +109,10 @@ class Capture:
 
     def _check_state(self) -> None:
         h = self.health()
+        if h["state"] == "connected":
+            self._bad_since_t_s = None
+        elif self._bad_since_t_s is None:
+            self._bad_since_t_s = time.monotonic()
         key = (h["state"], h["state"] if h["state"] != "down" else h["reason"][:80])
         if key != self._last_state:
             prev = self._last_state[0] if self._last_state else None
@@ -117,18 +124,47 @@ class Capture:
     # ---- queries (any thread) -------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
-        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``."""
+        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``.
+
+        ``stale`` means no frame for ``robot.stale_after_s`` (not the link's own 3 frame periods,
+        which flap under ordinary load); ``down`` is the link's.
+        """
         h = self.link.health()
         latest = self.link.latest()
         hist = self.link.history(time.monotonic() - self.settings.stillness.window_s * 4)
         span = (hist[-1].t_s - hist[0].t_s) if len(hist) > 1 else 0.0
+        state, reason, age = h.state, h.reason, h.last_frame_age_s
+        limit_s = self.settings.robot.stale_after_s
+        if state != "down" and age is not None and latest is not None:
+            state, reason = (
+                ("connected", "receiving joint frames")
+                if age <= limit_s
+                else (
+                    "stale",
+                    f"no valid joint frame for {age:.3f} s (> robot.stale_after_s = {limit_s:g} s)",
+                )
+            )
         return {
             "url": self.url,
-            "state": h.state,
-            "reason": h.reason,
-            "last_frame_age_s": h.last_frame_age_s if latest is not None else None,
+            "state": state,
+            "reason": reason,
+            "last_frame_age_s": age if latest is not None else None,
             "history_s": float(span),
         }
+
+    def problem(self) -> str | None:
+        """What is wrong with the link once it has not been ``connected`` for ``health.link_hold_off_s``
+        (None: connected, or not for that long yet)."""
+        h = self.health()
+        since = self._bad_since_t_s
+        hold_s = self.settings.health.link_hold_off_s
+        if h["state"] == "connected" or since is None or time.monotonic() - since <= hold_s:
+            return None
+        return (
+            f"the robot link {self.url} has been {h['state']} for {time.monotonic() - since:.1f} s "
+            f"(> health.link_hold_off_s = {hold_s:g} s): {h['reason']}; no scan can be registered until it "
+            "is connected: check the controller, its VAL3 program and the cable"
+        )
 
     def latest(self) -> Any:
         return self.link.latest()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from typing import IO
 
 from drivers.base import RobotLink
 from registration.kinematics import RobotModel
@@ -43,6 +44,8 @@ class ServiceContext:
     tickets: TicketBook = field(default_factory=TicketBook)
     """Single-use tickets for GET /events?ticket= (service.security)."""
     retention_task: asyncio.Task[None] | None = None
+    serve_lock: IO[bytes] | None = None
+    """``<data>/serve.lock``, held exclusively while the service runs (service.data_dir)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""
