@@ -109,12 +109,16 @@ class JointState:
         UTC wall clock at receipt, for provenance.
     source_url : str
         The link URL the sample came from.
+    session : int
+        Which transport session delivered it (:meth:`BaseLink.sessions`; 1 = the first connect,
+        0 = unknown): two samples of one session came over one unbroken connection.
     """
 
     joints_rad: tuple[float, ...]
     t_s: float
     received_at: datetime
     source_url: str
+    session: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -151,6 +155,20 @@ class LinkHealth:
     last_frame_age_s: float | None
 
 
+@dataclass(frozen=True)
+class LinkSession:
+    """One transport session of a link: connected at ``connected_t_s`` (``time.monotonic()``), ended
+    at ``ended_t_s`` (None while it lasts).  ``number`` counts connects from 1."""
+
+    number: int
+    connected_t_s: float
+    ended_t_s: float | None
+
+
+SESSIONS_KEPT = 64
+"""Sessions remembered by :meth:`BaseLink.sessions` (far more than reconnects in the 120 s history)."""
+
+
 @runtime_checkable
 class RobotLink(Protocol):
     """What every controller link offers (an async context manager)."""
@@ -182,6 +200,8 @@ class JointRing:
             raise ValueError(f"ring capacity must be >= 1, got {capacity}")
         self._items: deque[JointState] = deque(maxlen=capacity)
         self._lock = threading.Lock()
+        self._appended = threading.Condition(self._lock)
+        self._total = 0
 
     @property
     def capacity(self) -> int:
@@ -190,6 +210,29 @@ class JointRing:
     def append(self, state: JointState) -> None:
         with self._lock:
             self._items.append(state)
+            self._total += 1
+            self._appended.notify_all()
+
+    def total(self) -> int:
+        """Samples appended since the ring was made (a cursor for :meth:`appended_since`)."""
+        with self._lock:
+            return self._total
+
+    def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
+        """The samples appended after ``cursor`` (those still in the ring), and the new cursor."""
+        with self._lock:
+            k = min(self._total - cursor, len(self._items))
+            return (list(self._items)[-k:] if k > 0 else []), self._total
+
+    def wait_appended(self, cursor: int, timeout_s: float) -> bool:
+        """Block until a sample was appended after ``cursor`` (True) or ``timeout_s`` passed."""
+        with self._appended:
+            return self._appended.wait_for(lambda: self._total > cursor, timeout_s)
+
+    def wait_past(self, t_s: float, timeout_s: float) -> bool:
+        """Block until a sample received after ``t_s`` is in the ring (True) or ``timeout_s`` passed."""
+        with self._appended:
+            return self._appended.wait_for(lambda: bool(self._items) and self._items[-1].t_s > t_s, timeout_s)
 
     def latest(self) -> JointState | None:
         with self._lock:
@@ -337,6 +380,11 @@ class BaseLink:
     """
 
     scheme: str = ""
+    streamed: bool = True
+    """True when the controller pushes frames over an ordered, reliable stream (simple_message over
+    TCP, serial): a late frame arrives intact and in order, so a receive-clock gap inside one session
+    is not a hole in the robot's history.  False for a polled link (Modbus), whose samples exist only
+    when the poller ran."""
 
     def __init__(
         self,
@@ -364,6 +412,8 @@ class BaseLink:
         self.silence_reconnect_s = silence_reconnect_s
         self.close_timeout_s = close_timeout_s
         self.n_joints = n_joints
+        self.frame_period_s = frame_period_s
+        self._sessions: deque[LinkSession] = deque(maxlen=SESSIONS_KEPT)
         self._ring = JointRing(max(1, math.ceil(history_s / frame_period_s)))
         self._backoff = Backoff(backoff_initial_s, backoff_max_s)
         self._lock = threading.Lock()
@@ -473,6 +523,25 @@ class BaseLink:
         """Samples received at or after ``since_t_s`` (``time.monotonic()`` seconds), oldest first."""
         return self._ring.since(since_t_s)
 
+    def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
+        """Samples published after ``cursor`` (0 = from the start) and the new cursor
+        (:meth:`JointRing.appended_since`); for :mod:`drivers.link_process`."""
+        return self._ring.appended_since(cursor)
+
+    def wait_appended(self, cursor: int, timeout_s: float) -> bool:
+        """Block the calling thread until a sample was published after ``cursor`` or ``timeout_s``."""
+        return self._ring.wait_appended(cursor, timeout_s)
+
+    def wait_past(self, t_s: float, timeout_s: float) -> bool:
+        """Block the calling thread until a sample received after ``t_s`` is in the history (True), at
+        most ``timeout_s`` (False).  Never call it on an event loop."""
+        return self._ring.wait_past(t_s, timeout_s)
+
+    def sessions(self) -> list[LinkSession]:
+        """The last :data:`SESSIONS_KEPT` transport sessions, oldest first (the last may be open)."""
+        with self._lock:
+            return list(self._sessions)
+
     def counters(self) -> dict[str, int]:
         """Frame and connection counters (accepted, rejected, protocol errors, reconnects…)."""
         with self._lock:
@@ -534,6 +603,7 @@ class BaseLink:
             self._transport_up = True
             self._down_reason = ""
             self._counters["connects"] += 1
+            self._sessions.append(LinkSession(self._counters["connects"], time.monotonic(), None))
         log.info("robot link %s: connected", self.url)
 
     def _count(self, key: str, n: int = 1) -> None:
@@ -560,6 +630,7 @@ class BaseLink:
             t_s=time.monotonic() if t_s is None else t_s,
             received_at=datetime.now(UTC),
             source_url=self.url,
+            session=self._session_number(),
         )
         self._ring.append(state)
         with self._lock:
@@ -605,6 +676,10 @@ class BaseLink:
             what = f"could not connect to {self.url} within {timeout_s:g} s (last error: {err})"
         return f"{what}; {CHECKLIST}"
 
+    def _session_number(self) -> int:
+        with self._lock:
+            return self._sessions[-1].number if self._transport_up and self._sessions else 0
+
     def _set_down(self, reason: str) -> None:
         with self._lock:
             was_up = self._transport_up
@@ -612,6 +687,9 @@ class BaseLink:
             self._down_reason = reason
             if was_up:
                 self._counters["disconnects"] += 1
+                last = self._sessions[-1] if self._sessions else None
+                if last is not None and last.ended_t_s is None:
+                    self._sessions[-1] = LinkSession(last.number, last.connected_t_s, time.monotonic())
 
     async def _main(self) -> None:
         """The link thread's main coroutine: run the reader until :meth:`close` sets ``_stop``."""

@@ -182,6 +182,7 @@ class ModbusLink(BaseLink):
     """
 
     scheme = "modbus"
+    streamed = False  # polled: a sample exists only when the poller ran (stillness judges receive gaps)
 
     def __init__(self, url: str, *, register_map: RegisterMap | None = None, **options: Any) -> None:
         parts = urlsplit(url)

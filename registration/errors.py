@@ -76,7 +76,16 @@ class DegenerateConfigurationError(RegistrationError):
 
 
 class RobotMovedError(RegistrationError):
+    """A joint deviated more than ``stillness.max_deviation_rad`` during the scan window."""
+
     title = "Robot moved during the scan"
+
+
+class JointHistoryIncompleteError(RegistrationError):
+    """The joint history does not cover the scan window (not watched, frames missing, reconnect):
+    the robot's stillness is unknown, which is not the same as "moved"."""
+
+    title = "Joint history incomplete"
 
 
 class AccuracyGateError(RegistrationError):

@@ -33,6 +33,7 @@ from registration.phantom import Phantom
 from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.context import ServiceContext
+from service.data_dir import hold_serve_lock, make_private
 from service.event_bus import EventBus
 from service.intake import Intake
 from service.or_integration import OrIntegration
@@ -133,7 +134,10 @@ def _load_robot_model(settings: Settings) -> RobotModel:
 
 def _open_link(settings: Settings) -> RobotLink:
     from drivers.factory import open_link
+    from drivers.link_process import ProcessLink
 
+    if settings.robot.link_process:  # issue 19: the reader in a child process, out of the GIL's reach
+        return ProcessLink(settings.robot.link_url)
     return open_link(settings.robot.link_url)
 
 
@@ -141,8 +145,13 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     """Open the database, connect the robot link, start the watcher."""
     settings = ctx.settings
     ctx.bus.bind(asyncio.get_running_loop())
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    ctx.db = Database.open(settings.db_path)
+    make_private(settings.data_dir)  # umask 077, folder 0700, files 0600 (issue 19 item 8)
+    ctx.serve_lock = hold_serve_lock(settings.data_dir)  # a second serve on this folder: exit 3
+    try:
+        ctx.db = Database.open(settings.db_path)
+    except BaseException:
+        ctx.serve_lock.close()
+        raise
     or_int = ctx.or_integration = OrIntegration(ctx)
     ctx.db_watch_task = asyncio.create_task(_watch_database(ctx), name="oarmreg-db-watch")
     ctx.orchestrator = Orchestrator(
@@ -243,6 +252,8 @@ async def _stop(ctx: ServiceContext) -> None:
     # a registration still running on a worker thread finishes before the database closes
     await asyncio.to_thread(ctx.orchestrator.wait_idle)
     ctx.db.close()
+    if ctx.serve_lock is not None:
+        ctx.serve_lock.close()
 
 
 class CurrentRegistrationFastPath:

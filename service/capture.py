@@ -30,6 +30,22 @@ log = logging.getLogger(__name__)
 HEALTH_POLL_S = 0.1
 """Link-health sampling period for ``link_state`` events (5 joint frames at 50 Hz)."""
 
+LATE_FRAME_WAIT_S = 0.5
+"""A snapshot of a streamed link waits up to this long for the first frame stamped after the
+window end, so frames received before the end but not yet handed to the history (a busy process)
+are counted.  Twice the default ``stillness.max_gap_s``; a stopped stream costs this once."""
+
+PERIOD_HISTORY_S = 60.0
+"""Span of the session's history from which a streamed link's frame period is measured (s)."""
+
+
+def _on_event_loop() -> bool:
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
+
 
 class Capture:
     """Owner of the robot link inside the service.
@@ -52,6 +68,8 @@ class Capture:
         self._task: asyncio.Task[None] | None = None
         self._last_state: tuple[str, str] | None = None
         self._connected_since_t_s: float | None = None
+        self._bad_since_t_s: float | None = time.monotonic()
+        """Since when the reported state has not been ``connected`` (None while it is)."""
 
     @property
     def url(self) -> str:
@@ -61,6 +79,7 @@ class Capture:
 
     async def start(self) -> None:
         """Start the link's reader (it connects and reconnects by itself) and the health watch."""
+        self._bad_since_t_s = time.monotonic()
         self.link.start()
         self._task = asyncio.create_task(self._supervise(), name="oarmreg-capture")
 
@@ -90,6 +109,10 @@ class Capture:
 
     def _check_state(self) -> None:
         h = self.health()
+        if h["state"] == "connected":
+            self._bad_since_t_s = None
+        elif self._bad_since_t_s is None:
+            self._bad_since_t_s = time.monotonic()
         key = (h["state"], h["state"] if h["state"] != "down" else h["reason"][:80])
         if key != self._last_state:
             prev = self._last_state[0] if self._last_state else None
@@ -101,18 +124,47 @@ class Capture:
     # ---- queries (any thread) -------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
-        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``."""
+        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``.
+
+        ``stale`` means no frame for ``robot.stale_after_s`` (not the link's own 3 frame periods,
+        which flap under ordinary load); ``down`` is the link's.
+        """
         h = self.link.health()
         latest = self.link.latest()
         hist = self.link.history(time.monotonic() - self.settings.stillness.window_s * 4)
         span = (hist[-1].t_s - hist[0].t_s) if len(hist) > 1 else 0.0
+        state, reason, age = h.state, h.reason, h.last_frame_age_s
+        limit_s = self.settings.robot.stale_after_s
+        if state != "down" and age is not None and latest is not None:
+            state, reason = (
+                ("connected", "receiving joint frames")
+                if age <= limit_s
+                else (
+                    "stale",
+                    f"no valid joint frame for {age:.3f} s (> robot.stale_after_s = {limit_s:g} s)",
+                )
+            )
         return {
             "url": self.url,
-            "state": h.state,
-            "reason": h.reason,
-            "last_frame_age_s": h.last_frame_age_s if latest is not None else None,
+            "state": state,
+            "reason": reason,
+            "last_frame_age_s": age if latest is not None else None,
             "history_s": float(span),
         }
+
+    def problem(self) -> str | None:
+        """What is wrong with the link once it has not been ``connected`` for ``health.link_hold_off_s``
+        (None: connected, or not for that long yet)."""
+        h = self.health()
+        since = self._bad_since_t_s
+        hold_s = self.settings.health.link_hold_off_s
+        if h["state"] == "connected" or since is None or time.monotonic() - since <= hold_s:
+            return None
+        return (
+            f"the robot link {self.url} has been {h['state']} for {time.monotonic() - since:.1f} s "
+            f"(> health.link_hold_off_s = {hold_s:g} s): {h['reason']}; no scan can be registered until it "
+            "is connected: check the controller, its VAL3 program and the cable"
+        )
 
     def latest(self) -> Any:
         return self.link.latest()
@@ -143,23 +195,35 @@ class Capture:
             "n_samples": 0,
         }
         if preexisting:
+            base["stillness_verdict"] = "incomplete"
             base["stillness_reason"] = (
-                "the series was already in the watch folder when the service started, so the joint angles "
-                "during its acquisition are unknown; re-export or rescan it while the service runs"
+                "joint history incomplete: the series was already in the watch folder when the service "
+                "started, so the joint angles during its acquisition are unknown; re-export or rescan it "
+                "while the service runs"
             )
             return base
         start_t = first_seen_t_s - st.window_s
-        samples = self.link.history(start_t - st.max_gap_s)
+        link = self.link
+        streamed = bool(getattr(link, "streamed", False))
+        wait_past = getattr(link, "wait_past", None)
+        if streamed and wait_past is not None and h["state"] != "down" and not _on_event_loop():
+            wait_past(last_change_t_s, LATE_FRAME_WAIT_S)
+        samples = link.history(start_t - st.max_gap_s)
         samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
         if not samples:
+            base["stillness_verdict"] = "incomplete"
             base["stillness_reason"] = (
-                f"no joint samples from {self.url} between {st.window_s:g} s before the scan arrived and its "
-                f"last file; the robot link is {h['state']} ({h['reason']})"
+                f"joint history incomplete: no joint samples from {self.url} between {st.window_s:g} s "
+                f"before the scan arrived and its last file; the robot link is {h['state']} ({h['reason']})"
             )
             return base
         # the joints "at arrival": the last sample at or before the first file, else the first after it
         before = [s for s in samples if s.t_s <= first_seen_t_s]
         at = before[-1] if before else samples[0]
+        inside = [s for s in samples if start_t <= s.t_s <= last_change_t_s]
+        sessions = {x.number: x for x in getattr(link, "sessions", list)()}
+        first_session = sessions.get(inside[0].session) if inside else None
+        period_s = self._stream_period_s(inside[-1], last_change_t_s) if streamed and inside else None
         t = np.array([s.t_s for s in samples], dtype=np.float64)
         q = np.array([s.joints_rad for s in samples], dtype=np.float64)
         window_s = last_change_t_s - start_t
@@ -170,6 +234,9 @@ class Capture:
             window_s=window_s,
             max_deviation_rad=st.max_deviation_rad,
             max_gap_s=st.max_gap_s,
+            watched_from_t_s=first_session.connected_t_s if first_session is not None else None,
+            sessions=np.array([getattr(s, "session", 0) for s in samples], dtype=np.int64),
+            period_s=period_s,
         )
         base.update(
             joints_rad=[float(v) for v in at.joints_rad],
@@ -179,5 +246,15 @@ class Capture:
             covered_s=float(res.covered_s),
             n_samples=int(res.n_samples),
             stillness_reason=str(res.reason),
+            stillness_verdict=res.verdict,
+            max_receive_gap_s=float(res.max_receive_gap_s),
+            stream_period_s=period_s,
         )
         return base
+
+    def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
+        """The measured frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
+        from registration.stillness import stream_period_s
+
+        same = [s.t_s for s in self.link.history(end_t_s - PERIOD_HISTORY_S) if s.session == last.session]
+        return stream_period_s(same)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from typing import IO
 
 from drivers.base import RobotLink
 from registration.kinematics import RobotModel
@@ -45,6 +46,8 @@ class ServiceContext:
     retention_task: asyncio.Task[None] | None = None
     retention_problem: str | None = None
     """Set by the retention loop: why the scan folders exceed ``retention.max_disk_mb`` (``/status``)."""
+    serve_lock: IO[bytes] | None = None
+    """``<data>/serve.lock``, held exclusively while the service runs (service.data_dir)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""

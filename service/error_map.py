@@ -25,7 +25,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drivers.errors import LinkConfigError, RobotLinkError
-from registration.errors import AccuracyGateError, ConfigError, OarmRegError, RegistrationError
+from registration.errors import (
+    AccuracyGateError,
+    ConfigError,
+    JointHistoryIncompleteError,
+    OarmRegError,
+    RegistrationError,
+    RobotMovedError,
+)
 from service.errors import (
     AuthError,
     DatabaseGoneError,
@@ -66,6 +73,9 @@ ERROR_MAP: dict[type, ErrorClass] = {
     RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK, "Robot link error"),
     LinkConfigError: ErrorClass(422, EXIT_CONFIG, "Invalid robot link configuration"),
     StorageFullError: ErrorClass(507, EXIT_CONFIG, "Data folder full"),
+    # stillness (docs/safety.md, "Stillness and health"): two refusals, never one for the other
+    RobotMovedError: ErrorClass(409, EXIT_REFUSED, "Robot moved during the scan"),
+    JointHistoryIncompleteError: ErrorClass(409, EXIT_REFUSED, "Joint history incomplete"),
 }
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)

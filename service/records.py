@@ -91,6 +91,16 @@ class JointSnapshot:
     n_samples: int = 0
     stillness_reason: str = ""
 
+    @property
+    def verdict(self) -> str:
+        """``still`` / ``moved`` / ``incomplete`` (registration.stillness.VERDICTS), derived from
+        ``still`` and the reason: every "moved" reason starts with "robot moved"
+        (registration.stillness.assess_stillness), so records stored before the verdict existed
+        read the same way."""
+        if self.still:
+            return "still"
+        return "moved" if self.stillness_reason.startswith("robot moved") else "incomplete"
+
     @classmethod
     def from_capture(cls, d: Mapping[str, Any]) -> JointSnapshot:
         """From the JSON-ready dict :meth:`service.capture.Capture.snapshot` returns."""

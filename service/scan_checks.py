@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from drivers.errors import RobotLinkError
-from registration.errors import DicomSeriesError, RobotMovedError
+from registration.errors import DicomSeriesError, JointHistoryIncompleteError, RobotMovedError
 from service.records import JointSnapshot, ScanRecord
 
 
@@ -23,7 +23,10 @@ def check_capture(scan: ScanRecord, window_s: float) -> tuple[JointSnapshot, tup
     RobotLinkError
         No joints were captured (link not running or down).
     RobotMovedError
-        The robot moved during the scan, or its stillness could not be established.
+        A joint deviated over the limit during the scan (verdict ``moved``).
+    JointHistoryIncompleteError
+        The joint history does not cover the scan (verdict ``incomplete``): not watched, frames
+        missing, a reconnect; the robot's stillness is unknown.
     """
     if scan.status != "complete":
         raise DicomSeriesError(
@@ -36,23 +39,20 @@ def check_capture(scan: ScanRecord, window_s: float) -> tuple[JointSnapshot, tup
             f"no joint angles were captured for {what}; the robot link was not running; rescan with the link "
             "connected"
         )
-    if snap.joints_rad is None:
+    rescan = f"keep the robot still for {window_s:g} s before and during the scan, then rescan"
+    if snap.verdict == "moved":
+        raise RobotMovedError(f"the robot moved during {what}: {snap.stillness_reason}; {rescan}")
+    if snap.joints_rad is None or not snap.still:
         if snap.link_state == "down":
             raise RobotLinkError(
-                f"robot link {snap.link_url} was down when {what} arrived ({snap.link_reason}); "
-                "no joint angles, so no robot-space sphere positions; "
-                "restore the link (GET /status) and rescan"
+                f"robot link {snap.link_url} was down around {what} ({snap.link_reason}): "
+                f"{snap.stillness_reason}; no joint angles cover the scan; restore the link (GET /status) "
+                "and rescan"
             )
-        raise RobotMovedError(f"{what}: joint angles during the scan are unknown: {snap.stillness_reason}")
-    if not snap.still:
-        if snap.link_state == "down":
-            raise RobotLinkError(
-                f"robot link {snap.link_url} went down around {what}: {snap.stillness_reason}; "
-                "restore the link (GET /status) and rescan"
-            )
-        raise RobotMovedError(
-            f"the robot moved during {what}, or its stillness could not be established: "
-            f"{snap.stillness_reason}; keep the robot still for {window_s:g} s before and during the scan, "
-            "then rescan"
+        raise JointHistoryIncompleteError(
+            f"the joint history of {what} does not cover the scan, so whether the robot was still is unknown "
+            f"(not that it moved): {snap.stillness_reason}; check the robot link (GET /status: connected, "
+            f"history_s >= {window_s:g}) and {rescan}"
         )
+    assert snap.joints_rad is not None
     return snap, snap.joints_rad

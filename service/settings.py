@@ -87,6 +87,13 @@ class RobotSettings(_Section):
     model: str = "tx60"
     connect_timeout_s: float = Field(default=5.0, gt=0, le=120)
     tool0_from_phantom: Tool0FromPhantom = Tool0FromPhantom()
+    # issue 19: read the link in a child process (drivers/link_process.py), so DICOM decoding and
+    # detection cannot starve it of the GIL; false runs it on a thread of the service (debugging)
+    link_process: bool = True
+    # GET /status and link_state events say "stale" only after this long without a frame (s).  The
+    # link's own threshold (3 frame periods, 60 ms) flapped under ordinary load; 0.5 s is 25 frames
+    # at 50 Hz, above the 0.26-0.35 s receive delays measured under decode load (issue 19 item 7)
+    stale_after_s: float = Field(default=0.5, gt=0, le=60)
 
     @field_validator("link_url")
     @classmethod
@@ -308,6 +315,15 @@ class ServiceSection(_Section):
     """Register every scan as soon as it is recorded complete (and push the result)."""
 
 
+class HealthSettings(_Section):
+    """When ``GET /status`` (and ``GET /ready``) turn unhealthy (service.health, docs/safety.md)."""
+
+    # the robot link down or stale this long (s) is a problem.  Longer than one reconnect (back-off
+    # capped at 0.5 s plus a connect, docs/robot-link.md), so a controller that blips is not a problem;
+    # far shorter than an O-arm spin (~13-25 s), so a dead link shows before the scan is taken
+    link_hold_off_s: float = Field(default=3.0, gt=0, le=600)
+
+
 class Settings(BaseSettings):
     """Every setting of the service (see ``configs/oarmreg.toml`` for units and origins)."""
 
@@ -337,6 +353,7 @@ class Settings(BaseSettings):
     tls: TlsSettings = TlsSettings()
     service: ServiceSection = ServiceSection()
     retention: RetentionSettings = RetentionSettings()
+    health: HealthSettings = HealthSettings()
 
     @classmethod
     def settings_customise_sources(

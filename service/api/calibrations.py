@@ -9,7 +9,8 @@ import anyio.to_thread
 from fastapi import APIRouter, Query, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.api.deps import CtxDep
+from service.api.deps import CtxDep, Offset, RecordId
+from service.api.models import DbId
 from service.api.problems import problem_responses
 from service.calibration_jobs import CalibrationJobs, CalibrationRequest
 from service.context import ServiceContext
@@ -26,7 +27,7 @@ class CalibrateRequest(BaseModel):
         extra="forbid", json_schema_extra={"examples": [{"last": 10}, {"scan_ids": [3, 4, 5, 6, 7, 8]}]}
     )
 
-    scan_ids: list[int] | None = Field(default=None, max_length=200, description="Scans (GET /scans).")
+    scan_ids: list[DbId] | None = Field(default=None, max_length=200, description="Scans (GET /scans).")
     last: int | None = Field(default=None, ge=1, le=200, description="Or: the last K complete scans.")
     parameter_set: Literal["full", "offsets", "hand-eye"] = Field(
         "full", description="Robot parameters to estimate besides rod and O-arm placement."
@@ -135,7 +136,7 @@ async def post_calibration(ctx: CtxDep, body: CalibrateRequest) -> CalibrationOu
 def list_calibrations(
     ctx: CtxDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
 ) -> list[CalibrationOut]:
     return [calibration_out(r) for r in ctx.db.calibrations.list(limit, offset)]
 
@@ -153,7 +154,7 @@ def _get(ctx: ServiceContext, calibration_id: int) -> CalibrationRecord:
     summary="One calibration: figures, per-pose residuals, LOPO, parameters with standard errors",
     responses=problem_responses(401, 404),
 )
-def get_calibration(ctx: CtxDep, calibration_id: int) -> CalibrationOut:
+def get_calibration(ctx: CtxDep, calibration_id: RecordId) -> CalibrationOut:
     return calibration_out(_get(ctx, calibration_id))
 
 
@@ -162,7 +163,7 @@ def get_calibration(ctx: CtxDep, calibration_id: int) -> CalibrationOut:
     summary="The calibrated URDF (corrected joint origins)",
     responses=problem_responses(401, 404),
 )
-def get_urdf(ctx: CtxDep, calibration_id: int) -> Response:
+def get_urdf(ctx: CtxDep, calibration_id: RecordId) -> Response:
     rec = _get(ctx, calibration_id)
     if not rec.urdf_text:
         raise NotFoundError(f"calibration {calibration_id} is {rec.status}: it has no URDF")
@@ -183,6 +184,6 @@ def get_urdf(ctx: CtxDep, calibration_id: int) -> Response:
     ),
     responses=problem_responses(401, 404, 409),
 )
-async def activate(ctx: CtxDep, calibration_id: int) -> CalibrationOut:
+async def activate(ctx: CtxDep, calibration_id: RecordId) -> CalibrationOut:
     rec, _ = await anyio.to_thread.run_sync(_jobs(ctx).activate, calibration_id)
     return calibration_out(rec)

@@ -177,6 +177,10 @@ class JointSnapshotOut(_Out):
     n_samples: int
     window_s: float
     stillness_reason: str
+    verdict: str = Field(
+        "",
+        description="still | moved | incomplete (docs/safety.md, Stillness and health).",
+    )
 
 
 class ScanOut(_Out):
@@ -318,6 +322,19 @@ class VerificationOut(_Out):
         return f"/verifications/{self.id}/histogram.png" if self.histogram_path else None
 
 
+class HealthProblemOut(_Out):
+    type: str = Field(
+        description="Stable problem type, e.g. robot-link-down (docs/safety.md, Stillness and health)."
+    )
+    title: str
+    detail: str = Field(description="What happened and what to do.")
+
+
+class ReadyOut(_Out):
+    ready: bool
+    problems: list[HealthProblemOut] = []
+
+
 class StatusOut(_Out):
     version: str
     started_at: str
@@ -336,6 +353,9 @@ class StatusOut(_Out):
     )
     healthy: bool = True
     problems: list[str] = Field([], description="Why the service is unhealthy and what to do.")
+    problem_details: list[HealthProblemOut] = Field(
+        [], description="The same problems, typed (docs/safety.md, Stillness and health)."
+    )
     active_calibration: dict[str, Any] | None = Field(
         None, description="calibration_id, calibration_hash, activated_at; null: the nominal model and rod."
     )

@@ -5,13 +5,22 @@ from __future__ import annotations
 import time
 from datetime import UTC, datetime
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Response
 
 from drivers.errors import RobotLinkError
 from registration import __version__
 from service.api.deps import CtxDep
-from service.api.models import JointsOut, LinkOut, StatusOut, registration_out, scan_out
+from service.api.models import (
+    HealthProblemOut,
+    JointsOut,
+    LinkOut,
+    ReadyOut,
+    StatusOut,
+    registration_out,
+    scan_out,
+)
 from service.api.problems import problem_responses
+from service.health import collect_problems
 
 router = APIRouter(tags=["status"])
 
@@ -25,10 +34,11 @@ router = APIRouter(tags=["status"])
 def status(ctx: CtxDep) -> StatusOut:
     latest = ctx.db.scans.latest_complete()
     cur = ctx.orchestrator.current
-    db_problem = ctx.db.health_problem()
+    problems = collect_problems(ctx)
     return StatusOut(
-        healthy=db_problem is None and ctx.retention_problem is None,
-        problems=[p for p in (db_problem, ctx.retention_problem) if p],
+        healthy=not problems,
+        problems=[str(p) for p in problems],
+        problem_details=[HealthProblemOut(type=p.type, title=p.title, detail=p.detail) for p in problems],
         version=__version__,
         started_at=ctx.started_at.isoformat(),
         uptime_s=(datetime.now(UTC) - ctx.started_at).total_seconds(),
@@ -42,6 +52,22 @@ def status(ctx: CtxDep) -> StatusOut:
         config_hash=ctx.orchestrator.config_hash,
         listeners=ctx.or_integration.status() if ctx.or_integration is not None else {},
         active_calibration=_active_calibration(ctx),
+    )
+
+
+@router.get(
+    "/ready",
+    response_model=ReadyOut,
+    summary="Readiness: 200 when nothing is wrong, 503 listing each problem",
+    responses={**problem_responses(401), 503: {"model": ReadyOut, "description": "not ready: see problems"}},
+)
+def ready(ctx: CtxDep, response: Response) -> ReadyOut:
+    problems = collect_problems(ctx)
+    if problems:
+        response.status_code = 503
+    return ReadyOut(
+        ready=not problems,
+        problems=[HealthProblemOut(type=p.type, title=p.title, detail=p.detail) for p in problems],
     )
 
 

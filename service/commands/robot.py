@@ -187,7 +187,7 @@ async def _points(args: argparse.Namespace) -> int:
 
     from drivers.errors import LinkConfigError
     from drivers.factory import open_link
-    from registration.errors import RobotMovedError
+    from registration.errors import JointHistoryIncompleteError, RobotMovedError
     from registration.kinematics import RobotModel, sphere_centres_robot_mm
     from registration.phantom import load_phantom
     from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S, assess_stillness
@@ -222,7 +222,8 @@ async def _points(args: argparse.Namespace) -> int:
                 max_deviation_rad=max_dev, max_gap_s=max_gap_s,
             )  # fmt: skip
             if not result.still:
-                raise RobotMovedError(f"{url}: {result.reason}; hold the robot still and retry")
+                err = RobotMovedError if result.verdict == "moved" else JointHistoryIncompleteError
+                raise err(f"{url}: {result.reason}; hold the robot still and retry")
     finally:
         await link.close()
 

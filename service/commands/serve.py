@@ -97,15 +97,19 @@ def run(args: argparse.Namespace) -> int:
 
 def preflight(settings: Any) -> None:
     """Fail before uvicorn starts, with one line and the exit code, not a lifespan traceback:
-    no way to authenticate, or a database that is empty, foreign or damaged (issue #13).
+    no way to authenticate, another ``serve`` on the same data folder (issue 19: exit 3, naming it),
+    or a database that is empty, foreign or damaged (issue #13).
 
     Raises
     ------
     ConfigError
     """
+    from service.data_dir import hold_serve_lock, make_private
     from service.store import Database
 
     settings.check_serving()
+    make_private(settings.data_dir)
+    hold_serve_lock(settings.data_dir).close()  # another serve on this folder: exit 3, naming it
     Database.open(settings.db_path).close()
 
 

@@ -380,15 +380,30 @@ def test_verify_after_moving_the_robot(svc: Service, world: World, baseline: Bas
     assert (svc.data / "histograms").is_dir()
 
 
-def test_restart_restores_current_registration(svc: Service, world: World, baseline: Baseline) -> None:
+def test_restart_restores_current_registration(
+    svc: Service, world: World, baseline: Baseline, tmp_path: Path
+) -> None:
+    import sqlite3
+
     from service.app import create_app
     from service.commands.serve import serve_in_thread
 
     cur = svc.client.get("/registration/current").json()
     assert cur["id"] == baseline.registration["id"]
     n_regs = len(svc.client.get("/registrations").json())
+    # A second service may not share the running one's data folder (serve.lock, issue 19): the
+    # restarted service opens a copy of the database (SQLite's online backup).
+    data2 = tmp_path / "data"
+    data2.mkdir()
+    src = sqlite3.connect(svc.settings.db_path)
+    dst = sqlite3.connect(data2 / svc.settings.db_path.name)
+    try:
+        src.backup(dst)
+    finally:
+        src.close()
+        dst.close()
     app2 = create_app(
-        make_settings(svc.watch, svc.data, svc.mock.url), phantom=world.phantom, robot_model=world.model
+        make_settings(svc.watch, data2, svc.mock.url), phantom=world.phantom, robot_model=world.model
     )
     with (
         serve_in_thread(app2) as server2,

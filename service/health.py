@@ -1,0 +1,138 @@
+"""What is wrong with the running service: one list of typed problems for ``GET /status`` and
+``GET /ready`` (``GET /health`` stays liveness plus the database).
+
+Each problem source is a function ``(ctx) -> list[HealthProblem]`` in :data:`PROBLEM_SOURCES`; a new
+source is one function appended to that list.  The problem types and what each means are listed in
+docs/safety.md ("Stillness and health").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from service.context import ServiceContext
+
+PROBE_BYTES = 4096
+"""Size of the file the data-folder probe writes (one filesystem block: a full disk refuses it)."""
+
+
+@dataclass(frozen=True)
+class HealthProblem:
+    """One reason the service is unhealthy.
+
+    ``type`` is stable (``urn:oarmreg:health:<type>``, docs/safety.md); ``title`` short; ``detail``
+    says what happened and what to do.
+    """
+
+    type: str
+    title: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.title}: {self.detail}"
+
+
+def database_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    p = ctx.db.health_problem()
+    return [] if p is None else [HealthProblem("database-unavailable", "Database unavailable", p)]
+
+
+def robot_link_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    p = ctx.capture.problem()
+    return [] if p is None else [HealthProblem("robot-link-down", "Robot link down", p)]
+
+
+def watcher_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    w = ctx.watcher
+    if w is None:
+        return []
+    health, why = w.health()
+    if health == "ok":
+        return []
+    kind = "watcher-stopped" if health == "stopped" else f"watcher-{health}"
+    return [HealthProblem(kind, f"Folder watcher {health}", f"{w.watch_dir}: {why}")]
+
+
+def listener_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """An enabled DICOM SCP or OpenIGTLink server that is not listening."""
+    out: list[HealthProblem] = []
+    oi = ctx.or_integration
+    if oi is None:
+        return out
+    s = ctx.settings
+    for name, enabled, server, what in (
+        ("dicom", s.dicom.enabled, oi.scp, "the O-arm cannot send scans by C-STORE"),
+        ("igtl", s.igtl.enabled, oi.igtl, "navigation receives no OpenIGTLink transforms"),
+    ):
+        if not enabled:
+            continue
+        port: int | None = None
+        if server is not None:
+            with contextlib.suppress(RuntimeError, AttributeError, OSError):
+                port = int(server.port)
+        if port is None:
+            out.append(
+                HealthProblem(
+                    "listener-stopped",
+                    "Listener stopped",
+                    f"the {'DICOM C-STORE SCP' if name == 'dicom' else 'OpenIGTLink server'} is enabled "
+                    f"but not listening: {what}; see the log, then restart the service",
+                )
+            )
+    return out
+
+
+def data_dir_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """Write (and remove) a small file in the data folder: a folder that refuses it cannot keep records."""
+    folder = ctx.settings.data_dir
+    probe = folder / f".health-probe-{secrets.token_hex(4)}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, b"\0" * PROBE_BYTES)
+        finally:
+            os.close(fd)
+    except OSError as e:
+        return [
+            HealthProblem(
+                "data-dir-unwritable",
+                "Data folder refuses writes",
+                f"{folder} refuses writes ({e.strerror or e}); registrations and scans cannot be stored: "
+                "free space or fix the folder's permissions",
+            )
+        ]
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+    return []
+
+
+def retention_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """Retention could not bring the scan folders under ``retention.max_disk_mb``."""
+    p = ctx.retention_problem
+    return [] if p is None else [HealthProblem("retention-over-quota", "Retention over quota", p)]
+
+
+PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
+    database_problems,
+    robot_link_problems,
+    watcher_problems,
+    listener_problems,
+    data_dir_problems,
+    retention_problems,
+]
+"""Every problem source, in the order their problems are listed.  Append new ones here."""
+
+
+def collect_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """Every current problem (empty: healthy)."""
+    out: list[HealthProblem] = []
+    for source in PROBLEM_SOURCES:
+        out.extend(source(ctx))
+    return out
