@@ -61,6 +61,15 @@ class ScanVolume:
     half_length_mm: float = 79.97
     axis_image: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
+    def grown(self, margin_mm: float) -> ScanVolume:
+        """The same cylinder with radius and half-length grown by ``margin_mm``."""
+        return ScanVolume(
+            self.centre_image_mm,
+            self.fov_radius_mm + margin_mm,
+            self.half_length_mm + margin_mm,
+            self.axis_image,
+        )
+
     def inside_margin_mm(self, points_image_mm: F64) -> F64:
         """Smallest distance (mm) of each point set (…, N, 3) to the cylinder's boundary (< 0 outside)."""
         axis = np.asarray(self.axis_image) / np.linalg.norm(self.axis_image)
@@ -356,3 +365,73 @@ def predicted_centres_image_mm(
     return apply(
         image_from_robot @ chain.robot_from_tool0(joints_rad) @ tool0_from_phantom, centres_phantom_mm
     )
+
+
+def sample_poses_in_volume(
+    image_from_robot: ArrayLike,
+    chain: SerialChain,
+    tool0_from_phantom: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    start_joints_rad: ArrayLike,
+    volume: ScanVolume,
+    rng: np.random.Generator,
+    *,
+    n: int,
+    max_tilt_deg: float,
+    margin_mm: float,
+    n_candidates: int = 600,
+    joint_margin_deg: float = 5.0,
+) -> F64:
+    """Up to ``n`` random feasible poses (n', n) rad: phantom orientation tilted ≤ ``max_tilt_deg``
+    from the start pose's (random horizontal axis, any yaw about its own z), position uniform in
+    80 % of ``volume``; IK from the start joints and their wrist flip; joint limits −
+    ``joint_margin_deg``; every sphere ≥ ``margin_mm`` inside ``volume`` by ``chain``.  Distinct
+    (> 2° in some joint), in draw order."""
+    y = as_transform(image_from_robot, "image_from_robot")
+    x = as_transform(tool0_from_phantom, "tool0_from_phantom")
+    pts = np.asarray(centres_phantom_mm, dtype=np.float64)
+    q0 = np.asarray(start_joints_rad, dtype=np.float64).reshape(-1)
+    r0 = (y @ chain.robot_from_tool0(q0) @ x)[:3, :3]
+    axis = np.asarray(volume.axis_image, dtype=np.float64) / np.linalg.norm(volume.axis_image)
+    u = np.cross(axis, [1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.cross(axis, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(axis, u)
+    rr = 0.8 * volume.fov_radius_mm * np.sqrt(rng.uniform(size=n_candidates))
+    ph = rng.uniform(0.0, 2 * math.pi, n_candidates)
+    ax = rng.uniform(-0.8, 0.8, n_candidates) * volume.half_length_mm
+    centres = (
+        np.asarray(volume.centre_image_mm)
+        + (rr * np.cos(ph))[:, None] * u
+        + (rr * np.sin(ph))[:, None] * w
+        + ax[:, None] * axis
+    )
+    az = rng.uniform(0.0, 2 * math.pi, n_candidates)
+    tilt = math.radians(max_tilt_deg) * np.sqrt(rng.uniform(size=n_candidates))
+    yaw = rng.uniform(0.0, 2 * math.pi, n_candidates)
+    rots = np.stack(
+        [
+            r0
+            @ rotation_about(np.array([math.cos(a), math.sin(a), 0.0]), np.array([t]))[0]
+            @ rotation_about(np.array([0.0, 0.0, 1.0]), np.array([yw]))[0]
+            for a, t, yw in zip(az, tilt, yaw, strict=True)
+        ]
+    )
+    timg = np.zeros((n_candidates, 4, 4))
+    timg[:, :3, :3], timg[:, :3, 3], timg[:, 3, 3] = rots, centres, 1.0
+    trob = invert(y) @ timg @ invert(x)
+    seeds = np.concatenate(
+        [np.repeat(q0[None], n_candidates, 0), np.repeat(_wrist_flip(q0)[None], n_candidates, 0)]
+    )
+    q, err = solve_ik(chain, np.concatenate([trob, trob]), seeds)
+    lim = math.radians(joint_margin_deg)
+    ok = (err < IK_TOL_MM) & np.all((q >= chain.lower_rad + lim) & (q <= chain.upper_rad - lim), axis=1)
+    fk = y @ chain.robot_from_tool0_batch(q) @ x
+    inside = volume.inside_margin_mm(np.einsum("cij,nj->cni", fk[:, :3, :3], pts) + fk[:, None, :3, 3])
+    ok &= inside >= margin_mm
+    keep: list[int] = []
+    for i in np.flatnonzero(ok):
+        if all(float(np.max(np.abs(q[i] - q[j]))) > math.radians(2.0) for j in keep):
+            keep.append(int(i))
+        if len(keep) >= n:
+            break
+    return np.asarray(q[keep], dtype=np.float64).reshape(len(keep), chain.n_joints)
