@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, Literal
 
@@ -72,6 +72,11 @@ if TYPE_CHECKING:
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
+NOMINAL_CHAIN_ERROR_MM: Final = 1.0
+"""``predicted_chain_error_mm`` of a registration made with the nominal model and rod (no active
+calibration): issue #20 measured 1.03 mm mean held-out error of the nominal model on a TX60 cell it
+was not tuned on; the test bed's nominal model gives 1.0–1.4 mm at error scale 1
+(``python -m benchmarks.bench_calibration``)."""
 DROP_CONDITION: Final = 100.0
 """``--drop-weak`` drops until the condition number is ≤ this when no ``max_condition`` is given
 (Schroer et al. via Nahvi & Hollerbach 1996, research/calibration.md §1)."""
@@ -1442,3 +1447,17 @@ def predict_image_mm(
     t = y @ result.chain.robot_from_tool0(joints_rad) @ result.tool0_from_phantom
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
     return np.asarray(pts @ t[:3, :3].T + t[:3, 3], dtype=np.float64)
+
+
+def chain_error_figure(calibration: Mapping[str, Any] | None) -> tuple[float, str]:
+    """(predicted_chain_error_mm, its source) of a registration made with ``calibration``: the
+    active calibration's posterior figure, else the nominal model's prior (issue #20)."""
+    if calibration is not None:
+        v = calibration.get("predicted_chain_error_mm")
+        if v is not None:
+            return float(v), f"calibration {calibration.get('calibration_id')} posterior"
+        return NOMINAL_CHAIN_ERROR_MM, (
+            f"calibration {calibration.get('calibration_id')} has no posterior figure "
+            "(made before issue #20): nominal prior"
+        )
+    return NOMINAL_CHAIN_ERROR_MM, "nominal model prior (no active calibration)"
