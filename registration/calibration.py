@@ -52,9 +52,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Final, Literal
+from typing import TYPE_CHECKING, Any, Final, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -66,9 +66,20 @@ from registration.frames import as_transform, invert, make_transform
 from registration.rigid import fit_rigid, nearest_rotation
 from registration.urdf_writer import SerialChain, rotation_about
 
+if TYPE_CHECKING:
+    from registration.pose_planner import ScanVolume
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
+NOMINAL_CHAIN_ERROR_MM: Final = 1.0
+"""``predicted_chain_error_mm`` of a registration made with the nominal model and rod (no active
+calibration): issue #20 measured 1.03 mm mean held-out error of the nominal model on a TX60 cell it
+was not tuned on; the test bed's nominal model gives 1.0–1.4 mm at error scale 1
+(``python -m benchmarks.bench_calibration``)."""
+DROP_CONDITION: Final = 100.0
+"""``--drop-weak`` drops until the condition number is ≤ this when no ``max_condition`` is given
+(Schroer et al. via Nahvi & Hollerbach 1996, research/calibration.md §1)."""
 MIN_POSES: Final = 6
 """Issue #10: K ≥ 6 scans per session."""
 FD_STEP: Final = 1e-6
@@ -101,6 +112,59 @@ STRUCTURAL_RANK_TOL: Final = 1e-5
 structurally redundant (exact redundancies leave ~1e-10, genuine parameters ≥ 1e-2)."""
 
 
+@dataclass(frozen=True)
+class Priors:
+    """Gaussian prior widths (σ per component) of the robot's geometric errors (issue #20).
+
+    Origin: research/calibration.md §1 — an uncalibrated Stäubli TX60 is off by 0.312 mm / 0.221°
+    on average (robotinfo.org summary of a published BAS-PSO study).  σ 0.1 mm per axis on each of
+    the 7 joint origins with 0.01° tilts and zero offsets gives a nominal position error of that
+    size at the flange (the test bed's error scale 1: ``benchmarks/calib_testbed.py``); the issue
+    #10 cell (0.12 mm / 0.012°, TX60 study) is 1.2 × these.  The rod and the O-arm placement
+    have no prior (flat): every pose sees them in full.
+    """
+
+    origin_translation_mm: float = 0.1
+    """σ of a joint origin's shift / slide (mm)."""
+    origin_rotation_deg: float = 0.01
+    """σ of a joint origin's tilt (deg)."""
+    zero_offset_deg: float = 0.01
+    """σ of a joint's zero offset (deg)."""
+
+    rod_translation_mm: float = 1.0
+    rod_rotation_deg: float = 0.5
+    """σ per axis of the rod about its CAD pose, for the posterior only (the fit leaves it free):
+    the issue #20 cell's rod was off 0.8 mm / 0.4° in all; 1 mm / 0.5° per axis covers it."""
+    placement_translation_mm: float = 1000.0
+    placement_rotation_deg: float = 90.0
+    """σ of the O-arm placement, for the posterior only: effectively flat (the O-arm can stand
+    anywhere), finite so a direction the poses cannot see gets a huge, not an infinite, variance."""
+
+    def sigma_posterior(self, p: Parameter) -> float:
+        """σ of ``p`` (rad or mm) in the posterior: :meth:`sigma`, the rod's and the placement's."""
+        if p.group == "tool0_from_phantom":
+            return self.rod_translation_mm if p.kind == "trans" else math.radians(self.rod_rotation_deg)
+        if p.group == "image_from_robot":
+            return (
+                self.placement_translation_mm
+                if p.kind == "trans"
+                else math.radians(self.placement_rotation_deg)
+            )
+        return self.sigma(p)
+
+    def sigma(self, p: Parameter) -> float:
+        """σ of parameter ``p`` in its unit (rad or mm); inf for the rod and the placement."""
+        if p.group in ("image_from_robot", "tool0_from_phantom"):
+            return math.inf
+        if p.kind == "trans":
+            return self.origin_translation_mm
+        deg = self.zero_offset_deg if p.name.endswith(" offset") else self.origin_rotation_deg
+        return math.radians(deg)
+
+
+PRIORS: Final = Priors()
+
+
 class CalibrationError(RegistrationError):
     """A calibration was refused.  Subclasses say why."""
 
@@ -128,12 +192,51 @@ class CalibrationParams:
     """Settings of :func:`calibrate` (lengths in mm)."""
 
     parameter_set: Literal["full", "offsets", "hand-eye"] = "full"
-    max_condition: float = 100.0
-    """Refusal threshold on the condition number of the column-normalised identification Jacobian:
-    Schroer et al. (quoted in Nahvi & Hollerbach, ICRA 1996; research/calibration.md §1) ask < 100
-    (FIGAROH's default is 1000)."""
+    estimator: Literal["map", "ls"] = "ls"
+    """``"ls"``: robust least squares over the minimal complete set, no prior; ``"map"``: maximum a
+    posteriori with Gaussian priors (:data:`PRIORS`) on the robot parameters, their weight chosen
+    by cross-validation over poses.  Default ``"ls"``: on the issue #20 test bed (tuning seeds 1–3
+    × error scales 1, 2 × random / planned poses, ``python -m benchmarks.bench_calibration``) it
+    won on held-out poses in 8 of 12 sets (MAP's cross-validated prior over-regularised where the
+    truth was 2 × the priors); the refusal is on the predicted error either way, not on the
+    condition number (docs/calibration.md)."""
+    max_condition: float | None = None
+    """Optional extra refusal on the condition number of the column-normalised identification
+    Jacobian (data only, no prior).  Off by default: a parameter that moves nothing in the
+    working volume is harmless, the refusal is on :attr:`max_predicted_error_mm`.  Schroer et al.
+    (quoted in Nahvi & Hollerbach, ICRA 1996; research/calibration.md §1) ask < 100."""
     on_weak: Literal["refuse", "drop"] = "refuse"
-    """Over ``max_condition``: refuse, or drop the weakest robot parameters until it passes."""
+    """``"drop"`` (``--drop-weak``): fix the weakest robot parameters at nominal until the condition
+    number is ≤ ``max_condition`` (:data:`DROP_CONDITION` when that is None)."""
+    prior_scales: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+    """Multipliers of the prior widths tried by cross-validation (MAP); the one with the least
+    mean squared prediction error on the left-out poses wins.  0.25–8 × spans an unseen cell's
+    errors from a quarter of the priors to 8 × (the test bed sweeps 0.5–2 ×)."""
+    cv_folds: int = 5
+    """Folds of the cross-validation over poses (each fold leaves out every 5th pose)."""
+    data_sd_mm: float = 0.05
+    """Reference σ (mm) per residual component the prior weight is written against: σ_d / (s σ_j)
+    per parameter.  0.05 mm ≈ FLE 0.07 mm 3-D / √3 plus unmodelled (sag, repeatability) of the
+    issue #10 DICOM session; the cross-validated scale s absorbs any mismatch."""
+    working_margin_mm: float = 40.0
+    """Working volume = the scan volume grown by this (radius and half-length, mm): navigation
+    uses the arm beyond the phantom's calibration positions — the phantom is 60 mm across and a
+    target 150 mm from it (the registration's TRE targets) sits up to ~40 mm outside the volume
+    when the phantom is at its edge.  The prediction and the refusal are over this volume."""
+    unmodelled_floor_mm: float = 0.04
+    """Least RMS per-pose error (mm, 3-D) no geometric model has — compliance/sag, backlash,
+    repeatability — used when the residuals show less (a fit absorbs most of it at its own poses).
+    Origin: Stäubli TX60 repeatability ± 0.02 mm [unverified datasheet value] and non-geometric
+    errors ≈ 10 % of the position error (Klimchik et al., research/calibration.md §1) of the
+    TX60's 0.31 mm nominal error: √(0.02² + 0.031²) ≈ 0.04 mm."""
+    farthest_split: bool = False
+    """Scale the posterior by how optimistic it was on the poses farthest from the rest (≥ 1).
+    Off by default: with 10 poses the ⌈K/4⌉ held-out poses make a noisy factor (1–15 on the
+    tuning seeds), which pushed predicted / measured above 1.5 on 4 of 12 sets, against 1 without."""
+    max_predicted_error_mm: float = 0.5
+    """Refuse when the predicted RMS sphere error at the worst pose of the working volume exceeds
+    this (mm).  0.5 mm: research/calibration.md §6 suggested gate on predicted TRE, half the
+    ≈ 1 mm the nominal model gives (issue #20)."""
     min_poses: int = MIN_POSES
     robust_scale_mm: float = 0.2
     """soft-L1 loss scale: residuals ≫ this (a wrong match, ≥ 1 mm) weigh linearly, not squared;
@@ -220,11 +323,35 @@ class CalibrationResult:
     registration_tre_rms_mm: float
     """Fitzpatrick's RMS TRE over the phantom's spheres of a one-scan registration with this FLE and
     all spheres (1998 eq. 46): what re-registering after the O-arm moved adds."""
+    estimator: str = "map"
+    prior_scale: float = float("nan")
+    """Multiplier of the prior widths chosen by cross-validation over poses (NaN for ``"ls"``)."""
+    cv_scores: dict[float, float] | None = None
+    """Prior scale → mean squared left-out sphere error (mm²) of the cross-validation."""
+    posterior_cov: F64 | None = None
+    """(P, P) posterior covariance of ``values`` (rad, mm)."""
+    unmodelled_rms_mm: float = float("nan")
+    prediction: WorkingPrediction | None = None
+    working_volume: dict[str, Any] | None = None
 
     @property
     def predicted_held_out_rms_mm(self) -> float:
-        """Expected RMS sphere-centre error at an unseen pose after a one-scan registration with the
-        calibrated model: √(LOPO TRE² + registration TRE²)."""
+        """Expected RMS sphere-centre error at a pose of the working volume after a one-scan
+        registration with the calibrated model: the posterior propagated through the kinematics
+        (issue #20); without a prediction the LOPO figure :attr:`lopo_predicted_rms_mm`."""
+        if self.prediction is not None:
+            return self.prediction.rms_mm
+        return self.lopo_predicted_rms_mm
+
+    @property
+    def predicted_chain_error_mm(self) -> float:
+        """The chain figure every registration with this calibration carries (RMS over the
+        working volume, see :attr:`predicted_held_out_rms_mm`)."""
+        return self.predicted_held_out_rms_mm
+
+    @property
+    def lopo_predicted_rms_mm(self) -> float:
+        """Issue #10's figure: √(LOPO TRE² + registration TRE²) — only sees poses like the others."""
         return math.sqrt(self.lopo_tre_rms_mm**2 + self.registration_tre_rms_mm**2)
 
     @property
@@ -294,6 +421,29 @@ class CalibrationResult:
             "fle_rms_mm": self.fle_rms_mm,
             "registration_tre_rms_mm": self.registration_tre_rms_mm,
             "predicted_held_out_rms_mm": _finite_or_none(self.predicted_held_out_rms_mm),
+            "lopo_predicted_rms_mm": _finite_or_none(self.lopo_predicted_rms_mm),
+            "predicted_chain_error_mm": _finite_or_none(self.predicted_chain_error_mm),
+            "estimator": self.estimator,
+            "prior_scale": _finite_or_none(self.prior_scale),
+            "cross_validation": (
+                None
+                if self.cv_scores is None
+                else [{"prior_scale": k, "mean_sq_mm2": v} for k, v in self.cv_scores.items()]
+            ),
+            "unmodelled_rms_mm": _finite_or_none(self.unmodelled_rms_mm),
+            "working_volume": self.working_volume,
+            "predicted_working": (
+                None
+                if self.prediction is None
+                else {
+                    "rms_mm": self.prediction.rms_mm,
+                    "max_mm": self.prediction.max_mm,
+                    "n_poses": len(self.prediction.per_pose_rms_mm),
+                    "weak_direction": [
+                        {"parameter": n, "share": v} for n, v in self.prediction.weak_direction
+                    ],
+                }
+            ),
             "timings_s": dict(self.timings_s),
             "software": f"oarmreg {__version__}",
         }
@@ -376,6 +526,11 @@ class _Model:
     x0: F64
     chain: SerialChain
     params: tuple[Parameter, ...]
+    prior_weights: F64 | None = None
+    """Per parameter σ_d / (s σ_j) of the MAP prior residual (0 = flat prior); None = plain LS."""
+
+    def with_prior(self, weights: F64 | None) -> _Model:
+        return _Model(self.y0, self.x0, self.chain, self.params, weights)
 
     def unpack(self, values: F64) -> tuple[F64, F64, SerialChain]:
         c = _corrections(self.params, values)
@@ -629,10 +784,13 @@ def _select_parameters(
 ) -> tuple[_Model, tuple[str, ...], int, float, F64]:
     """Check identifiability at the start; refuse or drop weak robot parameters."""
     dropped: list[str] = []
+    limit = params.max_condition
+    if limit is None and params.on_weak == "drop":
+        limit = DROP_CONDITION
     while True:
         jac = _jacobian(model, data, np.zeros(len(model.params)))
         rank, cond, s, weak, ranked = _identifiability(jac, model.params, params.rank_rtol)
-        if cond <= params.max_condition:
+        if limit is None or cond <= limit:
             return model, tuple(dropped), rank, cond, s
         robot_weak = [p for p in ranked if p.group in names]
         if params.on_weak == "drop" and robot_weak:
@@ -644,7 +802,7 @@ def _select_parameters(
         raise NotIdentifiableError(
             f"the {len(data.joints_rad)} poses do not identify the requested '{params.parameter_set}' "
             f"set of {len(model.params)} parameters: numeric rank {rank}, condition number {cond:.3g} > "
-            f"{params.max_condition:g}; weakest: {', '.join(p.name for p in weak[:4])}. "
+            f"{limit:g} (--max-condition); weakest: {', '.join(p.name for p in weak[:4])}. "
             f"{_motion_advice(weak, data.joints_rad, names)}"
         )
 
@@ -664,16 +822,48 @@ def _sphere_soft_l1(z: F64) -> F64:
     return np.stack([2.0 * (root - 1.0) / 3.0, 1.0 / root, np.zeros_like(s)])
 
 
+def _prior_loss(n_data: int) -> Any:
+    """The per-sphere soft-L1 on the first ``n_data`` components, a plain square on the prior rows."""
+
+    def loss(z: F64) -> F64:
+        out = np.empty((3, len(z)))
+        out[:, :n_data] = _sphere_soft_l1(z[:n_data])
+        out[0, n_data:], out[1, n_data:], out[2, n_data:] = z[n_data:], 1.0, 0.0
+        return out
+
+    return loss
+
+
+def _augmented(model: _Model, data: _Data) -> tuple[Any, Any, Any]:
+    """(residuals, Jacobian, loss) of the MAP cost: sphere residuals, then w_j θ_j per prior row."""
+    w = model.prior_weights
+    if w is None or not np.any(w > 0):
+        return (lambda v: _residuals(model, data, v)), (lambda v: _jacobian(model, data, v)), _sphere_soft_l1
+    rows = np.flatnonzero(w > 0)
+    prior_jac = np.zeros((len(rows), len(w)))
+    prior_jac[np.arange(len(rows)), rows] = w[rows]
+    n_data = 3 * len(data.pose_of)
+
+    def fun(v: F64) -> F64:
+        return np.concatenate([_residuals(model, data, v), w[rows] * v[rows]])
+
+    def jac(v: F64) -> F64:
+        return np.vstack([_jacobian(model, data, v), prior_jac])
+
+    return fun, jac, _prior_loss(n_data)
+
+
 def _fit(model: _Model, data: _Data, x0: F64, params: CalibrationParams) -> F64:
     """Robust least squares on all sphere residuals: ``scipy.optimize.least_squares`` (TRF) with
     the analytic Jacobian and a soft-L1 loss of scale ``robust_scale_mm`` on each sphere's 3-D
-    distance (issue #10)."""
+    distance (issue #10); with ``model.prior_weights`` the MAP cost (prior rows squared, issue #20)."""
+    fun, jac, loss = _augmented(model, data)
     res = least_squares(
-        lambda v: _residuals(model, data, v),
+        fun,
         np.asarray(x0, dtype=np.float64),
-        jac=lambda v: _jacobian(model, data, v),
+        jac=jac,
         method="trf",
-        loss=_sphere_soft_l1,
+        loss=loss,
         f_scale=params.robust_scale_mm,
         x_scale="jac",
         tr_solver=TR_SOLVER,
@@ -776,14 +966,321 @@ def _fit_without_outliers(
     return values, used, (rms, mx, per)
 
 
+# ---------------------------------------------------------------- MAP: priors, cross-validation, posterior
+
+WORKING_POSES: Final = 40
+"""Poses sampled over the working volume for the predicted error (and the refusal)."""
+WORKING_SEED: Final = 20201202
+"""Fixed: the working-volume sample is a property of the session, not a random draw per call."""
+
+
+def _prior_weights(model: _Model, params: CalibrationParams, scale: float) -> F64 | None:
+    """σ_d / (s σ_j) per parameter (0 for the flat-prior rod and placement); None for ``"ls"``."""
+    if params.estimator == "ls":
+        return None
+    sig = np.array([PRIORS.sigma(p) for p in model.params])
+    return np.where(np.isfinite(sig), params.data_sd_mm / (scale * np.where(np.isfinite(sig), sig, 1.0)), 0.0)
+
+
+def _cross_validate(
+    model: _Model, data: _Data, x0: F64, params: CalibrationParams
+) -> tuple[float, dict[float, float]]:
+    """Prior scale with the least mean squared sphere error on left-out poses (k-fold over poses).
+
+    Each fold leaves out every ``cv_folds``-th pose, fits the rest (same O-arm placement, so the
+    left-out poses are predicted with the fitted ``image_from_robot``) and scores the left-out
+    detections.  Never sees the held-out poses of a benchmark."""
+    n = len(data.joints_rad)
+    k = max(2, min(params.cv_folds, n))
+    folds = [np.arange(n) % k == f for f in range(k)]
+    scores: dict[float, float] = {}
+    for scale in params.prior_scales:
+        m = model.with_prior(_prior_weights(model, params, scale))
+        sq, cnt = 0.0, 0
+        for f in folds:
+            v = _fit(m, data.subset(~f), x0, params)
+            r = _residuals(m, data.subset(f), v)
+            sq += float(r @ r)
+            cnt += len(r) // 3
+        scores[scale] = sq / max(cnt, 1)
+    return min(scores, key=lambda s_: scores[s_]), scores
+
+
+def _posterior_cov(model: _Model, data: _Data, values: F64, params: CalibrationParams, scale: float) -> F64:
+    """(JᵀJ / σ̂² + Σ_prior⁻¹)⁻¹: the Gauss–Newton posterior covariance of the estimate.
+
+    σ̂² = Σr² / (m − P) from the sphere residuals (at least (1 µm)²).  The prior (robot parameters:
+    :data:`PRIORS` × the cross-validated scale for ``"map"``, × 1 for ``"ls"``; rod and placement:
+    :meth:`Priors.sigma_posterior`) bounds what the poses cannot see, so a direction they miss
+    shows in the predicted error instead of vanishing in a pseudo-inverse."""
+    jac = _jacobian(model, data, values)
+    r = _residuals(model, data, values)
+    s2 = max(float(r @ r) / max(len(r) - len(values), 1), 1e-6)
+    sig = np.array([PRIORS.sigma_posterior(p) for p in model.params])
+    robot = np.array([p.group not in ("image_from_robot", "tool0_from_phantom") for p in model.params])
+    sig = np.where(robot, sig * (scale if math.isfinite(scale) else 1.0), sig)
+    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(1.0 / sig**2)
+    d = np.sqrt(np.diag(a))
+    return np.asarray(np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d), dtype=np.float64)
+
+
+def _skew_rows(p: F64) -> F64:
+    """(3N, 6) Jacobian of a small rigid motion (ω, t) of points p (N, 3): ω × p + t."""
+    n = len(p)
+    g = np.zeros((n, 3, 6))
+    g[:, 0, 1], g[:, 0, 2] = p[:, 2], -p[:, 1]
+    g[:, 1, 0], g[:, 1, 2] = -p[:, 2], p[:, 0]
+    g[:, 2, 0], g[:, 2, 1] = p[:, 1], -p[:, 0]
+    g[:, :, 3:] = np.eye(3)
+    return g.reshape(3 * n, 6)
+
+
+def _effective_jacobians(model: _Model, values: F64, joints_rad: F64, reg_joints_rad: F64, pts: F64) -> F64:
+    """(W, 3N, P) sphere-position Jacobians at ``joints_rad`` after a one-scan re-registration at
+    ``reg_joints_rad``: J_q − G_q G_reg⁺ J_reg (the rigid part the registration absorbs removed)."""
+    q = np.vstack([joints_rad, reg_joints_rad[None]])
+    n = len(pts)
+    data = _Data(q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n))
+    jac = _jacobian(model, data, values).reshape(len(q), 3 * n, len(values))
+    world = model.predict(values, q, data.pts_phantom_mm, data.pose_of).reshape(len(q), n, 3)
+    g_reg = _skew_rows(world[-1])
+    proj = np.linalg.pinv(g_reg) @ jac[-1]  # (6, P)
+    g_q = np.stack([_skew_rows(w) for w in world[:-1]])  # (W, 3N, 6)
+    return np.asarray(jac[:-1] - g_q @ proj, dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class WorkingPrediction:
+    """The predicted error over the working volume (mm) and what limits it."""
+
+    joints_rad: F64
+    """(W, n) sampled poses of the working volume."""
+    registration_joints_rad: F64
+    per_pose_rms_mm: F64
+    """RMS sphere error predicted at each sampled pose (chain posterior + unmodelled + registration)."""
+    chain_rms_mm: F64
+    """... its part from the calibrated model's posterior alone."""
+    rms_mm: float
+    max_mm: float
+    weak_direction: tuple[tuple[str, float], ...]
+    """Parameters of the direction that dominates the worst pose's error, with their share."""
+    exciting_joints_rad: F64
+    """(≤ 3, n) poses inside the scan volume whose spheres move most along that direction."""
+
+
+def _unmodelled_rms_mm(model: _Model, data: _Data, values: F64, fle_rms_mm: float) -> float:
+    """RMS of the per-pose rigid part of the residuals beyond what FLE leaks into it: errors no
+    geometric model has (repeatability, sag) as seen at the calibration poses."""
+    r = _residuals(model, data, values).reshape(-1, 3)
+    world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
+    ms = []
+    for i in range(len(data.joints_rad)):
+        rows = data.pose_of == i
+        if rows.sum() < 3:
+            continue
+        g = _skew_rows(world[rows])
+        sol, *_ = np.linalg.lstsq(g, r[rows].reshape(-1), rcond=None)
+        rigid = (g @ sol).reshape(-1, 3)
+        ms.append(float(np.mean(np.sum(rigid**2, axis=1))) - 2.0 * fle_rms_mm**2 / int(rows.sum()))
+    return math.sqrt(max(float(np.mean(ms)) if ms else 0.0, 0.0))
+
+
+def predict_working_error(
+    model: _Model,
+    values: F64,
+    cov: F64,
+    working_joints_rad: F64,
+    registration_joints_rad: F64,
+    pts: F64,
+    *,
+    unmodelled_rms_mm: float,
+    registration_tre_rms_mm: float,
+    candidate_joints_rad: F64 | None = None,
+) -> WorkingPrediction:
+    """Posterior covariance propagated through the kinematics to the working poses (after a one-scan
+    re-registration at ``registration_joints_rad``), plus √2 × the unmodelled error (at the
+    pose and at the registration pose) and the registration's own TRE, in quadrature."""
+    jeff = _effective_jacobians(model, values, working_joints_rad, registration_joints_rad, pts)
+    n = len(pts)
+    chain_ms = np.einsum("wip,pq,wiq->w", jeff, cov, jeff) / n
+    chain_rms = np.sqrt(np.clip(chain_ms, 0.0, None))
+    per = np.sqrt(chain_ms + 2.0 * unmodelled_rms_mm**2 + registration_tre_rms_mm**2)
+    worst = int(np.argmax(per))
+    lam, vec = np.linalg.eigh((cov + cov.T) / 2.0)
+    lo = vec * np.sqrt(np.clip(lam, 0.0, None))
+    _, _, vt = np.linalg.svd(jeff[worst] @ lo, full_matrices=False)
+    direction = lo @ vt[0]
+    share = np.abs(direction) / np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    share = share / share.sum()
+    order = np.argsort(-share)[:4]
+    weak = tuple((model.params[j].name, float(share[j])) for j in order)
+    exciting = np.zeros((0, len(registration_joints_rad)))
+    if candidate_joints_rad is not None and len(candidate_joints_rad):
+        c = candidate_joints_rad
+        data = _Data(c, np.tile(pts, (len(c), 1)), np.zeros((len(c) * n, 3)), np.repeat(np.arange(len(c)), n))
+        jc = _jacobian(model, data, values).reshape(len(c), 3 * n, len(values))
+        gain = np.linalg.norm(jc @ direction, axis=1)
+        exciting = c[np.argsort(-gain)[:3]]
+    return WorkingPrediction(
+        working_joints_rad,
+        registration_joints_rad,
+        per,
+        chain_rms,
+        float(np.sqrt(np.mean(per**2))),
+        float(per.max()),
+        weak,
+        exciting,
+    )
+
+
+def _farthest_split_inflation(
+    model: _Model,
+    data: _Data,
+    values: F64,
+    params: CalibrationParams,
+    fle_rms_mm: float,
+    unmodelled_rms_mm: float,
+) -> tuple[float, tuple[int, ...]]:
+    """How optimistic the posterior is away from the poses: hold out the poses farthest from the
+    rest (largest RMS sphere distance to their nearest other pose, ⌈K/4⌉ of them, ≥ 2), fit the
+    others, and compare the held-out poses' squared error (detection error removed) with what the
+    split fit's posterior (+ unmodelled) predicts there.  Returns (k² ≥ 1, held-out pose indices)."""
+    k = len(data.joints_rad)
+    n_out = max(2, math.ceil(k / 4))
+    if k - n_out < 3:
+        return 1.0, ()
+    world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
+    pts = data.pts_phantom_mm[data.pose_of == 0]
+    q = data.joints_rad
+    full = _Data(q, np.tile(pts, (k, 1)), np.zeros((k * len(pts), 3)), np.repeat(np.arange(k), len(pts)))
+    w = model.predict(values, q, full.pts_phantom_mm, full.pose_of).reshape(k, len(pts), 3)
+    d = np.sqrt(np.mean(np.sum((w[:, None] - w[None]) ** 2, axis=-1), axis=-1))
+    np.fill_diagonal(d, np.inf)
+    out = tuple(int(i) for i in np.argsort(-d.min(axis=1))[:n_out])
+    del world
+    held = np.zeros(k, dtype=bool)
+    held[list(out)] = True
+    train = data.subset(~held)
+    v = _fit(model, train, values, params)
+    cov = _posterior_cov(model, train, v, params, 1.0)
+    test = data.subset(held)
+    r = _residuals(model, test, v).reshape(-1, 3)
+    obs = float(np.mean(np.sum(r**2, axis=1))) - fle_rms_mm**2
+    jac = _jacobian(model, test, v).reshape(len(r), 3, len(v))
+    pred = float(np.mean(np.einsum("lip,pq,liq->l", jac, cov, jac))) + unmodelled_rms_mm**2
+    if pred <= 0.0:
+        return 1.0, out
+    return max(1.0, obs / pred), out
+
+
+def _default_volume(meas_image_mm: F64) -> ScanVolume:
+    from registration.pose_planner import ScanVolume
+
+    d = ScanVolume()
+    c = meas_image_mm.mean(axis=0)
+    return ScanVolume(
+        (float(c[0]), float(c[1]), float(c[2])), d.fov_radius_mm, d.half_length_mm, d.axis_image
+    )
+
+
+def _working_prediction(
+    model: _Model,
+    values: F64,
+    cov: F64,
+    data: _Data,
+    pts: F64,
+    params: CalibrationParams,
+    scan_volume: ScanVolume | None,
+    unmodelled_rms_mm: float,
+    registration_tre_rms_mm: float,
+) -> tuple[WorkingPrediction, dict[str, Any]]:
+    """Sample the working volume (scan volume + margin) with the calibrated model and predict."""
+    from registration.pose_planner import sample_poses_in_volume
+
+    y, x, cal_chain = model.unpack(values)
+    vol = scan_volume if scan_volume is not None else _default_volume(data.meas_image_mm)
+    work = vol.grown(params.working_margin_mm)
+    rng = np.random.default_rng(WORKING_SEED)
+    q0 = data.joints_rad[0]
+    wq = sample_poses_in_volume(
+        y,
+        cal_chain,
+        x,
+        pts,
+        q0,
+        work,
+        rng,
+        n=WORKING_POSES,
+        max_tilt_deg=75.0,
+        margin_mm=0.0,
+        n_candidates=300,
+    )
+    inside = sample_poses_in_volume(
+        y, cal_chain, x, pts, q0, vol, rng, n=30, max_tilt_deg=75.0, margin_mm=5.0, n_candidates=300
+    )
+    if len(wq) == 0:
+        wq = data.joints_rad
+    if len(inside):
+        centres = (y @ cal_chain.robot_from_tool0_batch(inside) @ x)[:, :3, 3]
+        q_reg = inside[int(np.argmin(np.linalg.norm(centres - np.asarray(vol.centre_image_mm), axis=1)))]
+    else:
+        q_reg = q0
+    pred = predict_working_error(
+        model,
+        values,
+        cov,
+        wq,
+        q_reg,
+        pts,
+        unmodelled_rms_mm=unmodelled_rms_mm,
+        registration_tre_rms_mm=registration_tre_rms_mm,
+        candidate_joints_rad=inside,
+    )
+    doc = {
+        "scan_volume": {
+            "centre_image_mm": list(vol.centre_image_mm),
+            "fov_radius_mm": vol.fov_radius_mm,
+            "half_length_mm": vol.half_length_mm,
+            "axis_image": list(vol.axis_image),
+            "from": "series geometry"
+            if scan_volume is not None
+            else "default O-arm cylinder on the detections",
+        },
+        "margin_mm": params.working_margin_mm,
+        "n_poses": len(wq),
+    }
+    return pred, doc
+
+
+def _prediction_refusal(
+    pred: WorkingPrediction, params: CalibrationParams, joints_rad: F64, names: Sequence[str]
+) -> str:
+    weak = ", ".join(f"{n} ({100 * v:.0f} %)" for n, v in pred.weak_direction)
+    poses = "; ".join(
+        "[" + ", ".join(f"{math.degrees(v):.1f}" for v in q) + "]" for q in pred.exciting_joints_rad
+    )
+    return (
+        f"predicted error over the working volume (scan volume + {params.working_margin_mm:g} mm) up to "
+        f"{pred.max_mm:.3f} mm RMS at the worst pose (mean {pred.rms_mm:.3f} mm) > the limit "
+        f"{params.max_predicted_error_mm:g} mm; weak direction: {weak}. "
+        + (f"Poses inside the scan volume that would excite it (joints in deg): {poses}. " if poses else "")
+        + _motion_advice([], joints_rad, names)
+    ).strip()
+
+
 def calibrate(
     poses: Sequence[MatchedPose],
     chain: SerialChain,
     tool0_from_phantom: ArrayLike,
     centres_phantom_mm: ArrayLike,
     params: CalibrationParams = CalibrationParams(),
+    scan_volume: ScanVolume | None = None,
 ) -> CalibrationResult:
     """Estimate ``image_from_robot``, ``tool0_from_phantom`` and joint-origin corrections.
+
+    ``scan_volume``: the session's reconstructed cylinder (image frame); the working volume is it
+    grown by ``params.working_margin_mm``.  None: the O-arm export's default cylinder
+    (:class:`registration.pose_planner.ScanVolume`) centred on the centroid of the detections.
 
     Parameters
     ----------
@@ -815,20 +1312,57 @@ def calibrate(
     y0, x0 = _initial_estimate(poses, chain, pts)
     model = _Model(y0, x0, chain, minimal_parameter_set(chain, params.parameter_set))
     model, dropped, rank, cond, s = _select_parameters(model, data, params, chain.joint_names)
+    model = model.with_prior(_prior_weights(model, params, 1.0))
     timings = {"start_s": time.perf_counter() - t0}
     t1 = time.perf_counter()
     values, used, (rms, mx, per) = _fit_without_outliers(model, data, poses, params)
-    timings["solve_s"] = time.perf_counter() - t1
     fit_data = data.subset(used)
+    scale, cv = (float("nan"), None) if params.estimator == "ls" else (1.0, None)
+    if params.estimator == "map" and len(params.prior_scales) > 1:
+        t_cv = time.perf_counter()
+        scale, cv = _cross_validate(model, fit_data, values, params)
+        timings["cross_validation_s"] = time.perf_counter() - t_cv
+        model = model.with_prior(_prior_weights(model, params, scale))
+        values = _fit(model, fit_data, values, params)
+        rms, mx, per = _per_pose(model, data, values, len(poses))
+    timings["solve_s"] = time.perf_counter() - t1
     jac = _jacobian(model, fit_data, values)
     r = _residuals(model, fit_data, values)
     rank, cond, s, weak, _ = _identifiability(jac, model.params, params.rank_rtol)
-    if not used.all() and cond > params.max_condition and params.on_weak == "refuse":
+    limit = params.max_condition if params.max_condition is not None else math.inf
+    if not used.all() and cond > limit and params.on_weak == "refuse":
         excluded = ", ".join(p.name for p, u in zip(poses, used, strict=True) if not u)
         advice = _motion_advice(weak, fit_data.joints_rad, chain.joint_names)
         raise NotIdentifiableError(
             f"without the outlier scans {excluded} the remaining poses no longer identify the parameters "
-            f"(condition number {cond:.3g} > {params.max_condition:g}); rescan them. {advice}"
+            f"(condition number {cond:.3g} > {limit:g}); rescan them. {advice}"
+        )
+    fle = _fle_rms_mm(r, len(model.params))
+    reg_tre = _registration_tre_rms_mm(fle, pts)
+    cov = _posterior_cov(model, fit_data, values, params, scale)
+    unmod = max(_unmodelled_rms_mm(model, fit_data, values, fle), params.unmodelled_floor_mm)
+    t_p = time.perf_counter()
+    inflation, split = (
+        _farthest_split_inflation(model, fit_data, values, params, fle, unmod)
+        if params.farthest_split
+        else (1.0, ())
+    )
+    prediction, volume_doc = _working_prediction(
+        model,
+        values,
+        cov * inflation,
+        fit_data,
+        pts,
+        params,
+        scan_volume,
+        unmod * math.sqrt(inflation),
+        reg_tre,
+    )
+    volume_doc["farthest_split"] = {"poses": [int(i) for i in split], "variance_inflation": inflation}
+    timings["prediction_s"] = time.perf_counter() - t_p
+    if prediction.max_mm > params.max_predicted_error_mm:
+        raise NotIdentifiableError(
+            _prediction_refusal(prediction, params, fit_data.joints_rad, chain.joint_names)
         )
     t2 = time.perf_counter()
     nan = np.full(len(poses), np.nan)
@@ -841,7 +1375,7 @@ def calibrate(
         chain=cal_chain,
         parameters=model.params,
         values=values,
-        std_errors=_std_errors(jac, r),
+        std_errors=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
         rank=rank,
         condition_number=cond,
         singular_values=s,
@@ -857,8 +1391,15 @@ def calibrate(
         lopo_pose_rms_mm=lopo_rms,
         timings_s=timings,
         fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
-        fle_rms_mm=_fle_rms_mm(r, len(model.params)),
-        registration_tre_rms_mm=_registration_tre_rms_mm(_fle_rms_mm(r, len(model.params)), pts),
+        fle_rms_mm=fle,
+        registration_tre_rms_mm=reg_tre,
+        estimator=params.estimator,
+        prior_scale=scale,
+        cv_scores=cv,
+        posterior_cov=cov,
+        unmodelled_rms_mm=unmod,
+        prediction=prediction,
+        working_volume=volume_doc,
     )
 
 
@@ -906,3 +1447,17 @@ def predict_image_mm(
     t = y @ result.chain.robot_from_tool0(joints_rad) @ result.tool0_from_phantom
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
     return np.asarray(pts @ t[:3, :3].T + t[:3, 3], dtype=np.float64)
+
+
+def chain_error_figure(calibration: Mapping[str, Any] | None) -> tuple[float, str]:
+    """(predicted_chain_error_mm, its source) of a registration made with ``calibration``: the
+    active calibration's posterior figure, else the nominal model's prior (issue #20)."""
+    if calibration is not None:
+        v = calibration.get("predicted_chain_error_mm")
+        if v is not None:
+            return float(v), f"calibration {calibration.get('calibration_id')} posterior"
+        return NOMINAL_CHAIN_ERROR_MM, (
+            f"calibration {calibration.get('calibration_id')} has no posterior figure "
+            "(made before issue #20): nominal prior"
+        )
+    return NOMINAL_CHAIN_ERROR_MM, "nominal model prior (no active calibration)"

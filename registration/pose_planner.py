@@ -61,6 +61,15 @@ class ScanVolume:
     half_length_mm: float = 79.97
     axis_image: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
+    def grown(self, margin_mm: float) -> ScanVolume:
+        """The same cylinder with radius and half-length grown by ``margin_mm``."""
+        return ScanVolume(
+            self.centre_image_mm,
+            self.fov_radius_mm + margin_mm,
+            self.half_length_mm + margin_mm,
+            self.axis_image,
+        )
+
     def inside_margin_mm(self, points_image_mm: F64) -> F64:
         """Smallest distance (mm) of each point set (…, N, 3) to the cylinder's boundary (< 0 outside)."""
         axis = np.asarray(self.axis_image) / np.linalg.norm(self.axis_image)
@@ -76,6 +85,16 @@ class PlannerParams:
     n_poses: int = 10
     margin_mm: float = 5.0
     """Issue #10: every sphere ≥ 5 mm inside the scan volume and FOV."""
+    model_error_mm: float = 2.0
+    """Added to ``margin_mm``: how far a sphere may really be from where the planning model puts it
+    (relative to the registration pose).  Issue #20's unseen cell: nominal held-out error 1.03 mm
+    mean, 1.84 mm max; 2 mm covers the max.  Plan with a calibration (``--calibration``) to use a
+    smaller value (its ``predicted_chain_error_mm``)."""
+    max_predicted_error_mm: float = 0.5
+    """The calibration's refusal limit (``CalibrationParams.max_predicted_error_mm``): the plan says
+    what it would need when its predicted error exceeds it."""
+    fle_rms_mm: float = 0.07
+    """Detection error assumed for the plan's predicted error (the simulator's DICOM session)."""
     joint_margin_deg: float = 5.0
     """Distance kept from every joint limit."""
     tilts_deg: tuple[float, ...] = (0.0, 25.0, 45.0, 60.0, 75.0)
@@ -101,10 +120,17 @@ class PosePlan:
     inside_margin_mm: F64
     max_joint_step_rad: F64
     n_candidates: int
+    predicted_error_mm: float = float("nan")
+    """Predicted RMS error at the worst pose of the working volume after calibrating with these
+    poses (posterior with the priors, FLE ``PlannerParams.fle_rms_mm``)."""
+    advice: str = ""
+    """Empty when ``predicted_error_mm`` is within the limit; else what the plan would need."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "predicted_condition_number": self.predicted_condition_number,
+            "predicted_error_mm": self.predicted_error_mm,
+            "advice": self.advice,
             "n_candidates": self.n_candidates,
             "poses": [
                 {
@@ -293,7 +319,7 @@ def feasible_poses(
     ok = (err < IK_TOL_MM) & np.all((q >= chain.lower_rad + margin) & (q <= chain.upper_rad - margin), axis=1)
     fk = y @ chain.robot_from_tool0_batch(q) @ x
     inside = volume.inside_margin_mm(np.einsum("cij,nj->cni", fk[:, :3, :3], pts) + fk[:, None, :3, 3])
-    ok &= inside >= params.margin_mm
+    ok &= inside >= params.margin_mm + params.model_error_mm
     idx = _unique(q, np.flatnonzero(ok))
     return q[idx], tilts[idx], inside[idx]
 
@@ -333,7 +359,83 @@ def plan_poses(
     cond = condition_number(info[sel].sum(axis=0))
     ordered, steps = _order_short_moves(q[sel], q0)
     order = [int(np.flatnonzero(np.all(q[sel] == row, axis=1))[0]) for row in ordered]
-    return PosePlan(ordered, cond, tilts[sel][order], inside[sel][order], steps, len(q))
+    pred = predicted_plan_error_mm(y, chain, x, pts, q[sel], volume, params)
+    advice = ""
+    if pred > params.max_predicted_error_mm:
+        more = (
+            q[np.argsort(-np.einsum("cii->c", info))[: 2 * params.n_poses]]
+            if len(q) > params.n_poses
+            else q[sel]
+        )
+        pred_more = predicted_plan_error_mm(y, chain, x, pts, more, volume, params)
+        advice = (
+            f"the {params.n_poses} poses are predicted to leave {pred:.2f} mm at the worst pose of the "
+            f"working volume (> {params.max_predicted_error_mm:g} mm); "
+            + (
+                f"{len(more)} poses would give {pred_more:.2f} mm — plan with --n {len(more)}"
+                if pred_more <= params.max_predicted_error_mm
+                else f"even {len(more)} poses give {pred_more:.2f} mm: allow a wider tilt (tilts_deg up to "
+                f"{max(params.tilts_deg):g}° now) or calibrate from a second O-arm placement"
+            )
+        )
+    return PosePlan(ordered, cond, tilts[sel][order], inside[sel][order], steps, len(q), pred, advice)
+
+
+def predicted_plan_error_mm(
+    y: F64, chain: SerialChain, x: F64, pts: F64, joints_rad: F64, volume: ScanVolume, params: PlannerParams
+) -> float:
+    """Worst-pose predicted error over the working volume of a calibration from ``joints_rad``:
+    the calibration's posterior (its priors; data noise FLE/√3 per component) propagated as
+    :func:`registration.calibration.predict_working_error` does, on noise-free planning data."""
+    from registration.calibration import (
+        PRIORS,
+        WORKING_POSES,
+        WORKING_SEED,
+        CalibrationParams,
+        predict_working_error,
+    )
+
+    cp = CalibrationParams()
+    model = _Model(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
+    n = len(pts)
+    k = len(joints_rad)
+    data = _Data(joints_rad, np.tile(pts, (k, 1)), np.zeros((k * n, 3)), np.repeat(np.arange(k), n))
+    jac = _jacobian(model, data, np.zeros(len(model.params)))
+    s2 = params.fle_rms_mm**2 / 3.0
+    sig = np.array([PRIORS.sigma_posterior(p) for p in model.params])
+    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(1.0 / sig**2)
+    d = np.sqrt(np.diag(a))
+    cov = np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d)
+    rng = np.random.default_rng(WORKING_SEED)
+    work = volume.grown(cp.working_margin_mm)
+    wq = sample_poses_in_volume(
+        y,
+        chain,
+        x,
+        pts,
+        joints_rad[0],
+        work,
+        rng,
+        n=WORKING_POSES,
+        max_tilt_deg=75.0,
+        margin_mm=0.0,
+        n_candidates=300,
+    )
+    if not len(wq):
+        wq = joints_rad
+    from registration.calibration import _registration_tre_rms_mm
+
+    pred = predict_working_error(
+        model,
+        np.zeros(len(model.params)),
+        cov,
+        wq,
+        joints_rad[0],
+        pts,
+        unmodelled_rms_mm=cp.unmodelled_floor_mm,
+        registration_tre_rms_mm=_registration_tre_rms_mm(params.fle_rms_mm, pts),
+    )
+    return pred.max_mm
 
 
 def _unique(q: F64, idx: NDArray[np.intp]) -> NDArray[np.intp]:
@@ -356,3 +458,73 @@ def predicted_centres_image_mm(
     return apply(
         image_from_robot @ chain.robot_from_tool0(joints_rad) @ tool0_from_phantom, centres_phantom_mm
     )
+
+
+def sample_poses_in_volume(
+    image_from_robot: ArrayLike,
+    chain: SerialChain,
+    tool0_from_phantom: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    start_joints_rad: ArrayLike,
+    volume: ScanVolume,
+    rng: np.random.Generator,
+    *,
+    n: int,
+    max_tilt_deg: float,
+    margin_mm: float,
+    n_candidates: int = 600,
+    joint_margin_deg: float = 5.0,
+) -> F64:
+    """Up to ``n`` random feasible poses (n', n) rad: phantom orientation tilted ≤ ``max_tilt_deg``
+    from the start pose's (random horizontal axis, any yaw about its own z), position uniform in
+    80 % of ``volume``; IK from the start joints and their wrist flip; joint limits −
+    ``joint_margin_deg``; every sphere ≥ ``margin_mm`` inside ``volume`` by ``chain``.  Distinct
+    (> 2° in some joint), in draw order."""
+    y = as_transform(image_from_robot, "image_from_robot")
+    x = as_transform(tool0_from_phantom, "tool0_from_phantom")
+    pts = np.asarray(centres_phantom_mm, dtype=np.float64)
+    q0 = np.asarray(start_joints_rad, dtype=np.float64).reshape(-1)
+    r0 = (y @ chain.robot_from_tool0(q0) @ x)[:3, :3]
+    axis = np.asarray(volume.axis_image, dtype=np.float64) / np.linalg.norm(volume.axis_image)
+    u = np.cross(axis, [1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.cross(axis, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(axis, u)
+    rr = 0.8 * volume.fov_radius_mm * np.sqrt(rng.uniform(size=n_candidates))
+    ph = rng.uniform(0.0, 2 * math.pi, n_candidates)
+    ax = rng.uniform(-0.8, 0.8, n_candidates) * volume.half_length_mm
+    centres = (
+        np.asarray(volume.centre_image_mm)
+        + (rr * np.cos(ph))[:, None] * u
+        + (rr * np.sin(ph))[:, None] * w
+        + ax[:, None] * axis
+    )
+    az = rng.uniform(0.0, 2 * math.pi, n_candidates)
+    tilt = math.radians(max_tilt_deg) * np.sqrt(rng.uniform(size=n_candidates))
+    yaw = rng.uniform(0.0, 2 * math.pi, n_candidates)
+    rots = np.stack(
+        [
+            r0
+            @ rotation_about(np.array([math.cos(a), math.sin(a), 0.0]), np.array([t]))[0]
+            @ rotation_about(np.array([0.0, 0.0, 1.0]), np.array([yw]))[0]
+            for a, t, yw in zip(az, tilt, yaw, strict=True)
+        ]
+    )
+    timg = np.zeros((n_candidates, 4, 4))
+    timg[:, :3, :3], timg[:, :3, 3], timg[:, 3, 3] = rots, centres, 1.0
+    trob = invert(y) @ timg @ invert(x)
+    seeds = np.concatenate(
+        [np.repeat(q0[None], n_candidates, 0), np.repeat(_wrist_flip(q0)[None], n_candidates, 0)]
+    )
+    q, err = solve_ik(chain, np.concatenate([trob, trob]), seeds)
+    lim = math.radians(joint_margin_deg)
+    ok = (err < IK_TOL_MM) & np.all((q >= chain.lower_rad + lim) & (q <= chain.upper_rad - lim), axis=1)
+    fk = y @ chain.robot_from_tool0_batch(q) @ x
+    inside = volume.inside_margin_mm(np.einsum("cij,nj->cni", fk[:, :3, :3], pts) + fk[:, None, :3, 3])
+    ok &= inside >= margin_mm
+    keep: list[int] = []
+    for i in np.flatnonzero(ok):
+        if all(float(np.max(np.abs(q[i] - q[j]))) > math.radians(2.0) for j in keep):
+            keep.append(int(i))
+        if len(keep) >= n:
+            break
+    return np.asarray(q[keep], dtype=np.float64).reshape(len(keep), chain.n_joints)

@@ -124,6 +124,7 @@ def build_spatial_registration(
     registration_id: str,
     content_datetime: datetime,
     tre_pred_mm: float | None = None,
+    chain_error_mm: float | None = None,
     sop_instance_uid: str | None = None,
     series_instance_uid: str | None = None,
     manufacturer: str = "oarmreg",
@@ -142,6 +143,9 @@ def build_spatial_registration(
         The robot base frame's Frame of Reference UID (stable per installation).
     fre_mm, tre_pred_mm : float
         Fiducial registration error (RMS) and predicted TRE, written into the comments.
+    chain_error_mm : float, optional
+        The registration's ``predicted_chain_error_mm`` (issue #20), written into the
+        transformation comment.
     status : str
         The registration's state (``current``, ``refused``…), written into the comments.
     content_datetime : datetime
@@ -182,11 +186,12 @@ def build_spatial_registration(
     ds.ContentLabel = "ROBOT_REG"  # CS, ≤ 16 characters
     tre = "" if tre_pred_mm is None else f", TRE_pred {tre_pred_mm:.3g} mm"
     ds.ContentDescription = f"{registration_id} {status}: FRE {fre_mm:.3g} mm{tre}"[:64]
+    chain = "" if chain_error_mm is None else f"; chain {chain_error_mm:.3g} mm"  # issue #20
     ds.ContentCreatorName = ""
     ds.RegistrationSequence = [
         _registration_item(str(first.FrameOfReferenceUID), np.eye(4), "scan frame (identity)", ct),
         _registration_item(
-            robot_frame_of_reference_uid, m, f"image_from_robot LPS mm; FRE {fre_mm:.3g} mm; {status}"
+            robot_frame_of_reference_uid, m, f"image_from_robot LPS mm; FRE {fre_mm:.3g} mm; {status}{chain}"
         ),
     ]
     ser = Dataset()  # Common Instance Reference: the scan's series and instances

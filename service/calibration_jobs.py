@@ -81,11 +81,16 @@ class CalibrationRequest:
     last: int | None = None
     parameter_set: Literal["full", "offsets", "hand-eye"] = "full"
     drop_weak: bool = False
+    max_condition: float | None = None
+    """Optional extra refusal on the identification condition number (``--max-condition``)."""
 
     def params(self) -> CalibrationParams:
-        return CalibrationParams(
-            parameter_set=self.parameter_set, on_weak="drop" if self.drop_weak else "refuse"
+        from service.commands.calibrate import calibration_params
+
+        p: CalibrationParams = calibration_params(
+            parameter_set=self.parameter_set, drop_weak=self.drop_weak, max_condition=self.max_condition
         )
+        return p
 
 
 def calibration_hash(urdf_text: str, tool0_from_phantom: Sequence[Sequence[float]]) -> str:
@@ -256,10 +261,17 @@ class CalibrationJobs:
     def _work(self, cal_id: int, scans: list[ScanRecord], params: CalibrationParams) -> None:
         t0 = time.perf_counter()
         try:
-            matched = self._match_all(cal_id, scans)
+            matched, geometry = self._match_all(cal_id, scans)
             self._progress(cal_id, "fit", len(scans), len(scans))
             chain = read_chain(self.nominal_model.urdf_path)
-            result = calibrate(matched, chain, self.nominal_rod, self.phantom.centres_phantom_mm, params)
+            result = calibrate(
+                matched,
+                chain,
+                self.nominal_rod,
+                self.phantom.centres_phantom_mm,
+                params,
+                scan_volume=None if geometry is None else geometry.scan_volume(),
+            )
             self._finish_done(cal_id, scans, matched, result, params, time.perf_counter() - t0)
         except (OarmRegError, RobotLinkError) as e:
             self._finish_refused(cal_id, e, time.perf_counter() - t0)
@@ -274,9 +286,13 @@ class CalibrationJobs:
             {"calibration_id": cal_id, "stage": stage, "pose": i, "n_poses": k, **extra},
         )
 
-    def _match_all(self, cal_id: int, scans: list[ScanRecord]) -> list[MatchedPose]:
+    def _match_all(self, cal_id: int, scans: list[ScanRecord]) -> tuple[list[MatchedPose], Any]:
+        """Matched poses and the first scan's series geometry (the session's scan volume)."""
+        from registration.scan_geometry import series_geometry
+
         det_params = self.orchestrator.params.detection
         out = []
+        geometry = None
         for i, scan in enumerate(scans, start=1):
             if self._stop.is_set():
                 raise CalibrationStoppedError("the service is stopping; calibration abandoned, retry")
@@ -284,6 +300,8 @@ class CalibrationJobs:
             from registration.detection import detect_spheres
 
             volume = self.volumes.load(scan)
+            if geometry is None:
+                geometry = series_geometry(volume)
             det = detect_spheres(volume, det_params)
             q = self.nominal_model.check_joints(joints)
             robot_mm = sphere_centres_robot_mm(
@@ -303,7 +321,7 @@ class CalibrationJobs:
             self._progress(
                 cal_id, "detect", i, len(scans), scan_id=scan.id, n_matched=len(out[-1].sphere_indices)
             )
-        return out
+        return out, geometry
 
     def _finish_done(
         self,
@@ -383,6 +401,7 @@ class CalibrationJobs:
             "calibration_id": rec.id,
             "calibration_hash": rec.calibration_hash,
             "robot_urdf": rec.urdf_path,
+            "predicted_chain_error_mm": (rec.result or {}).get("predicted_chain_error_mm"),
         }
 
     def activate(self, cal_id: int) -> tuple[CalibrationRecord, Activation]:
@@ -447,4 +466,5 @@ def _request_json(req: CalibrationRequest) -> dict[str, Any]:
         "last": req.last,
         "parameter_set": req.parameter_set,
         "drop_weak": req.drop_weak,
+        "max_condition": req.max_condition,
     }

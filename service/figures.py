@@ -34,6 +34,9 @@ def registration_figures(
     targets_source: str,
     provenance: JSONDict,
     load_s: float,
+    predicted_chain_error_mm: float | None = None,
+    chain_error_source: str = "",
+    series_geometry: JSONDict | None = None,
 ) -> RegistrationFigures:
     """The figures of an accepted registration; ``provenance`` is stored as given."""
     res = run.result
@@ -62,6 +65,9 @@ def registration_figures(
         ),
         provenance=provenance,
         timings_s=timings,
+        predicted_chain_error_mm=predicted_chain_error_mm,
+        chain_error_source=chain_error_source,
+        series_geometry=series_geometry,
     )
 
 

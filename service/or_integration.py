@@ -438,6 +438,7 @@ class OrIntegration:
                 registration_id=str(cur.id),
                 fre_mm=float(cur.fre_mm or 0.0),
                 tre_pred_mm=max(tre) if tre else None,
+                chain_error_mm=None if cur.figures is None else cur.figures.predicted_chain_error_mm,
             )
             cached = self._view = (cur, view)
         return RegistrationState(cached[1], self._last_refusal)

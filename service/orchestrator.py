@@ -24,12 +24,14 @@ from numpy.typing import NDArray
 
 from drivers.errors import RobotLinkError
 from registration import __version__
+from registration.calibration import chain_error_figure
 from registration.detection import params_for_spheres
 from registration.errors import DicomSeriesError, OarmRegError
 from registration.kinematics import RobotModel
 from registration.phantom import Phantom
 from registration.pipeline import PipelineParams, register_scan, verify_scan
 from registration.register import RegistrationParams
+from registration.scan_geometry import series_geometry
 from service.error_map import http_status_of, title_of
 from service.errors import (
     InternalError,
@@ -305,8 +307,16 @@ class Orchestrator:
             config_hash=self.config_hash,
         )
         prov["calibration"] = self.calibration
+        chain_mm, chain_src = chain_error_figure(self.calibration)
         figures = registration_figures(
-            run, self.phantom, targets_source=source, provenance=prov, load_s=load_s
+            run,
+            self.phantom,
+            targets_source=source,
+            provenance=prov,
+            load_s=load_s,
+            predicted_chain_error_mm=chain_mm,
+            chain_error_source=chain_src,
+            series_geometry=series_geometry(volume).to_dict(),
         )
         return replace(
             draft,

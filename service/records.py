@@ -196,9 +196,18 @@ class RegistrationFigures:
     detection: DetectionSummary = DetectionSummary()
     provenance: JSONDict = field(default_factory=dict)
     timings_s: Mapping[str, float] = field(default_factory=dict)
+    predicted_chain_error_mm: float | None = None
+    """Issue #20: the robot chain's predicted error over the working volume (mm RMS) — the active
+    calibration's posterior figure, or the nominal model's prior when none; None before this version."""
+    chain_error_source: str = ""
+    series_geometry: JSONDict | None = None
+    """The scan's volume (:class:`registration.scan_geometry.SeriesGeometry`), for the pose planner."""
 
     def to_json(self) -> JSONDict:
         return {
+            "predicted_chain_error_mm": self.predicted_chain_error_mm,
+            "chain_error_source": self.chain_error_source,
+            "series_geometry": self.series_geometry,
             "fle_mm": self.fle_mm,
             "n_expected": self.n_expected,
             "n_detected": self.n_detected,
@@ -235,6 +244,11 @@ class RegistrationFigures:
             ),
             provenance=dict(d.get("provenance", {})),
             timings_s=dict(d.get("timings_s", {})),
+            predicted_chain_error_mm=(
+                None if d.get("predicted_chain_error_mm") is None else float(d["predicted_chain_error_mm"])
+            ),
+            chain_error_source=str(d.get("chain_error_source", "")),
+            series_geometry=d.get("series_geometry"),
         )
 
 

@@ -78,6 +78,7 @@ def sro_dataset(
         registration_id=f"registration {rec.id}",
         content_datetime=datetime.fromisoformat(rec.created_at),
         tre_pred_mm=max(tre) if tre else None,
+        chain_error_mm=None if rec.figures is None else rec.figures.predicted_chain_error_mm,
         sop_instance_uid=generate_uid(entropy_srcs=[*seed, "sop"]),
         series_instance_uid=generate_uid(entropy_srcs=[*seed, "series"]),
         software_version=rec.software_version or __version__,

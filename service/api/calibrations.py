@@ -33,7 +33,16 @@ class CalibrateRequest(BaseModel):
         "full", description="Robot parameters to estimate besides rod and O-arm placement."
     )
     drop_weak: bool = Field(
-        False, description="Drop robot parameters the poses do not excite (reported) instead of refusing."
+        False,
+        description="Fix the robot parameters the poses excite least at nominal (reported as dropped) until "
+        "the identification condition number is ≤ max_condition (100 if not given).",
+    )
+    max_condition: float | None = Field(
+        None,
+        gt=1.0,
+        description="Optional extra refusal above this identification condition number (off by default: "
+        "the calibration is refused on its predicted error over the working volume, not on the condition "
+        "number).",
     )
 
     @model_validator(mode="after")
@@ -127,6 +136,7 @@ async def post_calibration(ctx: CtxDep, body: CalibrateRequest) -> CalibrationOu
         last=body.last,
         parameter_set=body.parameter_set,
         drop_weak=body.drop_weak,
+        max_condition=body.max_condition,
     )
     rec = await anyio.to_thread.run_sync(_jobs(ctx).start, req)
     return calibration_out(rec)

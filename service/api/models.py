@@ -276,6 +276,18 @@ class RegistrationOut(_Out):
         description="Fitzpatrick's predicted TRE at targets_image_mm.",
         validation_alias=_from("figures", "predicted_tre_mm"),
     )
+    predicted_chain_error_mm: float | None = Field(
+        default=None,
+        description="Predicted error of the robot chain over the working volume (mm RMS): the active "
+        "calibration's posterior figure, or the nominal model's prior (1 mm) when none (issue #20).",
+        validation_alias=_from("figures", "predicted_chain_error_mm"),
+    )
+    series_geometry: dict[str, Any] | None = Field(
+        default=None,
+        description="The scan's volume (ImagePositionPatient range, orientation, rows/columns, spacing, "
+        "FOV circle), for `oarmreg calibrate plan`.",
+        validation_alias=_from("figures", "series_geometry"),
+    )
     targets_image_mm: list[Point3] = Field([], validation_alias=AliasPath("figures", "targets_image_mm"))
     targets_source: str = Field("", validation_alias=_from("figures", "targets_source"))
     symmetry_margin: int | None = Field(

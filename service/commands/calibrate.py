@@ -54,13 +54,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run_p.add_argument(
         "--max-condition",
         type=float,
-        default=100.0,
-        help="refuse above this identification condition number (default 100, Schroer et al.)",
+        default=None,
+        help="optional extra refusal above this identification condition number (off by default; "
+        "Schroer et al. ask < 100); the refusal is on the predicted error over the working volume",
     )
     run_p.add_argument(
         "--drop-weak",
         action="store_true",
-        help="drop robot parameters the poses do not excite instead of refusing",
+        help="fix the robot parameters the poses excite least at nominal until the condition number is "
+        "≤ --max-condition (100 if not given), reported as dropped",
+    )
+    run_p.add_argument(
+        "--estimator",
+        choices=("ls", "map"),
+        default=None,
+        help="ls: robust least squares (default); map: priors with a cross-validated weight",
+    )
+    run_p.add_argument(
+        "--max-predicted-error-mm",
+        type=float,
+        default=None,
+        help="refuse when the predicted RMS error at the worst pose of the working volume exceeds this "
+        "(default 0.5 mm)",
     )
     add_method_argument(run_p)
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
@@ -79,15 +94,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--calibration", type=Path, metavar="CALDIR", help="plan with this calibration's model and rod"
     )
     plan_p.add_argument(
-        "--fov-radius-mm", type=float, default=106.24, help="scan FOV radius (default: O-arm 212 mm FOV)"
+        "--fov-radius-mm",
+        type=float,
+        default=None,
+        help="scan FOV radius (default: REG.json's series_geometry, else the O-arm's 106.24 mm)",
     )
     plan_p.add_argument(
-        "--half-length-mm", type=float, default=79.97, help="half the axial coverage (default: O-arm 160 mm)"
+        "--half-length-mm",
+        type=float,
+        default=None,
+        help="half the axial coverage (default: REG.json's series_geometry, else the O-arm's 79.97 mm)",
     )
     plan_p.add_argument(
         "--volume-centre-mm",
         metavar="X,Y,Z",
-        help="volume centre in the image frame (default: the phantom centre at the registration)",
+        help="volume centre in the image frame (default: REG.json's series_geometry; without one, the "
+        "phantom centre at the registration, with a warning)",
     )
 
 
@@ -151,8 +173,10 @@ def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, 
     from registration.detection import detect_spheres
     from registration.dicom import load_series
     from registration.kinematics import sphere_centres_robot_mm
+    from registration.scan_geometry import series_geometry
 
     volume = load_series(scan_dir)
+    ctx.setdefault("geometry", series_geometry(volume))
     det = detect_spheres(volume, ctx["detection"])
     q = ctx["model"].check_joints(joints)
     robot_mm = sphere_centres_robot_mm(ctx["model"], q, ctx["rod"], ctx["phantom"].centres_phantom_mm)
@@ -167,6 +191,32 @@ def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, 
     )
 
 
+def calibration_params(
+    *,
+    parameter_set: str = "full",
+    drop_weak: bool = False,
+    max_condition: float | None = None,
+    estimator: str | None = None,
+    max_predicted_error_mm: float | None = None,
+) -> Any:
+    """The one mapping from the CLI flags / the service's request fields to ``CalibrationParams``:
+    ``oarmreg calibrate run``, ``POST /calibrations`` and ``oarmreg demo --calibrate`` all pass
+    through here, so their defaults are :class:`registration.calibration.CalibrationParams`'s."""
+    from registration.calibration import CalibrationParams
+
+    extra: dict[str, Any] = {}
+    if estimator is not None:
+        extra["estimator"] = estimator
+    if max_predicted_error_mm is not None:
+        extra["max_predicted_error_mm"] = max_predicted_error_mm
+    return CalibrationParams(
+        parameter_set=parameter_set,  # type: ignore[arg-type]
+        max_condition=max_condition,
+        on_weak="drop" if drop_weak else "refuse",
+        **extra,
+    )
+
+
 def config_hash(*parts: bytes) -> str:
     h = hashlib.sha256()
     for p in parts:
@@ -178,7 +228,7 @@ def run_calibration(args: argparse.Namespace) -> int:
     import dataclasses
 
     from registration import __version__
-    from registration.calibration import CalibrationParams, calibrate
+    from registration.calibration import calibrate
     from registration.kinematics import RobotModel, default_tool0_from_phantom
     from registration.phantom import load_phantom
     from registration.points_io import write_json
@@ -191,14 +241,23 @@ def run_calibration(args: argparse.Namespace) -> int:
     from service.commands.detect import detection_params_for_phantom
 
     detection = detection_params_for_phantom(phantom, method=args.method)
-    ctx = {"model": model, "rod": rod, "phantom": phantom, "detection": detection}
+    ctx: dict[str, Any] = {"model": model, "rod": rod, "phantom": phantom, "detection": detection}
     matched = [_detect_pose(d, q, name, ctx) for name, d, q in poses]
-    params = CalibrationParams(
+    params = calibration_params(
         parameter_set=args.parameter_set,
+        drop_weak=args.drop_weak,
         max_condition=args.max_condition,
-        on_weak="drop" if args.drop_weak else "refuse",
+        estimator=args.estimator,
+        max_predicted_error_mm=args.max_predicted_error_mm,
     )
-    result = calibrate(matched, read_chain(model.urdf_path), rod, phantom.centres_phantom_mm, params)
+    result = calibrate(
+        matched,
+        read_chain(model.urdf_path),
+        rod,
+        phantom.centres_phantom_mm,
+        params,
+        scan_volume=ctx["geometry"].scan_volume(),
+    )
     created = datetime.now(UTC).isoformat(timespec="seconds")
     chash = config_hash(
         model.urdf_path.read_bytes(),
@@ -250,8 +309,10 @@ def summary(d: dict[str, Any]) -> str:
         f"leave-one-pose-out mean {_fmt(d['leave_one_pose_out_mean_mm'])} mm, "
         f"max {_fmt(d['leave_one_pose_out_max_mm'])} mm "
         f"(TRE estimate {_fmt(d['leave_one_pose_out_tre_rms_mm'])} mm RMS)",
-        f"predicted error at unseen poses after a one-scan registration: "
-        f"{_fmt(d['predicted_held_out_rms_mm'])} mm RMS",
+        f"predicted error over the working volume after a one-scan registration (posterior): "
+        f"{_fmt(d['predicted_held_out_rms_mm'])} mm RMS"
+        + (f", worst pose {_fmt(d['predicted_working']['max_mm'])} mm" if d.get("predicted_working") else "")
+        + f"; from leave-one-pose-out: {_fmt(d.get('lopo_predicted_rms_mm'))} mm RMS",
     ]
     if d["outlier_poses"]:
         lines.append(f"outlier poses excluded: {', '.join(d['outlier_poses'])}")
@@ -305,6 +366,7 @@ def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any
                 k: doc.get("provenance", {}).get(k)
                 for k in ("calibration_id", "config_sha256", "created_utc")
             },
+            "predicted_chain_error_mm": doc.get("predicted_chain_error_mm"),
         }
     else:
         model = RobotModel.load(args.robot or obj.get("robot_model") or "tx60")
@@ -336,7 +398,8 @@ def run_plan(args: argparse.Namespace) -> int:
     if args.n < 6:
         raise _config_error(f"--n {args.n}: a calibration needs at least 6 poses")
     y = read_registration(args.registration)
-    prov = _load_json(args.registration).get("provenance", {}) or {}
+    reg_doc = _load_json(args.registration)
+    prov = reg_doc.get("provenance", {}) or {}
     joints = _load_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
     if not isinstance(joints, list):
         raise _config_error(
@@ -353,14 +416,34 @@ def run_plan(args: argparse.Namespace) -> int:
     chain = read_chain(model.urdf_path)
     q0 = model.check_joints(joints)
     pts = load_phantom(args.phantom).centres_phantom_mm
-    if args.volume_centre_mm:
-        centre = [float(v) for v in args.volume_centre_mm.split(",")]
+    geometry = reg_doc.get("series_geometry")
+    if geometry is not None:
+        from registration.scan_geometry import SeriesGeometry
+
+        base = SeriesGeometry.from_dict(geometry).scan_volume()
+        source = f"series_geometry of {args.registration}"
     else:
-        centre = frames.apply(y @ chain.robot_from_tool0(q0) @ rod, np.zeros(3)).tolist()
+        base = ScanVolume(
+            centre_image_mm=tuple(frames.apply(y @ chain.robot_from_tool0(q0) @ rod, np.zeros(3)).tolist())
+        )
+        source = "the phantom centre at the registration (REG.json has no series_geometry)"
+        if not args.volume_centre_mm:
+            sys.stderr.write(
+                f"warning: {args.registration} has no series_geometry (written by `oarmreg register` from a "
+                "DICOM series): the volume is assumed centred on the phantom; give --volume-centre-mm or "
+                "re-register the scan\n"
+            )
+    if args.volume_centre_mm:
+        c = [float(v) for v in args.volume_centre_mm.split(",")]
+        if len(c) != 3:
+            raise _config_error(f"--volume-centre-mm {args.volume_centre_mm!r}: expected X,Y,Z in mm")
+        base = ScanVolume((c[0], c[1], c[2]), base.fov_radius_mm, base.half_length_mm, base.axis_image)
+        source = "--volume-centre-mm"
     volume = ScanVolume(
-        centre_image_mm=(centre[0], centre[1], centre[2]),
-        fov_radius_mm=args.fov_radius_mm,
-        half_length_mm=args.half_length_mm,
+        base.centre_image_mm,
+        args.fov_radius_mm if args.fov_radius_mm is not None else base.fov_radius_mm,
+        args.half_length_mm if args.half_length_mm is not None else base.half_length_mm,
+        base.axis_image,
     )
     plan = plan_poses(y, chain, rod, pts, q0, volume=volume, params=PlannerParams(n_poses=args.n))
     doc = {
@@ -370,12 +453,17 @@ def run_plan(args: argparse.Namespace) -> int:
             "centre_image_mm": list(volume.centre_image_mm),
             "fov_radius_mm": volume.fov_radius_mm,
             "half_length_mm": volume.half_length_mm,
+            "axis_image": list(volume.axis_image),
+            "from": source,
         },
         **plan.to_dict(),
     }
     write_json(args.json, doc)
     sys.stdout.write(
-        f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates; predicted "
-        f"identification condition number {plan.predicted_condition_number:.1f}\nwritten: {args.json}\n"
+        f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates in the volume of "
+        f"{source}; predicted identification condition number {plan.predicted_condition_number:.1f}, "
+        f"predicted error over the working volume {plan.predicted_error_mm:.3f} mm at the worst pose\n"
+        + (f"{plan.advice}\n" if plan.advice else "")
+        + f"written: {args.json}\n"
     )
     return 0

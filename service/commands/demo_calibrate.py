@@ -155,7 +155,8 @@ def run_calibration_demo(d: Any, h: DemoHooks) -> None:
         _err(
             f"  calibration scan {i}/{len(poses)}: scan {s['id']} recorded ({time.perf_counter() - t0:.0f} s)"
         )
-    r = h.check(d.client.post("/calibrations", json={"scan_ids": ids, "drop_weak": True}))
+    # the service's defaults (issue #20: the demo and POST /calibrations use the same ones)
+    r = h.check(d.client.post("/calibrations", json={"scan_ids": ids}))
     _err(f"  POST /calibrations → calibration {r['id']} running ...")
     cal = _wait_calibration(d, int(r["id"]))
     if cal["status"] != "done":

@@ -142,6 +142,10 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
     t0 = time.perf_counter()
     volume = load_series(args.dicom_dir, series_uid=args.series_uid)
     timings["load_s"] = time.perf_counter() - t0
+    from registration.scan_geometry import series_geometry
+
+    # issue #20: the scan's real volume, for `oarmreg calibrate plan` (moved to the top level by run)
+    provenance["series_geometry"] = series_geometry(volume).to_dict()
     t0 = time.perf_counter()
     det = detect_spheres(volume, dparams)
     timings["detect_s"] = time.perf_counter() - t0
@@ -282,6 +286,14 @@ def run(args: argparse.Namespace) -> int:
         provenance={**provenance, **dict(result.provenance)},
     )
     doc = result.to_dict()
+    geometry = (doc.get("provenance") or {}).pop("series_geometry", None)
+    if geometry is not None:
+        doc["series_geometry"] = geometry
+    if args.joints is not None:  # issue #20: the chain's figure (calibration posterior or nominal prior)
+        from registration.calibration import chain_error_figure
+
+        cal = (doc.get("provenance") or {}).get("calibration")
+        doc["predicted_chain_error_mm"], doc["chain_error_source"] = chain_error_figure(cal)
     if args.json:  # files first: the result must not depend on stdout staying open
         write_json(args.json, doc)
     if getattr(args, "sro", None) is not None:
@@ -331,6 +343,7 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
         registration_id="oarmreg register",
         content_datetime=datetime.now(UTC),
         tre_pred_mm=max(tre) if tre else None,
+        chain_error_mm=doc.get("predicted_chain_error_mm"),
         software_version=str(doc.get("provenance", {}).get("software", "")),
     )
     args.sro.parent.mkdir(parents=True, exist_ok=True)

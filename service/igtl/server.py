@@ -78,6 +78,8 @@ class RegistrationView:
     fre_mm: float
     tre_pred_mm: float | None = None
     sro_sop_instance_uid: str | None = None
+    chain_error_mm: float | None = None
+    """Issue #20: the registration's ``predicted_chain_error_mm`` (metadata ``ChainError_pred_mm``)."""
 
 
 @dataclass(frozen=True)
@@ -203,6 +205,8 @@ def registration_message(state: RegistrationState, device: str) -> _Out:
         meta["TRE_pred_mm"] = _fmt(cur.tre_pred_mm)
     if cur.sro_sop_instance_uid:
         meta["SroSopInstanceUid"] = cur.sro_sop_instance_uid
+    if cur.chain_error_mm is not None:
+        meta["ChainError_pred_mm"] = _fmt(cur.chain_error_mm)
     return _Out(device, RAS_FROM_LPS @ cur.image_from_robot, meta, time.time())
 
 

@@ -162,9 +162,18 @@ def test_noise_free_errors_are_recovered_at_held_out_poses(
         nominal,
         default_tool0_from_phantom(),
         pts,
-        CalibrationParams(parameter_set="hand-eye"),
+        CalibrationParams(parameter_set="hand-eye", max_predicted_error_mm=math.inf),
     )
     assert held_out_error_mm(nominal_result, true, rod, pts) >= 0.05
+    # ... and its own posterior says so: by default it is refused on the predicted error
+    with pytest.raises(NotIdentifiableError, match=r"predicted error over the working volume .* > the limit"):
+        calibrate(
+            session(true, rod, pts),
+            nominal,
+            default_tool0_from_phantom(),
+            pts,
+            CalibrationParams(parameter_set="hand-eye"),
+        )
 
 
 def test_fewer_than_six_poses_are_refused(nominal: SerialChain, truth: Any, pts: F64) -> None:
@@ -191,8 +200,8 @@ def test_narrow_wrist_motion_is_refused_or_dropped(nominal: SerialChain, truth: 
     true, rod = truth
     offsets = POSE_OFFSETS_RAD[:10].copy()
     offsets[:, 3:5] *= 0.02  # J4, J5 barely move
-    with pytest.raises(NotIdentifiableError, match=r"condition number .* > 100"):
-        calibrate(session(true, rod, pts, offsets), nominal, rod, pts)
+    with pytest.raises(NotIdentifiableError, match=r"condition number .* > 100 \(--max-condition\)"):
+        calibrate(session(true, rod, pts, offsets), nominal, rod, pts, CalibrationParams(max_condition=100.0))
     dropped = calibrate(
         session(true, rod, pts, offsets), nominal, rod, pts, CalibrationParams(on_weak="drop")
     )
