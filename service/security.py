@@ -9,7 +9,8 @@ byte is read (so a 10 MB body without a token costs nothing):
    still sends ``Host: evil.example``.
 2. ``Origin``, when present (browsers), must be in ``api.allowed_origins`` (default ``http(s)://``
    + an allowed host) → else 403.  No ``Origin`` header = a non-browser client, allowed.
-3. Authentication (every path but ``/health``; ``/docs``, ``/redoc``, ``/openapi.json`` included):
+3. Authentication (every path but :data:`PUBLIC_PATHS` — ``/health``, the page ``/``, its
+   ``/static/`` assets, ``/favicon.ico`` and the ``/docs`` shell; ``/openapi.json`` included):
    ``Authorization: Bearer <api_token>``, or for ``GET /events`` a single-use ``?ticket=`` from
    ``POST /events/ticket`` (``EventSource`` cannot send headers) → else 401.  ``api.auth =
    "none-loopback-only"`` skips this on a loopback bind (settings refuse it elsewhere).
@@ -47,7 +48,12 @@ log = logging.getLogger(__name__)
 PROBLEM_MEDIA_TYPE = b"application/problem+json"
 TYPE_PREFIX = "urn:oarmreg:problem:"
 MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-PUBLIC_PATHS = frozenset({"/health"})
+PUBLIC_PATHS = frozenset({"/health", "/", "/favicon.ico", "/docs"})
+"""Paths served without a token: liveness, the page, its favicon and the Swagger UI shell (issue #21);
+they carry no data: the page and /docs sign in and call the data routes with the Bearer token."""
+PUBLIC_PREFIXES = ("/static/",)
+"""The page's and /docs' assets (``service/web/static``, shipped in the wheel)."""
+PUBLIC_METHODS = frozenset({"GET", "HEAD"})
 EVENTS_PATH = "/events"
 PRINCIPAL_NO_AUTH = "none-loopback-only"
 """The audit principal when authentication is off (``api.auth = "none-loopback-only"``)."""
@@ -128,10 +134,20 @@ def check_host_origin(settings: Settings, scope: Scope) -> None:
         )  # fmt: skip
 
 
+def is_public(scope: Scope) -> bool:
+    """``GET``/``HEAD`` of :data:`PUBLIC_PATHS` or under :data:`PUBLIC_PREFIXES`; ``/health`` any method."""
+    path = str(scope["path"])
+    if path == "/health":
+        return True
+    if scope["method"] not in PUBLIC_METHODS:
+        return False
+    return path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES)
+
+
 def authenticate(ctx: ServiceContext, scope: Scope) -> str | None:
     """Step 3: the request's principal (None for public paths); raise :class:`Refusal` (401)."""
     settings = ctx.settings
-    if scope["path"] in PUBLIC_PATHS:
+    if is_public(scope):
         return None
     if settings.api.auth == "none-loopback-only":
         return PRINCIPAL_NO_AUTH

@@ -171,7 +171,7 @@ class ApiSettings(_Section):
     # Origin header values accepted from browsers ("http://ui.example:8080"); a request without an
     # Origin header is a non-browser client and is allowed.  Empty: http(s):// + the allowed hosts.
     allowed_origins: tuple[str, ...] = ()
-    # Serve /docs, /redoc and /openapi.json (behind the token like every other route).
+    # Serve /docs (the self-hosted Swagger UI shell, public) and /openapi.json (behind the token).
     docs: bool = True
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
