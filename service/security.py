@@ -7,8 +7,9 @@ byte is read (so a 10 MB body without a token costs nothing):
    ``127.0.0.1``, ``[::1]`` and the connection's local address, on the service's port) → else 400.
    This closes DNS rebinding: a page on ``evil.example`` that re-points its name at 127.0.0.1
    still sends ``Host: evil.example``.
-2. ``Origin``, when present (browsers), must be in ``api.allowed_origins`` (default ``http(s)://``
-   + an allowed host) → else 403.  No ``Origin`` header = a non-browser client, allowed.
+2. ``Origin``, when present (browsers), must be the service's own (``http(s)://`` + an allowed
+   host) or listed in ``api.allowed_origins`` → else 403.  No ``Origin`` header = a non-browser
+   client, allowed.
 3. Authentication (every path but :data:`PUBLIC_PATHS` — ``/health``, the page ``/``, its
    ``/static/`` assets, ``/favicon.ico`` and the ``/docs`` shell; ``/openapi.json`` included):
    ``Authorization: Bearer <api_token>``, or for ``GET /events`` a single-use ``?ticket=`` from
@@ -111,9 +112,13 @@ def allowed_hosts(settings: Settings, scope: Scope) -> frozenset[str]:
 
 
 def allowed_origins(settings: Settings, hosts: frozenset[str]) -> frozenset[str]:
-    if settings.api.allowed_origins:
-        return frozenset(o.strip().lower().rstrip("/") for o in settings.api.allowed_origins)
-    return frozenset(f"{scheme}://{h}" for scheme in ("http", "https") for h in hosts)
+    """The service's own origins (http(s):// + an allowed host) and those in ``api.allowed_origins``.
+
+    Its own origins always: the status page at ``/`` sends ``Origin`` on its POSTs, and listing a
+    navigation UI's origin must not lock the service's own page out (issue #21).
+    """
+    own = frozenset(f"{scheme}://{h}" for scheme in ("http", "https") for h in hosts)
+    return own | frozenset(o.strip().lower().rstrip("/") for o in settings.api.allowed_origins)
 
 
 def check_host_origin(settings: Settings, scope: Scope) -> None:
@@ -328,5 +333,5 @@ def gate_summary(settings: Settings) -> dict[str, Any]:
         "auth": settings.api.auth,
         "max_body_bytes": settings.api.max_body_bytes,
         "allowed_hosts": list(settings.api.allowed_hosts) or "bind host, localhost, 127.0.0.1, [::1]",
-        "allowed_origins": list(settings.api.allowed_origins) or "http(s):// + the allowed hosts",
+        "allowed_origins": ["http(s):// + the allowed hosts", *settings.api.allowed_origins],
     }

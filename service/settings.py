@@ -168,8 +168,8 @@ class ApiSettings(_Section):
     # Host header values accepted ("name" = that name on the service's port, "name:port" exactly).
     # Empty: the bind host, localhost, 127.0.0.1 and [::1] on the service's port (DNS rebinding guard).
     allowed_hosts: tuple[str, ...] = ()
-    # Origin header values accepted from browsers ("http://ui.example:8080"); a request without an
-    # Origin header is a non-browser client and is allowed.  Empty: http(s):// + the allowed hosts.
+    # Origin header values accepted from browsers ("http://ui.example:8080"), besides the service's own
+    # (http(s):// + the allowed hosts); a request without Origin is a non-browser client, allowed.
     allowed_origins: tuple[str, ...] = ()
     # Serve /docs (the self-hosted Swagger UI shell, public) and /openapi.json (behind the token).
     docs: bool = True
