@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if overrides:
         params = replace(params, **overrides)  # type: ignore[arg-type]
 
-    volume = load_series(args.dicom_dir, series_uid=args.series_uid)
+    volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     result = detect_spheres(volume, params)
 
     if args.json_out is not None:

@@ -138,7 +138,7 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
     from registration.dicom import load_series
 
     t0 = time.perf_counter()
-    volume = load_series(args.dicom_dir, series_uid=args.series_uid)
+    volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     timings["load_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     dparams = DetectionParams() if args.method is None else DetectionParams(method=args.method)
