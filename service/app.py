@@ -188,11 +188,25 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
             "the current registration; set api_token and api.auth = 'token' for clinical use"
         )
     ctx.retention_task = asyncio.create_task(_retention_loop(ctx), name="oarmreg-retention")
-    log.info(
-        "oarmreg %s serving: watch %s, data %s, robot %s (%s), auth %s",
-        __version__, settings.watch_dir, settings.data_dir, settings.robot.link_url, settings.robot.model,
-        "on" if settings.auth_enabled else "OFF (loopback only)",
-    )  # fmt: skip
+    log.info("oarmreg %s: %s", __version__, startup_line(ctx))
+
+
+def startup_line(ctx: ServiceContext) -> str:
+    """Every listener, the folders, the robot link and auth in one line (logged at INFO, issue #21)."""
+    st = ctx.settings
+    scheme = "https" if st.tls.enabled else "http"
+    host = f"[{st.host}]" if ":" in st.host else st.host
+    parts = [f"HTTP {scheme}://{host}:{st.port} (status page /, API docs /docs)"]
+    listeners = ctx.or_integration.status() if ctx.or_integration is not None else {}
+    d, g = listeners.get("dicom", {}), listeners.get("igtl", {})
+    parts.append(f"DICOM C-STORE {d.get('ae_title')}@{d.get('host')}:{d.get('port')}" if d.get("enabled")
+                 else "DICOM C-STORE off")  # fmt: skip
+    parts.append(f"OpenIGTLink {g.get('host')}:{g.get('port')}" if g.get("enabled") else "OpenIGTLink off")
+    parts.append(f"watch folder {st.watch_dir.resolve()}" if ctx.watcher is not None else "watch folder off")
+    parts.append(f"data folder {st.data_dir.resolve()}")
+    parts.append(f"robot {st.robot.link_url} ({st.robot.model})")
+    parts.append("auth " + ("on" if st.auth_enabled else "OFF (loopback only)"))
+    return "listening: " + ", ".join(parts)
 
 
 async def _watch_database(ctx: ServiceContext) -> None:

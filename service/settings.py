@@ -288,6 +288,15 @@ class TlsSettings(_Section):
         return self.cert_file is not None
 
 
+class LogSettings(_Section):
+    """``oarmreg serve`` logging (issue #21); ``-v`` / ``--log-level`` / ``--log-format`` override it."""
+
+    # INFO: the start-up line (every listener, the data folder), scans, registrations, refusals.
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    # "json": one JSON object per line (ts, level, logger, message, exc) for journald / log shippers.
+    format: Literal["text", "json"] = "text"
+
+
 class ServiceSection(_Section):
     auto_register: bool = False
     """Register every scan as soon as it is recorded complete (and push the result)."""
@@ -322,6 +331,7 @@ class Settings(BaseSettings):
     tls: TlsSettings = TlsSettings()
     service: ServiceSection = ServiceSection()
     retention: RetentionSettings = RetentionSettings()
+    log: LogSettings = LogSettings()
 
     @classmethod
     def settings_customise_sources(
