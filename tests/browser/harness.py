@@ -24,6 +24,7 @@ import numpy as np
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import poll_until, wait_robot_still
 
+REPO = Path(__file__).resolve().parents[2]
 TOKEN = "browser-test-token-0123456789abcdef"
 WINDOW_S = 0.6
 DEADLINE_S = 60.0

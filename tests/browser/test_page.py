@@ -61,7 +61,8 @@ def svc(
     tmp_path_factory: pytest.TempPathFactory, world: h.World, nav_ui: Any
 ) -> Iterator[tuple[h.Service, dict[str, Any]]]:
     root = tmp_path_factory.mktemp("page")
-    with h.running_service(root, world, **{"api.allowed_origins": [nav_ui.base_url]}) as s:
+    kw = {"api.allowed_origins": [nav_ui.base_url], "igtl.enabled": True, "igtl.port": 0}
+    with h.running_service(root, world, **kw) as s:
         yield s, h.build_history(s, world)
 
 
@@ -309,3 +310,65 @@ def test_a_navigation_ui_on_another_origin_uses_the_api_through_cors(
                  "Access-Control-Request-Headers": "authorization"},
     )  # fmt: skip
     assert pre.status_code == 200 and pre.headers["access-control-allow-origin"] == nav_ui.base_url
+
+
+def _doc_table(text: str, heading: str) -> dict[str, str]:
+    """First-column `code` → second column of the first table after ``heading`` in docs/slicer.md."""
+    section = text.split(heading, 1)[1]
+    rows = {}
+    for line in section.splitlines():
+        if line.startswith("| `"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[0].strip("`")] = cells[1]
+        elif rows and not line.startswith("|"):
+            break
+    return rows
+
+
+def test_slicer_doc_matches_what_pyigtl_receives(svc: tuple[h.Service, dict[str, Any]]) -> None:
+    """docs/slicer.md: the device names, the RAS conversion and the metadata keys, against the
+    service's OpenIGTLink server with pyigtl (what Slicer's Python tools use) as the client."""
+    import numpy as np
+    import pyigtl
+
+    from tests.integration.polling import poll_until
+
+    s, _ = svc
+    cur = _current(s)
+    text = (h.REPO / "docs" / "slicer.md").read_text()
+    devices = _doc_table(text, "## 2. Connect Slicer")
+    keys = _doc_table(text, "## 3. Metadata")
+    assert set(devices) == {"RobotToImage", "ToolToImage"}
+    port = s.client.get("/status").json()["listeners"]["igtl"]["port"]
+    client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
+    try:
+        got = {}
+        for device in devices:
+            got[device] = poll_until(
+                lambda d=device: (
+                    (m := client.wait_for_message(d, timeout=0.2)) is not None
+                    and m.metadata.get("TransformStatus") == "OK"
+                    and m.metadata.get("RegistrationId") == str(cur["id"])
+                    and m
+                ),
+                f"{device} of registration {cur['id']}",
+                timeout_s=20,
+            )
+    finally:
+        client.stop()
+    ras_from_lps = np.diag([-1.0, -1.0, 1.0, 1.0])
+    robot_to_image = got["RobotToImage"]
+    np.testing.assert_allclose(
+        robot_to_image.matrix, ras_from_lps @ np.asarray(cur["image_from_robot"]), atol=1e-4
+    )
+    for device, msg in got.items():
+        undocumented = set(msg.metadata) - set(keys)
+        assert not undocumented, f"{device} sends metadata docs/slicer.md does not list: {undocumented}"
+        assert msg.metadata["ImageFrame"] == "RAS"
+    assert (
+        got["RobotToImage"].metadata["SourceFrame"] == "robot"
+        and got["ToolToImage"].metadata["SourceFrame"] == "tcp"
+    )
+    for key in ("FRE_mm", "TRE_pred_mm", "RegistrationId", "TransformStatus"):
+        assert key in robot_to_image.metadata, key
+    assert float(robot_to_image.metadata["FRE_mm"]) == pytest.approx(cur["fre_mm"], rel=1e-5)
