@@ -5,7 +5,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-fast coverage lint wheel-smoke bench clean
+.PHONY: setup demo test test-fast coverage lint wheel-smoke bench screenshots clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -49,6 +49,10 @@ coverage: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
+
+# The status page and /docs in headless Chromium, written to docs/img/page-*.png (issue #21).
+screenshots: $(STAMP)
+	$(BIN)/python -m tests.browser.screenshots docs/img
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache .mypy_cache .ruff_cache .hypothesis

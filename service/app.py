@@ -10,7 +10,7 @@ Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/join
 ``/scans`` · ``/register`` · ``/registration/current`` · ``/registrations`` ·
 ``/registrations/{id}/dicom`` · ``/verify`` ·
 ``/verifications`` · ``/events`` (+ ``/events/ticket``) · ``/audit`` · ``/calibrations``
-(:mod:`service.api.calibrations`).  Every route but ``/health``
+(:mod:`service.api.calibrations`); the page ``/`` and ``/docs`` (:mod:`service.web`).  Every data route
 needs ``Authorization: Bearer <api_token>``, checked with Host, Origin, Content-Type and body size
 by :class:`service.security.SecurityGate` before any body byte is read.
 """
@@ -57,7 +57,8 @@ doi:10.1088/1742-6596/1016/1/012006).
 * **Quality**: FRE is never an accuracy figure; use `predicted_tre_mm` at your targets and
   `POST /verify` with a second scan.
 * **Errors**: problem details (RFC 9457, `application/problem+json`) with a 4xx status.
-* **Auth**: `Authorization: Bearer <token>` on everything but `/health`.
+* **Auth**: `Authorization: Bearer <token>` on every data route and `/openapi.json`; public: `/health`,
+  the status page `/` with its `/static/` files and `/favicon.ico`, and this `/docs` shell.
 """
 
 
@@ -107,14 +108,25 @@ def create_app(
     docs = settings.api.docs
     app = FastAPI(
         title="oarmreg", version=__version__, description=API_DESCRIPTION, lifespan=lifespan,
-        docs_url="/docs" if docs else None, redoc_url="/redoc" if docs else None,
+        docs_url=None, redoc_url=None,  # /docs: the self-hosted shell of service.web (issue #21)
         openapi_url="/openapi.json" if docs else None,
     )  # fmt: skip
     app.state.ctx = ctx
     _install_routes(app)
     app.add_middleware(CurrentRegistrationFastPath)
-    app.add_middleware(SecurityGate)  # outermost: nothing is read before it admits the request
+    app.add_middleware(SecurityGate)  # nothing is read before it admits the request
+    _install_browser_layer(app, settings)  # CSP headers, then CORS outermost (issue #21)
     return app
+
+
+def _install_browser_layer(app: FastAPI, settings: Settings) -> None:
+    from service.web.cors import install_cors
+    from service.web.headers import SecurityHeaders
+    from service.web.routes import build_router
+
+    app.include_router(build_router(docs=settings.api.docs))
+    app.add_middleware(SecurityHeaders)
+    install_cors(app, settings)  # outside the gate: pre-flights carry no token
 
 
 def _load_phantom(settings: Settings) -> Phantom:
@@ -194,11 +206,25 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
             "the current registration; set api_token and api.auth = 'token' for clinical use"
         )
     ctx.retention_task = asyncio.create_task(_retention_loop(ctx), name="oarmreg-retention")
-    log.info(
-        "oarmreg %s serving: watch %s, data %s, robot %s (%s), auth %s",
-        __version__, settings.watch_dir, settings.data_dir, settings.robot.link_url, settings.robot.model,
-        "on" if settings.auth_enabled else "OFF (loopback only)",
-    )  # fmt: skip
+    log.info("oarmreg %s: %s", __version__, startup_line(ctx))
+
+
+def startup_line(ctx: ServiceContext) -> str:
+    """Every listener, the folders, the robot link and auth in one line (logged at INFO, issue #21)."""
+    st = ctx.settings
+    scheme = "https" if st.tls.enabled else "http"
+    host = f"[{st.host}]" if ":" in st.host else st.host
+    parts = [f"HTTP {scheme}://{host}:{st.port} (status page /, API docs /docs)"]
+    listeners = ctx.or_integration.status() if ctx.or_integration is not None else {}
+    d, g = listeners.get("dicom", {}), listeners.get("igtl", {})
+    parts.append(f"DICOM C-STORE {d.get('ae_title')}@{d.get('host')}:{d.get('port')}" if d.get("enabled")
+                 else "DICOM C-STORE off")  # fmt: skip
+    parts.append(f"OpenIGTLink {g.get('host')}:{g.get('port')}" if g.get("enabled") else "OpenIGTLink off")
+    parts.append(f"watch folder {st.watch_dir.resolve()}" if ctx.watcher is not None else "watch folder off")
+    parts.append(f"data folder {st.data_dir.resolve()}")
+    parts.append(f"robot {st.robot.link_url} ({st.robot.model})")
+    parts.append("auth " + ("on" if st.auth_enabled else "OFF (loopback only)"))
+    return "listening: " + ", ".join(parts)
 
 
 async def _watch_database(ctx: ServiceContext) -> None:

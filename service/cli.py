@@ -31,6 +31,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "service.commands.calibrate",
     "backup": "service.commands.backup",
     "restore": "service.commands.restore",
+    "config": "service.commands.config",
 }
 
 
@@ -42,7 +43,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         "doi:10.1088/1742-6596/1016/1/012006)",
     )
     parser.add_argument("--version", action="version", version=f"oarmreg {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    _add_logging_options(parser, "")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name in COMMANDS.items():
         if only is not None and name != only:
@@ -54,9 +55,38 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        _add_logging_options(p, "_sub")  # `oarmreg serve -v` as well as `oarmreg -v serve`
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
+
+
+def _add_logging_options(parser: argparse.ArgumentParser, suffix: str) -> None:
+    """``-v``, ``--log-level``, ``--log-format`` on the top parser and on every subcommand.
+
+    Separate destinations (``verbose`` / ``verbose_sub``…): argparse copies a subparser's defaults
+    over the top parser's values, so one shared destination would lose ``oarmreg -v serve``.
+    """
+    from service.logsetup import LEVELS, LOG_FORMATS
+
+    parser.add_argument("-v", "--verbose", dest="verbose" + suffix, action="count", default=0,
+                        help="more logging (-v info, -vv debug; serve logs at info by default)")  # fmt: skip
+    parser.add_argument("--log-level", dest="log_level" + suffix, type=str.upper, choices=LEVELS,
+                        default=None, help="log level (overrides -v and serve's [log] level)")  # fmt: skip
+    parser.add_argument("--log-format", dest="log_format" + suffix, choices=LOG_FORMATS, default=None,
+                        help="text (default) or json: one JSON object per line")  # fmt: skip
+
+
+def log_level_of(args: argparse.Namespace, default: int) -> tuple[int, bool]:
+    """The level the flags ask for (``--log-level``, else ``-v`` counted from ``default``), and whether
+    any flag asked (then a command's own level setting must not override it)."""
+    named = getattr(args, "log_level_sub", None) or getattr(args, "log_level", None)
+    if named:
+        return int(getattr(logging, named)), True
+    verbose = int(getattr(args, "verbose", 0)) + int(getattr(args, "verbose_sub", 0))
+    if verbose:
+        return max(logging.DEBUG, min(default, logging.WARNING) - 10 * verbose), True
+    return default, False
 
 
 def _requested_command(argv: Sequence[str]) -> str | None:
@@ -72,8 +102,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help(sys.stderr)
         return 2
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from service.logsetup import configure
+
+    module = importlib.import_module(COMMANDS[args.command])
+    level, _ = log_level_of(args, getattr(module, "DEFAULT_LOG_LEVEL", logging.WARNING))
+    configure(level, getattr(args, "log_format_sub", None) or getattr(args, "log_format", None) or "text")
     try:
         return int(args._run(args))
     except FAMILIES as e:

@@ -412,11 +412,11 @@ class StorageScp:
 
     # ---- negotiation ----------------------------------------------------------
 
-    def _refuse(self, refusal: ScpRefusal) -> None:
+    def _refuse(self, refusal: ScpRefusal, *, level: int = logging.WARNING) -> None:
         with self._lock:
             self.counters["refused"] += 1
-        log.warning("DICOM SCP refused (%s) from %s %s: %s", refusal.kind, refusal.calling_ae,
-                    refusal.peer, refusal.reason)  # fmt: skip
+        log.log(level, "DICOM SCP refused (%s) from %s %s: %s", refusal.kind, refusal.calling_ae,
+                refusal.peer, refusal.reason)  # fmt: skip
         if self.callbacks.on_refused is not None:
             try:
                 self.callbacks.on_refused(refusal)
@@ -463,10 +463,13 @@ class StorageScp:
         )
         if names:  # one report per association (storescu, for one, proposes ~120 classes)
             shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+            # Refusing the standard classes a sender proposes besides CT is the normal case (issue
+            # #21): DEBUG while some context was accepted; a WARNING when none was (wrong modality).
+            level = logging.DEBUG if assoc.accepted_contexts else logging.WARNING
             self._refuse(ScpRefusal(
                 "context", f"presentation context(s) refused: {shown}; only CT Image Storage and "
                 "Enhanced CT Image Storage are accepted", state.calling_ae, state.peer,
-            ))  # fmt: skip
+            ), level=level)  # fmt: skip
 
     def _on_echo(self, event: evt.Event) -> int:
         with self._lock:

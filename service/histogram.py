@@ -32,6 +32,7 @@ def write_error_histogram(
     *,
     title: str = "Position error of the calibration spheres",
     bin_width_mm: float | None = None,
+    gate_mm: float | None = None,
 ) -> Path:
     """Write a PNG histogram of per-sphere position errors; returns the path.
 
@@ -43,6 +44,10 @@ def write_error_histogram(
         Output PNG.
     bin_width_mm : float, optional
         Default: :func:`nice_bin_width_mm` of the largest error.
+    gate_mm : float, optional
+        The verification gate (``quality.max_verification_error_mm``): drawn as a vertical line, and
+        the verdict (PASS when the largest error is at most the gate, else FAIL) in the title, so a
+        failed verification never looks like a passed one (issue #21).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -57,6 +62,11 @@ def write_error_histogram(
     if bin_width_mm is None:
         bin_width_mm = nice_bin_width_mm(max_mm)
     top = max(max_mm, bin_width_mm)
+    if gate_mm is not None:
+        passed = max_mm <= gate_mm
+        ax.axvline(gate_mm, color="#1e8449" if passed else "#c0392b", linewidth=2.0,
+                   label=f"gate {gate_mm:.3f} mm")  # fmt: skip
+        title = f"{title}: {'PASS' if passed else 'FAIL'} (max {max_mm:.3f} mm, gate {gate_mm:.3f} mm)"
     bins = [float(b) for b in np.arange(0.0, top + bin_width_mm, bin_width_mm)]
     ax.hist(e, bins=bins, color="#4a7ab5", edgecolor="black", linewidth=0.6)
     if len(e):

@@ -407,7 +407,9 @@ class Orchestrator:
             software_version=__version__,
         )
         ver_id = self.db.verifications.insert(record)
-        self._write_histogram(ver_id, scan.id, current.id, np.asarray(res.errors_mm, dtype=np.float64))
+        self._write_histogram(
+            ver_id, scan.id, current.id, np.asarray(res.errors_mm, dtype=np.float64), gate_mm=gate
+        )
         stored = self.db.verifications.get(ver_id)
         assert stored is not None
         self.publish(
@@ -424,21 +426,24 @@ class Orchestrator:
         return stored
 
     def _write_histogram(
-        self, ver_id: int, scan_id: int, reg_id: int, errors_mm: NDArray[np.float64]
+        self, ver_id: int, scan_id: int, reg_id: int, errors_mm: NDArray[np.float64], *, gate_mm: float
     ) -> None:
         """The verification's histogram PNG; a failure is logged, the verification stays stored."""
         png = self.settings.data_dir / "histograms" / f"verification-{ver_id}.png"
         try:
             title = f"Verification {ver_id}: scan {scan_id} vs registration {reg_id}"
-            write_histogram(errors_mm, png, title=title)
+            write_histogram(errors_mm, png, title=title, gate_mm=gate_mm)
             self.db.verifications.set_histogram(ver_id, str(png))
         except Exception:
             log.exception("verification %d: writing the histogram %s failed", ver_id, png)
 
 
-def write_histogram(errors_mm: NDArray[np.float64], path: Path, *, title: str) -> None:
-    """Histogram of per-sphere position errors as a PNG (Bai 2018 fig. 7), via :mod:`service.histogram`."""
+def write_histogram(
+    errors_mm: NDArray[np.float64], path: Path, *, title: str, gate_mm: float | None = None
+) -> None:
+    """Histogram of per-sphere position errors as a PNG (Bai 2018 fig. 7), via :mod:`service.histogram`;
+    with ``gate_mm`` the gate line and PASS / FAIL."""
     from service.histogram import write_error_histogram
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_error_histogram(errors_mm, path, title=title)
+    write_error_histogram(errors_mm, path, title=title, gate_mm=gate_mm)

@@ -7,9 +7,11 @@ byte is read (so a 10 MB body without a token costs nothing):
    ``127.0.0.1``, ``[::1]`` and the connection's local address, on the service's port) → else 400.
    This closes DNS rebinding: a page on ``evil.example`` that re-points its name at 127.0.0.1
    still sends ``Host: evil.example``.
-2. ``Origin``, when present (browsers), must be in ``api.allowed_origins`` (default ``http(s)://``
-   + an allowed host) → else 403.  No ``Origin`` header = a non-browser client, allowed.
-3. Authentication (every path but ``/health``; ``/docs``, ``/redoc``, ``/openapi.json`` included):
+2. ``Origin``, when present (browsers), must be the service's own (``http(s)://`` + an allowed
+   host) or listed in ``api.allowed_origins`` → else 403.  No ``Origin`` header = a non-browser
+   client, allowed.
+3. Authentication (every path but :data:`PUBLIC_PATHS` — ``/health``, the page ``/``, its
+   ``/static/`` assets, ``/favicon.ico`` and the ``/docs`` shell; ``/openapi.json`` included):
    ``Authorization: Bearer <api_token>``, or for ``GET /events`` a single-use ``?ticket=`` from
    ``POST /events/ticket`` (``EventSource`` cannot send headers) → else 401.  ``api.auth =
    "none-loopback-only"`` skips this on a loopback bind (settings refuse it elsewhere).
@@ -47,7 +49,12 @@ log = logging.getLogger(__name__)
 PROBLEM_MEDIA_TYPE = b"application/problem+json"
 TYPE_PREFIX = "urn:oarmreg:problem:"
 MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-PUBLIC_PATHS = frozenset({"/health"})
+PUBLIC_PATHS = frozenset({"/health", "/", "/favicon.ico", "/docs"})
+"""Paths served without a token: liveness, the page, its favicon and the Swagger UI shell (issue #21);
+they carry no data: the page and /docs sign in and call the data routes with the Bearer token."""
+PUBLIC_PREFIXES = ("/static/",)
+"""The page's and /docs' assets (``service/web/static``, shipped in the wheel)."""
+PUBLIC_METHODS = frozenset({"GET", "HEAD"})
 EVENTS_PATH = "/events"
 PRINCIPAL_NO_AUTH = "none-loopback-only"
 """The audit principal when authentication is off (``api.auth = "none-loopback-only"``)."""
@@ -105,9 +112,13 @@ def allowed_hosts(settings: Settings, scope: Scope) -> frozenset[str]:
 
 
 def allowed_origins(settings: Settings, hosts: frozenset[str]) -> frozenset[str]:
-    if settings.api.allowed_origins:
-        return frozenset(o.strip().lower().rstrip("/") for o in settings.api.allowed_origins)
-    return frozenset(f"{scheme}://{h}" for scheme in ("http", "https") for h in hosts)
+    """The service's own origins (http(s):// + an allowed host) and those in ``api.allowed_origins``.
+
+    Its own origins always: the status page at ``/`` sends ``Origin`` on its POSTs, and listing a
+    navigation UI's origin must not lock the service's own page out (issue #21).
+    """
+    own = frozenset(f"{scheme}://{h}" for scheme in ("http", "https") for h in hosts)
+    return own | frozenset(o.strip().lower().rstrip("/") for o in settings.api.allowed_origins)
 
 
 def check_host_origin(settings: Settings, scope: Scope) -> None:
@@ -128,10 +139,20 @@ def check_host_origin(settings: Settings, scope: Scope) -> None:
         )  # fmt: skip
 
 
+def is_public(scope: Scope) -> bool:
+    """``GET``/``HEAD`` of :data:`PUBLIC_PATHS` or under :data:`PUBLIC_PREFIXES`; ``/health`` any method."""
+    path = str(scope["path"])
+    if path == "/health":
+        return True
+    if scope["method"] not in PUBLIC_METHODS:
+        return False
+    return path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES)
+
+
 def authenticate(ctx: ServiceContext, scope: Scope) -> str | None:
     """Step 3: the request's principal (None for public paths); raise :class:`Refusal` (401)."""
     settings = ctx.settings
-    if scope["path"] in PUBLIC_PATHS:
+    if is_public(scope):
         return None
     if settings.api.auth == "none-loopback-only":
         return PRINCIPAL_NO_AUTH
@@ -312,5 +333,5 @@ def gate_summary(settings: Settings) -> dict[str, Any]:
         "auth": settings.api.auth,
         "max_body_bytes": settings.api.max_body_bytes,
         "allowed_hosts": list(settings.api.allowed_hosts) or "bind host, localhost, 127.0.0.1, [::1]",
-        "allowed_origins": list(settings.api.allowed_origins) or "http(s):// + the allowed hosts",
+        "allowed_origins": ["http(s):// + the allowed hosts", *settings.api.allowed_origins],
     }

@@ -175,10 +175,10 @@ class ApiSettings(_Section):
     # Host header values accepted ("name" = that name on the service's port, "name:port" exactly).
     # Empty: the bind host, localhost, 127.0.0.1 and [::1] on the service's port (DNS rebinding guard).
     allowed_hosts: tuple[str, ...] = ()
-    # Origin header values accepted from browsers ("http://ui.example:8080"); a request without an
-    # Origin header is a non-browser client and is allowed.  Empty: http(s):// + the allowed hosts.
+    # Origin header values accepted from browsers ("http://ui.example:8080"), besides the service's own
+    # (http(s):// + the allowed hosts); a request without Origin is a non-browser client, allowed.
     allowed_origins: tuple[str, ...] = ()
-    # Serve /docs, /redoc and /openapi.json (behind the token like every other route).
+    # Serve /docs (the self-hosted Swagger UI shell, public) and /openapi.json (behind the token).
     docs: bool = True
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
@@ -310,6 +310,15 @@ class TlsSettings(_Section):
         return self.cert_file is not None
 
 
+class LogSettings(_Section):
+    """``oarmreg serve`` logging (issue #21); ``-v`` / ``--log-level`` / ``--log-format`` override it."""
+
+    # INFO: the start-up line (every listener, the data folder), scans, registrations, refusals.
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    # "json": one JSON object per line (ts, level, logger, message, exc) for journald / log shippers.
+    format: Literal["text", "json"] = "text"
+
+
 class ServiceSection(_Section):
     auto_register: bool = False
     """Register every scan as soon as it is recorded complete (and push the result)."""
@@ -354,6 +363,7 @@ class Settings(BaseSettings):
     service: ServiceSection = ServiceSection()
     retention: RetentionSettings = RetentionSettings()
     health: HealthSettings = HealthSettings()
+    log: LogSettings = LogSettings()
 
     @classmethod
     def settings_customise_sources(

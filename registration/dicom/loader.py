@@ -30,7 +30,7 @@ from registration.volume import Volume
 log = logging.getLogger(__name__)
 
 
-def load_series(path: str | Path, *, series_uid: str | None = None) -> Volume:
+def load_series(path: str | Path, *, series_uid: str | None = None, unique: bool = False) -> Volume:
     """Load one CT series as a :class:`Volume` in Hounsfield units.
 
     Parameters
@@ -41,6 +41,11 @@ def load_series(path: str | Path, *, series_uid: str | None = None) -> Volume:
     series_uid : str, optional
         SeriesInstanceUID (0020,000E) to load.  Without it the largest
         consistent stack is taken (axial stacks first); a tie is refused.
+    unique : bool
+        Refuse (:class:`AmbiguousSeriesError`) when more than one series is loadable and
+        ``series_uid`` names none: the command line, where a folder of several scans must not
+        silently give the largest one (issue #21).  Hidden folders, virtual environments and
+        package trees under ``path`` are never searched.
 
     Returns
     -------
@@ -65,7 +70,7 @@ def load_series(path: str | Path, *, series_uid: str | None = None) -> Volume:
     root = Path(path)
     headers, skipped = scan_folder(root)
     groups = group_by_series(headers)
-    chosen_uid, geometry = select_series(root, groups, skipped, series_uid)
+    chosen_uid, geometry = select_series(root, groups, skipped, series_uid, unique=unique)
     voxels = read_voxels(geometry.slices, chosen_uid)
     first = geometry.slices[0]
     meta = _volume_meta(root, geometry, skipped)

@@ -164,9 +164,26 @@ def _candidate_files(root: Path) -> tuple[list[Path], list[SkippedFile]]:
         return _checked(_fileset_files(dicomdir), root)
     out: list[Path] = []
     for dirpath, dirnames, filenames in os.walk(root):  # never follows links to folders
-        dirnames.sort()
+        dirnames[:] = sorted(d for d in dirnames if not _not_scan_folder(Path(dirpath) / d))
         out.extend(Path(dirpath) / f for f in sorted(filenames))
     return _checked(out, root)
+
+
+SKIPPED_FOLDER_NAMES = frozenset({"__pycache__", "node_modules", "site-packages", "dist-packages"})
+"""Folders under a scan root that are never a scan export (software trees hold test DICOM files)."""
+
+
+def _not_scan_folder(folder: Path) -> bool:
+    """A folder the walk skips (issue #21): hidden (``.venv``, ``.git``, ``.cache``), a virtual
+    environment (holds ``pyvenv.cfg``) or a package tree (:data:`SKIPPED_FOLDER_NAMES`).  The root
+    itself is always searched: a user who points at a hidden folder means it."""
+    if folder.name.startswith(".") or folder.name in SKIPPED_FOLDER_NAMES:
+        log.debug("not searching %s for DICOM (hidden or software folder)", folder)
+        return True
+    if (folder / "pyvenv.cfg").is_file():
+        log.debug("not searching %s for DICOM (a virtual environment)", folder)
+        return True
+    return False
 
 
 def _checked(paths: Sequence[Path], inside: Path) -> tuple[list[Path], list[SkippedFile]]:
@@ -282,8 +299,14 @@ def select_series(
     groups: dict[str, list[SliceHeader]],
     skipped: Sequence[SkippedFile],
     series_uid: str | None,
+    *,
+    unique: bool = False,
 ) -> tuple[str, SeriesGeometry]:
-    """Pick the series to load and return its checked geometry (raising the refusal otherwise)."""
+    """Pick the series to load and return its checked geometry (raising the refusal otherwise).
+
+    ``unique``: refuse (:class:`AmbiguousSeriesError`, naming every candidate) when more than one
+    series is loadable and ``series_uid`` names none, instead of taking the largest stack.
+    """
     if not groups:
         raise NoCtSeriesError(
             f"{root}: no CT image series found (CT Image Storage {CT_IMAGE_STORAGE} or Enhanced CT "
@@ -304,6 +327,13 @@ def select_series(
         log.info("series %s is not loadable: %s", uid, refused)
     if not good:
         raise _none_loadable(root, groups, bad)
+    if unique and len(good) > 1:
+        names = "; ".join(f"{uid} ({len(g.slices)} slices, first {g.slices[0].path})" for uid, g in good)
+        raise AmbiguousSeriesError(
+            f"{root}: {len(good)} loadable CT series: {names}. Pass --series-uid UID to choose one, or "
+            "point at the folder of that series alone.",
+            files=[g.slices[0].path for _, g in good],
+        )
     return _best_series(root, good)
 
 

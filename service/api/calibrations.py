@@ -6,9 +6,10 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import anyio.to_thread
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Body, Query, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from registration.errors import RegistrationError
 from service.api.deps import CtxDep, Offset, RecordId
 from service.api.models import DbId
 from service.api.problems import problem_responses
@@ -184,16 +185,43 @@ def get_urdf(ctx: CtxDep, calibration_id: RecordId) -> Response:
     )
 
 
+class ActivateRequest(BaseModel):
+    """``POST /calibrations/{id}/activate`` (optional body)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"force": True}]})
+
+    force: bool = Field(
+        False,
+        description="Activate although a registration is current (it is retired: navigation loses it "
+        "until the next /register).  Without it, activation while one is current answers 409.",
+    )
+
+
+class ActivationRetiresCurrentError(RegistrationError):
+    title = "Activation would retire the current registration"
+
+
 @router.post(
     "/calibrations/{calibration_id}/activate",
     response_model=CalibrationOut,
     summary="Use this calibration for /register; retires the current registration",
     description=(
         "Every accepted registration becomes `retired` and none is current until the next `/register` "
-        "(push channels report INVALID; `registration_retired` is published)."
+        "(push channels report INVALID; `registration_retired` is published).  While a registration is "
+        'current the request must say `{"force": true}`, else 409 and nothing changes.'
     ),
     responses=problem_responses(401, 404, 409),
 )
-async def activate(ctx: CtxDep, calibration_id: RecordId) -> CalibrationOut:
+async def activate(
+    ctx: CtxDep, calibration_id: RecordId, body: Annotated[ActivateRequest | None, Body()] = None
+) -> CalibrationOut:
+    current = ctx.orchestrator.current
+    if current is not None and not (body is not None and body.force):
+        _get(ctx, calibration_id)  # an unknown id is still 404
+        raise ActivationRetiresCurrentError(
+            f"registration {current.id} is current; activating calibration {calibration_id} retires it and "
+            "navigation has no registration until the next POST /register; repeat with "
+            '{"force": true} to go ahead'
+        )
     rec, _ = await anyio.to_thread.run_sync(_jobs(ctx).activate, calibration_id)
     return calibration_out(rec)

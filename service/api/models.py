@@ -327,6 +327,11 @@ class VerificationOut(_Out):
     n_detected: int = Field(validation_alias=_from("figures", "n_detected"))
     n_matched: int = Field(validation_alias=_from("figures", "n_matched"))
     errors: list[VerificationError] = Field(validation_alias=_from("figures", "errors"))
+    gate_mm: float = Field(
+        0.0,
+        validation_alias=AliasChoices("gate_mm", AliasPath("figures", "max_verification_error_mm")),
+        description="The gate it was judged against: quality.max_verification_error_mm at the time, mm.",
+    )
     histogram_path: str | None = Field(default=None, exclude=True)
     config_hash: str
     software_version: str

@@ -1,4 +1,4 @@
-"""``POST /verify``, ``GET /verifications/{id}`` and its histogram PNG."""
+"""``POST /verify``, ``GET /verifications`` (paginated), ``GET /verifications/{id}`` and its histogram PNG."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import anyio.to_thread
 from fastapi import APIRouter, Body
 from fastapi.responses import FileResponse
 
-from service.api.deps import CtxDep, PrincipalDep, RecordId
+from service.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
 from service.api.models import VerificationOut, VerifyRequest, verification_out
 from service.api.problems import problem_responses
 from service.audit import audited
@@ -42,6 +42,16 @@ async def verify(
             f"registration {rec.registration_id}, scan {rec.scan_id}, max {rec.max_mm:.3f} mm",
         )
     return verification_out(rec)
+
+
+@router.get(
+    "/verifications",
+    response_model=list[VerificationOut],
+    summary="Every verification, newest first (paginated: limit, offset)",
+    responses=problem_responses(401),
+)
+def list_verifications(ctx: CtxDep, limit: Limit = 100, offset: Offset = 0) -> list[VerificationOut]:
+    return [verification_out(r) for r in ctx.db.verifications.list(limit, offset)]
 
 
 @router.get(

@@ -206,7 +206,7 @@ def _before_after(
     s_ver = _scan_at(d, h, q_ver, y2, "moved-verify", MOVED_FOR_UID, rng)
     reg_nom, ver_nom = _register_and_verify(d, h, int(s_reg["id"]), int(s_ver["id"]))
     act = h.check(
-        d.client.post(f"/calibrations/{cal['id']}/activate", headers={"Content-Type": "application/json"})
+        d.client.post(f"/calibrations/{cal['id']}/activate", json={"force": True})  # retires reg_nom
     )
     retired = d.client.get(f"/registrations/{reg_nom['id']}").json()["status"]
     _err(f"  calibration {act['id']} activated: registration {reg_nom['id']} is now {retired}")

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         overrides["use_mar"] = False
     params = detection_params_for_phantom(args.phantom, method=args.method, **overrides)
 
-    volume = load_series(args.dicom_dir, series_uid=args.series_uid)
+    volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     result = detect_spheres(volume, params)
 
     if args.json_out is not None:

@@ -140,7 +140,7 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
 
     dparams = detection_params_for_phantom(args.phantom, method=args.method)
     t0 = time.perf_counter()
-    volume = load_series(args.dicom_dir, series_uid=args.series_uid)
+    volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     timings["load_s"] = time.perf_counter() - t0
     from registration.scan_geometry import series_geometry
 

@@ -16,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 HELP = "run the registration service (REST API, DICOM watcher, robot link)"
+DEFAULT_LOG_LEVEL = logging.INFO
+"""The start-up line (every listener, the data folder) shows by default; ``[log] level`` changes it."""
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +76,9 @@ def run(args: argparse.Namespace) -> int:
     from service.tls import uvicorn_ssl_options
 
     settings = settings_from_args(args)
+    apply_log_settings(args, settings)
     ssl_options = uvicorn_ssl_options(settings)
+    check_ports(settings)  # before preflight opens (and may create) the database
     preflight(settings)
     app = create_app(settings)
     config = uvicorn.Config(
@@ -93,6 +97,59 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError(f"the service did not start on {settings.host}:{settings.port} (see the log above)")
     return 0
+
+
+def apply_log_settings(args: argparse.Namespace, settings: Any) -> None:
+    """``[log] level`` / ``format`` unless ``-v`` / ``--log-level`` / ``--log-format`` said otherwise."""
+    from service.cli import log_level_of
+    from service.logsetup import configure
+
+    level, explicit = log_level_of(args, DEFAULT_LOG_LEVEL)
+    if not explicit:
+        level = int(getattr(logging, settings.log.level))
+    fmt = getattr(args, "log_format_sub", None) or getattr(args, "log_format", None) or settings.log.format
+    configure(level, fmt)
+
+
+def listeners(settings: Any) -> list[tuple[str, str, str, int]]:
+    """(name, setting, host, port) of every TCP listener the settings ask for."""
+    out = [("HTTP API", "port", settings.host, settings.port)]
+    if settings.dicom.enabled:
+        out.append(("DICOM C-STORE", "dicom.port", settings.dicom.host, settings.dicom.port))
+    if settings.igtl.enabled:
+        out.append(("OpenIGTLink", "igtl.port", settings.igtl.host, settings.igtl.port))
+    return out
+
+
+def check_ports(settings: Any) -> None:
+    """Refuse to start, one line per listener, when a port is taken (before anything starts).
+
+    A bind test (with ``SO_REUSEADDR``, as the servers use) on each configured port; ports of 0 are
+    chosen by the system and always free.  Racy by nature: a port taken in between still fails at
+    bind, with the server's own message.
+
+    Raises
+    ------
+    ConfigError
+    """
+    from registration.errors import ConfigError
+
+    lines = []
+    for name, key, host, port in listeners(settings):
+        if port == 0:
+            continue
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError as e:
+                lines.append(
+                    f"{name}: {host}:{port} cannot be used ({e.strerror}); another program (an oarmreg "
+                    f"already running?) holds it: stop it or change '{key}'"
+                )
+    if lines:
+        raise ConfigError("\n".join(lines))
 
 
 def preflight(settings: Any) -> None:

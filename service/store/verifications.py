@@ -47,6 +47,13 @@ class VerificationStore:
         rows = self._db.query("SELECT * FROM verifications WHERE id = ?", (ver_id,))
         return _record(rows[0]) if rows else None
 
+    def list(self, limit: int = 100, offset: int = 0) -> list[VerificationRecord]:
+        """Newest first (``GET /verifications``)."""
+        rows = self._db.query(
+            "SELECT * FROM verifications ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset)
+        )
+        return [_record(r) for r in rows]
+
 
 def _record(r: sqlite3.Row) -> VerificationRecord:
     return VerificationRecord(

@@ -217,8 +217,12 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     urdf = c.get(cal["urdf_url"])
     assert urdf.status_code == 200 and "<robot" in urdf.text and f"calibration {cal_id}" in urdf.text
 
+    # a registration is current: activation without "force" is refused and changes nothing (#21)
+    refused = c.post(f"/calibrations/{cal_id}/activate", headers=JSON)
+    assert refused.status_code == 409 and f"registration {before.json()['id']}" in refused.json()["detail"]
+    assert c.get("/registration/current").json()["id"] == before.json()["id"]
     act, events = _stream_until(
-        c, lambda: c.post(f"/calibrations/{cal_id}/activate", headers=JSON), {"registration_retired"}
+        c, lambda: c.post(f"/calibrations/{cal_id}/activate", json={"force": True}), {"registration_retired"}
     )
     assert act.status_code == 200 and act.json()["is_active"], act.text
     retired = events[-1][1]
