@@ -52,6 +52,14 @@ EVENT_NAMES = (
     "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
     "scan_files_deleted",  # the retention policy deleted a scan's folder
 )
+EVENT_NAMES = (
+    *EVENT_NAMES,
+    # issue #23: an OpenIGTLink client sent header version 2 and is answered in version 2 from now on
+    "igtl_client_header_version",
+    # issue #23: archiving a registration's SRO to the PACS (service/pacs/)
+    "pacs_export_sent",
+    "pacs_export_failed",
+)
 
 
 class EventBus:

@@ -20,7 +20,8 @@
   worker thread; the result is pushed like any other.
 
 Events (``GET /events``): ``dicom_association_released``, ``dicom_association_aborted``,
-``dicom_refused``, ``igtl_client_connected``, ``igtl_client_disconnected``, plus the intake's
+``dicom_refused``, ``igtl_client_connected``, ``igtl_client_header_version`` (it sent a version-2
+message: answered in version 2 from then on), ``igtl_client_disconnected``, plus the intake's
 ``scan_arrived`` / ``scan_invalid`` (with ``"source": "dicom"``).
 """
 
@@ -211,7 +212,10 @@ class OrIntegration:
         igtl: dict[str, Any] = {"enabled": g.enabled, "host": g.host, "port": None}
         if self.igtl is not None:
             igtl.update(
-                port=self.igtl.port, clients=self.igtl.client_count, counters=dict(self.igtl.counters)
+                port=self.igtl.port,
+                clients=self.igtl.client_count,
+                counters=dict(self.igtl.counters),
+                peers=self.igtl.client_info(),  # per client: peer and header version (issue #23)
             )
         return {
             "dicom": dicom,
@@ -272,8 +276,10 @@ class OrIntegration:
              "peer": refusal.peer, "sop_instance_uid": refusal.sop_instance_uid, "status": refusal.status},
         )  # fmt: skip
 
-    def _on_igtl_client(self, event: str, peer: str, n_clients: int) -> None:
-        self.ctx.bus.publish(f"igtl_client_{event}", {"peer": peer, "clients": n_clients})
+    def _on_igtl_client(self, event: str, peer: str, n_clients: int, header_version: int) -> None:
+        self.ctx.bus.publish(
+            f"igtl_client_{event}", {"peer": peer, "clients": n_clients, "header_version": header_version}
+        )
 
     # ---- recording (worker thread) --------------------------------------------------------
 
