@@ -5,12 +5,13 @@
 //
 // Phase 1 (never writes): reads header-version-1 TRANSFORMs the way the library's ReceiveClient
 // example does (igtl::MessageHeader::Unpack, igtl::TransformMessage::Unpack(1) with its CRC check)
-// until it has N_V1 of them, printing one line each:
+// until N_V1 of them were RobotToImage (ToolToImage comes at the robot link rate, RobotToImage
+// at the re-send period), printing one line each:
 //     V1 <device> crc=<ok|bad> <m00 m01 m02 m03 m10 ... m23>      (the upper 3x4, row-major, mm)
 // Any other header version in phase 1 prints "UNEXPECTED <version> <type> <device>" and exits 3.
 //
 // Phase 2: sends a header-version-2 STATUS (OK, no metadata), as SlicerOpenIGTLink does at connect
-// (PR #65), prints "SENT_V2_STATUS", then reads N_V2 further version-2 messages.  The 1.11 library
+// (PR #65), prints "SENT_V2_STATUS", then reads until N_V2 version-2 RobotToImage messages came.  The 1.11 library
 // unpacks only version-1 headers, so this phase decodes the 58-byte header with the library's C
 // layer (igtl_header + igtl_header_convert_byte_order), checks the body CRC with its crc64(), and
 // splits the extended header and metadata with a few lines here (v3_proposal.md):
@@ -71,7 +72,7 @@ static int phase1(igtl::ClientSocket::Pointer& socket, int n) {
     for (int r = 0; r < 3; ++r)
       for (int k = 0; k < 4; ++k) std::printf(" %.9g", static_cast<double>(m[r][k]));
     std::printf("\n");
-    ++got;
+    if (std::strcmp(msg->GetDeviceName(), "RobotToImage") == 0) ++got;
   }
   return 0;
 }
@@ -146,7 +147,7 @@ static int phase2(igtl::ClientSocket::Pointer& socket, int n) {
         pos += ks + vs;
         std::printf(" %s=%s;", key.c_str(), value.c_str());
       }
-      ++got;
+      if (std::strcmp(dev, "RobotToImage") == 0) ++got;
     }
     std::printf("\n");
   }
