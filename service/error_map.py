@@ -32,6 +32,7 @@ from service.errors import (
     InternalError,
     NoScanError,
     NotFoundError,
+    PacsExportError,
     StorageFullError,
 )
 
@@ -66,6 +67,7 @@ ERROR_MAP: dict[type, ErrorClass] = {
     RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK, "Robot link error"),
     LinkConfigError: ErrorClass(422, EXIT_CONFIG, "Invalid robot link configuration"),
     StorageFullError: ErrorClass(507, EXIT_CONFIG, "Data folder full"),
+    PacsExportError: ErrorClass(409, EXIT_CONFIG, "PACS export not possible"),  # issue #23
 }
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)

@@ -16,6 +16,8 @@
   from the current registration (plus the last refusal), the live joints and link health, the
   robot model's forward kinematics and ``igtl.tool0_from_tcp``; pushed at once after a
   registration becomes current or is refused.
+* **PACS archive** (``[pacs]``, issue #23): :class:`service.pacs.exporter.PacsExporter` queues the
+  Spatial Registration object of each accepted registration and sends it by C-STORE.
 * **Auto-register** (``service.auto_register``): each scan recorded complete is registered on a
   worker thread; the result is pushed like any other.
 
@@ -48,6 +50,7 @@ from service.igtl.server import (
     RegistrationView,
 )
 from service.intake import Intake
+from service.pacs.exporter import PacsExporter
 from service.records import JointSnapshot, RegistrationRecord
 from service.series_accumulator import SeriesAccumulator
 from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
@@ -111,6 +114,7 @@ class OrIntegration:
         self._last_refusal: Refusal | None = None
         self._view: tuple[RegistrationRecord, RegistrationView] | None = None
         self.intake: Intake | None = None
+        self.pacs: PacsExporter | None = None
 
     @property
     def intake_dir(self) -> Path:
@@ -125,11 +129,20 @@ class OrIntegration:
         if event == "registration_done":
             self._last_refusal = None
             self._notify()
+            if self.pacs is not None:
+                self._enqueue_export(int(data["registration_id"]))
         elif event == "registration_refused":
             self._last_refusal = Refusal(str(data.get("registration_id")), str(data.get("reason", "")))
             self._notify()
         elif event == "scan_arrived" and self.settings.service.auto_register and self._registrar is not None:
             self._registrar.submit(self._auto_register, int(data["scan_id"]))
+
+    def _enqueue_export(self, registration_id: int) -> None:
+        assert self.pacs is not None
+        try:
+            self.pacs.enqueue(registration_id)
+        except Exception:  # the registration stands; the worker's start-up sweep queues it later
+            log.exception("PACS export: could not queue registration %d", registration_id)
 
     def _notify(self) -> None:
         if self.igtl is not None:
@@ -172,6 +185,11 @@ class OrIntegration:
             )
             self.scp = StorageScp(cfg, self.intake_dir, callbacks)
             await asyncio.to_thread(self.scp.start)
+        if self.settings.pacs.enabled:
+            self.pacs = PacsExporter(
+                self.ctx.db, self.settings.pacs, self.settings.data_dir, self.ctx.bus.publish
+            )
+            await asyncio.to_thread(self.pacs.start)
         g = self.settings.igtl
         if g.enabled:
             source = IgtlStateSource(
@@ -194,6 +212,8 @@ class OrIntegration:
             await asyncio.gather(*list(self._tasks), return_exceptions=True)
         if self.igtl is not None:
             await self.igtl.stop()
+        if self.pacs is not None:
+            await asyncio.to_thread(self.pacs.stop)
         for ex in (self._decoder, self._registrar):
             if ex is not None:
                 await asyncio.to_thread(ex.shutdown, True, cancel_futures=True)
@@ -217,9 +237,14 @@ class OrIntegration:
                 counters=dict(self.igtl.counters),
                 peers=self.igtl.client_info(),  # per client: peer and header version (issue #23)
             )
+        p = self.settings.pacs
+        pacs: dict[str, Any] = {"enabled": p.enabled}
+        if self.pacs is not None:
+            pacs.update(destination=self.pacs.destination, calling_ae_title=p.calling_ae_title)
         return {
             "dicom": dicom,
             "igtl": igtl,
+            "pacs": pacs,
             "tls": self.settings.tls.enabled,
             "auto_register": self.settings.service.auto_register,
         }

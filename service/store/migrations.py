@@ -204,6 +204,26 @@ foreign keys), so "withdrawn" is an accepted row with ``withdrawn_at`` set; the 
 status as ``withdrawn`` (before ``retired``)."""
 MIGRATIONS = (*MIGRATIONS, WITHDRAWN_AND_RETENTION_MIGRATION)
 
+PACS_EXPORTS_MIGRATION = """
+    CREATE TABLE pacs_exports (
+        id INTEGER PRIMARY KEY,
+        registration_id INTEGER NOT NULL UNIQUE REFERENCES registrations(id),
+        destination TEXT NOT NULL,
+        state TEXT NOT NULL CHECK (state IN ('pending', 'sent', 'failed')),
+        attempts INTEGER NOT NULL DEFAULT 0,
+        dimse_status INTEGER,
+        reason TEXT NOT NULL DEFAULT '',
+        sop_instance_uid TEXT NOT NULL DEFAULT '',
+        queued_at TEXT NOT NULL,
+        updated_at TEXT NOT NULL,
+        next_attempt_unix_s REAL NOT NULL
+    );
+    CREATE INDEX pacs_exports_due ON pacs_exports (state, next_attempt_unix_s);
+"""
+"""Issue #23: the PACS archive queue, one row per accepted registration (service.pacs).  A row stays
+``pending`` while it is being sent, so a service killed mid-send sends it again after restart."""
+MIGRATIONS = (*MIGRATIONS, PACS_EXPORTS_MIGRATION)
+
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""
 
