@@ -119,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
                     lambda: client.get("/status").json()["link"]["history_s"] > WINDOW_S * 2, "joint history"
                 )
                 igtl = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=lst["igtl"]["port"])
+                hello = pyigtl.StringMessage("reads header version 2", device_name="Hello")
+                hello.header_version = 2  # as Slicer does: the metadata (RegistrationId) needs v2
+                igtl.send_message(hello, wait=False)
                 load_before = os.getloadavg()[0]  # after the simulation, which loads the machine itself
                 try:
                     rows = [

@@ -51,3 +51,10 @@ class StorageFullError(OarmRegError):
     stored before it is lost.  Answered 507 Insufficient Storage."""
 
     title = "Data folder full"
+
+
+class PacsExportError(OarmRegError):
+    """The PACS archive of a registration cannot be (re)queued: no PACS configured, a refused
+    registration, or already archived (issue #23)."""
+
+    title = "PACS export not possible"

@@ -57,6 +57,11 @@ EVENT_NAMES = (
     # issue 19: the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
     "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
     "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
+    # issue #23: an OpenIGTLink client sent header version 2 and is answered in version 2 from now on
+    "igtl_client_header_version",
+    # issue #23: archiving a registration's SRO to the PACS (service/pacs/)
+    "pacs_export_sent",
+    "pacs_export_failed",
 )
 
 

@@ -16,11 +16,14 @@
   from the current registration (plus the last refusal), the live joints and link health, the
   robot model's forward kinematics and ``igtl.tool0_from_tcp``; pushed at once after a
   registration becomes current or is refused.
+* **PACS archive** (``[pacs]``, issue #23): :class:`service.pacs.exporter.PacsExporter` queues the
+  Spatial Registration object of each accepted registration and sends it by C-STORE.
 * **Auto-register** (``service.auto_register``): each scan recorded complete is registered on a
   worker thread; the result is pushed like any other.
 
 Events (``GET /events``): ``dicom_association_released``, ``dicom_association_aborted``,
-``dicom_refused``, ``igtl_client_connected``, ``igtl_client_disconnected``, plus the intake's
+``dicom_refused``, ``igtl_client_connected``, ``igtl_client_header_version`` (it sent a version-2
+message: answered in version 2 from then on), ``igtl_client_disconnected``, plus the intake's
 ``scan_arrived`` / ``scan_invalid`` (with ``"source": "dicom"``).
 """
 
@@ -48,6 +51,7 @@ from service.igtl.server import (
     RegistrationView,
 )
 from service.intake import Intake
+from service.pacs.exporter import PacsExporter
 from service.records import RegistrationRecord
 from service.scan_lifecycle import ContentChange, OfferTally, ScanLifecycle, hash_files
 from service.series_accumulator import SeriesAccumulator
@@ -114,6 +118,7 @@ class OrIntegration:
         self.intake: Intake | None = None
         self.lifecycle: ScanLifecycle | None = None
         """Set by the app before :meth:`start` (shared with the folder watcher's intake)."""
+        self.pacs: PacsExporter | None = None
 
     @property
     def intake_dir(self) -> Path:
@@ -128,11 +133,20 @@ class OrIntegration:
         if event == "registration_done":
             self._last_refusal = None
             self._notify()
+            if self.pacs is not None:
+                self._enqueue_export(int(data["registration_id"]))
         elif event == "registration_refused":
             self._last_refusal = Refusal(str(data.get("registration_id")), str(data.get("reason", "")))
             self._notify()
         elif event == "scan_arrived" and self.settings.service.auto_register and self._registrar is not None:
             self._registrar.submit(self._auto_register, int(data["scan_id"]))
+
+    def _enqueue_export(self, registration_id: int) -> None:
+        assert self.pacs is not None
+        try:
+            self.pacs.enqueue(registration_id)
+        except Exception:  # the registration stands; the worker's start-up sweep queues it later
+            log.exception("PACS export: could not queue registration %d", registration_id)
 
     def _notify(self) -> None:
         if self.igtl is not None:
@@ -183,6 +197,11 @@ class OrIntegration:
             )
             self.scp = StorageScp(cfg, self.intake_dir, callbacks)
             await asyncio.to_thread(self.scp.start)
+        if self.settings.pacs.enabled:
+            self.pacs = PacsExporter(
+                self.ctx.db, self.settings.pacs, self.settings.data_dir, self.ctx.bus.publish
+            )
+            await asyncio.to_thread(self.pacs.start)
         g = self.settings.igtl
         if g.enabled:
             source = IgtlStateSource(
@@ -205,6 +224,8 @@ class OrIntegration:
             await asyncio.gather(*list(self._tasks), return_exceptions=True)
         if self.igtl is not None:
             await self.igtl.stop()
+        if self.pacs is not None:
+            await asyncio.to_thread(self.pacs.stop)
         for ex in (self._decoder, self._registrar):
             if ex is not None:
                 await asyncio.to_thread(ex.shutdown, True, cancel_futures=True)
@@ -223,11 +244,19 @@ class OrIntegration:
         igtl: dict[str, Any] = {"enabled": g.enabled, "host": g.host, "port": None}
         if self.igtl is not None:
             igtl.update(
-                port=self.igtl.port, clients=self.igtl.client_count, counters=dict(self.igtl.counters)
+                port=self.igtl.port,
+                clients=self.igtl.client_count,
+                counters=dict(self.igtl.counters),
+                peers=self.igtl.client_info(),  # per client: peer and header version (issue #23)
             )
+        p = self.settings.pacs
+        pacs: dict[str, Any] = {"enabled": p.enabled}
+        if self.pacs is not None:
+            pacs.update(destination=self.pacs.destination, calling_ae_title=p.calling_ae_title)
         return {
             "dicom": dicom,
             "igtl": igtl,
+            "pacs": pacs,
             "tls": self.settings.tls.enabled,
             "auto_register": self.settings.service.auto_register,
         }
@@ -306,8 +335,10 @@ class OrIntegration:
              "peer": refusal.peer, "sop_instance_uid": refusal.sop_instance_uid, "status": refusal.status},
         )  # fmt: skip
 
-    def _on_igtl_client(self, event: str, peer: str, n_clients: int) -> None:
-        self.ctx.bus.publish(f"igtl_client_{event}", {"peer": peer, "clients": n_clients})
+    def _on_igtl_client(self, event: str, peer: str, n_clients: int, header_version: int) -> None:
+        self.ctx.bus.publish(
+            f"igtl_client_{event}", {"peer": peer, "clients": n_clients, "header_version": header_version}
+        )
 
     # ---- recording (worker thread) --------------------------------------------------------
 

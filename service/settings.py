@@ -62,7 +62,10 @@ MIN_TOKEN_CHARS = 16
 _toml_file: contextvars.ContextVar[Path | None] = contextvars.ContextVar("oarmreg_toml_file", default=None)
 
 _PATH_KEYS = ("watch_dir", "data_dir", "phantom_file")
-_NESTED_PATH_KEYS = (("tls", "cert_file"), ("tls", "key_file"))
+_NESTED_PATH_KEYS = (
+    ("tls", "cert_file"), ("tls", "key_file"),
+    ("pacs", "tls_ca_file"), ("pacs", "tls_cert_file"), ("pacs", "tls_key_file"),
+)  # fmt: skip
 
 
 class _Section(BaseModel):
@@ -319,6 +322,53 @@ class LogSettings(_Section):
     format: Literal["text", "json"] = "text"
 
 
+class PacsSettings(_Section):
+    """Archive each accepted registration's Spatial Registration object to a PACS by C-STORE
+    (issue #23), :mod:`service.pacs`.  Off while ``host`` is empty."""
+
+    host: str = ""
+    port: int = Field(default=104, ge=1, le=65535)
+    ae_title: str = Field(default="", max_length=16)
+    """The PACS's (called) AE title."""
+    calling_ae_title: str = Field(default="OARMREG", min_length=1, max_length=16)
+    """Ours, as the PACS must know it."""
+    timeout_s: float = Field(default=30.0, gt=0, le=600)
+    """Association, DIMSE and network timeout of one attempt."""
+    retry_initial_s: float = Field(default=5.0, gt=0, le=3600)
+    """Wait before the first retry after a link failure; doubled per failure up to retry_max_s."""
+    retry_max_s: float = Field(default=300.0, gt=0, le=86400)
+    give_up_after_s: float = Field(default=7 * 86400.0, gt=0)
+    """A send still failing on the link this long after it was queued becomes ``failed``."""
+    tls_ca_file: Path | None = None
+    """PEM CA bundle of the PACS's certificate: set → the association uses TLS (DICOM PS3.15 B.1)."""
+    tls_cert_file: Path | None = None
+    tls_key_file: Path | None = None
+    """Our client certificate and key (PEM), when the PACS asks for one."""
+
+    @field_validator("tls_ca_file", "tls_cert_file", "tls_key_file", mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
+    @model_validator(mode="after")
+    def _complete(self) -> PacsSettings:
+        if self.host and not self.ae_title:
+            raise ValueError("pacs.ae_title: the PACS's AE title is required when pacs.host is set")
+        if (self.tls_cert_file is None) != (self.tls_key_file is None):
+            raise ValueError("pacs.tls_cert_file and pacs.tls_key_file must be set together")
+        if self.tls_cert_file is not None and self.tls_ca_file is None:
+            raise ValueError("pacs.tls_cert_file needs pacs.tls_ca_file (TLS is on only with a CA)")
+        for key in ("tls_ca_file", "tls_cert_file", "tls_key_file"):
+            path = getattr(self, key)
+            if path is not None and not path.is_file():
+                raise ValueError(f"pacs.{key}: {path} is not a readable file")
+        return self
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.host)
+
+
 class ServiceSection(_Section):
     auto_register: bool = False
     """Register every scan as soon as it is recorded complete (and push the result)."""
@@ -364,6 +414,8 @@ class Settings(BaseSettings):
     retention: RetentionSettings = RetentionSettings()
     health: HealthSettings = HealthSettings()
     log: LogSettings = LogSettings()
+
+    pacs: PacsSettings = PacsSettings()
 
     @classmethod
     def settings_customise_sources(

@@ -305,6 +305,22 @@ class RegistrationOut(_Out):
     retired_by_calibration: int | None = None
     provenance: dict[str, Any] = Field({}, validation_alias=_from("figures", "provenance"))
     timings_s: dict[str, float] = Field({}, validation_alias=_from("figures", "timings_s"))
+    pacs_export: PacsExportOut | None = Field(
+        default=None, description="Its archive to the PACS (GET /registrations/{id} only; null: none queued)."
+    )
+
+
+class PacsExportOut(_Out):
+    """The archive of a registration's Spatial Registration object to the PACS (issue #23)."""
+
+    state: str = Field(description="pending | sent | failed")
+    destination: str = Field(description="AE@host:port of the PACS (+tls when TLS is on)")
+    attempts: int
+    dimse_status: int | None = Field(default=None, description="The PACS's C-STORE status, when it answered.")
+    reason: str = Field(description="What happened at the last attempt (empty before the first).")
+    sop_instance_uid: str
+    queued_at: str
+    updated_at: str
 
 
 class VerificationError(_Out):

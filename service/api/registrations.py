@@ -8,7 +8,7 @@ import anyio.to_thread
 from fastapi import APIRouter, Body, Response
 
 from service.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
-from service.api.models import RegisterRequest, RegistrationOut, registration_out
+from service.api.models import PacsExportOut, RegisterRequest, RegistrationOut, registration_out
 from service.api.problems import problem_responses
 from service.audit import audited
 from service.errors import NoCurrentRegistrationError, NotFoundError
@@ -81,4 +81,8 @@ def get_registration(ctx: CtxDep, registration_id: RecordId) -> RegistrationOut:
     rec = ctx.db.registrations.get(registration_id)
     if rec is None:
         raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")
-    return registration_out(rec)
+    out = registration_out(rec)
+    export = ctx.db.pacs_exports.get(registration_id)
+    if export is not None:  # issue #23: its archive to the PACS
+        out.pacs_export = PacsExportOut.model_validate(export, from_attributes=True)
+    return out

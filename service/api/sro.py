@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from service.api.deps import CtxDep, RecordId
+from service.api.deps import CtxDep, PrincipalDep, RecordId
+from service.api.models import PacsExportOut
 from service.api.problems import problem_responses
-from service.errors import NotFoundError
+from service.audit import audited
+from service.errors import NotFoundError, PacsExportError
 
 router = APIRouter(tags=["registration"])
 
@@ -46,3 +48,46 @@ def registration_dicom(ctx: CtxDep, registration_id: RecordId) -> Response:
         media_type=DICOM_MEDIA_TYPE,
         headers={"Content-Disposition": f'attachment; filename="registration-{registration_id}-sro.dcm"'},
     )
+
+
+@router.post(
+    "/registrations/{registration_id}/pacs-export",
+    response_model=PacsExportOut,
+    summary="Send the registration's Spatial Registration object to the PACS again (issue #23)",
+    description=(
+        "Queues the archive of an accepted registration now, its attempts reset: after a PACS refused "
+        "it (`failed` with the PACS's status) and the PACS was fixed, or to skip the back-off wait of a "
+        "`pending` one.  Also queues a registration accepted before the PACS was configured.  409 when no "
+        "PACS is configured (`[pacs] host`), for a refused or withdrawn registration, or one already `sent`."
+    ),
+    responses=problem_responses(401, 404, 409),
+)
+def retry_pacs_export(ctx: CtxDep, principal: PrincipalDep, registration_id: RecordId) -> PacsExportOut:
+    with audited(ctx, principal, "pacs_export", "registration") as note:
+        rec = ctx.db.registrations.get(registration_id)
+        if rec is None:
+            raise NotFoundError(
+                f"registration {registration_id} does not exist; GET /registrations lists them"
+            )
+        exporter = ctx.or_integration.pacs if ctx.or_integration is not None else None
+        if exporter is None:
+            raise PacsExportError(
+                "no PACS is configured: set [pacs] host, port and ae_title (env OARMREG_PACS__HOST)"
+            )
+        if rec.status not in ("accepted", "retired") or rec.image_from_robot is None:
+            raise PacsExportError(
+                f"registration {registration_id} is {rec.status}: only an accepted registration is archived"
+            )
+        row = ctx.db.pacs_exports.get(registration_id)
+        if row is not None and row.state == "sent":
+            raise PacsExportError(
+                f"registration {registration_id} was already archived to {row.destination} ({row.reason})"
+            )
+        if row is None:
+            exporter.enqueue(registration_id)
+        else:
+            exporter.retry(registration_id)
+        note(registration_id, "queued", f"to {exporter.destination}")
+        new = ctx.db.pacs_exports.get(registration_id)
+        assert new is not None
+        return PacsExportOut.model_validate(new, from_attributes=True)

@@ -3,6 +3,10 @@
 With pyigtl importable (a test extra) its ``OpenIGTLinkClient`` is used, an independent
 implementation; otherwise this module's plain-socket reader with the project's own
 :mod:`service.igtl.wire` decoder.  :attr:`Received.via` says which.
+
+Either way the probe first sends a header-version-2 message, as SlicerOpenIGTLink does at
+connect, so that the server answers in version 2 with metadata (it sends version 1 until then);
+only version-2 TRANSFORMs are returned.
 """
 
 from __future__ import annotations
@@ -15,6 +19,9 @@ import numpy as np
 import numpy.typing as npt
 
 from service.igtl import wire
+
+HELLO_DEVICE = "OarmregProbe"
+"""Device name of the version-2 message the probe sends at connect."""
 
 
 class IgtlProbeError(wire.IgtlWireError):
@@ -38,11 +45,16 @@ def receive_transform(
         return _receive_raw(host, port, device, registration_id, timeout_s)
     client = pyigtl.OpenIGTLinkClient(host=host, port=port)
     try:
+        hello = pyigtl.StringMessage("oarmreg probe: reads header version 2", device_name=HELLO_DEVICE)
+        hello.header_version = 2
+        client.send_message(hello, wait=False)
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             m = client.wait_for_message(device, timeout=0.5)
-            if m is not None and (
-                registration_id is None or m.metadata.get("RegistrationId") == registration_id
+            if (
+                m is not None
+                and m.header_version >= 2
+                and (registration_id is None or m.metadata.get("RegistrationId") == registration_id)
             ):
                 meta = {str(k): str(v) for k, v in m.metadata.items()}
                 return Received(np.asarray(m.matrix, dtype=np.float64), meta, "pyigtl OpenIGTLinkClient")
@@ -58,11 +70,14 @@ def _receive_raw(
 ) -> Received:
     end = time.monotonic() + timeout_s
     with socket.create_connection((host, port), timeout=timeout_s) as sock:
+        sock.sendall(wire.pack_status(HELLO_DEVICE, timestamp_s=time.time()))
         f = sock.makefile("rb")
         while time.monotonic() < end:
             head = wire.unpack_header(f.read(wire.HEADER_SIZE))
             msg = wire.unpack_body(head, f.read(head.body_size))
-            wanted = registration_id is None or msg.metadata.get("RegistrationId") == registration_id
+            wanted = head.version >= 2 and (
+                registration_id is None or msg.metadata.get("RegistrationId") == registration_id
+            )
             if head.type == "TRANSFORM" and head.device_name == device and wanted:
                 m = wire.unpack_transform_content(msg.content)
                 return Received(m, dict(msg.metadata), "service.igtl.wire decoder on a plain socket")

@@ -14,7 +14,16 @@ Devices (PLUS / SlicerIGT naming ``<From>To<To>``, research §3.2; one TRANSFORM
     in image RAS from the latest joints, sent whenever a new joint sample arrives (the link
     rate), on connect, and at least every ``period_s``.
 
-Both carry header-version-2 metadata: ``TransformStatus`` (``OK`` / ``INVALID``; the matrix
+Header version, per client (issue #23): every client is sent header version 1 (bare content, no
+metadata: what the reference library reads by default, OpenIGTLink issue #200) until it has sent
+a well-formed message with header version 2 (SlicerOpenIGTLink sends a dummy version-2 STATUS at
+connect for exactly this, PR #65); from then on it gets version 2 with the metadata below, the
+PLUS rule (answer in the highest version received from that client).  A client that never writes
+keeps version 1.  Client messages are read in either version; a client whose version-2 extended
+header or metadata is malformed, or who sends a header version other than 1 or 2, is closed (the
+others are not affected); a message with a bad CRC is ignored (logged, counted, no switch).
+
+Version 2 carries the metadata ``TransformStatus`` (``OK`` / ``INVALID``; the matrix
 of an INVALID transform is the identity and must not be used), ``RegistrationId``,
 ``FRE_mm``, ``TRE_pred_mm``, ``ImageFrame=RAS``, ``SourceFrame`` and, when the newest
 registration was refused while an older one stays current, ``LastRefusal``; INVALID ones
@@ -262,6 +271,8 @@ class _Client:
         self.queue: asyncio.Queue[_Out | None] = asyncio.Queue(maxsize=server.config.client_queue_max)
         self.seq = 0
         self.dropped = 0
+        self.header_version = 1
+        """1 until this client has sent a well-formed version-2 message (module docstring)."""
         self.tasks: list[asyncio.Task[None]] = []
 
     def offer(self, out: _Out) -> None:
@@ -278,9 +289,11 @@ class _Client:
         try:
             while (out := await self.queue.get()) is not None:
                 self.seq += 1
+                v2 = self.header_version >= 2
                 raw = wire.pack_transform(
-                    out.matrix, out.device, timestamp_s=out.timestamp_s, metadata=out.metadata,
-                    message_id=self.seq,
+                    out.matrix, out.device, timestamp_s=out.timestamp_s,
+                    metadata=out.metadata if v2 else None, message_id=self.seq if v2 else 0,
+                    header_version=2 if v2 else 1,
                 )  # fmt: skip
                 self.writer.write(raw)
                 self.server.counters["sent"] += 1
@@ -299,17 +312,36 @@ class _Client:
             self.writer.transport.abort()
 
     async def read_loop(self) -> None:
-        """Read and discard what the client sends; answer GET_TRANSFORM; end on EOF."""
+        """Read what the client sends (header version 1 or 2), switch it to version 2 after its
+        first well-formed version-2 message, answer GET_TRANSFORM; end on EOF or a bad header."""
         try:
             while True:
                 head = wire.unpack_header(await self.reader.readexactly(wire.HEADER_SIZE))
-                await self.reader.readexactly(head.body_size)
+                if head.version not in (1, 2):
+                    raise wire.IgtlWireError(f"header version {head.version} (this server reads 1 and 2)")
+                body = await self.reader.readexactly(head.body_size)
+                try:
+                    wire.unpack_body(head, body)
+                except wire.IgtlCrcError as e:
+                    self.server.counters["bad_crc"] += 1
+                    log.warning("OpenIGTLink client %s: %s; message ignored", self.peer, e)
+                    continue
+                if head.version == 2 and self.header_version < 2:
+                    self.header_version = 2
+                    log.info("OpenIGTLink client %s sent header version 2; answering in version 2", self.peer)
+                    self.server._report("header_version", self)
                 if head.type.startswith("GET_TRANSFOR"):
                     self.server.push_current(self)
         except (asyncio.IncompleteReadError, ConnectionError, OSError):
             pass
         except wire.IgtlWireError as e:
+            self.server.counters["bad_headers"] += 1
             log.warning("OpenIGTLink client %s sent a bad header (%s); closing", self.peer, e)
+
+    def info(self) -> dict[str, object]:
+        """For ``/status``: who, which header version, how much was sent / dropped."""
+        return {"peer": self.peer, "header_version": self.header_version, "sent": self.seq,
+                "dropped": self.dropped}  # fmt: skip
 
 
 # --------------------------------------------------------------------------- server
@@ -328,12 +360,13 @@ class IgtlServer:
         config: IgtlServerConfig,
         source: IgtlStateSource,
         *,
-        on_client: Callable[[str, str, int], None] | None = None,
+        on_client: Callable[[str, str, int, int], None] | None = None,
     ) -> None:
         self.config = config
         self.source = source
         self.on_client = on_client
-        """``on_client(event, peer, n_clients)``, event ``connected`` / ``disconnected`` (on the loop)."""
+        """``on_client(event, peer, n_clients, header_version)`` on the loop; event ``connected`` /
+        ``header_version`` (the client switched to version 2) / ``disconnected``."""
         self._networks = config.allowed_networks()
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -343,6 +376,7 @@ class IgtlServer:
         self._tick_task: asyncio.Task[None] | None = None
         self.counters: dict[str, int] = {
             "connects": 0, "refused_peers": 0, "sent": 0, "dropped": 0, "slow_disconnects": 0,
+            "bad_headers": 0, "bad_crc": 0,
         }  # fmt: skip
 
     @property
@@ -355,6 +389,10 @@ class IgtlServer:
     @property
     def client_count(self) -> int:
         return len(self._clients)
+
+    def client_info(self) -> list[dict[str, object]]:
+        """Each connected client's peer address and header version (``/status``)."""
+        return sorted((c.info() for c in self._clients), key=lambda d: str(d["peer"]))
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -428,7 +466,7 @@ class IgtlServer:
         self._clients.add(client)
         self.counters["connects"] += 1
         log.info("OpenIGTLink client %s connected (%d now)", client.peer, len(self._clients))
-        self._report("connected", client.peer)
+        self._report("connected", client)
         self.push_current(client)
         client.tasks = [asyncio.create_task(client.write_loop()), asyncio.create_task(client.read_loop())]
         try:
@@ -440,12 +478,12 @@ class IgtlServer:
             writer.transport.abort()
             self._clients.discard(client)
             log.info("OpenIGTLink client %s gone (%d left)", client.peer, len(self._clients))
-            self._report("disconnected", client.peer)
+            self._report("disconnected", client)
 
-    def _report(self, event: str, peer: str) -> None:
+    def _report(self, event: str, client: _Client) -> None:
         if self.on_client is not None:
             try:
-                self.on_client(event, peer, len(self._clients))
+                self.on_client(event, client.peer, len(self._clients), client.header_version)
             except Exception:
                 log.exception("OpenIGTLink: on_client callback failed")
 

@@ -60,6 +60,10 @@ class IgtlWireError(ValueError):
     """A message could not be encoded or decoded (bad size, CRC, name too long...)."""
 
 
+class IgtlCrcError(IgtlWireError):
+    """The body's CRC64 differs from the header's (the framing itself is intact)."""
+
+
 def _crc_table() -> tuple[int, ...]:
     table = []
     for byte in range(256):
@@ -249,7 +253,7 @@ def unpack_body(header: Header, body: bytes, *, check_crc: bool = True) -> Messa
     if len(body) != header.body_size:
         raise IgtlWireError(f"body is {len(body)} bytes, header says {header.body_size}")
     if check_crc and crc64(body) != header.crc:
-        raise IgtlWireError(
+        raise IgtlCrcError(
             f"CRC64 mismatch on {header.type} {header.device_name!r}: "
             f"header {header.crc:#018x}, body {crc64(body):#018x}"
         )
@@ -315,4 +319,32 @@ def pack_transform(
         metadata=metadata,
         header_version=header_version,
         message_id=message_id,
+    )
+
+
+# --------------------------------------------------------------------------- STATUS
+
+STATUS_OK = 1
+_STATUS_HEAD = struct.Struct(">Hq20s")
+
+
+def pack_status(
+    device_name: str,
+    *,
+    timestamp_s: float,
+    code: int = STATUS_OK,
+    subcode: int = 0,
+    error_name: str = "",
+    status_string: str = "",
+    header_version: int = 2,
+) -> bytes:
+    """A STATUS message (``status.md``: C uint16, S int64, E char[20], M null-terminated string).
+
+    With ``header_version=2`` and no metadata this is what SlicerOpenIGTLink sends at connect to
+    announce that it reads version-2 headers (SlicerOpenIGTLink PR #65).
+    """
+    content = _STATUS_HEAD.pack(code, subcode, _fixed(error_name, 20, "error name"))
+    content += status_string.encode("ascii", errors="replace") + b"\0"
+    return pack_message(
+        "STATUS", device_name, content, timestamp_s=timestamp_s, header_version=header_version
     )

@@ -12,7 +12,7 @@ from typing import Literal
 
 from service.store.base import Connection, utc_now
 
-AuditAction = Literal["register", "verify", "activate", "delete"]
+AuditAction = Literal["register", "verify", "activate", "delete", "pacs_export"]
 MAX_DETAIL_CHARS = 500
 
 

@@ -12,6 +12,7 @@ from registration.errors import ConfigError
 from service.store.audit import AuditStore
 from service.store.base import Connection
 from service.store.calibrations import CalibrationStore
+from service.store.pacs_exports import PacsExportStore
 from service.store.registrations import RegistrationStore
 from service.store.scan_instances import ScanInstanceStore
 from service.store.scans import ScanStore
@@ -34,6 +35,7 @@ class Database:
         self.audit = AuditStore(conn)
         self._lock_file: IO[bytes] | None = None
         self.calibrations = CalibrationStore(conn)
+        self.pacs_exports = PacsExportStore(conn)  # issue #23: the PACS archive queue
 
     @classmethod
     def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:

@@ -267,6 +267,26 @@ FOREIGN_KEYS_OFF = "-- foreign_keys=off"
 """A migration whose first line is this runs with ``PRAGMA foreign_keys=OFF`` (a table rebuild: with
 them on, ``DROP TABLE`` would cascade into the rows that reference it)."""
 
+PACS_EXPORTS_MIGRATION = """
+    CREATE TABLE pacs_exports (
+        id INTEGER PRIMARY KEY,
+        registration_id INTEGER NOT NULL UNIQUE REFERENCES registrations(id),
+        destination TEXT NOT NULL,
+        state TEXT NOT NULL CHECK (state IN ('pending', 'sent', 'failed')),
+        attempts INTEGER NOT NULL DEFAULT 0,
+        dimse_status INTEGER,
+        reason TEXT NOT NULL DEFAULT '',
+        sop_instance_uid TEXT NOT NULL DEFAULT '',
+        queued_at TEXT NOT NULL,
+        updated_at TEXT NOT NULL,
+        next_attempt_unix_s REAL NOT NULL
+    );
+    CREATE INDEX pacs_exports_due ON pacs_exports (state, next_attempt_unix_s);
+"""
+"""Issue #23: the PACS archive queue, one row per accepted registration (service.pacs).  A row stays
+``pending`` while it is being sent, so a service killed mid-send sends it again after restart."""
+MIGRATIONS = (*MIGRATIONS, PACS_EXPORTS_MIGRATION)
+
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""
 

@@ -346,8 +346,12 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
     reg = svc.client.get("/registration/current").json()
     m_lps = np.asarray(reg["image_from_robot"])
     clients = [pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=svc.igtl_port) for _ in range(2)]
-    stalled = socket.create_connection(("127.0.0.1", svc.igtl_port))  # never reads
+    stalled = socket.create_connection(("127.0.0.1", svc.igtl_port))  # never reads, never writes
     stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    for c in clients:  # as Slicer does at connect: announce header version 2 to get the metadata
+        hello = pyigtl.StringMessage("reads header version 2", device_name="Hello")
+        hello.header_version = 2
+        c.send_message(hello, wait=False)
     try:
         for c in clients:
             rx = receive(c, "RobotToImage", lambda m: m.metadata.get("RegistrationId") == str(reg["id"]),
@@ -378,6 +382,11 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
             assert rx.metadata["RegistrationId"] == str(reg["id"])
         listeners = svc.client.get("/status").json()["listeners"]["igtl"]
         assert listeners["clients"] >= 3
+        versions = {p["peer"]: p["header_version"] for p in listeners["peers"]}
+        stalled_peer = "{}:{}".format(*stalled.getsockname())
+        assert versions[stalled_peer] == 1  # it never wrote: version 1 (issue #23)
+        assert sorted(versions.values()).count(2) >= 2  # the two pyigtl clients announced version 2
+        assert {e["header_version"] for e in svc.events("igtl_client_header_version")} == {2}
         assert {e["peer"].split(":")[0] for e in svc.events("igtl_client_connected")} == {"127.0.0.1"}
     finally:
         for c in clients:

@@ -1,0 +1,132 @@
+"""One C-STORE of a Spatial Registration object to the PACS (pynetdicom's SCU), classified.
+
+:func:`c_store` never raises for what the network or the PACS does; it returns a
+:class:`StoreOutcome`:
+
+``sent``
+    C-STORE response status Success (0x0000) or a Warning (0x0001, 0xB000, 0xB006, 0xB007): the
+    PACS has the object.
+``refused``
+    The PACS answered and said no: a Failure status (0xA7xx out of resources, 0xA9xx data set does
+    not match the SOP class, 0xCxxx cannot understand, 0x0122 SOP class not supported, ...), a
+    permanent association rejection (e.g. called AE title not recognised), or no accepted
+    presentation context for Spatial Registration Storage.  Retrying will not help until someone
+    changes something; ``dimse_status`` and ``reason`` say what the PACS said.
+``unreachable``
+    No answer: connection refused or timed out, TLS handshake failed, association aborted or
+    rejected transiently, no C-STORE response.  Retried with back-off.
+"""
+
+from __future__ import annotations
+
+import logging
+import ssl
+from dataclasses import dataclass
+from io import BytesIO
+from typing import Any, Literal
+
+from pydicom import dcmread
+from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
+
+from service.settings import PacsSettings
+
+log = logging.getLogger(__name__)
+
+SPATIAL_REGISTRATION_STORAGE = "1.2.840.10008.5.1.4.1.1.66.1"
+WARNING_STATUSES = frozenset({0x0001, 0xB000, 0xB006, 0xB007})
+"""PS3.4 Annex B.2.3 (C-STORE): the instance was stored, with a coercion or element warning."""
+
+Outcome = Literal["sent", "refused", "unreachable"]
+
+
+@dataclass(frozen=True)
+class StoreOutcome:
+    kind: Outcome
+    dimse_status: int | None
+    reason: str
+
+
+def destination(cfg: PacsSettings) -> str:
+    """``AE@host:port`` (``+tls`` when TLS is on), as recorded with each export."""
+    return f"{cfg.ae_title}@{cfg.host}:{cfg.port}" + ("+tls" if cfg.tls_ca_file is not None else "")
+
+
+def tls_context(cfg: PacsSettings) -> ssl.SSLContext | None:
+    if cfg.tls_ca_file is None:
+        return None
+    ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(cfg.tls_ca_file))
+    if cfg.tls_cert_file is not None and cfg.tls_key_file is not None:
+        ctx.load_cert_chain(str(cfg.tls_cert_file), str(cfg.tls_key_file))
+    return ctx
+
+
+def c_store(sro_bytes: bytes, cfg: PacsSettings) -> StoreOutcome:
+    """Send one Part-10 SRO to ``cfg``'s PACS in its own association (see the module docstring)."""
+    from pynetdicom import AE, evt
+
+    ds = dcmread(BytesIO(sro_bytes))
+    ae = AE(ae_title=cfg.calling_ae_title)
+    ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = ae.connection_timeout = cfg.timeout_s
+    ae.add_requested_context(SPATIAL_REGISTRATION_STORAGE, [ExplicitVRLittleEndian, ImplicitVRLittleEndian])
+    received: list[Any] = []
+    handlers: list[Any] = [(evt.EVT_ACSE_RECV, lambda event: received.append(event.primitive))]
+    where = destination(cfg)
+    try:
+        ctx = tls_context(cfg)
+    except (OSError, ssl.SSLError) as e:
+        return StoreOutcome("unreachable", None, f"TLS setup for {where} failed: {e}")
+    tls_args = (ctx, cfg.host) if ctx is not None else None
+    try:
+        assoc = ae.associate(
+            cfg.host, cfg.port, ae_title=cfg.ae_title, tls_args=tls_args, evt_handlers=handlers
+        )
+    except (OSError, ssl.SSLError) as e:
+        return StoreOutcome("unreachable", None, f"cannot reach {where}: {e}")
+    try:
+        if assoc.is_rejected:
+            rsp = next((p for p in received if getattr(p, "result", None) in (1, 2)), None)
+            text = (
+                f"{rsp.result_str} by the {rsp.source_str}: {rsp.reason_str}"
+                if rsp is not None
+                else "rejected"
+            )
+            if rsp is not None and rsp.result == 1:
+                return StoreOutcome(
+                    "refused",
+                    None,
+                    f"{where} rejected the association ({text}); check pacs.ae_title "
+                    "and pacs.calling_ae_title against the PACS's configuration",
+                )
+            return StoreOutcome("unreachable", None, f"{where} rejected the association ({text})")
+        if not assoc.is_established:
+            if assoc.is_aborted and received and not assoc.accepted_contexts:
+                return StoreOutcome(
+                    "refused",
+                    None,
+                    f"{where} accepts no Spatial Registration Storage "
+                    f"({SPATIAL_REGISTRATION_STORAGE}) presentation context",
+                )
+            return StoreOutcome(
+                "unreachable", None, f"no association with {where} (connection refused, timed out or aborted)"
+            )
+        status = assoc.send_c_store(ds)
+        code = int(status.Status) if "Status" in status else None
+        if code is None:
+            return StoreOutcome(
+                "unreachable", None, f"no C-STORE response from {where} (aborted or timed out)"
+            )
+        comment = str(status.get("ErrorComment", "")).strip()
+        if code == 0x0000 or code in WARNING_STATUSES:
+            return StoreOutcome(
+                "sent", code, f"stored by {where}" + (f" with warning: {comment}" if comment else "")
+            )
+        return StoreOutcome(
+            "refused",
+            code,
+            f"{where} refused the object: status 0x{code:04X}" + (f" ({comment})" if comment else ""),
+        )
+    finally:
+        if assoc.is_established:
+            assoc.release()
+        elif assoc.is_alive():
+            assoc.abort()
