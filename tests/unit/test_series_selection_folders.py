@@ -8,10 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from dicom_factory import ramp_volume, write_series
 
 from registration.dicom import load_series, read_series_headers
 from registration.dicom.errors import AmbiguousSeriesError
+from tests.helpers.dicom_factory import ramp_volume, write_series
 
 UID_SCAN = "1.2.826.0.1.3680043.8.498.2101"
 UID_OTHER = "1.2.826.0.1.3680043.8.498.2102"
