@@ -67,7 +67,7 @@ from registration.rigid import fit_rigid, nearest_rotation
 from registration.urdf_writer import SerialChain, rotation_about
 
 if TYPE_CHECKING:
-    from registration.pose_planner import ScanVolume
+    from registration.pose_sampling import ScanVolume
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -1174,7 +1174,7 @@ def _farthest_split_inflation(
 
 
 def _default_volume(meas_image_mm: F64) -> ScanVolume:
-    from registration.pose_planner import ScanVolume
+    from registration.pose_sampling import ScanVolume
 
     d = ScanVolume()
     c = meas_image_mm.mean(axis=0)
@@ -1195,7 +1195,7 @@ def _working_prediction(
     registration_tre_rms_mm: float,
 ) -> tuple[WorkingPrediction, dict[str, Any]]:
     """Sample the working volume (scan volume + margin) with the calibrated model and predict."""
-    from registration.pose_planner import sample_poses_in_volume
+    from registration.pose_sampling import sample_poses_in_volume
 
     y, x, cal_chain = model.unpack(values)
     vol = scan_volume if scan_volume is not None else _default_volume(data.meas_image_mm)
@@ -1280,7 +1280,7 @@ def calibrate(
 
     ``scan_volume``: the session's reconstructed cylinder (image frame); the working volume is it
     grown by ``params.working_margin_mm``.  None: the O-arm export's default cylinder
-    (:class:`registration.pose_planner.ScanVolume`) centred on the centroid of the detections.
+    (:class:`registration.pose_sampling.ScanVolume`) centred on the centroid of the detections.
 
     Parameters
     ----------
