@@ -89,4 +89,4 @@ def _chmod(path: Path, mode: int) -> None:
         st = path.lstat()
         if (stat.S_ISDIR(st.st_mode) or stat.S_ISREG(st.st_mode)) and stat.S_IMODE(st.st_mode) != mode:
             os.chmod(path, mode)
-            log.info("data folder: %s was %o, now %o", path, stat.S_IMODE(st.st_mode), mode)
+            log.debug("data folder: %s was %o, now %o", path, stat.S_IMODE(st.st_mode), mode)

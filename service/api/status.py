@@ -37,7 +37,7 @@ def status(ctx: CtxDep) -> StatusOut:
     problems = collect_problems(ctx)
     return StatusOut(
         healthy=not problems,
-        problems=[str(p) for p in problems],
+        problems=[p.detail for p in problems],
         problem_details=[HealthProblemOut(type=p.type, title=p.title, detail=p.detail) for p in problems],
         version=__version__,
         started_at=ctx.started_at.isoformat(),
