@@ -232,7 +232,7 @@ def test_a_withdrawal_is_shown_and_nothing_is_current(
     b = p.locator("#banners .banner:has-text('No current registration')")
     b.wait_for()
     text = b.text_content()
-    assert f"Registration {reg.json()['id']} was withdrawn" in text and "more slices arrived" in text
+    assert f"Registration {reg.json()['id']} was withdrawn" in text and "instance(s) added" in text
     assert p.is_visible("#current-none") and p.text_content("#current-badge") == "none"
     p.locator(
         f"#registrations-body tr[data-registration='{reg.json()['id']}'][data-status='withdrawn']"
@@ -341,6 +341,11 @@ def test_slicer_doc_matches_what_pyigtl_receives(svc: tuple[h.Service, dict[str,
     assert set(devices) == {"RobotToImage", "ToolToImage"}
     port = s.client.get("/status").json()["listeners"]["igtl"]["port"]
     client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
+    # as Slicer does at connect: a version-2 message, so the server answers with version-2 headers
+    # and the metadata (docs/or-integration.md, header version per client)
+    hello = pyigtl.StringMessage("reads header version 2", device_name="Hello")
+    hello.header_version = 2
+    client.send_message(hello, wait=False)
     try:
         got = {}
         for device in devices:

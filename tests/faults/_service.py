@@ -61,7 +61,9 @@ class Svc:
         return wait_for(lambda: next((s for s in self.scans() if pred(s)), None), what)  # type: ignore[no-any-return]
 
     def wait_still(self) -> None:
-        wait_robot_still(self.client, self.robot, WINDOW_S, DEADLINE_S)
+        """Until the robot has been still, and watched, for the service's own stillness window."""
+        window_s = self.ctx.settings.stillness.window_s if self.ctx is not None else WINDOW_S
+        wait_robot_still(self.client, self.robot, window_s, DEADLINE_S)
 
 
 @contextlib.contextmanager
@@ -109,7 +111,12 @@ class Events:
         self._cm.__exit__(None, None, None)
 
     def wait(self, name: str, pred: Callable[[dict[str, Any]], bool] = lambda d: True) -> dict[str, Any]:
+        """The first event ``name`` whose data ``pred`` accepts, already seen or still to come (events
+        published together may arrive in either order)."""
         assert self._lines is not None
+        for seen_name, seen_data in self.seen:
+            if seen_name == name and pred(seen_data):
+                return seen_data
         event = None
         deadline = time.monotonic() + DEADLINE_S  # keep-alive comments would reset a read timeout
         for line in self._lines:

@@ -22,6 +22,7 @@ import shutil
 import socket
 import struct
 import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +39,6 @@ from pynetdicom import AE
 from registration.frames import transform_from_xyz_rpy
 from tests.faults._service import (
     DEADLINE_S,
-    Q1,
     TOKEN,
     ForkedServe,
     Svc,
@@ -379,15 +379,22 @@ def test_item5_retention_covers_the_cstore_intake_folder_and_withdraws_nothing(
 
 @contextlib.contextmanager
 def _forked_service(root: Path) -> Iterator[tuple[ForkedServe, int, Any]]:
-    from mocks.robot.robot import ScriptedRobot
-    from mocks.robot.runner import run_mock_controller
-
-    robot = ScriptedRobot(Q1)
-    with run_mock_controller("simple-message", robot) as mock:
+    """The service forked, and the mock controller in a process of its own (``oarmreg mock robot``,
+    still): in this process it would share the GIL with the SCU encoding the series, and its own
+    frames would go missing, which the service rightly refuses as an incomplete joint history."""
+    mock = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert mock.stdout is not None
+        mock_url = mock.stdout.readline().strip()
+        assert mock_url.startswith("simple-message://"), mock_url
         cfg, port, dicom_port = root / "oarmreg.toml", free_port(), free_port()
         write_config(cfg, {
             "watch_dir": str(root / "watch"), "data_dir": str(root / "data"), "api_token": TOKEN,
-            "port": port, "robot.link_url": mock.url, "robot.connect_timeout_s": 2.0,
+            "port": port, "robot.link_url": mock_url, "robot.connect_timeout_s": 2.0,
             "stillness.window_s": 0.6, "stillness.max_gap_s": 0.25,
             "watcher.quiet_period_s": 0.3, "watcher.poll_interval_s": 0.2,
             "dicom.enabled": True, "dicom.port": dicom_port, "dicom.ae_title": AE_TITLE,
@@ -395,9 +402,12 @@ def _forked_service(root: Path) -> Iterator[tuple[ForkedServe, int, Any]]:
         forked = ForkedServe(cfg, port, root / "forked.log")
         forked.open()
         try:
-            yield forked, dicom_port, robot
+            yield forked, dicom_port, None
         finally:
             forked.close()
+    finally:
+        mock.terminate()
+        mock.wait(30)
 
 
 def _current(c: httpx.Client) -> tuple[int, str]:
