@@ -5,12 +5,16 @@ A pynetdicom AE that answers C-ECHO and accepts C-STORE of **CT Image Storage** 
 refused at association negotiation), in Implicit / Explicit VR Little Endian, JPEG Lossless
 SV1, JPEG-LS lossless and JPEG 2000 lossless.
 
-Each instance is written as received (``event.encoded_dataset()``, no decode / re-encode)
-and atomically (temp file in the same directory + fsync + rename + directory fsync) to
+Each instance is received into a temp file (pynetdicom's ``STORE_RECV_CHUNKED_DATASET``: never
+held in memory; larger than ``max_instance_mb`` → 0xA700), its header checked without loading the
+pixels, and streamed as received (no decode / re-encode) and atomically (temp file in the same
+directory + fsync + rename + directory fsync) to
 ``intake/<StudyInstanceUID>/<SeriesInstanceUID>/<SOPInstanceUID>.dcm``.  A re-sent identical
 instance changes nothing; a re-sent *different* instance with the same SOP Instance UID
-replaces the old file atomically and is logged.  Instances are not decoded beyond the
-attributes checked below (decode-as-they-arrive is left to the loader).
+replaces the old file atomically and is logged.  ``before_replace`` runs between the fsync and
+the rename (the service commits its withdrawal there, issue 19).  Bounds (issue 19 item 6):
+ACSE / DIMSE / network timeouts, a per-connection socket timeout set at ``EVT_CONN_OPEN`` (a peer
+stalled mid-PDU is dropped), ``maximum_associations``.
 
 C-STORE statuses (PS3.4 Annex B.2.3):
 
@@ -26,7 +30,9 @@ association that was released normally (``instance_count`` = ``.dcm`` files now 
 folder); ``on_association_aborted(series_dirs, reason)`` when an association aborts
 (its stored instances stay, but the series may be incomplete); ``on_refused(refusal)`` for
 every refusal (peer address, calling AE title, rejected presentation context, dataset,
-disk); ``on_instance_stored(path, outcome)`` after each instance is on disk.
+disk); ``on_instance_stored(path, outcome)`` after each instance is on disk;
+``on_series_settled`` (used instead of ``on_series_released`` when set) adds the association's
+:class:`~service.scan_lifecycle.OfferTally` of the series (offered, stored, refused and why).
 
 Security: loopback by default.  A non-loopback bind needs at least one allow-list (calling
 AE titles and/or peer addresses); DICOM has no authentication here (no TLS configured).

@@ -110,7 +110,9 @@ class Intake:
                     if arrival.error
                     else change
                 )
-            self.lifecycle.changing(prev, change, f"{source}: {arrival.folder}")
+            self.lifecycle.changing(
+                prev, change, f"{source}: {arrival.folder}", n_slices=None if arrival.error else scan.n_slices
+            )
         scan_id, before = self.db.scans.record(scan, files=files)
         self.volumes.discard(uid)
         if arrival.volume is not None and not arrival.error:

@@ -6,11 +6,14 @@
   (outside the watched folder, so the folder watcher never sees them) and are decoded as they
   arrive (:mod:`service.series_accumulator`).  At association release each series it touched
   goes through the same checks and records as the folder path (:class:`service.intake.Intake`):
-  complete once the loader's checks pass, no quiet period.  New instances of a recorded series
-  reopen it (the record is replaced, same id); an identical re-send changes nothing; an
-  aborted association records its partial series ``invalid`` with the reason (a series already
-  recorded complete stays complete); a refusal (peer, calling AE, an MR context, a bad dataset)
-  is logged and published.  pynetdicom's threads hop to the service loop with
+  complete once the loader's checks pass and every instance the association offered for it was
+  stored, no quiet period (:mod:`service.scan_lifecycle`).  An instance added to or replacing
+  one of a judged series moves it to ``reopened`` / ``replaced`` and withdraws what was made from
+  it *before* the file is renamed into place (:meth:`OrIntegration._before_replace`); the series is
+  judged again at release (same id); an identical re-send changes nothing; an aborted association
+  records its partial series ``invalid`` with the reason (a complete series it did not change
+  stays complete); a refusal (peer, calling AE, an MR context, a bad dataset) is logged and
+  published.  pynetdicom's threads hop to the service loop with
   ``call_soon_threadsafe``; loading and recording run on a worker thread.
 * **OpenIGTLink** (``[igtl]``): :class:`service.igtl.server.IgtlServer` on the service loop, fed
   from the current registration (plus the last refusal), the live joints and link health, the

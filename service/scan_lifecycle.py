@@ -177,42 +177,51 @@ class ScanLifecycle:
         self.publish = publish
         self.withdraw = withdraw
 
-    def changing(self, scan: ScanRecord, change: ContentChange, source: str) -> ScanStatus:
+    def changing(
+        self, scan: ScanRecord, change: ContentChange, source: str, *, n_slices: int | None = None
+    ) -> ScanStatus:
         """The content of a judged series is about to change (C-STORE: before the file is renamed into
         place) or has changed (folder: seen after the quiet period).  Marks it ``reopened`` /
-        ``replaced`` (committed first: a registration starting now is refused), withdraws what was
-        made from it, forgets its cached volume, publishes ``scan_reopened`` / ``scan_replaced``.
-        A series already ``reopened`` / ``replaced`` / ``receiving`` only has its state updated."""
+        ``replaced`` (committed first: a registration starting now is refused), forgets its cached
+        volume, publishes ``scan_reopened`` / ``scan_replaced`` (``n_slices``: the new count when the
+        deliverer knows it), then withdraws what was made from it.  A series already ``reopened`` /
+        ``replaced`` / ``receiving`` only has its state updated."""
         to: ScanStatus = change.state
         if scan.status == "replaced":
             to = "replaced"
-        reason = (
-            f"scan {scan.id} (series {scan.series_uid}) changed after it was recorded {scan.status} "
-            f"({source}): {change.describe()}; everything made from its earlier content is withdrawn. "
-            "Register it again once it is complete"
-        )
         if scan.status == to:
             return to
+        earlier = (
+            "the earlier record was incomplete"
+            if to == "reopened"
+            else "the content it was made from is gone"
+        )
+        reason = (
+            f"scan {scan.id} (series {scan.series_uid}) changed after it was recorded {scan.status} "
+            f"({source}): {change.describe()}; {earlier}, so everything made from it is withdrawn. "
+            "Register the scan again once it is complete"
+        )
         self.db.scans.set_status(scan.id, to, reason)
         self.volumes.discard(scan.series_uid)
-        if scan.status in ("complete", "invalid") and self.withdraw is not None:
-            self.withdraw(scan.id, reason)
         if scan.status != "receiving":
             log.warning("%s", reason)
-            self.publish(
-                f"scan_{to}",
-                {
-                    "scan_id": scan.id,
-                    "series_uid": scan.series_uid,
-                    "folder": scan.folder,
-                    "source": source,
-                    "previous_status": scan.status,
-                    "added": list(change.added),
-                    "replaced": list(change.replaced),
-                    "removed": list(change.removed),
-                    "reason": reason,
-                },
-            )
+            data: dict[str, Any] = {
+                "scan_id": scan.id,
+                "series_uid": scan.series_uid,
+                "folder": scan.folder,
+                "source": source,
+                "previous_status": scan.status,
+                "previous_slices": scan.n_slices,
+                "added": list(change.added),
+                "replaced": list(change.replaced),
+                "removed": list(change.removed),
+                "reason": reason,
+            }
+            if n_slices is not None:
+                data["n_slices"] = n_slices
+            self.publish(f"scan_{to}", data)
+        if scan.status in ("complete", "invalid") and self.withdraw is not None:
+            self.withdraw(scan.id, reason)
         return to
 
     def recover(self, *, cstore_root: Path | None) -> list[str]:

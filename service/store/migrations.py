@@ -28,6 +28,10 @@
     ``registrations.retired_at`` marks the registrations its activation retired.
 ``retention_log`` (schema 2)
     every scan folder the retention policy deleted, with its size and why.
+``scan_files``, ``scan_changes`` (7)
+    the SHA-256 and size of every stored instance of a scan; every state change of a scan and why
+    (:mod:`service.scan_lifecycle`); ``verifications`` / ``calibrations`` gain ``withdrawn_at`` /
+    ``withdrawn_reason``.
 """
 
 from __future__ import annotations
