@@ -56,6 +56,10 @@ PUBLIC_PREFIXES = ("/static/",)
 """The page's and /docs' assets (``service/web/static``, shipped in the wheel)."""
 PUBLIC_METHODS = frozenset({"GET", "HEAD"})
 EVENTS_PATH = "/events"
+READONLY_PREFIX = "readonly:"
+"""Principal prefix of the read-only token (``api_readonly_token``): GET only, and event tickets."""
+READONLY_POSTS = frozenset({"/events/ticket"})
+"""The one POST a read-only token may make: a ticket for the live event stream."""
 PRINCIPAL_NO_AUTH = "none-loopback-only"
 """The audit principal when authentication is off (``api.auth = "none-loopback-only"``)."""
 
@@ -162,6 +166,11 @@ def authenticate(ctx: ServiceContext, scope: Scope) -> str | None:
         scheme, _, presented = auth.partition(" ")
         if scheme.lower() == "bearer" and hmac.compare_digest(presented.strip().encode(), secret.encode()):
             return token_principal(secret)
+        ro = settings.api_readonly_token
+        if scheme.lower() == "bearer" and ro is not None:
+            ro_secret = ro.get_secret_value()
+            if hmac.compare_digest(presented.strip().encode(), ro_secret.encode()):
+                return READONLY_PREFIX + token_principal(ro_secret)
         raise _unauthorized("the Bearer token does not match the service's api_token")
     if scope["path"] == EVENTS_PATH and scope["method"] == "GET":
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
@@ -295,6 +304,15 @@ class SecurityGate:
         principal = authenticate(ctx, scope)
         if principal is not None:
             scope.setdefault("state", {})["principal"] = principal
+            if (
+                principal.startswith(READONLY_PREFIX)
+                and scope["method"] in MUTATING_METHODS
+                and scope["path"] not in READONLY_POSTS
+            ):
+                raise Refusal(
+                    403, "Read-only token", "this token (api_readonly_token) can read everything but "
+                    "change nothing; use the operator's api_token", "read-only-token",
+                )  # fmt: skip
         declared = check_content(settings, scope)
         if scope["method"] in MUTATING_METHODS:
             problem = ctx.db.health_problem()

@@ -400,6 +400,9 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8750, ge=0, le=65535)
     api_token: SecretStr | None = None
+    # A read-only token for wall displays (issue #21): sees everything, changes nothing (every POST
+    # but /events/ticket answers 403).  Unset: none.  At least 16 characters, unlike api_token.
+    api_readonly_token: SecretStr | None = None
     robot: RobotSettings = RobotSettings()
     quality: QualitySettings = QualitySettings()
     stillness: StillnessSettings = StillnessSettings()
@@ -433,7 +436,7 @@ class Settings(BaseSettings):
             sources.append(_RelativePathsToml(settings_cls, toml_path))
         return tuple(sources)
 
-    @field_validator("api_token")
+    @field_validator("api_token", "api_readonly_token")
     @classmethod
     def _token_length(cls, v: SecretStr | None) -> SecretStr | None:
         if v is None or v.get_secret_value() == "":
@@ -475,6 +478,14 @@ class Settings(BaseSettings):
                 "tls.key_file (or --tls-cert / --tls-key), or tls.allow_insecure_http = true behind a "
                 "TLS-terminating proxy"
             )
+        if self.api_readonly_token is not None and (
+            self.api_token is None
+            or self.api_readonly_token.get_secret_value() == self.api_token.get_secret_value()
+        ):
+            raise ValueError(
+                "api_readonly_token needs api_token set and must differ from it (otherwise a wall "
+                f"display could change the registration); env {ENV_PREFIX}API_READONLY_TOKEN"
+            )
         if self.quality.min_symmetry_margin > self.quality.min_matched_spheres:
             raise ValueError(
                 f"quality.min_symmetry_margin ({self.quality.min_symmetry_margin}) cannot exceed "
@@ -515,14 +526,16 @@ class Settings(BaseSettings):
 
     def public_dict(self) -> dict[str, Any]:
         """JSON-ready settings without the secret (for /status and provenance)."""
-        d = self.model_dump(mode="json", exclude={"api_token"})
+        d = self.model_dump(mode="json", exclude={"api_token", "api_readonly_token"})
         d["auth_enabled"] = self.auth_enabled
         return d
 
     def config_hash(self) -> str:
         """SHA-256 (first 16 hex) of the settings (token excluded) and the phantom file's bytes."""
         h = hashlib.sha256(
-            json.dumps(self.model_dump(mode="json", exclude={"api_token"}), sort_keys=True).encode()
+            json.dumps(
+                self.model_dump(mode="json", exclude={"api_token", "api_readonly_token"}), sort_keys=True
+            ).encode()
         )
         from registration.dicom.errors import NotRegularFileError
         from registration.dicom.files import open_regular

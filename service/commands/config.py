@@ -59,17 +59,18 @@ def sources(settings: Any, config_file: Path | None, environ: dict[str, str]) ->
     in_file: dict[str, Any] = {}
     if config_file is not None:
         in_file = flatten(tomllib.loads(config_file.read_text(encoding="utf-8")))
-    values = flatten(settings.model_dump(mode="json", exclude={"api_token"}))
-    token = settings.api_token
-    values["api_token"] = (
-        f"<set, {len(token.get_secret_value())} characters>" if token is not None else "<not set>"
-    )
+    values = flatten(settings.model_dump(mode="json", exclude={"api_token", "api_readonly_token"}))
+    for name in ("api_token", "api_readonly_token"):
+        token = getattr(settings, name)
+        values[name] = (
+            f"<set, {len(token.get_secret_value())} characters>" if token is not None else "<not set>"
+        )
     rows = []
     for key in sorted(values, key=lambda k: (k.count("."), k)):
         env = env_source(key, environ)
         if env is not None:
             src = f"env {env}"
-        elif key in in_file and not (key == "api_token" and in_file[key] == ""):
+        elif key in in_file and not (key.startswith("api_") and key.endswith("token") and in_file[key] == ""):
             src = f"file {config_file}"
         else:
             src = "default"

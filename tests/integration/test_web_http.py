@@ -19,6 +19,7 @@ from tests.faults.conftest import TOKEN, Running, fault_settings, mock_robot, se
 
 REPO = Path(__file__).resolve().parents[2]
 NAV_UI = "http://nav-ui.example:8080"
+READONLY = "wall-display-token-0123456789abcdef"
 PUBLIC = ("/", "/favicon.ico", "/docs", "/static/app.js", "/static/app.css", "/static/docs.js",
           "/static/swagger/swagger-ui-bundle.js", "/static/swagger/swagger-ui.css", "/health")  # fmt: skip
 """Every path that answers without a token (the page, its assets, the docs shell, liveness)."""
@@ -27,10 +28,8 @@ PUBLIC = ("/", "/favicon.ico", "/docs", "/static/app.js", "/static/app.css", "/s
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     root = tmp_path_factory.mktemp("web")
-    with (
-        mock_robot() as mock,
-        serve(fault_settings(root, mock.url, **{"api.allowed_origins": [NAV_UI]})) as s,
-    ):
+    kw = {"api.allowed_origins": [NAV_UI], "api_readonly_token": READONLY}
+    with mock_robot() as mock, serve(fault_settings(root, mock.url, **kw)) as s:
         yield s
 
 
@@ -142,3 +141,22 @@ def test_every_page_file_is_package_data() -> None:
     assert len(files) >= 8
     missing = [f for f in files if not any(fnmatch.fnmatchcase(f, g) for g in globs)]
     assert not missing, f"not in package-data {globs}: {missing}"
+
+
+def test_the_read_only_token_reads_everything_and_changes_nothing(svc: Running) -> None:
+    ro = {"Authorization": f"Bearer {READONLY}", "Content-Type": "application/json"}
+    for path in ("/status", "/scans", "/registrations", "/verifications", "/calibrations", "/audit"):
+        assert httpx.get(svc.base_url + path, headers=ro).status_code == 200, path
+    for path in ("/register", "/verify", "/calibrations", "/calibrations/1/activate"):
+        r = httpx.post(svc.base_url + path, headers=ro, json={})
+        assert r.status_code == 403 and r.json()["title"] == "Read-only token", (path, r.text)
+    ticket = httpx.post(svc.base_url + "/events/ticket", headers=ro)
+    assert ticket.status_code == 200  # the wall display still gets the live stream
+    assert svc.client.post("/register", json={}).status_code != 403  # the operator's token is unchanged
+
+
+def test_a_read_only_token_equal_to_the_operator_token_is_refused(tmp_path: Path) -> None:
+    from registration.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="api_readonly_token"):
+        fault_settings(tmp_path, "simple-message://127.0.0.1:9", api_readonly_token=TOKEN)
