@@ -86,6 +86,9 @@ def in_process_service(root: Path, phantom: Any, model: Any, **kw: Any) -> Itera
                 base_url=server.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60.0
             ) as client,
         ):
+            from tests.faults.conftest import wait_link_connected
+
+            wait_link_connected(client)
             yield Svc(client, watch, data, robot, mock, app.state.ctx)
 
 

@@ -63,7 +63,25 @@ def serve(
         serve_in_thread(app) as server,
         httpx.Client(base_url=server.base_url, headers=AUTH, timeout=60.0) as client,
     ):
+        wait_link_connected(client)
         yield Running(server.base_url, server.port, client, app)
+
+
+LINK_CONNECT_DEADLINE_S = 30.0
+"""How long a test service's robot link (read in a child process) may take to connect."""
+
+
+def wait_link_connected(client: httpx.Client) -> None:
+    """Until the service's robot link is connected.  The link connects from its own process after
+    start-up; its connection on the test's mock controller must not open inside the first test
+    (the leak guard would count the mock's handler task as that test's)."""
+    from tests.integration.polling import poll_until
+
+    poll_until(
+        lambda: client.get("/status").json()["link"]["state"] == "connected",
+        "the robot link to connect",
+        LINK_CONNECT_DEADLINE_S,
+    )
 
 
 @dataclass
