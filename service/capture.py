@@ -124,14 +124,20 @@ class Capture:
     # ---- queries (any thread) -------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
-        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s"}``.
+        """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s",
+        "max_receive_gap_s"}`` (the largest time between two received frames over the last
+        :data:`PERIOD_HISTORY_S`, by the receive clock).
 
         ``stale`` means no frame for ``robot.stale_after_s`` (not the link's own 3 frame periods,
         which flap under ordinary load); ``down`` is the link's.
         """
         h = self.link.health()
         latest = self.link.latest()
-        hist = self.link.history(time.monotonic() - self.settings.stillness.window_s * 4)
+        now = time.monotonic()
+        hist = self.link.history(now - max(self.settings.stillness.window_s * 4, PERIOD_HISTORY_S))
+        recent = [s.t_s for s in hist if s.t_s >= now - PERIOD_HISTORY_S]
+        gap_s = float(np.max(np.diff(recent))) if len(recent) > 1 else None
+        hist = [s for s in hist if s.t_s >= now - self.settings.stillness.window_s * 4]
         span = (hist[-1].t_s - hist[0].t_s) if len(hist) > 1 else 0.0
         state, reason, age = h.state, h.reason, h.last_frame_age_s
         limit_s = self.settings.robot.stale_after_s
@@ -150,6 +156,7 @@ class Capture:
             "reason": reason,
             "last_frame_age_s": age if latest is not None else None,
             "history_s": float(span),
+            "max_receive_gap_s": gap_s,
         }
 
     def problem(self) -> str | None:

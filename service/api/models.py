@@ -137,6 +137,9 @@ class LinkOut(_Out):
     reason: str
     last_frame_age_s: float | None
     history_s: float = Field(description="Span of joint history currently buffered, s.")
+    max_receive_gap_s: float | None = Field(
+        None, description="Largest time between two received joint frames over the last 60 s, s."
+    )
 
 
 class JointsOut(_Out):
