@@ -53,7 +53,9 @@ def start_mock() -> tuple[subprocess.Popen[str], str]:
     return proc, proc.stdout.readline().strip()
 
 
-def write_config(path: Path, root: Path, link_url: str, dicom_port: int, http_port: int, in_process: bool) -> None:
+def write_config(
+    path: Path, root: Path, link_url: str, dicom_port: int, http_port: int, in_process: bool
+) -> None:
     path.write_text(
         f"""watch_dir = "{root / "watch"}"
 data_dir = "{root / "data"}"
