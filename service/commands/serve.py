@@ -78,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     apply_log_settings(args, settings)
     ssl_options = uvicorn_ssl_options(settings)
+    if settings.data_dir.is_dir():  # another serve on this folder: say so, not "port in use"
+        from service.data_dir import hold_serve_lock
+
+        hold_serve_lock(settings.data_dir).close()
     check_ports(settings)  # before preflight opens (and may create) the database
     preflight(settings)
     app = create_app(settings)
