@@ -59,6 +59,7 @@ from registration.calibration import (
 from registration.kinematics import RobotModel, default_tool0_from_phantom
 from registration.phantom import Phantom, load_phantom
 from registration.pose_planner import PlannerParams, ScanVolume, plan_poses, solve_ik
+from registration.pose_sampling import _wrist_flip
 from registration.rigid import fit_rigid
 from registration.urdf_writer import SerialChain, read_chain, rotation_about
 
@@ -140,14 +141,6 @@ def _rand_rotation_tilt(rng: np.random.Generator, max_tilt_deg: float) -> F64:
     r_t = rotation_about(np.array([math.cos(az), math.sin(az), 0.0]), np.array([tilt]))[0]
     r_y = rotation_about(np.array([0.0, 0.0, 1.0]), np.array([rng.uniform(0.0, 2 * math.pi)]))[0]
     return np.asarray(r_t @ r_y, dtype=np.float64)
-
-
-def _wrist_flip(q: F64) -> F64:
-    f = q.copy()
-    f[3] += math.pi if f[3] < 0 else -math.pi
-    f[4] = -f[4]
-    f[5] += math.pi if f[5] < 0 else -math.pi
-    return f
 
 
 def random_poses(
