@@ -156,7 +156,7 @@ def axial_profile_position(bw: _BallWeights, min_fraction: float) -> float | Non
     R_t² / c_t² on (z − z0)²), and an in-plane edge ramp of the same shape in every slice adds a constant
     (the ramp's second moment).  So the per-slice sums of the centroid weights m_k = a + b·k + c·k²
     put z0 at −b / 2c exactly where the centroid Σ m_k k / Σ m_k of 3–4 coarse slices is pulled
-    towards the nearest slice centre (issue #11: ±0.06 mm on 0.833 mm slices).  Only slices with
+    towards the nearest slice centre (±0.06 mm on 0.833 mm slices).  Only slices with
     at least ``min_fraction`` of the largest sum are fitted: the tips, where the slice grazes the
     cap and the blur rounds the profile, are not a parabola.  None (keep the centroid) if fewer
     than :data:`AXIAL_PROFILE_MIN_SLICES` slices qualify, the fitted profile is not concave, its

@@ -114,7 +114,7 @@ def core_axis_ratio(bw: _BallWeights, spacing: F64) -> float:
 
 FRAGMENT_METAL_FRACTION: Final = 0.5
 """A candidate with less than this fraction of the metal voxels of another one closer than the
-phantom allows is a fragment of it (issue #11 sweep: the streak fragments that displaced
+phantom allows is a fragment of it (hard sweep: the streak fragments that displaced
 tungsten-carbide spheres held 21–31 voxels, ≤ 0.27 of the sphere's 116–122; two candidates of
 one sphere held 118 and 165, 0.72)."""
 
@@ -128,7 +128,7 @@ def _separate(
     other's metal voxels), then has more circle slices, then the higher score; input order kept.
     The fragment test comes first because a split core's circle test is not a gate (it may have 0
     circle slices): a streak fragment with one circular slice outranked the tungsten-carbide
-    sphere 5 mm from it (issue #11, cone-beam).
+    sphere 5 mm from it (cone-beam).
     """
     metal = np.asarray(metal_voxels if metal_voxels is not None else [0] * len(spheres), dtype=np.float64)
     centres = np.array([sp.center_image_mm for sp in spheres]).reshape(-1, 3)

@@ -14,13 +14,13 @@ the weight of that tail: 0.049 mm.  For steel and titanium, whose edge is not in
 restriction measures worse (0.034 → 0.041 mm), so the method is chosen by sphere material
 (:data:`registration.detection.METHOD_FOR_MATERIAL`), not by default.
 
-The weight of a voxel is the default centroid's (:func:`registration.detection._ball_weights`),
+The weight of a voxel is the default centroid's (:func:`registration.detection.centroid._ball_weights`),
 ``min(HU − background, cap) − margin`` clipped at 0, with a least-squares plane through a shell
 outside the ball as background and ``cap`` the clipped contrast, times a window that falls from 1
 at the estimate to 0 at the ball's edge (Epanechnikov, ``1 − (d / r_ball)²``), and the estimate
 is re-centred until it moves less than a tolerance (a mean shift).  What biases the clipped core
 is a streak that saturates on one side of the sphere (the plateau of a corner sphere or one next
-to a neighbour runs out 2–4 voxels further on one side, /tmp PNGs of the worst spheres, issue #11);
+to a neighbour runs out 2–4 voxels further on one side);
 the window weighs a voxel by how near the sphere's middle it is, so the far end of such a plateau
 counts little, and a symmetric plateau is still located without bias.  Measured on the cached
 tungsten-carbide hard-sweep scans (``benchmarks/bench_detection.py --hard 40``, 426 spheres,
@@ -47,7 +47,8 @@ class CoreParams:
     Attributes
     ----------
     bloom_mm : float
-        The hard ball of the edge path (:func:`registration.detection.core_edge_centre`) is the
+        The hard ball of the edge path
+        (:func:`registration.detection.estimators.core.core_edge_centre`) is the
         nominal radius + this.  1.0 mm measured best of 0.75 / 1.0 / 1.25 / 1.5 / 2.0 / 2.5 on
         the ``wc_rows40`` scans for the unwindowed centroid (mean 0.051 / 0.049 / 0.052 / 0.055 /
         0.061 / 0.072 mm at the default margin; 0.75 mm lost a sphere: too few voxels in the ball).
@@ -68,7 +69,7 @@ class CoreParams:
         0.057 / 0.138; 0.042 / 0.117 · 0.044 / 0.158 · 0.058 / 0.131; 0.045 / 0.100 · 0.043 /
         0.120 · 0.062 / 0.152 (1.5 mm again the lowest mean over the 426 spheres).  The slice
         coordinate from a parabola through the per-slice sums of the unwindowed core weights (as
-        ``subvoxel`` does, ``registration.detection.axial_profile_position``) measured worse on
+        ``subvoxel`` does, ``registration.detection.centroid.axial_profile_position``) measured worse on
         these scans (0.051 / 0.134 · 0.057 / 0.157 · 0.060 / 0.181): a streak-bloomed clipped
         plateau's cross-section is not a disc.  A
         Gaussian window (σ 0.8 mm in a 1.5 mm ball: 0.049 / 0.118 · 0.057 / 0.197 · 0.063 /
@@ -97,7 +98,7 @@ class CoreParams:
         0.060 … 0.053 mm at the default ball, 0.049 mm with the 1.0 mm ball).  With the window,
         0.5 / 0.7 / 0.85 / 0.95 are about even (cone-beam mean 0.060 / 0.062 / 0.062 / 0.062 mm,
         max 0.172 / 0.150 / 0.159 / 0.168), so it stays as the margin of the edge path
-        (:func:`registration.detection.core_edge_centre`); the windowed core away from an edge
+        (:func:`registration.detection.estimators.core.core_edge_centre`); the windowed core away from an edge
         averages several margins (``averaged_margin_fractions``).
     averaged_margin_fractions : tuple of float
         :func:`core_centroid` runs its windowed, re-centred centroid once at each of these margins

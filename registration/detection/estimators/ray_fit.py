@@ -1,7 +1,7 @@
 """Centre of a sphere from the level crossings of rays cast from an estimate (``rays``).
 
 A weighted centroid integrates everything above its margin in its window: a bright streak that
-lengthens a clipped plateau on one side of a sphere pulls it along the streak (issue #11, the
+lengthens a clipped plateau on one side of a sphere pulls it along the streak (the
 worst cone-beam steel sphere: a 7 × 4 voxel plateau, 0.17 mm error).  Here the sphere is located
 by its outline instead.  From the current estimate, N unit directions d (a Fibonacci set closed
 under d → −d, in mm space) are cast; along each, the distance r(d) at which the background-
@@ -24,7 +24,7 @@ for the 90th percentile), so the gain over the centroid comes mostly from locati
 70 % of the clipped contrast, against a background plane fitted 3–4.5 mm beyond the sphere, rather
 than integrating the window, not from rejecting rays.  The rays' axial offset measured worse than
 the centroid's per-slice profile (the slices are coarse), so the ``rays`` method keeps only the
-in-plane centre (:func:`registration.detection._rays_estimate`).  On tungsten carbide the
+in-plane centre (:mod:`registration.detection.estimators.rays`).  On tungsten carbide the
 ``core`` centroid stays better (cone-beam SPR 0.3, 3.0 mm reach: 0.072 / 0.271 mm against
 0.062 / 0.159).
 
