@@ -10,19 +10,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_detection import SPACING, make_volume
 
-from registration.core_centroid import CoreParams, CoreWeights, core_centroid
 from registration.detection import (
-    LINEAR_BACKGROUND_MIN_VOXELS,
     METHOD_FOR_MATERIAL,
     METHODS,
     DetectionParams,
-    core_edge_centre,
     detect_spheres,
     method_for_material,
 )
+from registration.detection.centroid import LINEAR_BACKGROUND_MIN_VOXELS
+from registration.detection.estimators.core import core_edge_centre
+from registration.detection.estimators.core_centroid import CoreParams, CoreWeights, core_centroid
+from registration.detection.estimators.sphere_fit import blurred_ball
 from registration.errors import DetectionError
 from registration.phantom import SPHERE_MATERIALS
-from registration.sphere_fit import blurred_ball
 
 SAT_HU = 3071.0
 RADIUS_MM = 1.25

@@ -64,7 +64,15 @@ def test_detect_does_not_import_the_service_stack(small_series: Path) -> None:
     doc = json.loads(out.stdout)
     modules = set(doc["modules"])
     assert doc["code"] == 0
-    # the probe ran the whole detect path: loader, detection and the steel estimator
-    assert {"registration.detection", "registration.dicom.loader", "registration.ray_fit"} <= modules
+    # the probe ran the whole detect path: loader, detection and the steel estimator, found by name
+    assert {
+        "registration.detection",
+        "registration.dicom.loader",
+        "registration.detection.estimators.rays",
+        "registration.detection.estimators.ray_fit",
+    } <= modules
+    # the other estimators' modules are not imported: each is looked up only when a detection names it
+    others = {f"registration.detection.estimators.{m}" for m in ("subvoxel", "model", "paper", "core")}
+    assert modules.isdisjoint(others | {"registration.detection.estimators.sphere_fit"})
     loaded = sorted(m for m in modules if any(m == n or m.startswith(n + ".") for n in NOT_FOR_DETECT))
     assert loaded == []

@@ -16,11 +16,10 @@ from scipy import ndimage
 from registration.detection import (
     DetectionParams,
     DetectionResult,
-    _fit_radius,
-    _paper_depth,
-    _SliceCircle,
     detect_spheres,
 )
+from registration.detection.cross_check import _fit_radius, _SliceCircle
+from registration.detection.estimators.paper import _paper_depth
 from registration.errors import DetectionError
 from registration.volume import Volume
 

@@ -22,7 +22,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from registration.detection import DetectionParams, _BallWeights, axial_profile_position
+from registration.detection import (
+    DetectionParams,
+)
+from registration.detection.centroid import _BallWeights, axial_profile_position
 
 F64 = NDArray[np.float64]
 DZ_MM = 0.833

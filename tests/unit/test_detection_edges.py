@@ -15,21 +15,21 @@ from scipy import ndimage
 from test_detection import SHAPE, SPACING, _add_sphere, make_volume
 
 from registration.detection import (
-    MAX_CORE_AXIS_RATIO,
-    OVERSIZED_REASONS,
     DetectedSphere,
     DetectionParams,
+    detect_spheres,
+)
+from registration.detection.candidates import _Blob, find_blobs
+from registration.detection.centroid import _ball_weights, _subvoxel_centre
+from registration.detection.fov import _circular_fov_radius_mm
+from registration.detection.refine import edge_refined_centre
+from registration.detection.rejections import (
+    MAX_CORE_AXIS_RATIO,
+    OVERSIZED_REASONS,
     SizeLimits,
-    _ball_weights,
-    _Blob,
-    _circular_fov_radius_mm,
     _separate,
-    _subvoxel_centre,
     blob_reject_reason,
     core_axis_ratio,
-    detect_spheres,
-    edge_refined_centre,
-    find_blobs,
 )
 from registration.errors import DetectionError
 from registration.volume import Volume

@@ -16,24 +16,19 @@ from test_detection import SPACING, make_volume
 
 from registration import detection
 from registration.detection import (
-    CENTRE_ESTIMATORS,
     METHODS,
     TIMED_STAGES,
     DetectionParams,
-    SizeLimits,
     StageTimer,
-    _Blob,
-    _checked_spacing,
-    _group_hits,
-    _SliceCircle,
-    blob_reject_reason,
-    edge_reject_reason,
-    find_blobs,
-    fov_reject_reason,
-    slice_circles,
-    sphere_score,
-    threshold_hits,
 )
+from registration.detection.candidates import _Blob, _group_hits, find_blobs, threshold_hits
+from registration.detection.cross_check import _SliceCircle, slice_circles, sphere_score
+from registration.detection.detect import _checked_spacing
+from registration.detection.estimators.base import centre_estimator
+from registration.detection.estimators.paper import ESTIMATOR as PAPER
+from registration.detection.estimators.paper import PaperCircles
+from registration.detection.fov import edge_reject_reason, fov_reject_reason
+from registration.detection.rejections import SizeLimits, blob_reject_reason
 from registration.errors import DetectionError
 from registration.mar import reduce_metal_artifacts
 from registration.volume import Volume
@@ -49,9 +44,9 @@ P = DetectionParams()
 
 @pytest.fixture
 def fake_clock(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[float]]:
-    """time.perf_counter as seen by registration.detection returns these values in turn."""
+    """time.perf_counter as seen by registration.detection.timing returns these values in turn."""
     ticks: list[float] = []
-    monkeypatch.setattr("registration.detection.time.perf_counter", lambda: ticks.pop(0))
+    monkeypatch.setattr("registration.detection.timing.time.perf_counter", lambda: ticks.pop(0))
     yield ticks
 
 
@@ -200,9 +195,17 @@ def test_slice_circles_find_the_sphere_in_its_slices(
         mar_calls.append(1)
         return reduce_metal_artifacts(*args, **kwargs)
 
-    monkeypatch.setattr("registration.detection.reduce_metal_artifacts", counting_mar)
+    monkeypatch.setattr("registration.detection.cross_check.reduce_metal_artifacts", counting_mar)
     slices = range(17, 24)
-    circles = slice_circles(vol.voxels, slices, centre, params, float(SP[0]), StageTimer(TIMED_STAGES))
+    circles = slice_circles(
+        vol.voxels,
+        slices,
+        centre,
+        params,
+        float(SP[0]),
+        StageTimer(TIMED_STAGES),
+        mar_every_patch=centre_estimator(method).circles_are_the_measurement,
+    )
     assert len(circles) >= 3 and all(17 <= c.k < 24 for c in circles)
     for c in circles:
         assert math.hypot((c.i - centre[0]) * SP[0], (c.j - centre[1]) * SP[1]) < 0.2
@@ -228,8 +231,13 @@ def _circles_of(centre_ijk: F64, radius_mm: float, ks: range, dz_mm: float) -> l
     return out
 
 
-def test_the_estimator_table_covers_every_method() -> None:
-    assert set(CENTRE_ESTIMATORS) == set(METHODS)
+def test_every_method_names_an_estimator_and_an_unknown_one_is_refused() -> None:
+    for method in METHODS:
+        est = centre_estimator(method)
+        assert callable(est.prepare) and callable(est.estimate)
+        assert est.circles_are_the_measurement == (method == "paper")
+    with pytest.raises(DetectionError, match="unknown detection method 'nope'"):
+        centre_estimator("nope")
 
 
 @SETTINGS
@@ -243,16 +251,14 @@ def test_paper_estimator_recovers_an_exact_sphere(i: float, j: float, k: float, 
     dz = float(SP[2])
     truth = np.array([i, j, k])
     circles = _circles_of(truth, radius_mm, range(0, 40), dz)
-    centre, reason = CENTRE_ESTIMATORS["paper"](circles, truth + 0.3, radius_mm, dz)
+    centre, reason = PAPER.estimate(PaperCircles(circles, radius_mm, dz))
     assert reason == "" and centre is not None
     np.testing.assert_allclose(centre, truth, atol=1e-6)
-    sv, _ = CENTRE_ESTIMATORS["subvoxel"](circles, truth + 0.3, radius_mm, dz)
-    np.testing.assert_array_equal(sv, truth + 0.3)  # subvoxel keeps the raw-volume centre
 
 
 def test_paper_estimator_refuses_a_single_slice() -> None:
     one = [_SliceCircle(10.0, 10.0, 5, 1.5)]
-    centre, reason = CENTRE_ESTIMATORS["paper"](one, np.zeros(3), math.nan, 0.8)
+    centre, reason = PAPER.estimate(PaperCircles(one, math.nan, 0.8))
     assert centre is None and "needs ≥ 2 slices" in reason
 
 

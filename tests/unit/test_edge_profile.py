@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from registration.edge_profile import DataRegion, first_crossing, plateau_reaches_edge, sample_trilinear
+from registration.detection.fov import DataRegion, first_crossing, plateau_reaches_edge, sample_trilinear
 
 SHAPE = (6, 40, 40)  # (k, j, i)
 SPACING = np.array([0.415, 0.415, 0.833])

@@ -10,15 +10,18 @@ from hypothesis import strategies as st
 from test_detection import SPACING as GRID_MM
 from test_detection import make_volume
 
-from registration.detection import (
-    CENTRE_ESTIMATORS,
-    DetectionParams,
-    SpherePatch,
-    _subvoxel_centre,
-    detect_spheres,
+from registration.detection import DetectionParams, detect_spheres
+from registration.detection.centroid import _subvoxel_centre
+from registration.detection.estimators.ray_fit import (
+    RayFit,
+    RayParams,
+    ray_centre,
+    robust_ellipsoid_fit,
+    symmetric_directions,
 )
-from registration.ray_fit import RayFit, RayParams, ray_centre, robust_ellipsoid_fit, symmetric_directions
-from registration.sphere_fit import blurred_ball
+from registration.detection.estimators.rays import ESTIMATOR as RAYS
+from registration.detection.estimators.rays import RaysInput
+from registration.detection.estimators.sphere_fit import blurred_ball
 
 SPACING = np.array([0.415, 0.415, 0.833])  # (i, j, k) mm: the O-arm grid
 SHAPE = (24, 48, 48)  # (k, j, i)
@@ -164,25 +167,12 @@ def test_rays_method_finds_every_sphere() -> None:
 
 def test_rays_estimator_refuses_with_the_fit_s_reason_and_keeps_the_centroid_near_an_edge() -> None:
     centre = np.array([24.0, 24.0, 12.0])
-    empty = np.zeros(0)
-    refused = SpherePatch(
-        empty, empty.reshape(0, 3), SPACING, SAT_HU, RADIUS_MM, rays=RayFit(None, "rays: 3 of 96 rays cross")
-    )
-    got, reason = CENTRE_ESTIMATORS["rays"]([], centre, 1.5, 0.833, refused)
+    got, reason = RAYS.estimate(RaysInput(centre, RayFit(None, "rays: 3 of 96 rays cross")))
     assert got is None and reason == "rays: 3 of 96 rays cross"
-    near = SpherePatch(empty, empty.reshape(0, 3), SPACING, SAT_HU, RADIUS_MM, near_edge=True)
-    got, _ = CENTRE_ESTIMATORS["rays"]([], centre, 1.5, 0.833, near)
+    got, _ = RAYS.estimate(RaysInput(centre, None))  # near an edge: no rays cast
     assert got is not None
     np.testing.assert_array_equal(got, centre)
-    moved = SpherePatch(
-        empty,
-        empty.reshape(0, 3),
-        SPACING,
-        SAT_HU,
-        RADIUS_MM,
-        rays=RayFit(centre + np.array([0.1, -0.2, 0.3])),
-    )
-    got, _ = CENTRE_ESTIMATORS["rays"]([], centre, 1.5, 0.833, moved)
+    got, _ = RAYS.estimate(RaysInput(centre, RayFit(centre + np.array([0.1, -0.2, 0.3]))))
     assert got is not None
     # In-plane from the rays, the slice coordinate from the centroid's profile.
     np.testing.assert_allclose(got, [24.1, 23.8, 12.0])
