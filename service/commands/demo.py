@@ -74,6 +74,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="then plan and scan a calibration session, calibrate through the service, activate, and "
         "compare before / after at a moved O-arm (TRUE errors; adds ≈ 2–3 min)",
     )
+    parser.add_argument(
+        "--pacs",
+        metavar="AE@HOST:PORT",
+        default=None,
+        help="archive each registration's DICOM Spatial Registration object to this PACS by C-STORE "
+        "(or set OARMREG_PACS__HOST, OARMREG_PACS__PORT, OARMREG_PACS__AE_TITLE); without one the demo "
+        "archives nothing",
+    )
+
+
+def pacs_overrides(spec: str | None) -> dict[str, Any]:
+    """``--pacs AE@HOST:PORT`` as ``load_settings`` overrides (none without the flag)."""
+    import re
+
+    if spec is None:
+        return {}
+    m = re.fullmatch(r"([^@\s]{1,16})@([^:\s]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", spec.strip())
+    if m is None:
+        from registration.errors import ConfigError
+
+        raise ConfigError(f"--pacs {spec!r}: expected AE@HOST:PORT, e.g. ORTHANC@127.0.0.1:4242")
+    return {"pacs.ae_title": m[1], "pacs.host": m[2].strip("[]"), "pacs.port": int(m[3])}
 
 
 def _err(msg: str) -> None:
@@ -168,6 +190,8 @@ class _Demo:
     igtl_port: int = 0
     cell: Any = None
     """The TRUE cell (:class:`mocks.cell.TrueCell`) that really poses the phantom."""
+    pacs: str = ""
+    """``AE@host:port`` of the PACS the registrations are archived to ("" = none)."""
 
 
 def _output_dir(out_arg: str | None) -> tuple[Path, tempfile.TemporaryDirectory[str] | None]:
@@ -187,7 +211,7 @@ def _output_dir(out_arg: str | None) -> tuple[Path, tempfile.TemporaryDirectory[
     return out, tmp
 
 
-def _demo_settings(out: Path, token: str, link_url: str) -> Settings:
+def _demo_settings(out: Path, token: str, link_url: str, pacs: dict[str, Any] | None = None) -> Settings:
     from service.settings import load_settings
 
     return load_settings(
@@ -206,6 +230,7 @@ def _demo_settings(out: Path, token: str, link_url: str) -> Settings:
             "dicom.port": 0,
             "igtl.enabled": True,
             "igtl.port": 0,
+            **(pacs or {}),
         },
     )
 
@@ -222,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
     from service.commands.serve import serve_in_thread
 
     t_start = time.perf_counter()
+    pacs = pacs_overrides(getattr(args, "pacs", None))
     out, tmp = _output_dir(args.out)
     token = secrets.token_urlsafe(24)
     try:
@@ -229,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
         robot = ScriptedRobot(Q1_RAD)
         with run_mock_controller("simple-message", robot) as mock:
             _err(f"  mock Stäubli controller (simple_message) on {mock.url}")
-            settings = _demo_settings(out, token, mock.url)
+            settings = _demo_settings(out, token, mock.url, pacs)
             app = create_app(settings)
             ctx: ServiceContext = app.state.ctx
             t0p = settings.robot.tool0_from_phantom.matrix()
@@ -264,6 +290,7 @@ def run(args: argparse.Namespace) -> int:
                     dicom_port=int(listeners["dicom"]["port"]),
                     igtl_port=int(listeners["igtl"]["port"]),
                     cell=cell,
+                    pacs=str(listeners.get("pacs", {}).get("destination", "")),
                 )
                 _out(SIMULATOR_NOTE)
                 _scan_and_register(demo)
@@ -303,6 +330,36 @@ def _scan_and_register(d: _Demo) -> None:
         reg, dt, m, d.hidden_image_from_robot, d.model, d.tool0_from_phantom, apply, rotation_angle_deg
     )
     _report_igtl(d, reg)
+    _report_pacs(d, reg)
+
+
+PACS_WAIT_S = 30.0
+"""How long the demo waits for the archive's first outcome (the service keeps retrying after)."""
+
+
+def _report_pacs(d: _Demo, reg: dict[str, Any]) -> None:
+    """Where the registration's SRO went (only with a PACS configured)."""
+    import threading
+
+    if not d.pacs:
+        return
+    tick = threading.Event()
+    end = time.monotonic() + PACS_WAIT_S
+    exp: dict[str, Any] | None = None
+    while time.monotonic() < end:
+        exp = d.client.get(f"/registrations/{reg['id']}").json().get("pacs_export")
+        if exp is not None and exp["state"] != "pending":
+            break
+        tick.wait(0.2)
+    _out(f"\n== PACS archive of registration {reg['id']} to {d.pacs}")
+    if exp is None:
+        _out("  not queued (see the service log)")
+        return
+    status = "" if exp["dimse_status"] is None else f", C-STORE status 0x{exp['dimse_status']:04X}"
+    _out(f"  {exp['state']} after {exp['attempts']} attempt(s){status}: {exp['reason'] or '-'}")
+    if exp["state"] == "pending":
+        _out(f"  (still pending after {PACS_WAIT_S:g} s; the service keeps retrying with back-off)")
+    _out(f"  SOP Instance UID {exp['sop_instance_uid'] or '-'}")
 
 
 def _send(d: _Demo, paths: Any, label: str) -> None:
