@@ -129,6 +129,7 @@ def _fmt_matrix(m: Any) -> str:
 
 
 def _wait_scan(client: Any, uid: str, deadline_s: float) -> dict[str, Any]:
+    """The scan record once the service holds it complete, with the joints captured for it."""
     import threading
 
     ev = threading.Event()
@@ -137,12 +138,20 @@ def _wait_scan(client: Any, uid: str, deadline_s: float) -> dict[str, Any]:
         r = client.get("/scans")
         r.raise_for_status()
         for s in r.json():
-            if s["series_uid"] == uid:
+            if s["series_uid"] != uid:
+                continue
+            if s["status"] == "complete" and s["joints"] is not None:
                 return s  # type: ignore[no-any-return]
+            if s["status"] == "invalid":
+                from registration.errors import DicomSeriesError
+
+                raise DicomSeriesError(f"the service refused series {uid}: {s['reason']}")
         ev.wait(0.2)
     from registration.errors import DicomSeriesError
 
-    raise DicomSeriesError(f"the service did not record series {uid} within {deadline_s:g} s")
+    raise DicomSeriesError(
+        f"the service did not record series {uid} complete with its joints within {deadline_s:g} s"
+    )
 
 
 def _wait_still(client: Any, robot: Any, deadline_s: float = 30.0) -> None:
