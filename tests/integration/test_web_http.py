@@ -132,31 +132,16 @@ def test_verifications_list_is_paginated(svc: Running) -> None:
 
 
 def test_every_page_file_is_package_data() -> None:
-    """The wheel carries the page: each file under service/web/static matches a package-data glob."""
-    cfg = tomllib.loads((REPO / "pyproject.toml").read_text())
-    globs = cfg["tool"]["setuptools"]["package-data"]["service.web"]
-    assert "service.web" in cfg["tool"]["setuptools"]["packages"]
+    """The wheel carries the page: each file under service/web/static is in a listed (data) package
+    and matches that package's package-data glob."""
+    tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     static = REPO / "service" / "web" / "static"
-    files = [p.relative_to(static.parent).as_posix() for p in static.rglob("*") if p.is_file()]
+    files = [p.relative_to(REPO) for p in static.rglob("*") if p.is_file()]
     assert len(files) >= 8
-    missing = [f for f in files if not any(fnmatch.fnmatchcase(f, g) for g in globs)]
-    assert not missing, f"not in package-data {globs}: {missing}"
-
-
-def test_the_read_only_token_reads_everything_and_changes_nothing(svc: Running) -> None:
-    ro = {"Authorization": f"Bearer {READONLY}", "Content-Type": "application/json"}
-    for path in ("/status", "/scans", "/registrations", "/verifications", "/calibrations", "/audit"):
-        assert httpx.get(svc.base_url + path, headers=ro).status_code == 200, path
-    for path in ("/register", "/verify", "/calibrations", "/calibrations/1/activate"):
-        r = httpx.post(svc.base_url + path, headers=ro, json={})
-        assert r.status_code == 403 and r.json()["title"] == "Read-only token", (path, r.text)
-    ticket = httpx.post(svc.base_url + "/events/ticket", headers=ro)
-    assert ticket.status_code == 200  # the wall display still gets the live stream
-    assert svc.client.post("/register", json={}).status_code != 403  # the operator's token is unchanged
-
-
-def test_a_read_only_token_equal_to_the_operator_token_is_refused(tmp_path: Path) -> None:
-    from registration.errors import ConfigError
-
-    with pytest.raises(ConfigError, match="api_readonly_token"):
-        fault_settings(tmp_path, "simple-message://127.0.0.1:9", api_readonly_token=TOKEN)
+    missing = []
+    for f in files:
+        pkg = ".".join(f.parent.parts)
+        globs = tool["package-data"].get(pkg, [])
+        if pkg not in tool["packages"] or not any(fnmatch.fnmatchcase(f.name, g) for g in globs):
+            missing.append(f.as_posix())
+    assert not missing, f"not shipped (packages / package-data): {missing}"
