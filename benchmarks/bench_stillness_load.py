@@ -162,7 +162,8 @@ def one_run(src: list[Path], in_process: bool, tmp: Path) -> dict[str, Any]:
         send_s = time.monotonic() - t0
 
         def all_recorded() -> list[dict[str, Any]] | None:
-            scans = client.get("/scans").json()
+            """Every delivered series judged (not ``receiving``: its verdict and joints are written then)."""
+            scans = [s for s in client.get("/scans").json() if s["status"] != "receiving"]
             return scans if len(scans) >= len(sent) else None
 
         scans = poll(all_recorded, "every series to be recorded")
