@@ -20,6 +20,7 @@ Run: ``.venv/bin/python -m benchmarks.bench_stillness_load [--associations 12] [
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import socket
@@ -49,11 +50,24 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+MOCK_NICE = -10
+"""Scheduling boost of the mock controller where allowed (root): it stands for the robot's own controller
+on its own hardware.  On a saturated 2-core machine the mock otherwise falls more than a frame period
+behind and re-anchors (mocks/robot/simple_message_server.py): frames never sent, which the service
+rightly judges ``incomplete``, and the bench would measure the mock, not the service."""
+
+
+def _boost() -> None:
+    with contextlib.suppress(OSError):  # not root: the mock runs at normal priority (the title says so)
+        os.nice(MOCK_NICE)
+
+
 def start_mock() -> tuple[subprocess.Popen[str], str]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
         stdout=subprocess.PIPE,
         text=True,
+        preexec_fn=_boost,
     )
     assert proc.stdout is not None
     return proc, proc.stdout.readline().strip()
@@ -207,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         sys.stdout.write(json.dumps(results, indent=2) + "\n")
     print_table(
-        f"Still robot, {args.associations} associations x {args.slices} slices (512 x 512) at once",
+        f"Still robot, {args.associations} associations x {args.slices} slices (512 x 512) at once "
+        f"(mock controller nice {MOCK_NICE if os.geteuid() == 0 else 0})",
         ["link reader", "series delivered", "send s", "largest receive gap s", "verdicts", "first reason"],
         [
             (r["mode"], r["delivered"], r["send_s"], r["max_receive_gap_s"], json.dumps(r["verdicts"]),

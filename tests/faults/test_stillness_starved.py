@@ -22,11 +22,13 @@ import contextlib
 import os
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 
 from tests.faults._service import DEADLINE_S, Q1, TOKEN, Svc, factory_series, overrides, wait_for
 
@@ -63,8 +65,20 @@ def _service(root: Path, kind: str) -> Iterator[Svc]:
             yield Svc(client, root / "watch", root / "data", robot, mock, app.state.ctx)
 
 
+_FAULT_ENDED_T_S: dict[int, float] = {}
+"""Per service: when the last injected fault ended (monotonic s); a shared service's next test waits
+until it is out of the window, so the tests do not depend on their order."""
+
+
 def _watched(svc: Svc) -> None:
     wait_for(lambda: svc.client.get("/status").json()["link"]["history_s"] > WINDOW_S + 0.5, "joint history")
+    ended = _FAULT_ENDED_T_S.get(id(svc))
+    if ended is not None:
+        wait_for(lambda: time.monotonic() > ended + WINDOW_S + 0.5, "the last fault out of the window")
+
+
+def _fault_ended(svc: Svc) -> None:
+    _FAULT_ENDED_T_S[id(svc)] = time.monotonic()
 
 
 def _frozen_link_child(svc: Svc) -> None:
@@ -76,6 +90,7 @@ def _frozen_link_child(svc: Svc) -> None:
         threading.Event().wait(STOP_S)  # the fault's duration
     finally:
         os.kill(pid, signal.SIGCONT)
+        _fault_ended(svc)
 
 
 def _scan_now(svc: Svc, name: str) -> dict[str, Any]:
@@ -83,15 +98,22 @@ def _scan_now(svc: Svc, name: str) -> dict[str, Any]:
     return svc.scan_where(lambda s: s["folder"].endswith(name) and s["status"] == "complete", f"scan {name}")
 
 
-def test_a_starved_streamed_link_is_not_a_hole_in_the_history(tmp_path: Path) -> None:
-    with _service(tmp_path, "simple-message") as svc:
-        _watched(svc)
-        _frozen_link_child(svc)
-        scan = _scan_now(svc, "after-stop")
-        j = scan["joints"]
-        gap_s = svc.client.get("/status").json()["link"]["max_receive_gap_s"]
-        assert gap_s > 0.25, gap_s  # the receive clock saw the stop (inside the 2 s window) ...
-        assert j["verdict"] == "still", j  # ... and the frames it held arrived intact
+@pytest.fixture(scope="module")
+def streamed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Svc]:
+    """One simple_message service for the streamed-link tests (each waits for a full window first)."""
+    with _service(tmp_path_factory.mktemp("streamed"), "simple-message") as svc:
+        yield svc
+
+
+def test_a_starved_streamed_link_is_not_a_hole_in_the_history(streamed: Svc) -> None:
+    svc = streamed
+    _watched(svc)
+    _frozen_link_child(svc)
+    scan = _scan_now(svc, "after-stop")
+    j = scan["joints"]
+    gap_s = svc.client.get("/status").json()["link"]["max_receive_gap_s"]
+    assert gap_s > 0.25, gap_s  # the receive clock saw the stop (inside the 2 s window) ...
+    assert j["verdict"] == "still", j  # ... and the frames it held arrived intact
 
 
 def test_a_starved_polled_link_and_a_silent_controller_are_incomplete_not_moved(tmp_path: Path) -> None:
@@ -110,16 +132,17 @@ def test_a_starved_polled_link_and_a_silent_controller_are_incomplete_not_moved(
         assert body["type"].endswith("joint-history-incomplete"), body
 
 
-def test_frames_genuinely_missing_are_incomplete(tmp_path: Path) -> None:
-    with _service(tmp_path, "simple-message") as svc:
-        _watched(svc)
-        svc.mock.stall()  # the controller stops sending; the connection stays open
-        try:
-            threading.Event().wait(STOP_S)  # the fault's duration
-        finally:
-            svc.mock.resume()
-        scan = _scan_now(svc, "after-stall")
-        r = svc.client.post("/register", json={"scan_id": scan["id"]})
-        assert r.status_code == 409 and r.json()["title"] == "Joint history incomplete", r.text
-        j = scan["joints"]
-        assert j["verdict"] == "incomplete" and "missing" in j["stillness_reason"], j
+def test_frames_genuinely_missing_are_incomplete(streamed: Svc) -> None:
+    svc = streamed
+    _watched(svc)
+    svc.mock.stall()  # the controller stops sending; the connection stays open
+    try:
+        threading.Event().wait(STOP_S)  # the fault's duration
+    finally:
+        svc.mock.resume()
+        _fault_ended(svc)
+    scan = _scan_now(svc, "after-stall")
+    r = svc.client.post("/register", json={"scan_id": scan["id"]})
+    assert r.status_code == 409 and r.json()["title"] == "Joint history incomplete", r.text
+    j = scan["joints"]
+    assert j["verdict"] == "incomplete" and "missing" in j["stillness_reason"], j
