@@ -9,15 +9,22 @@ this process, ``--associations`` pynetdicom SCUs that each send one synthetic 51
 release the script reads ``GET /status`` (``link.max_receive_gap_s``: the largest time between two
 received frames over the last 60 s) and ``GET /scans`` (each scan's verdict).
 
-Run: ``.venv/bin/python -m benchmarks.bench_stillness_load [--associations 12] [--slices 48] [--runs 1]``
+The bench's config raises ``[dicom] maximum_associations`` to ``--associations`` + 4 (the service's
+default is pynetdicom's 10, which refused the 11th and 12th association: only 7–10 of 12 series were
+delivered); the load under test is 12 series decoded at once, not the association limit.  Each mode
+runs ``--runs`` times (alternating); the summary prints the median largest gap and the verdicts summed.
+
+Run: ``.venv/bin/python -m benchmarks.bench_stillness_load [--associations 12] [--slices 48] [--runs 3]``
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -43,18 +50,41 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+MOCK_NICE = -10
+"""Scheduling boost of the mock controller where allowed (root): it stands for the robot's own controller
+on its own hardware.  On a saturated 2-core machine the mock otherwise falls more than a frame period
+behind and re-anchors (mocks/robot/simple_message_server.py): frames never sent, which the service
+rightly judges ``incomplete``, and the bench would measure the mock, not the service."""
+
+
+def _boost() -> None:
+    with contextlib.suppress(OSError):  # not root: the mock runs at normal priority (the title says so)
+        os.nice(MOCK_NICE)
+
+
 def start_mock() -> tuple[subprocess.Popen[str], str]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
         stdout=subprocess.PIPE,
         text=True,
+        preexec_fn=_boost,
     )
     assert proc.stdout is not None
     return proc, proc.stdout.readline().strip()
 
 
+ASSOCIATION_HEADROOM = 4
+"""``maximum_associations`` = associations + this, so no association of the load is refused."""
+
+
 def write_config(
-    path: Path, root: Path, link_url: str, dicom_port: int, http_port: int, in_process: bool
+    path: Path,
+    root: Path,
+    link_url: str,
+    dicom_port: int,
+    http_port: int,
+    in_process: bool,
+    maximum_associations: int,
 ) -> None:
     path.write_text(
         f"""watch_dir = "{root / "watch"}"
@@ -72,6 +102,7 @@ window_s = {WINDOW_S}
 [dicom]
 enabled = true
 port = {dicom_port}
+maximum_associations = {maximum_associations}
 """,
         encoding="utf-8",
     )
@@ -116,7 +147,7 @@ def one_run(src: list[Path], in_process: bool, tmp: Path) -> dict[str, Any]:
     mock, url = start_mock()
     dicom_port, http_port = free_port(), free_port()
     cfg = root / "oarmreg.toml"
-    write_config(cfg, root, url, dicom_port, http_port, in_process)
+    write_config(cfg, root, url, dicom_port, http_port, in_process, len(src) + ASSOCIATION_HEADROOM)
     log = (root / "serve.log").open("wb")
     serve = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--config", str(cfg)],
@@ -145,7 +176,8 @@ def one_run(src: list[Path], in_process: bool, tmp: Path) -> dict[str, Any]:
         send_s = time.monotonic() - t0
 
         def all_recorded() -> list[dict[str, Any]] | None:
-            scans = client.get("/scans").json()
+            """Every delivered series judged (not ``receiving``: its verdict and joints are written then)."""
+            scans = [s for s in client.get("/scans").json() if s["status"] != "receiving"]
             return scans if len(scans) >= len(sent) else None
 
         scans = poll(all_recorded, "every series to be recorded")
@@ -174,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--associations", type=int, default=12)
     ap.add_argument("--slices", type=int, default=48, help="slices per series (512 x 512 int16)")
-    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--runs", type=int, default=3, help="runs per mode (medians over them)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp_name:
@@ -189,13 +221,31 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         sys.stdout.write(json.dumps(results, indent=2) + "\n")
     print_table(
-        f"Still robot, {args.associations} associations x {args.slices} slices (512 x 512) at once",
+        f"Still robot, {args.associations} associations x {args.slices} slices (512 x 512) at once "
+        f"(mock controller nice {MOCK_NICE if os.geteuid() == 0 else 0})",
         ["link reader", "series delivered", "send s", "largest receive gap s", "verdicts", "first reason"],
         [
             (r["mode"], r["delivered"], r["send_s"], r["max_receive_gap_s"], json.dumps(r["verdicts"]),
              (r["reasons"] or [""])[0][:120])
             for r in results
         ],
+    )  # fmt: skip
+    summary = []
+    for mode in ("thread (before)", "child process (after)"):
+        rs = [r for r in results if r["mode"] == mode]
+        verdicts: Counter[str] = Counter()
+        for r in rs:
+            verdicts.update(r["verdicts"])
+        summary.append((
+            mode, len(rs), statistics.median(r["delivered"] for r in rs),
+            statistics.median(r["send_s"] for r in rs), statistics.median(r["max_receive_gap_s"] for r in rs),
+            max(r["max_receive_gap_s"] for r in rs), json.dumps(dict(verdicts)),
+        ))  # fmt: skip
+    print_table(
+        f"Medians over {args.runs} run(s) per mode",
+        ["link reader", "runs", "series delivered", "send s", "largest receive gap s (median)",
+         "largest receive gap s (max)", "verdicts (all runs)"],
+        summary,
     )  # fmt: skip
     return 0
 

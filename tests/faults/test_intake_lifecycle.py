@@ -511,3 +511,46 @@ def test_kill_9_during_a_reopen_and_a_replacement_leaves_nothing_stale_current(
         ), text
         assert c.get(f"/registrations/{d_reg}").json()["status"] == "withdrawn"
         assert forked.kills == 3
+
+
+# ---------------------------------------------------------------------------- item 3, full disk
+
+INTAKE_FS_KB = 1024
+"""The size of the tmpfs mounted over ``dicom-intake/``: room for a few 128 KiB slices, not 24."""
+
+
+@contextlib.contextmanager
+def _small_tmpfs(at: Path, size_kb: int) -> Iterator[None]:
+    """A tmpfs of ``size_kb`` at ``at`` (root only; skips where mounting is not allowed)."""
+    at.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k,mode=0700", "tmpfs", str(at)],
+                       capture_output=True, text=True)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (root and CAP_SYS_ADMIN needed): {r.stderr.strip()}")
+    try:
+        yield
+    finally:
+        subprocess.run(["umount", "-l", str(at)], check=True)
+
+
+def test_item3_full_disk_a_series_whose_tail_could_not_be_written_is_not_complete(lc: Lc) -> None:
+    """The C-STORE intake folder fills up part-way through a series: the instances answered 0xA700
+    leave it ``invalid`` naming how many of how many, never ``complete`` with the slices that fit."""
+    from tests.helpers.dicom_factory import ramp_volume, write_series
+
+    files = sorted(write_series(lc.root / "outbox" / "item3-full", ramp_volume(24, 256, 256)))
+    datasets = read_all(files)
+    uid = str(datasets[0].SeriesInstanceUID)
+    intake = lc.svc.data / "dicom-intake"
+    with _small_tmpfs(intake, INTAKE_FS_KB):
+        statuses = send(lc.port, datasets)
+        n_ok = statuses.count(0)
+        assert 0 < n_ok < len(datasets) and statuses == [0] * n_ok + [0xA700] * (len(datasets) - n_ok), (
+            statuses
+        )
+        scan = lc.svc.scan_where(lambda s: s["series_uid"] == uid and s["status"] != "receiving", "a verdict")
+        assert scan["status"] == "invalid", scan
+        assert f"{len(datasets) - n_ok} of the {len(datasets)} instance(s)" in scan["reason"], scan["reason"]
+        assert "0xA700" in scan["reason"], scan["reason"]
+        r = lc.client.post("/register", json={"scan_id": scan["id"]})
+        assert r.status_code == 422, r.text
