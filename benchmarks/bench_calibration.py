@@ -360,7 +360,7 @@ def matrix(seeds: tuple[int, ...], scales: tuple[float, ...], n_poses: int) -> i
     map_est = CalibrationParams(estimator="map")
     rows: list[list[Any]] = []
     summary: dict[str, list[float]] = {
-        k: [] for k in ("vs_peer", "vs_floor_mean", "vs_floor_max", "pm", "pm_map")
+        k: [] for k in ("vs_peer", "vs_floor_mean", "vs_floor_max", "pm", "pm_map", "floor_vs_peer")
     }
     refused = answered_within = floor_within = 0
     t0 = time.perf_counter()
@@ -389,6 +389,7 @@ def matrix(seeds: tuple[int, ...], scales: tuple[float, ...], n_poses: int) -> i
                 d, pm = out["defaults"]
                 within = float(floor.mean()) <= defaults.max_predicted_error_mm
                 floor_within += within
+                summary["floor_vs_peer"].append(float(floor.mean()) / float(peer.mean()))
                 if d is None:
                     refused += 1
                 else:
@@ -449,6 +450,14 @@ def matrix(seeds: tuple[int, ...], scales: tuple[float, ...], n_poses: int) -> i
                 f"{floor_within} / {answered_within}",
             ),
             ("defaults mean / peer mean per set [≤ 0.8]", rng_of(summary["vs_peer"])),
+            (
+                "floor mean / peer mean per set: the least 'defaults / peer' any geometric model reaches",
+                rng_of(summary["floor_vs_peer"]),
+            ),
+            (
+                "sets where even the true model is > 0.8 × the peer",
+                f"{sum(v > 0.8 for v in summary['floor_vs_peer'])} of {len(summary['floor_vs_peer'])}",
+            ),
             ("defaults mean / floor mean per set [≤ 1.6]", rng_of(summary["vs_floor_mean"])),
             ("defaults max / floor max per set [≤ 1.6]", rng_of(summary["vs_floor_max"])),
             ("predicted / measured held-out RMS, defaults [0.67–1.5 every set]", rng_of(summary["pm"])),
