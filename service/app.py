@@ -108,14 +108,14 @@ def create_app(
     docs = settings.api.docs
     app = FastAPI(
         title="oarmreg", version=__version__, description=API_DESCRIPTION, lifespan=lifespan,
-        docs_url=None, redoc_url=None,  # /docs: the self-hosted shell of service.web (issue #21)
+        docs_url=None, redoc_url=None,  # /docs: the self-hosted shell of service.web
         openapi_url="/openapi.json" if docs else None,
     )  # fmt: skip
     app.state.ctx = ctx
     _install_routes(app)
     app.add_middleware(CurrentRegistrationFastPath)
     app.add_middleware(SecurityGate)  # nothing is read before it admits the request
-    _install_browser_layer(app, settings)  # CSP headers, then CORS outermost (issue #21)
+    _install_browser_layer(app, settings)  # CSP headers, then CORS outermost
     return app
 
 
@@ -210,7 +210,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
 
 
 def startup_line(ctx: ServiceContext) -> str:
-    """Every listener, the folders, the robot link and auth in one line (logged at INFO, issue #21)."""
+    """Every listener, the folders, the robot link and auth in one line (logged at INFO)."""
     st = ctx.settings
     scheme = "https" if st.tls.enabled else "http"
     host = f"[{st.host}]" if ":" in st.host else st.host

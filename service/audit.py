@@ -1,4 +1,4 @@
-"""Audit trail of the mutating API calls (issue #13): one ``audit_log`` row per call, success or not.
+"""Audit trail of the mutating API calls: one ``audit_log`` row per call, success or not.
 
 Usage in a route::
 

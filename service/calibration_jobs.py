@@ -1,4 +1,4 @@
-"""Calibration sessions in the service (issue #10 item 6): ``POST /calibrations`` → a worker thread.
+"""Calibration sessions in the service: ``POST /calibrations`` → a worker thread.
 
 :meth:`CalibrationJobs.start` resolves the scans (given ids, or the last K complete ones), refuses
 at once — stored with the reason — fewer than ``MIN_POSES`` scans or scans from several O-arm

@@ -1,4 +1,4 @@
-"""DICOM Storage SCP: the O-arm pushes its CT series here (issue #12, design §10).
+"""DICOM Storage SCP: the O-arm pushes its CT series here (design §10).
 
 A pynetdicom AE that answers C-ECHO and accepts C-STORE of **CT Image Storage** and
 **Enhanced CT Image Storage** only (no MR or other context is offered, so an MR series is

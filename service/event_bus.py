@@ -40,7 +40,7 @@ EVENT_NAMES: tuple[str, ...] = (
 )
 EVENT_NAMES = (
     *EVENT_NAMES,
-    # issue #10: calibration sessions (service.calibration_jobs); registration_retired says none is
+    # calibration sessions (service.calibration_jobs); registration_retired says none is
     # current any more (push channels INVALID until the next /register)
     "calibration_started",
     "calibration_progress",
@@ -48,7 +48,7 @@ EVENT_NAMES = (
     "calibration_refused",
     "calibration_activated",
     "registration_retired",
-    "scan_reopened",  # late slices of a recorded series (issue #13)
+    "scan_reopened",  # late slices of a recorded series
     "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
     "scan_files_deleted",  # the retention policy deleted a scan's folder
 )
@@ -57,9 +57,9 @@ EVENT_NAMES = (
     # issue 19: the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
     "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
     "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
-    # issue #23: an OpenIGTLink client sent header version 2 and is answered in version 2 from now on
+    # an OpenIGTLink client sent header version 2 and is answered in version 2 from now on
     "igtl_client_header_version",
-    # issue #23: archiving a registration's SRO to the PACS (service/pacs/)
+    # archiving a registration's SRO to the PACS (service/pacs/)
     "pacs_export_sent",
     "pacs_export_failed",
 )

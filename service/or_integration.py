@@ -19,7 +19,7 @@
   from the current registration (plus the last refusal), the live joints and link health, the
   robot model's forward kinematics and ``igtl.tool0_from_tcp``; pushed at once after a
   registration becomes current or is refused.
-* **PACS archive** (``[pacs]``, issue #23): :class:`service.pacs.exporter.PacsExporter` queues the
+* **PACS archive** (``[pacs]``): :class:`service.pacs.exporter.PacsExporter` queues the
   Spatial Registration object of each accepted registration and sends it by C-STORE.
 * **Auto-register** (``service.auto_register``): each scan recorded complete is registered on a
   worker thread; the result is pushed like any other.
@@ -250,7 +250,7 @@ class OrIntegration:
                 port=self.igtl.port,
                 clients=self.igtl.client_count,
                 counters=dict(self.igtl.counters),
-                peers=self.igtl.client_info(),  # per client: peer and header version (issue #23)
+                peers=self.igtl.client_info(),  # per client: peer and header version
             )
         p = self.settings.pacs
         pacs: dict[str, Any] = {"enabled": p.enabled}

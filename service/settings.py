@@ -169,7 +169,7 @@ AUTH_MODES = ("token", "none-loopback-only")
 
 
 class ApiSettings(_Section):
-    """HTTP hardening (issue #13): authentication mode, body limit, Host / Origin allow-lists."""
+    """HTTP hardening: authentication mode, body limit, Host / Origin allow-lists."""
 
     auth: Literal["token", "none-loopback-only"] = "token"
     # 1 MiB: the largest legitimate body is POST /register with 1000 targets (~60 kB of JSON);
@@ -314,7 +314,7 @@ class TlsSettings(_Section):
 
 
 class LogSettings(_Section):
-    """``oarmreg serve`` logging (issue #21); ``-v`` / ``--log-level`` / ``--log-format`` override it."""
+    """``oarmreg serve`` logging; ``-v`` / ``--log-level`` / ``--log-format`` override it."""
 
     # INFO: the start-up line (every listener, the data folder), scans, registrations, refusals.
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
@@ -324,7 +324,7 @@ class LogSettings(_Section):
 
 class PacsSettings(_Section):
     """Archive each accepted registration's Spatial Registration object to a PACS by C-STORE
-    (issue #23), :mod:`service.pacs`.  Off while ``host`` is empty."""
+    (:mod:`service.pacs`).  Off while ``host`` is empty."""
 
     host: str = ""
     port: int = Field(default=104, ge=1, le=65535)
@@ -400,7 +400,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8750, ge=0, le=65535)
     api_token: SecretStr | None = None
-    # A read-only token for wall displays (issue #21): sees everything, changes nothing (every POST
+    # A read-only token for wall displays: sees everything, changes nothing (every POST
     # but /events/ticket answers 403).  Unset: none.  At least 16 characters, unlike api_token.
     api_readonly_token: SecretStr | None = None
     robot: RobotSettings = RobotSettings()

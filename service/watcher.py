@@ -73,7 +73,7 @@ class SeriesArrival:
     duplicate: bool = False
     preexisting: bool = False
     reopened: bool = False
-    """Late slices of a series recorded before: the earlier record was incomplete (issue #13 item 3)."""
+    """Late slices of a series recorded before: the earlier record was incomplete."""
     previous_slices: int = 0
     """Slices of the earlier record when ``reopened``."""
     change: Any = None

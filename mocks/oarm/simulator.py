@@ -1,4 +1,4 @@
-"""A physically honest O-arm scan simulator (issue #2, item 3).
+"""A physically honest O-arm scan simulator.
 
 Given the calibration phantom, its pose in the image frame and the acquisition
 settings, produce the reconstructed volume in Hounsfield units with the
@@ -215,7 +215,7 @@ class AcquisitionSettings:
         160 × 160 × 96 grid (0.7 × 0.7 × 1.0 mm) holding the whole default phantom at moderate
         rotations, 180 views, for fast tests.
 
-        The ``-realistic`` presets (issue #11) add what the legacy ones lack: kernel scatter at a
+        The ``-realistic`` presets add what the legacy ones lack: kernel scatter at a
         scatter-to-primary ratio of 0.2 behind the phantom, scintillator light spread, 10⁴
         photons per ray, the O-arm's uncalibrated 0.8 mm PSF and a spectrum binned at the
         tungsten K edge.  ``oarm-realistic`` samples angles like 391 views over 360°

@@ -1,5 +1,5 @@
 """``POST /calibrations``, ``GET /calibrations[/{id}]``, ``GET /calibrations/{id}/robot.urdf``,
-``POST /calibrations/{id}/activate`` (issue #10 item 6; design.md §9)."""
+``POST /calibrations/{id}/activate`` (design.md §9)."""
 
 from __future__ import annotations
 

@@ -83,6 +83,6 @@ def get_registration(ctx: CtxDep, registration_id: RecordId) -> RegistrationOut:
         raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")
     out = registration_out(rec)
     export = ctx.db.pacs_exports.get(registration_id)
-    if export is not None:  # issue #23: its archive to the PACS
+    if export is not None:  # its archive to the PACS
         out.pacs_export = PacsExportOut.model_validate(export, from_attributes=True)
     return out

@@ -159,7 +159,7 @@ def check_ports(settings: Any) -> None:
 def preflight(settings: Any) -> None:
     """Fail before uvicorn starts, with one line and the exit code, not a lifespan traceback:
     no way to authenticate, another ``serve`` on the same data folder (issue 19: exit 3, naming it),
-    or a database that is empty, foreign or damaged (issue #13).
+    or a database that is empty, foreign or damaged.
 
     Raises
     ------
