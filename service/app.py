@@ -148,7 +148,7 @@ def _open_link(settings: Settings) -> RobotLink:
     from drivers.factory import open_link
     from drivers.link_process import ProcessLink
 
-    if settings.robot.link_process:  # issue 19: the reader in a child process, out of the GIL's reach
+    if settings.robot.link_process:  # the reader in a child process, out of the GIL's reach
         return ProcessLink(settings.robot.link_url)
     return open_link(settings.robot.link_url)
 
@@ -157,7 +157,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     """Open the database, connect the robot link, start the watcher."""
     settings = ctx.settings
     ctx.bus.bind(asyncio.get_running_loop())
-    make_private(settings.data_dir)  # umask 077, folder 0700, files 0600 (issue 19 item 8)
+    make_private(settings.data_dir)  # umask 077, folder 0700, files 0600
     ctx.serve_lock = hold_serve_lock(settings.data_dir)  # a second serve on this folder: exit 3
     try:
         ctx.db = Database.open(settings.db_path)
@@ -174,7 +174,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     )
     ctx.calibrations.restore()
     or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, or_int.publish, ctx.orchestrator.withdraw_scan)
-    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # issue 19: crash order
+    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # after a crash
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
     if start_watcher:
@@ -244,7 +244,7 @@ async def _retention_loop(ctx: ServiceContext) -> None:
     from service.retention import quota_problem, run_retention
 
     r = ctx.settings.retention
-    roots = (ctx.settings.data_dir / INTAKE_FOLDER,)  # issue 19: C-STORE scans too
+    roots = (ctx.settings.data_dir / INTAKE_FOLDER,)  # C-STORE scans too
     while True:
         try:
             await asyncio.to_thread(

@@ -54,7 +54,7 @@ EVENT_NAMES = (
 )
 EVENT_NAMES = (
     *EVENT_NAMES,
-    # issue 19: the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
+    # the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
     "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
     "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
     # an OpenIGTLink client sent header version 2 and is answered in version 2 from now on

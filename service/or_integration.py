@@ -302,7 +302,7 @@ class OrIntegration:
         """On the association thread, before a new or different instance is renamed into place: the
         series' first instance opens a ``receiving`` record; an instance added to or replacing one of a
         judged series moves it to ``reopened`` / ``replaced`` and withdraws what was made from it,
-        committed before the file is in place (issue 19, crash order)."""
+        committed before the file is in place (the crash order of docs/safety.md, "Scan lifecycle")."""
         db, series_dir = self.ctx.db, path.parent
         known = db.scans.status_of(series_dir.name)
         if known is None:
