@@ -191,9 +191,7 @@ class AcquisitionSettings:
         if self.photons_per_ray <= 0:
             problems.append(f"photons_per_ray={self.photons_per_ray} must be > 0")
         if self.sub_slices < 1 or self.detector_subsamples < 1:
-            problems.append(
-                "sub_slices and detector_subsamples must be >= 1 (issue #2 asks for >= 3 sub-slices)"
-            )
+            problems.append("sub_slices and detector_subsamples must be >= 1")
         if self.orientation not in ORIENTATIONS:
             problems.append(f"orientation {self.orientation!r} not one of {sorted(ORIENTATIONS)}")
         if not 0.0 <= self.scatter_spr <= 2.0:
