@@ -55,7 +55,7 @@ from service.igtl.server import (
 )
 from service.intake import Intake
 from service.pacs.exporter import PacsExporter
-from service.records import RegistrationRecord
+from service.records import RegistrationRecord, RegistrationRefusal
 from service.scan_lifecycle import ContentChange, OfferTally, ScanLifecycle, hash_files
 from service.series_accumulator import SeriesAccumulator
 from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
@@ -158,11 +158,16 @@ class OrIntegration:
     def _auto_register(self, scan_id: int) -> None:
         try:
             rec = self.ctx.orchestrator.register(scan_id)
+        except Exception as e:  # nothing to register (the scan went away meanwhile)
+            log.warning("auto-register: scan %d not registered: %s", scan_id, e)
+            return
+        if isinstance(rec, RegistrationRefusal):  # stored and published by the orchestrator
+            log.warning("auto-register: scan %d refused (registration %s): %s", scan_id,
+                        rec.registration_id, rec.error)  # fmt: skip
+        else:
             log.info(
                 "auto-register: scan %d → registration %d (FRE %.3f mm)", scan_id, rec.id, rec.fre_mm or 0
             )
-        except Exception as e:  # refusals are stored and published by the orchestrator
-            log.warning("auto-register: scan %d not registered: %s", scan_id, e)
 
     # ---- lifecycle ------------------------------------------------------------------------
 
