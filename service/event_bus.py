@@ -1,7 +1,7 @@
 """The in-process event bus behind ``GET /events`` (:mod:`service.api.events`).
 
-Event names: ``scan_arrived``, ``scan_invalid``, ``registration_done``, ``registration_refused``,
-``verification_done``, ``link_state``.  :meth:`EventBus.publish` is callable from any thread.
+Event names: :data:`EVENT_NAMES` (an unknown name is a ``ValueError``).  :meth:`EventBus.publish`
+is callable from any thread.
 """
 
 from __future__ import annotations
@@ -25,44 +25,40 @@ QUEUE_MAX = 256
 RECENT_MAX = 100
 
 EVENT_NAMES: tuple[str, ...] = (
+    # scans (service.intake, service.scan_lifecycle, service.retention)
     "scan_arrived",
     "scan_invalid",
+    "scan_reopened",  # late slices of a recorded series
+    "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
+    "scan_files_deleted",  # the retention policy deleted a scan's folder
+    # registrations and verifications (service.orchestrator)
     "registration_done",
     "registration_refused",
+    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
+    "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
     "verification_done",
+    # the robot link (service.capture)
     "link_state",
-    # operating-room interfaces (service/or_integration.py)
+    # operating-room interfaces (service.or_integration)
     "dicom_association_released",
     "dicom_association_aborted",
     "dicom_refused",
     "igtl_client_connected",
     "igtl_client_disconnected",
-)
-EVENT_NAMES = (
-    *EVENT_NAMES,
-    # calibration sessions (service.calibration_jobs); registration_retired says none is
-    # current any more (push channels INVALID until the next /register)
+    "igtl_client_header_version",  # it sent header version 2: answered in version 2 from now on
+    # calibration sessions (service.calibration_jobs); registration_retired says none is current
+    # any more (push channels INVALID until the next /register)
     "calibration_started",
     "calibration_progress",
     "calibration_done",
     "calibration_refused",
     "calibration_activated",
     "registration_retired",
-    "scan_reopened",  # late slices of a recorded series
-    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
-    "scan_files_deleted",  # the retention policy deleted a scan's folder
-)
-EVENT_NAMES = (
-    *EVENT_NAMES,
-    # the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
-    "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
-    "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
-    # an OpenIGTLink client sent header version 2 and is answered in version 2 from now on
-    "igtl_client_header_version",
-    # archiving a registration's SRO to the PACS (service/pacs/)
+    # archiving a registration's SRO to the PACS (service.pacs)
     "pacs_export_sent",
     "pacs_export_failed",
 )
+"""Every event :meth:`EventBus.publish` accepts (one tuple; a new event is added here)."""
 
 
 class EventBus:
