@@ -50,7 +50,7 @@ def problem_response(
 
 
 async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
-    return problem_for(request, exc, calibration_id=getattr(exc, "calibration_id", None))
+    return problem_for(request, exc)
 
 
 def problem_for(
