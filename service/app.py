@@ -167,13 +167,13 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     or_int = ctx.or_integration = OrIntegration(ctx)
     ctx.db_watch_task = asyncio.create_task(_watch_database(ctx), name="oarmreg-db-watch")
     ctx.orchestrator = Orchestrator(
-        settings, ctx.db, ctx.phantom, ctx.robot_model, or_int.publish, volumes=ctx.volumes
+        settings, ctx.db, ctx.phantom, ctx.robot_model, ctx.bus.publish, volumes=ctx.volumes
     )
     ctx.calibrations = CalibrationJobs(
         settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
     )
     ctx.calibrations.restore()
-    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, or_int.publish, ctx.orchestrator.withdraw_scan)
+    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, ctx.bus.publish, ctx.orchestrator.withdraw_scan)
     await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # after a crash
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
@@ -186,7 +186,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
                     ctx.db,
                     ctx.capture,
                     ctx.volumes,
-                    or_int.publish,
+                    ctx.bus.publish,
                     withdraw=ctx.orchestrator.withdraw_scan,
                     lifecycle=or_int.lifecycle,
                 )

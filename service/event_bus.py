@@ -13,7 +13,7 @@ import json
 import logging
 import threading
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,21 @@ class EventBus:
         self._lock = threading.Lock()
         self._recent: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=RECENT_MAX)
         self._closed = False
+        self._listeners: dict[str, list[Callable[[dict[str, Any]], None]]] = {}
+
+    def listen(self, event: str, fn: Callable[[dict[str, Any]], None]) -> None:
+        """Call ``fn(data)`` on the publishing thread after each ``event`` has gone to the subscribers
+        (the in-process reactions: IGTL push, PACS export, auto-register)."""
+        if event not in EVENT_NAMES:
+            raise ValueError(f"unknown event {event!r}; known: {EVENT_NAMES}")
+        with self._lock:
+            self._listeners.setdefault(event, []).append(fn)
+
+    def unlisten(self, event: str, fn: Callable[[dict[str, Any]], None]) -> None:
+        with self._lock:
+            fns = self._listeners.get(event, [])
+            if fn in fns:
+                fns.remove(fn)
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -86,8 +101,11 @@ class EventBus:
         with self._lock:
             item = (next(self._seq), event, data)
             self._recent.append(item)
+            listeners = list(self._listeners.get(event, ()))
         log.info("event %s %s", event, json.dumps(data)[:300])
         self._deliver_on_loop(item)
+        for fn in listeners:
+            fn(data)
 
     def _deliver(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
         for q in list(self._subs):

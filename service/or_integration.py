@@ -1,6 +1,9 @@
 """Operating-room integration: the DICOM Storage SCP and the OpenIGTLink server inside the service.
 
-:class:`OrIntegration` is built by the app factory and started / stopped by its lifespan.
+:class:`OrIntegration` is built by the app factory and started / stopped by its lifespan.  It
+reacts to the bus (:meth:`service.event_bus.EventBus.listen`): ``registration_done`` /
+``registration_refused`` push to the IGTL clients (and queue the PACS export), ``scan_arrived``
+starts auto-register; everything else publishes on the bus directly.
 
 * **C-STORE** (``[dicom]``): instances land in ``<data_dir>/dicom-intake/<Study>/<Series>/``
   (outside the watched folder, so the folder watcher never sees them) and are decoded as they
@@ -122,6 +125,8 @@ class OrIntegration:
         self.lifecycle: ScanLifecycle | None = None
         """Set by the app before :meth:`start` (shared with the folder watcher's intake)."""
         self.pacs: PacsExporter | None = None
+        for event, fn in self._listeners():  # until stop(): a restarted app builds a new one
+            ctx.bus.listen(event, fn)
 
     @property
     def intake_dir(self) -> Path:
@@ -129,19 +134,28 @@ class OrIntegration:
 
     # ---- events ---------------------------------------------------------------------------
 
-    def publish(self, event: str, data: dict[str, Any]) -> None:
-        """The service's ``publish`` (thread-safe): forwards to the bus, then reacts to registration
-        changes (IGTL push) and new complete scans (auto-register)."""
-        self.ctx.bus.publish(event, data)
-        if event == "registration_done":
-            self._last_refusal = None
-            self._notify()
-            if self.pacs is not None:
-                self._enqueue_export(int(data["registration_id"]))
-        elif event == "registration_refused":
-            self._last_refusal = Refusal(str(data.get("registration_id")), str(data.get("reason", "")))
-            self._notify()
-        elif event == "scan_arrived" and self.settings.service.auto_register and self._registrar is not None:
+    def _listeners(self) -> tuple[tuple[str, Callable[[dict[str, Any]], None]], ...]:
+        return (
+            ("registration_done", self._on_registration_done),
+            ("registration_refused", self._on_registration_refused),
+            ("scan_arrived", self._on_scan_arrived),
+        )
+
+    def _on_registration_done(self, data: dict[str, Any]) -> None:
+        """IGTL push of the new current registration; its SRO queued for the PACS."""
+        self._last_refusal = None
+        self._notify()
+        if self.pacs is not None:
+            self._enqueue_export(int(data["registration_id"]))
+
+    def _on_registration_refused(self, data: dict[str, Any]) -> None:
+        """IGTL push of the refusal (the current registration, if any, stays)."""
+        self._last_refusal = Refusal(str(data.get("registration_id")), str(data.get("reason", "")))
+        self._notify()
+
+    def _on_scan_arrived(self, data: dict[str, Any]) -> None:
+        """Auto-register: each scan recorded complete, on a worker thread."""
+        if self.settings.service.auto_register and self._registrar is not None:
             self._registrar.submit(self._auto_register, int(data["scan_id"]))
 
     def _enqueue_export(self, registration_id: int) -> None:
@@ -179,10 +193,10 @@ class OrIntegration:
         if d.enabled:
             if self.lifecycle is None:
                 self.lifecycle = ScanLifecycle(
-                    self.ctx.db, self.ctx.volumes, self.publish, self.ctx.orchestrator.withdraw_scan
+                    self.ctx.db, self.ctx.volumes, self.ctx.bus.publish, self.ctx.orchestrator.withdraw_scan
                 )
             self.intake = Intake(
-                self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish,
+                self.ctx.db, self.ctx.capture, self.ctx.volumes, self.ctx.bus.publish,
                 withdraw=self.ctx.orchestrator.withdraw_scan, lifecycle=self.lifecycle,
             )  # fmt: skip
             self._decoder = _started(
@@ -226,6 +240,8 @@ class OrIntegration:
 
     async def stop(self) -> None:
         """Stop accepting, finish the series being recorded, stop the servers."""
+        for event, fn in self._listeners():
+            self.ctx.bus.unlisten(event, fn)
         if self.scp is not None:
             await asyncio.to_thread(self.scp.stop)
         if self._tasks:
