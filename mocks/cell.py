@@ -14,8 +14,8 @@ catalogue description:
 * each move lands within a repeatability (a random tool0 translation per pose),
 * the reported joints carry encoder noise.
 
-Defaults (:class:`CellErrorSizes`) are those of issue #10, after the TX60 study
-quoted in ``research/calibration.md`` §1 (0.31 mm mean nominal error).
+Defaults (:class:`CellErrorSizes`) are the error sizes the project specifies for the cell, after
+the TX60 study quoted in ``research/calibration.md`` §1 (0.31 mm mean nominal error).
 :class:`ExactCell` has the same interface with nominal everything and no noise.
 Both take the simulator's ``image_from_robot`` and return the
 ``image_from_phantom`` to pass to :func:`mocks.oarm.simulator.simulate_scan`.

@@ -1,4 +1,4 @@
-"""Plan the poses of a calibration session from one registration (issue #10).
+"""Plan the poses of a calibration session from one registration.
 
 Given ``image_from_robot`` of the current O-arm placement, the arm, the rod and
 the phantom, propose K joint configurations that

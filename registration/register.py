@@ -632,7 +632,7 @@ def check_mirror(inp: RegistrationInputs, cands: CandidatePool, tree: cKDTree, p
     Both sides are counted at the fixed hypothesis gate, not at ICP's self-adapted one: a proper fit
     of mirrored data is loose, and a gate grown from its own residuals would flatter it.  The proper
     problem "fails" when it would be refused for too few spheres; then a mirrored problem that
-    succeeds is reported as such even without the full margin (issue #4 item 4).
+    succeeds is reported as such even without the full margin.
 
     Raises MirroredInputError.
     """

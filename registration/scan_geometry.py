@@ -1,4 +1,4 @@
-"""The reconstructed volume of a series as the planner and the calibration need it (issue #20).
+"""The reconstructed volume of a series as the planner and the calibration need it.
 
 :class:`SeriesGeometry` is what ``oarmreg register`` writes into its JSON and the service into
 its registration record: the ImagePositionPatient range (first and last slice), the orientation

@@ -144,7 +144,7 @@ def build_spatial_registration(
     fre_mm, tre_pred_mm : float
         Fiducial registration error (RMS) and predicted TRE, written into the comments.
     chain_error_mm : float, optional
-        The registration's ``predicted_chain_error_mm`` (issue #20), written into the
+        The registration's ``predicted_chain_error_mm``, written into the
         transformation comment.
     status : str
         The registration's state (``current``, ``refused``…), written into the comments.
@@ -186,7 +186,7 @@ def build_spatial_registration(
     ds.ContentLabel = "ROBOT_REG"  # CS, ≤ 16 characters
     tre = "" if tre_pred_mm is None else f", TRE_pred {tre_pred_mm:.3g} mm"
     ds.ContentDescription = f"{registration_id} {status}: FRE {fre_mm:.3g} mm{tre}"[:64]
-    chain = "" if chain_error_mm is None else f"; chain {chain_error_mm:.3g} mm"  # issue #20
+    chain = "" if chain_error_mm is None else f"; chain {chain_error_mm:.3g} mm"
     ds.ContentCreatorName = ""
     ds.RegistrationSequence = [
         _registration_item(str(first.FrameOfReferenceUID), np.eye(4), "scan frame (identity)", ct),

@@ -108,14 +108,14 @@ def create_app(
     docs = settings.api.docs
     app = FastAPI(
         title="oarmreg", version=__version__, description=API_DESCRIPTION, lifespan=lifespan,
-        docs_url=None, redoc_url=None,  # /docs: the self-hosted shell of service.web (issue #21)
+        docs_url=None, redoc_url=None,  # /docs: the self-hosted shell of service.web
         openapi_url="/openapi.json" if docs else None,
     )  # fmt: skip
     app.state.ctx = ctx
     _install_routes(app)
     app.add_middleware(CurrentRegistrationFastPath)
     app.add_middleware(SecurityGate)  # nothing is read before it admits the request
-    _install_browser_layer(app, settings)  # CSP headers, then CORS outermost (issue #21)
+    _install_browser_layer(app, settings)  # CSP headers, then CORS outermost
     return app
 
 
@@ -148,7 +148,7 @@ def _open_link(settings: Settings) -> RobotLink:
     from drivers.factory import open_link
     from drivers.link_process import ProcessLink
 
-    if settings.robot.link_process:  # issue 19: the reader in a child process, out of the GIL's reach
+    if settings.robot.link_process:  # the reader in a child process, out of the GIL's reach
         return ProcessLink(settings.robot.link_url)
     return open_link(settings.robot.link_url)
 
@@ -157,7 +157,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     """Open the database, connect the robot link, start the watcher."""
     settings = ctx.settings
     ctx.bus.bind(asyncio.get_running_loop())
-    make_private(settings.data_dir)  # umask 077, folder 0700, files 0600 (issue 19 item 8)
+    make_private(settings.data_dir)  # umask 077, folder 0700, files 0600
     ctx.serve_lock = hold_serve_lock(settings.data_dir)  # a second serve on this folder: exit 3
     try:
         ctx.db = Database.open(settings.db_path)
@@ -167,14 +167,14 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
     or_int = ctx.or_integration = OrIntegration(ctx)
     ctx.db_watch_task = asyncio.create_task(_watch_database(ctx), name="oarmreg-db-watch")
     ctx.orchestrator = Orchestrator(
-        settings, ctx.db, ctx.phantom, ctx.robot_model, or_int.publish, volumes=ctx.volumes
+        settings, ctx.db, ctx.phantom, ctx.robot_model, ctx.bus.publish, volumes=ctx.volumes
     )
     ctx.calibrations = CalibrationJobs(
         settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
     )
     ctx.calibrations.restore()
-    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, or_int.publish, ctx.orchestrator.withdraw_scan)
-    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # issue 19: crash order
+    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, ctx.bus.publish, ctx.orchestrator.withdraw_scan)
+    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # after a crash
     ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
     await ctx.capture.start()
     if start_watcher:
@@ -186,7 +186,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
                     ctx.db,
                     ctx.capture,
                     ctx.volumes,
-                    or_int.publish,
+                    ctx.bus.publish,
                     withdraw=ctx.orchestrator.withdraw_scan,
                     lifecycle=or_int.lifecycle,
                 )
@@ -210,7 +210,7 @@ async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
 
 
 def startup_line(ctx: ServiceContext) -> str:
-    """Every listener, the folders, the robot link and auth in one line (logged at INFO, issue #21)."""
+    """Every listener, the folders, the robot link and auth in one line (logged at INFO)."""
     st = ctx.settings
     scheme = "https" if st.tls.enabled else "http"
     host = f"[{st.host}]" if ":" in st.host else st.host
@@ -244,7 +244,7 @@ async def _retention_loop(ctx: ServiceContext) -> None:
     from service.retention import quota_problem, run_retention
 
     r = ctx.settings.retention
-    roots = (ctx.settings.data_dir / INTAKE_FOLDER,)  # issue 19: C-STORE scans too
+    roots = (ctx.settings.data_dir / INTAKE_FOLDER,)  # C-STORE scans too
     while True:
         try:
             await asyncio.to_thread(

@@ -1,4 +1,4 @@
-"""Audit trail of the mutating API calls (issue #13): one ``audit_log`` row per call, success or not.
+"""Audit trail of the mutating API calls: one ``audit_log`` row per call, success or not.
 
 Usage in a route::
 
@@ -6,9 +6,11 @@ Usage in a route::
         rec = ...                                  # the work; may raise a refusal
         note(rec.id, "accepted", "scan 3, FRE 0.081 mm")
 
-A refusal (an error of the two families) is recorded with outcome ``refused``, its title and the
-id of the stored refused record where it has one, then re-raised unchanged.  Failing to write the
-audit row never hides the answer: it is logged (the database health check reports why).
+A refusal (an error of the two families) raised in the block is recorded with outcome ``refused``
+and its title, then re-raised unchanged; a refusal returned with the id of its stored record
+(:class:`service.records.RegistrationRefusal`) is noted with ``note(id, *audit_refusal(error))``.
+Failing to write the audit row never hides the answer: it is logged (the database health check
+reports why).
 """
 
 from __future__ import annotations
@@ -38,13 +40,18 @@ def audited(ctx: ServiceContext, principal: str, action: AuditAction, target: st
     try:
         yield note
     except (OarmRegError, RobotLinkError) as e:
-        _write(ctx, principal, action, target, getattr(e, "registration_id", None), "refused", title_of(e))
+        _write(ctx, principal, action, target, None, *audit_refusal(e))
         raise
     except Exception as e:
         _write(ctx, principal, action, target, None, "error", type(e).__name__)
         raise
     for target_id, outcome, detail in done:
         _write(ctx, principal, action, target, target_id, outcome, detail)
+
+
+def audit_refusal(e: OarmRegError | RobotLinkError) -> tuple[str, str]:
+    """The (outcome, detail) of an audit row for refusal ``e``."""
+    return "refused", title_of(e)
 
 
 def _write(

@@ -1,4 +1,4 @@
-"""Calibration sessions in the service (issue #10 item 6): ``POST /calibrations`` → a worker thread.
+"""Calibration sessions in the service: ``POST /calibrations`` → a worker thread.
 
 :meth:`CalibrationJobs.start` resolves the scans (given ids, or the last K complete ones), refuses
 at once — stored with the reason — fewer than ``MIN_POSES`` scans or scans from several O-arm
@@ -167,8 +167,9 @@ class CalibrationJobs:
         complete = [s for s in self.db.scans.list(limit=max(n, 1) * 4 + 50) if s.status == "complete"]
         return list(reversed(complete[:n]))
 
-    def start(self, req: CalibrationRequest) -> CalibrationRecord:
-        """Check the request, store a ``running`` row and start the worker; returns the row.
+    def start(self, req: CalibrationRequest) -> CalibrationRecord | CalibrationRefusal:
+        """Check the request, store a ``running`` row and start the worker; returns the row, or the
+        refusal of a request refused at once (stored as ``refused``: :class:`CalibrationRefusal`).
 
         Raises
         ------
@@ -176,8 +177,6 @@ class CalibrationJobs:
             An unknown scan id (not stored).
         CalibrationBusyError
             Another calibration is running (not stored).
-        TooFewPosesError, SessionMismatchError, CalibrationError
-            Refused at once; stored as ``refused`` (``e.calibration_id``).
         """
         with self._lock:
             if self.running:
@@ -186,7 +185,7 @@ class CalibrationJobs:
                 scans = self._resolve(req)
                 self._check(req, scans)
             except _Refusal as r:
-                raise self._store_refusal(r.req, r.scans, r.error) from None
+                return self._store_refusal(r.req, r.scans, r.error)
             draft = self._draft(req, scans, "running")
             cal_id = self.db.calibrations.insert(draft)
             self._stop.clear()
@@ -232,9 +231,9 @@ class CalibrationJobs:
         )
 
     def _store_refusal(
-        self, req: CalibrationRequest, scans: list[ScanRecord], e: str | Exception
-    ) -> Exception:
-        err = e if isinstance(e, Exception) else CalibrationRefusedError(e)
+        self, req: CalibrationRequest, scans: list[ScanRecord], e: str | OarmRegError
+    ) -> CalibrationRefusal:
+        err = e if isinstance(e, OarmRegError) else CalibrationRefusedError(e)
         rec = dataclasses.replace(
             self._draft(req, scans, "refused"),
             reason=str(err),
@@ -243,7 +242,6 @@ class CalibrationJobs:
             duration_s=0.0,
         )
         cal_id = self.db.calibrations.insert(rec)
-        err.calibration_id = cal_id  # type: ignore[attr-defined]
         log.warning("calibration %d refused (%s): %s", cal_id, rec.problem_title, err)
         self.publish(
             "calibration_refused",
@@ -254,7 +252,7 @@ class CalibrationJobs:
                 "status": http_status_of(err),
             },
         )
-        return err
+        return CalibrationRefusal(cal_id, err)
 
     # ---- the worker ----------------------------------------------------------------------
 
@@ -452,10 +450,19 @@ class CalibrationRefusedError(RegistrationError):
     title = "Calibration refused"
 
 
+@dataclass(frozen=True)
+class CalibrationRefusal:
+    """A calibration request refused at once: why, and the id of the ``refused`` record stored.
+    Returned, not raised, so the id travels typed."""
+
+    calibration_id: int
+    error: OarmRegError
+
+
 class _Refusal(Exception):
     """Internal: a request refused before the worker starts (stored by :meth:`CalibrationJobs.start`)."""
 
-    def __init__(self, req: CalibrationRequest, scans: list[ScanRecord], error: str | Exception) -> None:
+    def __init__(self, req: CalibrationRequest, scans: list[ScanRecord], error: str | OarmRegError) -> None:
         super().__init__(str(error))
         self.req, self.scans, self.error = req, scans, error
 

@@ -1,4 +1,4 @@
-"""The data folder belongs to one ``serve`` and to the service's user alone (issue 19 item 8).
+"""The data folder belongs to one ``serve`` and to the service's user alone.
 
 * :func:`hold_serve_lock`: an exclusive ``flock`` on ``<data>/serve.lock``, held while the service
   runs, whose text names the holder; a second ``serve`` on the same folder refuses to start

@@ -1,4 +1,4 @@
-"""DICOM Storage SCP: the O-arm pushes its CT series here (issue #12, design §10).
+"""DICOM Storage SCP: the O-arm pushes its CT series here (design §10).
 
 A pynetdicom AE that answers C-ECHO and accepts C-STORE of **CT Image Storage** and
 **Enhanced CT Image Storage** only (no MR or other context is offered, so an MR series is
@@ -12,7 +12,7 @@ directory + fsync + rename + directory fsync) to
 ``intake/<StudyInstanceUID>/<SeriesInstanceUID>/<SOPInstanceUID>.dcm``.  A re-sent identical
 instance changes nothing; a re-sent *different* instance with the same SOP Instance UID
 replaces the old file atomically and is logged.  ``before_replace`` runs between the fsync and
-the rename (the service commits its withdrawal there, issue 19).  Bounds (issue 19 item 6):
+the rename (the service commits its withdrawal there).  Bounds:
 ACSE / DIMSE / network timeouts, a per-connection socket timeout set at ``EVT_CONN_OPEN`` (a peer
 stalled mid-PDU is dropped), ``maximum_associations``.
 
@@ -141,7 +141,7 @@ class DicomScpConfig:
     """An established association with no traffic at all is aborted (pynetdicom's default)."""
     socket_timeout_s: float = _default("socket_timeout_s")
     """Per accepted connection: a ``recv`` / ``send`` that makes no progress for this long drops the
-    peer (a half-sent PDU otherwise blocks its thread and slot forever, issue 19 item 6)."""
+    peer (a half-sent PDU otherwise blocks its thread and slot forever)."""
     maximum_associations: int = _default("maximum_associations")
     """Concurrent associations (pynetdicom's default); one more is rejected "local limit exceeded"."""
     max_instance_mb: float = _default("max_instance_mb")
@@ -203,8 +203,8 @@ class ScpCallbacks:
     before_replace: Callable[[Path, str], None] | None = None
     """``(path, outcome)`` once a new (``stored``) or different (``replaced``) instance is written and
     fsynced beside its target, before it is renamed into place: the service commits the withdrawal of
-    what was made from the series' earlier content here (issue 19, crash order).  If it raises the
-    instance is not stored (0xA700)."""
+    what was made from the series' earlier content here (the crash order of docs/safety.md, "Scan
+    lifecycle").  If it raises the instance is not stored (0xA700)."""
     on_series_settled: Callable[[Path, int, str, OfferTally], None] | None = None
     """Like ``on_series_released`` plus the association's :class:`~service.scan_lifecycle.OfferTally`
     for the series (instances offered, stored, refused and why); used instead when set.  Series whose
@@ -371,7 +371,7 @@ class StorageScp:
     def start(self) -> None:
         """Bind and serve in pynetdicom's threads (returns at once)."""
         self.intake_dir.mkdir(parents=True, exist_ok=True)
-        # receive each C-STORE dataset into a temp file instead of memory (issue 19 item 6): a
+        # receive each C-STORE dataset into a temp file instead of memory: a
         # process-wide pynetdicom switch; this service's only SCP is this one
         _pn_config.STORE_RECV_CHUNKED_DATASET = True
         c = self.config
@@ -432,7 +432,7 @@ class StorageScp:
     def _on_conn_open(self, event: evt.Event) -> None:
         """Bound every blocking read / write of this connection: pynetdicom applies its
         ``network_timeout`` to the listening socket only, so a peer that stops half-way through a PDU
-        would hold its thread and association slot forever (issue 19 item 6)."""
+        would hold its thread and association slot forever."""
         sock = getattr(getattr(event.assoc.dul, "socket", None), "socket", None)
         if sock is not None:
             sock.settimeout(self.config.socket_timeout_s)

@@ -77,7 +77,7 @@ ERROR_MAP: dict[type, ErrorClass] = {
     # stillness (docs/safety.md, "Stillness and health"): two refusals, never one for the other
     RobotMovedError: ErrorClass(409, EXIT_REFUSED, "Robot moved during the scan"),
     JointHistoryIncompleteError: ErrorClass(409, EXIT_REFUSED, "Joint history incomplete"),
-    PacsExportError: ErrorClass(409, EXIT_CONFIG, "PACS export not possible"),  # issue #23
+    PacsExportError: ErrorClass(409, EXIT_CONFIG, "PACS export not possible"),
 }
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)

@@ -55,6 +55,6 @@ class StorageFullError(OarmRegError):
 
 class PacsExportError(OarmRegError):
     """The PACS archive of a registration cannot be (re)queued: no PACS configured, a refused
-    registration, or already archived (issue #23)."""
+    registration, or already archived."""
 
     title = "PACS export not possible"

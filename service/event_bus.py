@@ -1,7 +1,7 @@
 """The in-process event bus behind ``GET /events`` (:mod:`service.api.events`).
 
-Event names: ``scan_arrived``, ``scan_invalid``, ``registration_done``, ``registration_refused``,
-``verification_done``, ``link_state``.  :meth:`EventBus.publish` is callable from any thread.
+Event names: :data:`EVENT_NAMES` (an unknown name is a ``ValueError``).  :meth:`EventBus.publish`
+is callable from any thread.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import json
 import logging
 import threading
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -25,44 +25,40 @@ QUEUE_MAX = 256
 RECENT_MAX = 100
 
 EVENT_NAMES: tuple[str, ...] = (
+    # scans (service.intake, service.scan_lifecycle, service.retention)
     "scan_arrived",
     "scan_invalid",
+    "scan_reopened",  # late slices of a recorded series
+    "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
+    "scan_files_deleted",  # the retention policy deleted a scan's folder
+    # registrations and verifications (service.orchestrator)
     "registration_done",
     "registration_refused",
+    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
+    "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
     "verification_done",
+    # the robot link (service.capture)
     "link_state",
-    # operating-room interfaces (service/or_integration.py)
+    # operating-room interfaces (service.or_integration)
     "dicom_association_released",
     "dicom_association_aborted",
     "dicom_refused",
     "igtl_client_connected",
     "igtl_client_disconnected",
-)
-EVENT_NAMES = (
-    *EVENT_NAMES,
-    # issue #10: calibration sessions (service.calibration_jobs); registration_retired says none is
-    # current any more (push channels INVALID until the next /register)
+    "igtl_client_header_version",  # it sent header version 2: answered in version 2 from now on
+    # calibration sessions (service.calibration_jobs); registration_retired says none is current
+    # any more (push channels INVALID until the next /register)
     "calibration_started",
     "calibration_progress",
     "calibration_done",
     "calibration_refused",
     "calibration_activated",
     "registration_retired",
-    "scan_reopened",  # late slices of a recorded series (issue #13)
-    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
-    "scan_files_deleted",  # the retention policy deleted a scan's folder
-)
-EVENT_NAMES = (
-    *EVENT_NAMES,
-    # issue 19: the scan lifecycle (service.scan_lifecycle, docs/safety.md "Scan lifecycle")
-    "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
-    "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
-    # issue #23: an OpenIGTLink client sent header version 2 and is answered in version 2 from now on
-    "igtl_client_header_version",
-    # issue #23: archiving a registration's SRO to the PACS (service/pacs/)
+    # archiving a registration's SRO to the PACS (service.pacs)
     "pacs_export_sent",
     "pacs_export_failed",
 )
+"""Every event :meth:`EventBus.publish` accepts (one tuple; a new event is added here)."""
 
 
 class EventBus:
@@ -75,6 +71,21 @@ class EventBus:
         self._lock = threading.Lock()
         self._recent: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=RECENT_MAX)
         self._closed = False
+        self._listeners: dict[str, list[Callable[[dict[str, Any]], None]]] = {}
+
+    def listen(self, event: str, fn: Callable[[dict[str, Any]], None]) -> None:
+        """Call ``fn(data)`` on the publishing thread after each ``event`` has gone to the subscribers
+        (the in-process reactions: IGTL push, PACS export, auto-register)."""
+        if event not in EVENT_NAMES:
+            raise ValueError(f"unknown event {event!r}; known: {EVENT_NAMES}")
+        with self._lock:
+            self._listeners.setdefault(event, []).append(fn)
+
+    def unlisten(self, event: str, fn: Callable[[dict[str, Any]], None]) -> None:
+        with self._lock:
+            fns = self._listeners.get(event, [])
+            if fn in fns:
+                fns.remove(fn)
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -90,8 +101,11 @@ class EventBus:
         with self._lock:
             item = (next(self._seq), event, data)
             self._recent.append(item)
+            listeners = list(self._listeners.get(event, ()))
         log.info("event %s %s", event, json.dumps(data)[:300])
         self._deliver_on_loop(item)
+        for fn in listeners:
+            fn(data)
 
     def _deliver(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
         for q in list(self._subs):

@@ -47,7 +47,7 @@ def write_error_histogram(
     gate_mm : float, optional
         The verification gate (``quality.max_verification_error_mm``): drawn as a vertical line, and
         the verdict (PASS when the largest error is at most the gate, else FAIL) in the title, so a
-        failed verification never looks like a passed one (issue #21).
+        failed verification never looks like a passed one.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

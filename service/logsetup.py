@@ -1,4 +1,4 @@
-"""Logging set-up for the ``oarmreg`` command line: text or one JSON object per line (issue #21).
+"""Logging set-up for the ``oarmreg`` command line: text or one JSON object per line.
 
 The library parts never configure logging; :func:`service.cli.main` calls :func:`configure` once,
 and ``oarmreg serve`` may lower or raise the level to the ``[log] level`` setting.

@@ -1,6 +1,9 @@
 """Operating-room integration: the DICOM Storage SCP and the OpenIGTLink server inside the service.
 
-:class:`OrIntegration` is built by the app factory and started / stopped by its lifespan.
+:class:`OrIntegration` is built by the app factory and started / stopped by its lifespan.  It
+reacts to the bus (:meth:`service.event_bus.EventBus.listen`): ``registration_done`` /
+``registration_refused`` push to the IGTL clients (and queue the PACS export), ``scan_arrived``
+starts auto-register; everything else publishes on the bus directly.
 
 * **C-STORE** (``[dicom]``): instances land in ``<data_dir>/dicom-intake/<Study>/<Series>/``
   (outside the watched folder, so the folder watcher never sees them) and are decoded as they
@@ -19,7 +22,7 @@
   from the current registration (plus the last refusal), the live joints and link health, the
   robot model's forward kinematics and ``igtl.tool0_from_tcp``; pushed at once after a
   registration becomes current or is refused.
-* **PACS archive** (``[pacs]``, issue #23): :class:`service.pacs.exporter.PacsExporter` queues the
+* **PACS archive** (``[pacs]``): :class:`service.pacs.exporter.PacsExporter` queues the
   Spatial Registration object of each accepted registration and sends it by C-STORE.
 * **Auto-register** (``service.auto_register``): each scan recorded complete is registered on a
   worker thread; the result is pushed like any other.
@@ -55,7 +58,7 @@ from service.igtl.server import (
 )
 from service.intake import Intake
 from service.pacs.exporter import PacsExporter
-from service.records import RegistrationRecord
+from service.records import RegistrationRecord, RegistrationRefusal
 from service.scan_lifecycle import ContentChange, OfferTally, ScanLifecycle, hash_files
 from service.series_accumulator import SeriesAccumulator
 from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
@@ -122,6 +125,8 @@ class OrIntegration:
         self.lifecycle: ScanLifecycle | None = None
         """Set by the app before :meth:`start` (shared with the folder watcher's intake)."""
         self.pacs: PacsExporter | None = None
+        for event, fn in self._listeners():  # until stop(): a restarted app builds a new one
+            ctx.bus.listen(event, fn)
 
     @property
     def intake_dir(self) -> Path:
@@ -129,19 +134,28 @@ class OrIntegration:
 
     # ---- events ---------------------------------------------------------------------------
 
-    def publish(self, event: str, data: dict[str, Any]) -> None:
-        """The service's ``publish`` (thread-safe): forwards to the bus, then reacts to registration
-        changes (IGTL push) and new complete scans (auto-register)."""
-        self.ctx.bus.publish(event, data)
-        if event == "registration_done":
-            self._last_refusal = None
-            self._notify()
-            if self.pacs is not None:
-                self._enqueue_export(int(data["registration_id"]))
-        elif event == "registration_refused":
-            self._last_refusal = Refusal(str(data.get("registration_id")), str(data.get("reason", "")))
-            self._notify()
-        elif event == "scan_arrived" and self.settings.service.auto_register and self._registrar is not None:
+    def _listeners(self) -> tuple[tuple[str, Callable[[dict[str, Any]], None]], ...]:
+        return (
+            ("registration_done", self._on_registration_done),
+            ("registration_refused", self._on_registration_refused),
+            ("scan_arrived", self._on_scan_arrived),
+        )
+
+    def _on_registration_done(self, data: dict[str, Any]) -> None:
+        """IGTL push of the new current registration; its SRO queued for the PACS."""
+        self._last_refusal = None
+        self._notify()
+        if self.pacs is not None:
+            self._enqueue_export(int(data["registration_id"]))
+
+    def _on_registration_refused(self, data: dict[str, Any]) -> None:
+        """IGTL push of the refusal (the current registration, if any, stays)."""
+        self._last_refusal = Refusal(str(data.get("registration_id")), str(data.get("reason", "")))
+        self._notify()
+
+    def _on_scan_arrived(self, data: dict[str, Any]) -> None:
+        """Auto-register: each scan recorded complete, on a worker thread."""
+        if self.settings.service.auto_register and self._registrar is not None:
             self._registrar.submit(self._auto_register, int(data["scan_id"]))
 
     def _enqueue_export(self, registration_id: int) -> None:
@@ -158,11 +172,16 @@ class OrIntegration:
     def _auto_register(self, scan_id: int) -> None:
         try:
             rec = self.ctx.orchestrator.register(scan_id)
+        except Exception as e:  # nothing to register (the scan went away meanwhile)
+            log.warning("auto-register: scan %d not registered: %s", scan_id, e)
+            return
+        if isinstance(rec, RegistrationRefusal):  # stored and published by the orchestrator
+            log.warning("auto-register: scan %d refused (registration %s): %s", scan_id,
+                        rec.registration_id, rec.error)  # fmt: skip
+        else:
             log.info(
                 "auto-register: scan %d → registration %d (FRE %.3f mm)", scan_id, rec.id, rec.fre_mm or 0
             )
-        except Exception as e:  # refusals are stored and published by the orchestrator
-            log.warning("auto-register: scan %d not registered: %s", scan_id, e)
 
     # ---- lifecycle ------------------------------------------------------------------------
 
@@ -174,10 +193,10 @@ class OrIntegration:
         if d.enabled:
             if self.lifecycle is None:
                 self.lifecycle = ScanLifecycle(
-                    self.ctx.db, self.ctx.volumes, self.publish, self.ctx.orchestrator.withdraw_scan
+                    self.ctx.db, self.ctx.volumes, self.ctx.bus.publish, self.ctx.orchestrator.withdraw_scan
                 )
             self.intake = Intake(
-                self.ctx.db, self.ctx.capture, self.ctx.volumes, self.publish,
+                self.ctx.db, self.ctx.capture, self.ctx.volumes, self.ctx.bus.publish,
                 withdraw=self.ctx.orchestrator.withdraw_scan, lifecycle=self.lifecycle,
             )  # fmt: skip
             self._decoder = _started(
@@ -221,6 +240,8 @@ class OrIntegration:
 
     async def stop(self) -> None:
         """Stop accepting, finish the series being recorded, stop the servers."""
+        for event, fn in self._listeners():
+            self.ctx.bus.unlisten(event, fn)
         if self.scp is not None:
             await asyncio.to_thread(self.scp.stop)
         if self._tasks:
@@ -250,7 +271,7 @@ class OrIntegration:
                 port=self.igtl.port,
                 clients=self.igtl.client_count,
                 counters=dict(self.igtl.counters),
-                peers=self.igtl.client_info(),  # per client: peer and header version (issue #23)
+                peers=self.igtl.client_info(),  # per client: peer and header version
             )
         p = self.settings.pacs
         pacs: dict[str, Any] = {"enabled": p.enabled}
@@ -302,7 +323,7 @@ class OrIntegration:
         """On the association thread, before a new or different instance is renamed into place: the
         series' first instance opens a ``receiving`` record; an instance added to or replacing one of a
         judged series moves it to ``reopened`` / ``replaced`` and withdraws what was made from it,
-        committed before the file is in place (issue 19, crash order)."""
+        committed before the file is in place (the crash order of docs/safety.md, "Scan lifecycle")."""
         db, series_dir = self.ctx.db, path.parent
         known = db.scans.status_of(series_dir.name)
         if known is None:

@@ -41,7 +41,14 @@ from service.errors import (
     VerificationRefusedError,
 )
 from service.figures import provenance, registration_figures, verification_figures
-from service.records import RegistrationRecord, ScanRecord, VerificationRecord, matrix4, points3
+from service.records import (
+    RegistrationRecord,
+    RegistrationRefusal,
+    ScanRecord,
+    VerificationRecord,
+    matrix4,
+    points3,
+)
 from service.scan_checks import check_capture
 from service.settings import Settings
 from service.store import Database
@@ -195,15 +202,15 @@ class Orchestrator:
 
     def register(
         self, scan_id: int | None = None, targets_image_mm: Sequence[Sequence[float]] | None = None
-    ) -> RegistrationRecord:
-        """Run the pipeline; return the stored accepted record, or raise the refusal (stored too).
+    ) -> RegistrationRecord | RegistrationRefusal:
+        """Run the pipeline; return the stored accepted record, or the refusal (stored too, as
+        ``refused``, its record id in :attr:`RegistrationRefusal.registration_id`; a bug is an
+        :class:`~service.errors.InternalError` refusal, answered 500).
 
         Raises
         ------
         NotFoundError, NoScanError
             Nothing to register (not stored).
-        OarmRegError, RobotLinkError
-            Refusal; stored as ``refused``; ``e.registration_id`` is the stored record's id.
         """
         with self._lock:
             self.busy = True
@@ -214,7 +221,7 @@ class Orchestrator:
 
     def _register_locked(
         self, scan_id: int | None, targets_image_mm: Sequence[Sequence[float]] | None
-    ) -> RegistrationRecord:
+    ) -> RegistrationRecord | RegistrationRefusal:
         scan = self._resolve_scan(scan_id)
         t0 = time.perf_counter()
         snap = scan.snapshot
@@ -232,15 +239,14 @@ class Orchestrator:
         try:
             accepted = self._compute(scan, draft, targets_image_mm)
         except (OarmRegError, RobotLinkError) as e:
-            self._store_refusal(draft, e, t0)
-            raise
+            return self._store_refusal(draft, e, t0)
         except Exception as e:  # a bug: store it as refused, answer 500
             log.exception("registration of scan %d failed unexpectedly", scan.id)
             err = InternalError(
                 f"registration of scan {scan.id} failed unexpectedly: {type(e).__name__}: {e}"
             )
-            self._store_refusal(draft, err, t0)
-            raise err from e
+            err.__cause__ = e
+            return self._store_refusal(draft, err, t0)
         now = self.db.scans.get(scan.id)
         if now is None or now.status != "complete":
             changed = DicomSeriesError(
@@ -248,8 +254,7 @@ class Orchestrator:
                 f"(now {None if now is None else now.status}: {None if now is None else now.reason}); "
                 "register it again once it is complete"
             )
-            self._store_refusal(draft, changed, t0)
-            raise changed
+            return self._store_refusal(draft, changed, t0)
         reg_id = self.db.registrations.insert(
             replace(accepted, duration_s=time.perf_counter() - t0), make_current=True
         )
@@ -326,7 +331,9 @@ class Orchestrator:
             figures=figures,
         )
 
-    def _store_refusal(self, draft: RegistrationRecord, e: Exception, t0: float) -> None:
+    def _store_refusal(
+        self, draft: RegistrationRecord, e: OarmRegError | RobotLinkError, t0: float
+    ) -> RegistrationRefusal:
         title = title_of(e)
         record = replace(
             draft,
@@ -340,8 +347,7 @@ class Orchestrator:
             reg_id = self.db.registrations.insert(record, make_current=False)
         except Exception:
             log.exception("could not store the refused registration of scan %s", record.scan_id)
-            return
-        e.registration_id = reg_id  # type: ignore[attr-defined]
+            return RegistrationRefusal(None, e)
         log.warning("registration %d refused (%s): %s", reg_id, title, e)
         self.publish(
             "registration_refused",
@@ -353,6 +359,7 @@ class Orchestrator:
                 "reason": str(e),
             },
         )
+        return RegistrationRefusal(reg_id, e)
 
     # ---- verify ---------------------------------------------------------------------------
 

@@ -13,7 +13,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
+
+if TYPE_CHECKING:
+    from drivers.errors import RobotLinkError
+    from registration.errors import OarmRegError
 
 ScanStatus = Literal["receiving", "complete", "reopened", "replaced", "invalid"]
 """A scan's state (:mod:`service.scan_lifecycle`, docs/safety.md "Scan lifecycle"); only ``complete``
@@ -346,3 +350,12 @@ class VerificationRecord:
     software_version: str
     id: int = 0
     histogram_path: str | None = None
+
+
+@dataclass(frozen=True)
+class RegistrationRefusal:
+    """A registration the orchestrator refused: why, and the id of the ``refused`` record it stored
+    (``None`` only when storing it failed too).  Returned, not raised, so the id travels typed."""
+
+    registration_id: int | None
+    error: OarmRegError | RobotLinkError

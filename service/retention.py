@@ -5,7 +5,7 @@ never its row: the record, its joint snapshot, its registrations and verificatio
 ``files_deleted_at`` and a ``retention_log`` row, and a ``scan_files_deleted`` event is published.
 Never deleted: the folders of the scans :func:`protected_scan_ids` names (the current registration's
 scan; the active calibration's scans once calibrations exist), folders outside ``watch_dir`` and the
-C-STORE intake folder (``dicom-intake/``, issue 19; never the database, audit log or calibrations),
+C-STORE intake folder (``dicom-intake/``; never the database, audit log or calibrations),
 and those roots themselves.  Several series in one folder share its fate: the folder is kept while any of
 them is protected.
 """
@@ -168,7 +168,7 @@ def run_retention(
     """Delete what :func:`plan` says; log, record and publish each deletion.  Returns them.
 
     ``extra_roots``: scan folders outside ``watch_dir`` that the service keeps (``dicom-intake/``).
-    A deletion is not a change of the scan's content: nothing is withdrawn (issue 19)."""
+    A deletion is not a change of the scan's content: nothing is withdrawn."""
     if max_age_days is None and max_disk_mb is None:
         return []
     done: list[Deletion] = []

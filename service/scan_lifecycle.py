@@ -1,4 +1,4 @@
-"""One scan lifecycle for both intakes, the folder watcher and the C-STORE SCP (issue 19).
+"""One scan lifecycle for both intakes, the folder watcher and the C-STORE SCP.
 
 States (``scans.status``, docs/safety.md "Scan lifecycle"):
 

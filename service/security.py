@@ -50,7 +50,7 @@ PROBLEM_MEDIA_TYPE = b"application/problem+json"
 TYPE_PREFIX = "urn:oarmreg:problem:"
 MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 PUBLIC_PATHS = frozenset({"/health", "/", "/favicon.ico", "/docs"})
-"""Paths served without a token: liveness, the page, its favicon and the Swagger UI shell (issue #21);
+"""Paths served without a token: liveness, the page, its favicon and the Swagger UI shell;
 they carry no data: the page and /docs sign in and call the data routes with the Bearer token."""
 PUBLIC_PREFIXES = ("/static/",)
 """The page's and /docs' assets (``service/web/static``, shipped in the wheel)."""
@@ -119,7 +119,7 @@ def allowed_origins(settings: Settings, hosts: frozenset[str]) -> frozenset[str]
     """The service's own origins (http(s):// + an allowed host) and those in ``api.allowed_origins``.
 
     Its own origins always: the status page at ``/`` sends ``Origin`` on its POSTs, and listing a
-    navigation UI's origin must not lock the service's own page out (issue #21).
+    navigation UI's origin must not lock the service's own page out.
     """
     own = frozenset(f"{scheme}://{h}" for scheme in ("http", "https") for h in hosts)
     return own | frozenset(o.strip().lower().rstrip("/") for o in settings.api.allowed_origins)

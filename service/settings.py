@@ -90,12 +90,12 @@ class RobotSettings(_Section):
     model: str = "tx60"
     connect_timeout_s: float = Field(default=5.0, gt=0, le=120)
     tool0_from_phantom: Tool0FromPhantom = Tool0FromPhantom()
-    # issue 19: read the link in a child process (drivers/link_process.py), so DICOM decoding and
+    # read the link in a child process (drivers/link_process.py), so DICOM decoding and
     # detection cannot starve it of the GIL; false runs it on a thread of the service (debugging)
     link_process: bool = True
     # GET /status and link_state events say "stale" only after this long without a frame (s).  The
     # link's own threshold (3 frame periods, 60 ms) flapped under ordinary load; 0.5 s is 25 frames
-    # at 50 Hz, above the 0.26-0.35 s receive delays measured under decode load (issue 19 item 7)
+    # at 50 Hz, above the 0.26-0.35 s receive delays measured under decode load
     stale_after_s: float = Field(default=0.5, gt=0, le=60)
 
     @field_validator("link_url")
@@ -169,7 +169,7 @@ AUTH_MODES = ("token", "none-loopback-only")
 
 
 class ApiSettings(_Section):
-    """HTTP hardening (issue #13): authentication mode, body limit, Host / Origin allow-lists."""
+    """HTTP hardening: authentication mode, body limit, Host / Origin allow-lists."""
 
     auth: Literal["token", "none-loopback-only"] = "token"
     # 1 MiB: the largest legitimate body is POST /register with 1000 targets (~60 kB of JSON);
@@ -225,7 +225,7 @@ class DicomSettings(_Section):
     port: int = Field(default=11112, ge=0, le=65535)
     allowed_calling_ae_titles: tuple[str, ...] = ()
     allowed_peer_addresses: tuple[str, ...] = ()
-    # --- bounds (issue 19 item 6); service.dicom_scp.DicomScpConfig takes its defaults from here
+    # --- bounds; service.dicom_scp.DicomScpConfig takes its defaults from here
     # association negotiation / release, s (pynetdicom's ARTIM timer; its default 30 s let 30 silent
     # sockets hold every slot for ~30 s)
     acse_timeout_s: float = Field(default=10.0, gt=0, le=3600)
@@ -234,7 +234,7 @@ class DicomSettings(_Section):
     # an association without any traffic is aborted after this, s (pynetdicom's default)
     network_timeout_s: float = Field(default=60.0, gt=0, le=3600)
     # per connection: a read or write without progress for this long drops the peer, s (a half-sent
-    # A-ASSOCIATE-RQ otherwise held its thread and slot with all three timeouts at 3 s, issue 19)
+    # A-ASSOCIATE-RQ otherwise held its thread and slot with all three timeouts at 3 s)
     socket_timeout_s: float = Field(default=10.0, gt=0, le=3600)
     # concurrent associations (pynetdicom's default 10)
     maximum_associations: int = Field(default=10, ge=1, le=1000)
@@ -314,7 +314,7 @@ class TlsSettings(_Section):
 
 
 class LogSettings(_Section):
-    """``oarmreg serve`` logging (issue #21); ``-v`` / ``--log-level`` / ``--log-format`` override it."""
+    """``oarmreg serve`` logging; ``-v`` / ``--log-level`` / ``--log-format`` override it."""
 
     # INFO: the start-up line (every listener, the data folder), scans, registrations, refusals.
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
@@ -324,7 +324,7 @@ class LogSettings(_Section):
 
 class PacsSettings(_Section):
     """Archive each accepted registration's Spatial Registration object to a PACS by C-STORE
-    (issue #23), :mod:`service.pacs`.  Off while ``host`` is empty."""
+    (:mod:`service.pacs`).  Off while ``host`` is empty."""
 
     host: str = ""
     port: int = Field(default=104, ge=1, le=65535)
@@ -400,7 +400,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8750, ge=0, le=65535)
     api_token: SecretStr | None = None
-    # A read-only token for wall displays (issue #21): sees everything, changes nothing (every POST
+    # A read-only token for wall displays: sees everything, changes nothing (every POST
     # but /events/ticket answers 403).  Unset: none.  At least 16 characters, unlike api_token.
     api_readonly_token: SecretStr | None = None
     robot: RobotSettings = RobotSettings()

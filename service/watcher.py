@@ -73,7 +73,7 @@ class SeriesArrival:
     duplicate: bool = False
     preexisting: bool = False
     reopened: bool = False
-    """Late slices of a series recorded before: the earlier record was incomplete (issue #13 item 3)."""
+    """Late slices of a series recorded before: the earlier record was incomplete."""
     previous_slices: int = 0
     """Slices of the earlier record when ``reopened``."""
     change: Any = None
@@ -567,7 +567,7 @@ class SeriesWatcher:
         before: frozenset[tuple[str, int, int]],
         arrival_kw: dict[str, Any],
     ) -> bool | None:
-        """:meth:`_process_series` with the lifecycle's content rule (issue 19): a series recorded
+        """:meth:`_process_series` with the lifecycle's content rule: a series recorded
         complete is a duplicate only if every recorded instance still has its hash and no instance was
         added; any other difference is delivered ``reopened`` with the change, loaded or not."""
         from registration.dicom import load_series

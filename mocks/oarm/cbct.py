@@ -1,4 +1,4 @@
-"""Cone-beam O-arm simulation (issue #11): 3-D rays, flat panel, FDK with RTK's conventions.
+"""Cone-beam O-arm simulation: 3-D rays, flat panel, FDK with RTK's conventions.
 
 Needs only numpy, scipy and OpenCV: the FDK (:func:`fdk_numpy`) re-implements RTK's
 ``FDKConeBeamReconstructionFilter`` (weights, ramp kernel, voxel-driven bilinear back-projection)

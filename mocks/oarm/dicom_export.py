@@ -1,4 +1,4 @@
-"""Write a :class:`~mocks.oarm.simulator.SimulatedScan` as a DICOM CT series (issue #2, item 4).
+"""Write a :class:`~mocks.oarm.simulator.SimulatedScan` as a DICOM CT series.
 
 One CT Image Storage file (SOP class 1.2.840.10008.5.1.4.1.1.2) per slice,
 Explicit VR Little Endian.  Files arrive the way a real export reaches a

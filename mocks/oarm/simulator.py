@@ -1,4 +1,4 @@
-"""A physically honest O-arm scan simulator (issue #2, item 3).
+"""A physically honest O-arm scan simulator.
 
 Given the calibration phantom, its pose in the image frame and the acquisition
 settings, produce the reconstructed volume in Hounsfield units with the
@@ -191,9 +191,7 @@ class AcquisitionSettings:
         if self.photons_per_ray <= 0:
             problems.append(f"photons_per_ray={self.photons_per_ray} must be > 0")
         if self.sub_slices < 1 or self.detector_subsamples < 1:
-            problems.append(
-                "sub_slices and detector_subsamples must be >= 1 (issue #2 asks for >= 3 sub-slices)"
-            )
+            problems.append("sub_slices and detector_subsamples must be >= 1")
         if self.orientation not in ORIENTATIONS:
             problems.append(f"orientation {self.orientation!r} not one of {sorted(ORIENTATIONS)}")
         if not 0.0 <= self.scatter_spr <= 2.0:
@@ -215,7 +213,7 @@ class AcquisitionSettings:
         160 × 160 × 96 grid (0.7 × 0.7 × 1.0 mm) holding the whole default phantom at moderate
         rotations, 180 views, for fast tests.
 
-        The ``-realistic`` presets (issue #11) add what the legacy ones lack: kernel scatter at a
+        The ``-realistic`` presets add what the legacy ones lack: kernel scatter at a
         scatter-to-primary ratio of 0.2 behind the phantom, scintillator light spread, 10⁴
         photons per ray, the O-arm's uncalibrated 0.8 mm PSF and a spectrum binned at the
         tungsten K edge.  ``oarm-realistic`` samples angles like 391 views over 360°

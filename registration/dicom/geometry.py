@@ -58,7 +58,7 @@ round cosines to 4–6 decimals stay well below; a hand-edited or corrupt header
 
 PIXEL_SPACING_TOLERANCE_MM: Final = 5e-5
 """Max PixelSpacing difference between slices (mm).  A difference d moves the far edge of a 512-pixel
-row by 512·d: 5e-5 mm keeps that under 0.026 mm, half the 0.05 mm localisation budget (issue #3)."""
+row by 512·d: 5e-5 mm keeps that under 0.026 mm, half the 0.05 mm localisation budget."""
 
 SPACING_TOLERANCE_FRACTION: Final = 0.01
 """Max deviation of any slice step (and of any slice position from the uniform grid) from the nominal
@@ -83,7 +83,7 @@ header's Rows / Columns would otherwise ask for tens of GiB before the decoder n
 
 AXIAL_MIN_NORMAL_Z: Final = math.cos(math.radians(45.0))
 """A stack counts as axial when |n_z| of its slice normal is at least cos 45°; axial stacks are
-preferred when no series UID is given (issue #3: "the largest consistent axial stack")."""
+preferred when no series UID is given ("the largest consistent axial stack")."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -345,7 +345,7 @@ def check_rescale(slices: Sequence[SliceHeader], series_uid: str) -> None:
 def check_announced_count(stack: SortedStack, series_uid: str) -> None:
     """Rule 10: as many slices as ImagesInAcquisition (0020,1002) says, when any slice says it.
 
-    A contiguous stack can still be the first half of an export that paused (issue #13 item 3);
+    A contiguous stack can still be the first half of an export that paused;
     only the count the scanner announces tells.  Several announced values: the largest counts.
     """
     announced = [h.expected_slices for h in stack.slices if h.expected_slices is not None]

@@ -44,7 +44,7 @@ def load_series(path: str | Path, *, series_uid: str | None = None, unique: bool
     unique : bool
         Refuse (:class:`AmbiguousSeriesError`) when more than one series is loadable and
         ``series_uid`` names none: the command line, where a folder of several scans must not
-        silently give the largest one (issue #21).  Hidden folders, virtual environments and
+        silently give the largest one.  Hidden folders, virtual environments and
         package trees under ``path`` are never searched.
 
     Returns

@@ -174,7 +174,7 @@ SKIPPED_FOLDER_NAMES = frozenset({"__pycache__", "node_modules", "site-packages"
 
 
 def _not_scan_folder(folder: Path) -> bool:
-    """A folder the walk skips (issue #21): hidden (``.venv``, ``.git``, ``.cache``), a virtual
+    """A folder the walk skips: hidden (``.venv``, ``.git``, ``.cache``), a virtual
     environment (holds ``pyvenv.cfg``) or a package tree (:data:`SKIPPED_FOLDER_NAMES`).  The root
     itself is always searched: a user who points at a hidden folder means it."""
     if folder.name.startswith(".") or folder.name in SKIPPED_FOLDER_NAMES:

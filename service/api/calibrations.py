@@ -1,19 +1,20 @@
 """``POST /calibrations``, ``GET /calibrations[/{id}]``, ``GET /calibrations/{id}/robot.urdf``,
-``POST /calibrations/{id}/activate`` (issue #10 item 6; design.md §9)."""
+``POST /calibrations/{id}/activate`` (design.md §9)."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
 import anyio.to_thread
-from fastapi import APIRouter, Body, Query, Response
+from fastapi import APIRouter, Body, Query, Request, Response
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from registration.errors import RegistrationError
 from service.api.deps import CtxDep, Offset, RecordId
 from service.api.models import DbId
-from service.api.problems import problem_responses
-from service.calibration_jobs import CalibrationJobs, CalibrationRequest
+from service.api.problems import problem_for, problem_responses
+from service.calibration_jobs import CalibrationJobs, CalibrationRefusal, CalibrationRequest
 from service.context import ServiceContext
 from service.errors import NotFoundError
 from service.store.calibrations import CalibrationRecord
@@ -131,7 +132,9 @@ def _jobs(ctx: ServiceContext) -> CalibrationJobs:
     ),
     responses=problem_responses(401, 404, 409, 422),
 )
-async def post_calibration(ctx: CtxDep, body: CalibrateRequest) -> CalibrationOut:
+async def post_calibration(
+    request: Request, ctx: CtxDep, body: CalibrateRequest
+) -> CalibrationOut | JSONResponse:
     req = CalibrationRequest(
         scan_ids=None if body.scan_ids is None else tuple(body.scan_ids),
         last=body.last,
@@ -140,6 +143,8 @@ async def post_calibration(ctx: CtxDep, body: CalibrateRequest) -> CalibrationOu
         max_condition=body.max_condition,
     )
     rec = await anyio.to_thread.run_sync(_jobs(ctx).start, req)
+    if isinstance(rec, CalibrationRefusal):
+        return problem_for(request, rec.error, calibration_id=rec.calibration_id)
     return calibration_out(rec)
 
 

@@ -279,7 +279,7 @@ class RegistrationOut(_Out):
     predicted_chain_error_mm: float | None = Field(
         default=None,
         description="Predicted error of the robot chain over the working volume (mm RMS): the active "
-        "calibration's posterior figure, or the nominal model's prior (1 mm) when none (issue #20).",
+        "calibration's posterior figure, or the nominal model's prior (1 mm) when none.",
         validation_alias=_from("figures", "predicted_chain_error_mm"),
     )
     series_geometry: dict[str, Any] | None = Field(
@@ -311,7 +311,7 @@ class RegistrationOut(_Out):
 
 
 class PacsExportOut(_Out):
-    """The archive of a registration's Spatial Registration object to the PACS (issue #23)."""
+    """The archive of a registration's Spatial Registration object to the PACS."""
 
     state: str = Field(description="pending | sent | failed")
     destination: str = Field(description="AE@host:port of the PACS (+tls when TLS is on)")

@@ -50,6 +50,14 @@ def problem_response(
 
 
 async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
+    return problem_for(request, exc)
+
+
+def problem_for(
+    request: Request, exc: Exception, *, registration_id: int | None = None, calibration_id: int | None = None
+) -> JSONResponse:
+    """The problem-details answer for ``exc`` (status, title and exit code from :mod:`service.error_map`),
+    naming the stored record it refers to when there is one."""
     entry = classify(exc)
     status = entry.http_status if entry is not None and entry.http_status >= 400 else 422
     headers = getattr(exc, "headers", None)
@@ -66,8 +74,8 @@ async def _family_handler(request: Request, exc: Exception) -> JSONResponse:
         type_=TYPE_PREFIX + _kebab(type(exc).__name__),
         headers=headers,
         exit_code=exit_code_of(exc),
-        registration_id=getattr(exc, "registration_id", None),
-        calibration_id=getattr(exc, "calibration_id", None),
+        registration_id=registration_id,
+        calibration_id=calibration_id,
     )
 
 

@@ -5,13 +5,15 @@ from __future__ import annotations
 from typing import Annotated
 
 import anyio.to_thread
-from fastapi import APIRouter, Body, Response
+from fastapi import APIRouter, Body, Request, Response
+from fastapi.responses import JSONResponse
 
 from service.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
 from service.api.models import PacsExportOut, RegisterRequest, RegistrationOut, registration_out
-from service.api.problems import problem_responses
-from service.audit import audited
+from service.api.problems import problem_for, problem_responses
+from service.audit import audit_refusal, audited
 from service.errors import NoCurrentRegistrationError, NotFoundError
+from service.records import RegistrationRefusal
 
 router = APIRouter(tags=["registration"])
 
@@ -30,11 +32,17 @@ router = APIRouter(tags=["registration"])
     responses=problem_responses(401, 404, 409, 422),
 )
 async def register(
-    ctx: CtxDep, principal: PrincipalDep, body: Annotated[RegisterRequest | None, Body()] = None
-) -> RegistrationOut:
+    request: Request,
+    ctx: CtxDep,
+    principal: PrincipalDep,
+    body: Annotated[RegisterRequest | None, Body()] = None,
+) -> RegistrationOut | JSONResponse:
     req = body or RegisterRequest()
     with audited(ctx, principal, "register", "registration") as note:
         rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_mm)
+        if isinstance(rec, RegistrationRefusal):
+            note(rec.registration_id, *audit_refusal(rec.error))
+            return problem_for(request, rec.error, registration_id=rec.registration_id)
         note(rec.id, "accepted", f"scan {rec.scan_id}, FRE {rec.fre_mm or 0.0:.3f} mm; made current")
     return registration_out(rec)
 
@@ -83,6 +91,6 @@ def get_registration(ctx: CtxDep, registration_id: RecordId) -> RegistrationOut:
         raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")
     out = registration_out(rec)
     export = ctx.db.pacs_exports.get(registration_id)
-    if export is not None:  # issue #23: its archive to the PACS
+    if export is not None:  # its archive to the PACS
         out.pacs_export = PacsExportOut.model_validate(export, from_attributes=True)
     return out

@@ -53,7 +53,7 @@ def registration_dicom(ctx: CtxDep, registration_id: RecordId) -> Response:
 @router.post(
     "/registrations/{registration_id}/pacs-export",
     response_model=PacsExportOut,
-    summary="Send the registration's Spatial Registration object to the PACS again (issue #23)",
+    summary="Send the registration's Spatial Registration object to the PACS again",
     description=(
         "Queues the archive of an accepted registration now, its attempts reset: after a PACS refused "
         "it (`failed` with the PACS's status) and the PACS was fixed, or to skip the back-off wait of a "

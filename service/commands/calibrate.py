@@ -1,4 +1,4 @@
-"""``oarmreg calibrate``: multi-pose calibration of robot, rod and O-arm placement (issue #10).
+"""``oarmreg calibrate``: multi-pose calibration of robot, rod and O-arm placement.
 
 ``oarmreg calibrate run POSES.json --out CALDIR [--phantom FILE] [--robot tx60|tx2_60|URDF]``
     POSES.json = ``{"robot_model": "tx60", "poses": [{"scan_dir": "pose-01/dicom",

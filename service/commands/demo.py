@@ -54,10 +54,10 @@ WINDOW_S = 1.5
 """Stillness window of the demo's service, s."""
 TARGET_DISTANCE_MM = 150.0
 TRUE_CELL_SEED = 2
-"""Seed of the demo's true cell (mocks.cell.TrueCell with the issue #10 error sizes)."""
+"""Seed of the demo's true cell (mocks.cell.TrueCell with :class:`mocks.cell.CellErrorSizes`)."""
 SIMULATOR_NOTE = (
     "NOTE: every scan here comes from this project's own O-arm simulator and a simulated 'true' robot "
-    "cell (seeded errors of the sizes in issue #10): the figures test the software against a "
+    "cell (seeded errors of the sizes in mocks/cell.py): the figures test the software against a "
     "hypothesis, they are not clinical accuracy figures."
 )
 WAIT_SCAN_S = 120.0

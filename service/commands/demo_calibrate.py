@@ -146,7 +146,7 @@ def run_calibration_demo(d: Any, h: DemoHooks) -> None:
     """The ``--calibrate`` part (see the module docstring); ``d`` is demo.py's ``_Demo``."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(10)
-    _err("\n== Calibration session (issue #10): the service calibrates robot, rod and O-arm placement")
+    _err("\n== Calibration session: the service calibrates robot, rod and O-arm placement")
     poses, cand = _plan(d)
     ids = []
     for i, q in enumerate(poses, start=1):
@@ -155,7 +155,7 @@ def run_calibration_demo(d: Any, h: DemoHooks) -> None:
         _err(
             f"  calibration scan {i}/{len(poses)}: scan {s['id']} recorded ({time.perf_counter() - t0:.0f} s)"
         )
-    # the service's defaults (issue #20: the demo and POST /calibrations use the same ones)
+    # the service's defaults (the demo and POST /calibrations use the same ones)
     r = h.check(d.client.post("/calibrations", json={"scan_ids": ids}))
     _err(f"  POST /calibrations → calibration {r['id']} running ...")
     cal = _wait_calibration(d, int(r["id"]))

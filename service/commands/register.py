@@ -144,7 +144,7 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
     timings["load_s"] = time.perf_counter() - t0
     from registration.scan_geometry import series_geometry
 
-    # issue #20: the scan's real volume, for `oarmreg calibrate plan` (moved to the top level by run)
+    # the scan's real volume, for `oarmreg calibrate plan` (moved to the top level by run)
     provenance["series_geometry"] = series_geometry(volume).to_dict()
     t0 = time.perf_counter()
     det = detect_spheres(volume, dparams)
@@ -289,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
     geometry = (doc.get("provenance") or {}).pop("series_geometry", None)
     if geometry is not None:
         doc["series_geometry"] = geometry
-    if args.joints is not None:  # issue #20: the chain's figure (calibration posterior or nominal prior)
+    if args.joints is not None:  # the chain's figure (calibration posterior or nominal prior)
         from registration.calibration import chain_error_figure
 
         cal = (doc.get("provenance") or {}).get("calibration")

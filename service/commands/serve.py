@@ -158,8 +158,8 @@ def check_ports(settings: Any) -> None:
 
 def preflight(settings: Any) -> None:
     """Fail before uvicorn starts, with one line and the exit code, not a lifespan traceback:
-    no way to authenticate, another ``serve`` on the same data folder (issue 19: exit 3, naming it),
-    or a database that is empty, foreign or damaged (issue #13).
+    no way to authenticate, another ``serve`` on the same data folder (exit 3, naming it),
+    or a database that is empty, foreign or damaged.
 
     Raises
     ------

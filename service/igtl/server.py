@@ -14,8 +14,8 @@ Devices (PLUS / SlicerIGT naming ``<From>To<To>``, research §3.2; one TRANSFORM
     in image RAS from the latest joints, sent whenever a new joint sample arrives (the link
     rate), on connect, and at least every ``period_s``.
 
-Header version, per client (issue #23): every client is sent header version 1 (bare content, no
-metadata: what the reference library reads by default, OpenIGTLink issue #200) until it has sent
+Header version, per client: every client is sent header version 1 (bare content, no
+metadata: what the reference library reads by default, OpenIGTLink ticket 200) until it has sent
 a well-formed message with header version 2 (SlicerOpenIGTLink sends a dummy version-2 STATUS at
 connect for exactly this, PR #65); from then on it gets version 2 with the metadata below, the
 PLUS rule (answer in the highest version received from that client).  A client that never writes

@@ -1,5 +1,5 @@
 """The PACS archive queue's worker: each accepted registration's Spatial Registration object, by
-C-STORE, retried with back-off across link failures and restarts (issue #23).
+C-STORE, retried with back-off across link failures and restarts.
 
 * :meth:`PacsExporter.enqueue` (any thread; called on ``registration_done``) inserts a ``pending``
   row (:mod:`service.store.pacs_exports`) and wakes the worker.  At start the worker also queues

@@ -1,4 +1,4 @@
-"""The ``audit_log`` table: who registered, verified, activated or deleted what (issue #13).
+"""The ``audit_log`` table: who registered, verified, activated or deleted what.
 
 ``principal`` names the credential, never the credential itself: ``token:<12 hex of SHA-256>``
 (:func:`service.security.token_principal`) or ``none-loopback-only``.  ``detail`` holds the

@@ -1,4 +1,4 @@
-"""The ``calibrations`` table, the ``active_calibration`` pointer and retiring registrations (issue #10).
+"""The ``calibrations`` table, the ``active_calibration`` pointer and retiring registrations.
 
 A calibration row is written when ``POST /calibrations`` is accepted for work (status ``running``)
 or refused at once (``refused`` + reason), and updated once when the worker ends (``done`` with the

@@ -35,7 +35,7 @@ class Database:
         self.audit = AuditStore(conn)
         self._lock_file: IO[bytes] | None = None
         self.calibrations = CalibrationStore(conn)
-        self.pacs_exports = PacsExportStore(conn)  # issue #23: the PACS archive queue
+        self.pacs_exports = PacsExportStore(conn)  # the PACS archive queue
 
     @classmethod
     def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:

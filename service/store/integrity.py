@@ -1,4 +1,4 @@
-"""Is this file our database, is it intact, and is it still there?  (issue #13)
+"""Is this file our database, is it intact, and is it still there?
 
 * **Before opening** (:func:`preflight`): only a path that does not exist is initialised.  A
   0-byte file, a file without the SQLite header, or anything that is not a regular file is

@@ -120,7 +120,7 @@ MIGRATIONS: tuple[str, ...] = (
         set_at TEXT NOT NULL
     );
     """,
-    # 2: identity row and audit log (issue #13)
+    # 2: identity row and audit log
     """
     CREATE TABLE oarmreg_identity (
         singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
@@ -142,7 +142,7 @@ MIGRATIONS: tuple[str, ...] = (
         detail TEXT NOT NULL DEFAULT ''
     );
     """,
-    # 3: what the DICOM Spatial Registration object needs of a scan (issue #12)
+    # 3: what the DICOM Spatial Registration object needs of a scan
     """
     CREATE TABLE scan_instances (
         series_uid TEXT PRIMARY KEY,

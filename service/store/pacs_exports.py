@@ -1,4 +1,4 @@
-"""The ``pacs_exports`` table: the queue of Spatial Registration objects to archive (issue #23).
+"""The ``pacs_exports`` table: the queue of Spatial Registration objects to archive.
 
 One row per accepted registration.  ``state``: ``pending`` (queued, being sent, or waiting for the
 next attempt after a link failure: ``next_attempt_unix_s``), ``sent`` (the PACS answered success

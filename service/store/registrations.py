@@ -70,7 +70,7 @@ class RegistrationStore:
             return ids, was_current
 
     def withdraw_derived(self, scan_id: int, reason: str) -> tuple[list[int], list[int]]:
-        """Withdraw the verifications and calibrations made from ``scan_id`` (issue 19: its content
+        """Withdraw the verifications and calibrations made from ``scan_id`` (its content
         changed); returns their ids.  A withdrawn calibration stays active until another is activated
         (the orchestrator's model is not switched here); its scans are named in the event."""
         now = utc_now()

@@ -1,4 +1,4 @@
-"""The OR's status / QA page and the self-hosted API docs (issue #21).
+"""The OR's status / QA page and the self-hosted API docs.
 
 Everything here is same-origin and shipped in the wheel (``service/web/static``): no CDN, no
 build step.  :mod:`service.web.routes` serves the page at ``/``, its assets under ``/static/``,

@@ -1,4 +1,4 @@
-"""CORS for a navigation UI served from another origin (issue #21), Starlette's CORSMiddleware.
+"""CORS for a navigation UI served from another origin, Starlette's CORSMiddleware.
 
 Installed only when ``api.allowed_origins`` lists origins (the default allows same-origin only,
 and a same-origin page needs no CORS).  It sits outside :class:`service.security.SecurityGate`,

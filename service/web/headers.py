@@ -1,4 +1,4 @@
-"""Browser hardening headers on every HTTP answer (pure ASGI; issue #21).
+"""Browser hardening headers on every HTTP answer (pure ASGI).
 
 ``Content-Security-Policy: default-src 'self'`` everywhere: the page loads nothing from another
 origin and runs no inline script or style, so an injected ``<script>`` in a record's text could

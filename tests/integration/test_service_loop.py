@@ -357,6 +357,10 @@ def test_robot_moving_during_scan_is_refused(svc: Service, world: World, baselin
     assert "moved" in body["detail"] and body["title"] == "Robot moved during the scan"
     refused = svc.client.get(f"/registrations/{body['registration_id']}").json()
     assert refused["status"] == "refused" and not refused["is_current"]
+    audited = [e for e in svc.client.get("/audit").json() if e["target_id"] == body["registration_id"]]
+    assert [(e["action"], e["outcome"], e["detail"]) for e in audited] == [
+        ("register", "refused", "Robot moved during the scan")
+    ]  # the audit row names the stored refusal
     cur = svc.client.get("/registration/current").json()
     assert cur["id"] == cur_before["id"] and cur["image_from_robot"] == cur_before["image_from_robot"]
 

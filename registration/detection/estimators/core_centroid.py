@@ -44,82 +44,31 @@ F64 = NDArray[np.float64]
 class CoreParams:
     """What the core centroid changes from the default centroid (mm, fraction of the clipped contrast).
 
+    The core of a tungsten-carbide sphere saturates; its centre is the average of windowed,
+    re-centred centroids at several contrast margins (neighbouring levels err alike but not
+    identically, so the mean cancels part of each one's sampling and streak error).  The defaults
+    were chosen on the hard sweep's WC scans and checked on held-out seeds
+    (``python -m benchmarks.bench_detection --hard 40`` and ``--seed-offset 1000 --only WC``); the
+    figures of every alternative measured are in ``docs/detection-settings.md`` ("core").
+
     Attributes
     ----------
     bloom_mm : float
         The hard ball of the edge path
-        (:func:`registration.detection.estimators.core.core_edge_centre`) is the
-        nominal radius + this.  1.0 mm measured best of 0.75 / 1.0 / 1.25 / 1.5 / 2.0 / 2.5 on
-        the ``wc_rows40`` scans for the unwindowed centroid (mean 0.051 / 0.049 / 0.052 / 0.055 /
-        0.061 / 0.072 mm at the default margin; 0.75 mm lost a sphere: too few voxels in the ball).
+        (:func:`registration.detection.estimators.core.core_edge_centre`) is the nominal radius
+        + this.
     window_mm : float
         The windowed ball of :func:`core_centroid` reaches the nominal radius + this (the window
-        is 0 there).  On the cached WC hard-sweep scans (mean / max mm, parallel SPR 0.3 1e4 ·
-        SPR 0.2 1e3 rod · cone-beam SPR 0.3 1e4, 160 / 120 / 120 spheres), unwindowed 1.0 mm ball
-        and 3 re-centrings (before): 0.043 / 0.124 · 0.050 / 0.175 · 0.070 / 0.299; unwindowed,
-        converged: 0.043 / 0.124 · 0.050 / 0.175 · 0.067 / 0.198; windowed 1.0 / 1.25 / 1.5 /
-        2.0 mm: 0.045 / 0.121 · 0.052 / 0.191 · 0.059 / 0.159; 0.043 / 0.133 · 0.049 / 0.193 ·
-        0.060 / 0.164; 0.042 / 0.131 · 0.046 / 0.174 · 0.062 / 0.159; 0.046 / 0.097 ·
-        0.046 / 0.135 · 0.067 / 0.151.  1.5 mm has the lowest mean over all 426 WC spheres.
-        Re-measured on the same scans simulated with 4 rays per detector pixel and axis
-        (``WC_SUBRAYS`` in benchmarks/bench_detection.py; 2 quantised the opaque edge):
-        unwindowed 1.0 mm ball, 3 re-centrings 0.042 / 0.119 · 0.049 / 0.171 · 0.065 / 0.261;
-        converged 0.042 / 0.119 · 0.049 / 0.171 · 0.064 / 0.156; windowed 1.0 / 1.25 / 1.5 /
-        2.0 mm 0.046 / 0.130 · 0.052 / 0.166 · 0.056 / 0.132; 0.043 / 0.127 · 0.048 / 0.177 ·
-        0.057 / 0.138; 0.042 / 0.117 · 0.044 / 0.158 · 0.058 / 0.131; 0.045 / 0.100 · 0.043 /
-        0.120 · 0.062 / 0.152 (1.5 mm again the lowest mean over the 426 spheres).  The slice
-        coordinate from a parabola through the per-slice sums of the unwindowed core weights (as
-        ``subvoxel`` does, ``registration.detection.centroid.axial_profile_position``) measured worse on
-        these scans (0.051 / 0.134 · 0.057 / 0.157 · 0.060 / 0.181): a streak-bloomed clipped
-        plateau's cross-section is not a disc.  A
-        Gaussian window (σ 0.8 mm in a 1.5 mm ball: 0.049 / 0.118 · 0.057 / 0.197 · 0.063 /
-        0.209) measured worse; restricting the weights to a split core's support (its opened
-        metal mask, dilated) too (0.044 / 0.115 · 0.049 / 0.192 · 0.072 / 0.301).  With 745
-        instead of 391 views one cone-beam scan errs the same (0.063 / 0.154 against 0.065 /
-        0.159 mm): the cone-beam excess is not angular undersampling.
-        Re-measured with the averaged margins (``averaged_margin_fractions``) and the cone-beam
-        scans re-simulated at the O-arm's 0.65 mm PSF (mocks/oarm/cbct.py
-        ``light_spread_fwhm_mm``), sweep (parallel SPR 0.3 · rod · cone-beam) and held-out
-        (parallel both · cone-beam) mean / max mm, windows 1.25 / 1.5 / 1.75 / 2.0: 0.041 / 0.124
-        · 0.046 / 0.173 · 0.036 / 0.080, held-out 0.042 / 0.134 · 0.038 / 0.127; 0.040 / 0.117 ·
-        0.044 / 0.160 · 0.036 / 0.076, held-out 0.040 / 0.119 · 0.036 / 0.123; 0.041 / 0.106 ·
-        0.043 / 0.140 · 0.036 / 0.081, held-out 0.040 / 0.097 · 0.036 / 0.125; 0.042 / 0.099 ·
-        0.043 / 0.118 · 0.037 / 0.091, held-out 0.041 / 0.092 · 0.036 / 0.112.  1.5 still has the
-        lowest pooled sweep mean (0.0399 against 0.0402 mm for 1.75), but the means are within
-        0.001 mm of each other and the worst sphere is what a registration cannot average away:
-        1.75 lowers the sweep's two largest maxima (0.160 → 0.140, 0.117 → 0.106 mm; the rod
-        row's worst sphere sits at the cube's corner between the rod's streak and a neighbour's
-        dark band, its clipped plateau a skewed parallelogram) at +0.005 mm on cone-beam's, and
-        on the held-out seeds the parallel maximum falls (0.119 → 0.097) while the means stay.
-        2.0 lowers the maxima further but raises the means (parallel 0.042, cone-beam 0.037).
+        is 0 there); chosen for the lowest worst-sphere error at an even mean.
     margin_fraction : float
-        Voxels count above this fraction of the sphere's contrast (clipped at saturation);
-        0.85 measured best of 0.2 / 0.35 / 0.5 / 0.7 / 0.85 for the unwindowed 1.0 mm ball (mean
-        0.060 … 0.053 mm at the default ball, 0.049 mm with the 1.0 mm ball).  With the window,
-        0.5 / 0.7 / 0.85 / 0.95 are about even (cone-beam mean 0.060 / 0.062 / 0.062 / 0.062 mm,
-        max 0.172 / 0.150 / 0.159 / 0.168), so it stays as the margin of the edge path
-        (:func:`registration.detection.estimators.core.core_edge_centre`); the windowed core away from an edge
-        averages several margins (``averaged_margin_fractions``).
+        Voxels count above this fraction of the sphere's contrast (clipped at saturation): the
+        edge path's single margin.
     averaged_margin_fractions : tuple of float
-        :func:`core_centroid` runs its windowed, re-centred centroid once at each of these margins
-        and averages the converged centres (``margin_fraction`` is the edge path's single margin).
-        The centroids at neighbouring levels err alike but not identically (correlation of the
-        column error 0.94 between 0.5 and 0.7, 0.67 between 0.5 and 0.95, cone-beam SPR 0.3), so
-        the mean cancels part of each level's sampling and streak error.  Mean / max mm on the
-        cached hard-sweep WC scans, window 1.5 mm (cone-beam SPR 0.3 · parallel SPR 0.3 · parallel
-        SPR 0.2 1e3 rod, 120 / 160 / 120 spheres; the cone-beam scans at the earlier 0.61 mm PSF,
-        mocks/oarm/cbct.py ``light_spread_fwhm_mm``) and on held-out seeds (cone-beam · both
-        parallel, 120 / 240):
-        0.85 alone 0.058 / 0.131 · 0.042 / 0.117 · 0.045 / 0.158, held-out 0.058 / 0.156 ·
-        0.042 / 0.107; (0.5, 0.7, 0.85, 0.95) 0.054 / 0.129 · 0.040 / 0.117 · 0.044 / 0.160,
-        held-out 0.056 / 0.157 · 0.040 / 0.119; with 0.3 added 0.053 / 0.139 · 0.040 / 0.123 ·
-        0.045 / 0.163, held-out 0.056 / 0.157 · 0.040 / 0.142 (the low level follows the rod's
-        and the neighbours' blooms in-plane, though it lowers the cone-beam slice error: 0.036 →
-        0.027 mm rms, at 0.3 alone).
+        :func:`core_centroid` runs its windowed, re-centred centroid once at each of these
+        margins and averages the converged centres.
     max_iterations : int
-        Re-centrings of the window at most.  3 (the default centroid's) left the worst cone-beam
-        sphere 0.1 mm from where the iteration converges (0.299 → 0.198 mm error); 10 converged
-        on every cached WC sphere to < ``tolerance_mm``.
+        Re-centrings of the window at most (3, the default centroid's, left the worst cone-beam
+        sphere 0.1 mm short of convergence).
     tolerance_mm : float
         Stop re-centring once the estimate moves less than this (well below the 0.01 mm the
         figures are quoted to).

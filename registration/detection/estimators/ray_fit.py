@@ -70,66 +70,43 @@ N_MODEL: Final = 5
 class RayParams:
     """Settings of :func:`ray_centre` (mm, fractions of the sphere's contrast).
 
-    Measured on the cached 40-scan hard sweep (``benchmarks/bench_detection.py --hard 40``, the
-    simulator's scans), in-plane centre from the rays and slice coordinate from the centroid's
-    profile as the ``rays`` method uses them; mean / max FLE mm for cone-beam steel SPR 0.3 rod +
-    vertebra (84 spheres) · parallel steel SPR 0.1 (112) · parallel titanium SPR 0.2 (84); the
-    default centroid (``subvoxel``) there: 0.049 / 0.171 · 0.020 / 0.039 · 0.021 / 0.042; these
-    defaults in the detection: 0.034 / 0.075 · 0.018 / 0.037 · 0.017 / 0.034 at about 2 ms per
-    sphere (the 28-sphere 512 × 512 × 192 speed series of the same benchmark: detection 0.21 →
-    0.26 s).  The figures below were taken one setting at a time, most before the later ones
-    were fixed (the earlier reach is named where it applies).
+    Rays are cast from a centroid of the sphere to where the image crosses ``level_fraction`` of
+    its clipped contrast above a local background plane, and a sphere is fitted robustly to the
+    crossings.  Each default was chosen on the simulator's 40-scan hard sweep
+    (``python -m benchmarks.bench_detection --hard 40``), one setting at a time; the figures of
+    every alternative measured are in ``docs/detection-settings.md`` ("rays").
 
     Attributes
     ----------
     n_directions : int
-        Rays cast per iteration (half of them the negatives of the other half).  At the earlier
-        1.5 mm reach: 48 / 96 / 192 rays 0.042 / 0.119 · 0.023 / 0.054; 0.037 / 0.087 · 0.022 /
-        0.047; 0.036 / 0.086 · 0.021 / 0.045 (4.1 / 4.4 / 7.0 ms per sphere).
+        Rays cast per iteration (half of them the negatives of the other half).
     step_mm : float
-        Coarse sampling step along a ray, half the 0.4 mm pixel: the trilinear image cannot dip
-        below the level and back within it.  The first coarse interval that crosses is resampled
-        at ``refine`` sub-steps and the crossing interpolated linearly there.  A uniform 0.05 and
-        0.1 mm step measured the same (0.036 / 0.081 · 0.018 / 0.039 · 0.016 / 0.034) at 8.7
-        against 3.3 ms per sphere.
+        Coarse step along a ray, half the 0.4 mm pixel (the trilinear image cannot dip below the
+        level and back within it); the first crossing interval is resampled at ``refine`` sub-steps.
     refine : int
         Sub-steps of the crossing interval (0.2 / 4 = 0.05 mm).
     reach_mm : float
-        Rays are followed to the nominal radius + this (a ray still above the level there has no
-        crossing), and the background shell starts there.  1.0 / 1.5 / 2.25 / 3.0 / 4.0 mm:
-        0.040 / 0.087 · 0.026 / 0.053; 0.037 / 0.087 · 0.022 / 0.047 (titanium 0.024 / 0.040);
-        0.037 / 0.084 · 0.018 / 0.041; 0.036 / 0.081 · 0.018 / 0.039 · 0.016 / 0.034;
-        0.036 / 0.084 · 0.020 / 0.044 · 0.016 / 0.034.  A shell nearer than ~3 mm beyond the
-        sphere holds its bloom and raises the background.
+        Rays are followed to the nominal radius + this, where the background shell starts (a
+        nearer shell holds the sphere's bloom and raises the background).
     level_fraction : float
-        The crossing level: background + this fraction of the sphere's (clipped) contrast.  At the
-        3.0 mm reach 0.6 / 0.7 / 0.8: 0.038 / 0.082 · 0.021 / 0.049 · 0.015 / 0.034; 0.036 /
-        0.081 · 0.018 / 0.039 · 0.016 / 0.034; 0.036 / 0.081 · 0.019 / 0.041 · 0.020 / 0.036
-        (at 1.5 mm, 0.3 / 0.5 / 0.7 / 0.9 gave cone-beam steel 0.057 / 0.042 / 0.037 / 0.044 mm).
+        The crossing level: background + this fraction of the sphere's (clipped) contrast.
     iterations : int
-        Casts at most (the rays are cast again from the moved estimate).  At the earlier 1.5 mm
-        reach one cast measured 0.039 / 0.115 · 0.022 / 0.044 against 0.037 / 0.087 · 0.022 /
-        0.047 for 3; at 3.0 mm, 2 casts 0.034 / 0.079 · 0.018 / 0.038 · 0.016 / 0.034 against
-        0.036 / 0.081 · 0.018 / 0.039 · 0.016 / 0.034 for 3, at two thirds of the time.
+        Casts at most (each from the moved estimate).
     tolerance_mm : float
-        No second cast once the first moves the estimate less than this: the first-order model's
-        error is ~δ² / radius, < 0.001 mm for δ < 0.02 mm; 0.001 and 0.02 mm measured the same.
+        No further cast once an estimate moves less than this (first-order error ~δ² / radius).
     irls_iterations : int
-        Reweighting passes of the robust fit at most: 4 and 10 measured within 0.001 mm of each
-        other (the weights seldom reach 0, see the module docstring).
+        Reweighting passes of the robust fit at most.
     min_scale_mm : float
         Floor of the robust residual scale (a noise-free symmetric sphere has residuals ≈ 0).
-        0.02 and 0.05 mm measured the same.
     min_rays_fraction : float
         Refuse when fewer than this fraction of the rays cross the level inside the reach and the
-        data, or keep a weight in the robust fit (no sphere of the sweep was refused).
+        data, or keep a weight in the robust fit.
     max_shift_mm : float
         Refuse when the estimate would move farther than this from the start (the start is a
         centroid of the same sphere: a larger move means the fit locked onto something else).
     shell_mm : float
         The background is a least-squares plane through the voxels between the reach and the
-        reach + this.  At 2.25 mm reach 1.0 / 1.5 / 2.0 mm: 0.037 / 0.085 · 0.019 / 0.044;
-        0.037 / 0.084 · 0.018 / 0.041; 0.036 / 0.083 · 0.018 / 0.039 (about even).
+        reach + this.
     """
 
     n_directions: int = 96

@@ -1,4 +1,4 @@
-// oarmreg OR status page (issue #21).  Plain ES2020, no framework, no build step, same origin only.
+// oarmreg OR status page.  Plain ES2020, no framework, no build step, same origin only.
 // The API token comes from the sign-in form or the URL fragment (#token=…, which never reaches the
 // server), lives in sessionStorage (this tab only), and travels as "Authorization: Bearer"; never a
 // cookie.  Live updates: POST /events/ticket, then EventSource("/events?ticket=…").

@@ -1,4 +1,4 @@
-// The self-hosted Swagger UI shell (issue #21): every request, the spec's included, carries the
+// The self-hosted Swagger UI shell: every request, the spec's included, carries the
 // token the status page signed in with (sessionStorage of this tab) through requestInterceptor.
 "use strict";
 const TOKEN_KEY = "oarmreg.token";
