@@ -412,6 +412,11 @@ class CalibrationJobs:
         rec = self.db.calibrations.get(cal_id)
         if rec is None:
             raise NotFoundError(f"calibration {cal_id} does not exist; GET /calibrations lists them")
+        if rec.withdrawn_at is not None:
+            raise CalibrationNotUsableError(
+                f"calibration {cal_id} was withdrawn at {rec.withdrawn_at} ({rec.withdrawn_reason}); "
+                "calibrate again with complete, unchanged scans"
+            )
         if rec.status != "done":
             raise CalibrationNotUsableError(
                 f"calibration {cal_id} is {rec.status}"

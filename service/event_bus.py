@@ -53,6 +53,7 @@ EVENT_NAMES: tuple[str, ...] = (
     "calibration_done",
     "calibration_refused",
     "calibration_activated",
+    "calibration_deactivated",  # the active calibration was withdrawn: the nominal model again
     "registration_retired",
     # archiving a registration's SRO to the PACS (service.pacs)
     "pacs_export_sent",

@@ -53,6 +53,7 @@ from service.scan_checks import check_capture
 from service.settings import Settings
 from service.store import Database
 from service.store.base import utc_now
+from service.store.registrations import DerivedWithdrawal
 from service.volume_cache import VolumeCache
 
 log = logging.getLogger(__name__)
@@ -100,6 +101,12 @@ class Orchestrator:
         self.volumes = volumes if volumes is not None else VolumeCache()
         self.config_hash = settings.config_hash()
         self.tool0_from_phantom = settings.robot.tool0_from_phantom.matrix()
+        self._nominal: tuple[RobotModel, NDArray[np.float64], None] = (
+            robot_model,
+            self.tool0_from_phantom,
+            None,
+        )
+        """The model and rod of the settings, used again when the active calibration is withdrawn."""
         self.params = pipeline_params(settings, phantom)
         self.calibration: dict[str, Any] | None = None
         """``{"calibration_id", "calibration_hash", "robot_urdf"}`` of the active calibration (None:
@@ -158,7 +165,11 @@ class Orchestrator:
             ids, was_current = self.db.registrations.withdraw_for_scan(scan_id, reason)
             if was_current or (self._current is not None and self._current.id in ids):
                 self._current = None
-            vers, cals = self.db.registrations.withdraw_derived(scan_id, reason)
+            derived = self.db.registrations.withdraw_derived(scan_id, reason)
+            if derived.deactivated_calibration_id is not None:  # back to the nominal model and rod
+                self.robot_model, self.tool0_from_phantom, self.calibration = self._nominal
+                self._current = None
+        vers, cals = list(derived.verification_ids), list(derived.calibration_ids)
         if vers or cals:
             log.warning(
                 "scan %d: verification(s) %s and calibration(s) %s withdrawn: %s", scan_id, vers, cals, reason
@@ -177,7 +188,28 @@ class Orchestrator:
                 "registration_withdrawn",
                 {"registration_ids": ids, "scan_id": scan_id, "was_current": was_current, "reason": reason},
             )
+        if derived.deactivated_calibration_id is not None:
+            self._publish_deactivation(derived, reason)
         return ids
+
+    def _publish_deactivation(self, derived: DerivedWithdrawal, reason: str) -> None:
+        cal_id = derived.deactivated_calibration_id
+        why = (
+            f"the active calibration {cal_id} was withdrawn ({reason}); the nominal robot model is used "
+            "again: recalibrate, or activate another calibration, then POST /register with a new scan"
+        )
+        log.warning("%s; registrations %s retired", why, list(derived.retired_registration_ids))
+        self.publish("calibration_deactivated", {"calibration_id": cal_id, "reason": why})
+        self.publish(
+            "registration_retired",
+            {
+                "registration_ids": list(derived.retired_registration_ids),
+                "previous_current_registration_id": None,
+                "calibration_id": cal_id,
+                "current": None,
+                "reason": why,
+            },
+        )
 
     def wait_idle(self) -> None:
         """Return once no registration or verification is running."""

@@ -61,6 +61,10 @@ class CalibrationOut(BaseModel):
     problem_title: str = ""
     is_active: bool
     activated_at: str | None = None
+    withdrawn_at: str | None = Field(
+        None, description="Set when a scan it was fitted to changed content: it can never be activated."
+    )
+    withdrawn_reason: str = ""
     created_at: str
     finished_at: str | None = None
     duration_s: float | None = None
@@ -102,6 +106,8 @@ def calibration_out(rec: CalibrationRecord) -> CalibrationOut:
         problem_title=rec.problem_title,
         is_active=rec.is_active,
         activated_at=rec.activated_at,
+        withdrawn_at=rec.withdrawn_at,
+        withdrawn_reason=rec.withdrawn_reason,
         created_at=rec.created_at,
         finished_at=rec.finished_at,
         duration_s=rec.duration_s,

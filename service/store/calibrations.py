@@ -47,6 +47,9 @@ class CalibrationRecord:
     duration_s: float | None = None
     is_active: bool = False
     activated_at: str | None = None
+    withdrawn_at: str | None = None
+    """When a scan it was fitted to changed content (docs/safety.md): never activated again."""
+    withdrawn_reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -147,11 +150,12 @@ class CalibrationStore:
         """
         now = utc_now()
         with self._db.transaction() as c:
-            row = c.execute("SELECT status FROM calibrations WHERE id = ?", (cal_id,)).fetchone()
-            if row is None or row["status"] != "done":
-                raise ValueError(
-                    f"calibration {cal_id} is {None if row is None else row['status']}, not done"
-                )
+            row = c.execute(
+                "SELECT status, withdrawn_at FROM calibrations WHERE id = ?", (cal_id,)
+            ).fetchone()
+            state = "missing" if row is None else "withdrawn" if row["withdrawn_at"] else row["status"]
+            if state != "done":
+                raise ValueError(f"calibration {cal_id} is {state}, not done")
             prev = c.execute("SELECT calibration_id FROM active_calibration WHERE singleton = 1").fetchone()
             cur = c.execute("SELECT registration_id FROM current_registration WHERE singleton = 1").fetchone()
             retired = [
@@ -202,4 +206,6 @@ def _record(r: sqlite3.Row, active: tuple[int, str] | None) -> CalibrationRecord
         duration_s=r["duration_s"],
         is_active=is_active,
         activated_at=active[1] if is_active and active is not None else None,
+        withdrawn_at=r["withdrawn_at"],
+        withdrawn_reason=r["withdrawn_reason"],
     )

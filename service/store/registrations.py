@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sqlite3
+from dataclasses import dataclass
 from typing import cast
 
 from service.records import (
@@ -14,6 +15,18 @@ from service.records import (
     points3,
 )
 from service.store.base import Connection, dumps, loads, utc_now
+
+
+@dataclass(frozen=True)
+class DerivedWithdrawal:
+    """What :meth:`RegistrationStore.withdraw_derived` withdrew."""
+
+    verification_ids: tuple[int, ...]
+    calibration_ids: tuple[int, ...]
+    deactivated_calibration_id: int | None
+    """The active calibration, if it was withdrawn (the nominal model is used again)."""
+    retired_registration_ids: tuple[int, ...]
+    """Registrations retired because they were made with that calibration's model."""
 
 
 class RegistrationStore:
@@ -69,10 +82,12 @@ class RegistrationStore:
                 c.execute("DELETE FROM current_registration WHERE singleton = 1")
             return ids, was_current
 
-    def withdraw_derived(self, scan_id: int, reason: str) -> tuple[list[int], list[int]]:
-        """Withdraw the verifications and calibrations made from ``scan_id`` (its content
-        changed); returns their ids.  A withdrawn calibration stays active until another is activated
-        (the orchestrator's model is not switched here); its scans are named in the event."""
+    def withdraw_derived(self, scan_id: int, reason: str) -> DerivedWithdrawal:
+        """Withdraw the verifications and calibrations made from ``scan_id`` (its content changed).
+
+        If the active calibration is among them it stops being active in the same transaction: the
+        nominal model is used again and every accepted registration is retired (they were made
+        with the withdrawn model), so nothing is current until the next ``/register``."""
         now = utc_now()
         with self._db.transaction() as c:
             vers = [
@@ -97,7 +112,25 @@ class RegistrationStore:
                 "UPDATE calibrations SET withdrawn_at = ?, withdrawn_reason = ? WHERE id = ?",
                 [(now, reason, k) for k in cals],
             )
-            return vers, cals
+            active = c.execute("SELECT calibration_id FROM active_calibration WHERE singleton = 1").fetchone()
+            if active is None or int(active[0]) not in cals:
+                return DerivedWithdrawal(tuple(vers), tuple(cals), None, ())
+            cal_id = int(active[0])
+            retired = [
+                int(r[0])
+                for r in c.execute(
+                    "SELECT id FROM registrations "
+                    "WHERE status = 'accepted' AND retired_at IS NULL AND withdrawn_at IS NULL"
+                )
+            ]
+            c.execute(
+                "UPDATE registrations SET retired_at = ?, retired_by_calibration = ? "
+                "WHERE status = 'accepted' AND retired_at IS NULL AND withdrawn_at IS NULL",
+                (now, cal_id),
+            )
+            c.execute("DELETE FROM current_registration WHERE singleton = 1")
+            c.execute("DELETE FROM active_calibration WHERE singleton = 1")
+            return DerivedWithdrawal(tuple(vers), tuple(cals), cal_id, tuple(retired))
 
     def latest_withdrawn(self) -> RegistrationRecord | None:
         rows = self._db.query(

@@ -246,6 +246,48 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     )
     assert calibrated_mm < 0.5 * nominal_mm, (calibrated_mm, nominal_mm)
 
+    # one of its scans changes content: the calibration is withdrawn AND stops being active (the
+    # nominal model again), the registration made with it is retired, nothing is current
+    victim_scan = c.get(f"/scans/{session.scan_ids[-1]}").json()
+    _, events = _stream_until(
+        c, lambda: _replace_one_slice(session.watch / f"pose-{N_POSES - 1}"), {"registration_retired"}
+    )
+    names = [n for n, _ in events]
+    assert "derived_withdrawn" in names and "calibration_deactivated" in names, names
+    assert events[-1][1]["calibration_id"] == cal_id and events[-1][1]["current"] is None
+    assert c.get("/status").json()["active_calibration"] is None
+    gone = c.get(f"/calibrations/{cal_id}").json()
+    assert not gone["is_active"] and gone["withdrawn_at"] is not None, gone
+    again = c.post(f"/calibrations/{cal_id}/activate", json={"force": True})
+    assert again.status_code == 409 and "withdrawn" in again.json()["detail"], again.text
+    assert c.get("/registration/current").status_code == 409
+    assert c.get(f"/registrations/{after.json()['id']}").json()["status"] in ("retired", "withdrawn")
+    rejudged = wait_for(
+        lambda: (lambda s: s if s["status"] == "complete" and s["joints"] else None)(
+            c.get(f"/scans/{victim_scan['id']}").json()
+        ),
+        "the changed scan to be judged again",
+    )
+    nominal_again = c.post("/register", json={"scan_id": rejudged["id"]})
+    assert nominal_again.status_code == 200, nominal_again.text
+    assert nominal_again.json()["provenance"]["calibration"] is None
+
+
+def _replace_one_slice(folder: Path) -> None:
+    """Re-export one slice of a recorded folder scan with other bytes (same name), atomically."""
+    import os
+
+    import pydicom
+
+    victim = sorted(folder.glob("*.dcm"))[len(list(folder.glob("*.dcm"))) // 2]
+    ds = pydicom.dcmread(victim)
+    px = bytearray(ds.PixelData)
+    px[100:104] = b"\xff\x0f\xff\x0f"
+    ds.PixelData = bytes(px)
+    tmp = victim.with_name(f".{victim.name}.part")
+    ds.save_as(tmp, enforce_file_format=True)
+    os.replace(tmp, victim)
+
 
 def _assert_refused_and_stored(c: httpx.Client, body: dict[str, Any], title: str, words: str) -> None:
     r = c.post("/calibrations", json=body)
