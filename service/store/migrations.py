@@ -32,6 +32,8 @@
     the SHA-256 and size of every stored instance of a scan; every state change of a scan and why
     (:mod:`service.scan_lifecycle`); ``verifications`` / ``calibrations`` gain ``withdrawn_at`` /
     ``withdrawn_reason``.
+``qa_protocols``, ``qa_checks`` (issue #21)
+    named sets of verification poses; which verification was taken at which pose of which protocol.
 """
 
 from __future__ import annotations
