@@ -401,6 +401,11 @@ class StatusOut(_Out):
     active_calibration: dict[str, Any] | None = Field(
         None, description="calibration_id, calibration_hash, activated_at; null: the nominal model and rod."
     )
+    disk: dict[str, float | None] | None = Field(
+        None,
+        description="scans_mb (the recorded scan files not yet deleted), quota_mb (retention.max_disk_mb; "
+        "null: no quota), data_dir_free_mb (free space of the data folder's file system).",
+    )
 
 
 # ---- converters ----------------------------------------------------------------------------
