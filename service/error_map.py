@@ -40,6 +40,8 @@ from service.errors import (
     NoScanError,
     NotFoundError,
     PacsExportError,
+    QaProtocolError,
+    QaProtocolNameTakenError,
     StorageFullError,
 )
 
@@ -78,6 +80,8 @@ ERROR_MAP: dict[type, ErrorClass] = {
     RobotMovedError: ErrorClass(409, EXIT_REFUSED, "Robot moved during the scan"),
     JointHistoryIncompleteError: ErrorClass(409, EXIT_REFUSED, "Joint history incomplete"),
     PacsExportError: ErrorClass(409, EXIT_CONFIG, "PACS export not possible"),
+    QaProtocolError: ErrorClass(422, EXIT_INPUT, "QA protocol problem"),
+    QaProtocolNameTakenError: ErrorClass(409, EXIT_INPUT, "QA protocol name taken"),
 }
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)

@@ -58,3 +58,13 @@ class PacsExportError(OarmRegError):
     registration, or already archived."""
 
     title = "PACS export not possible"
+
+
+class QaProtocolError(OarmRegError):
+    """A QA protocol request names no such protocol or pose, or a name already taken."""
+
+    title = "QA protocol problem"
+
+
+class QaProtocolNameTakenError(QaProtocolError):
+    title = "QA protocol name taken"

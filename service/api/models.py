@@ -99,6 +99,12 @@ class VerifyRequest(BaseModel):
         default=None,
         description="A scan newer than the current registration's scan; default: the latest complete scan.",
     )
+    qa_protocol_id: DbId | None = Field(
+        default=None, description="The QA protocol this check belongs to (with `qa_pose`; issue #21)."
+    )
+    qa_pose: str | None = Field(
+        default=None, min_length=1, max_length=64, description="The protocol's pose the robot is at."
+    )
 
 
 # ---- responses -----------------------------------------------------------------------------
@@ -394,6 +400,11 @@ class StatusOut(_Out):
     )
     active_calibration: dict[str, Any] | None = Field(
         None, description="calibration_id, calibration_hash, activated_at; null: the nominal model and rod."
+    )
+    disk: dict[str, float | None] | None = Field(
+        None,
+        description="scans_mb (the recorded scan files not yet deleted), quota_mb (retention.max_disk_mb; "
+        "null: no quota), data_dir_free_mb (free space of the data folder's file system).",
     )
 
 

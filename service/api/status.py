@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import time
 from datetime import UTC, datetime
 
@@ -52,7 +53,25 @@ def status(ctx: CtxDep) -> StatusOut:
         config_hash=ctx.orchestrator.config_hash,
         listeners=ctx.or_integration.status() if ctx.or_integration is not None else {},
         active_calibration=_active_calibration(ctx),
+        disk=_disk(ctx),
     )
+
+
+MB = 1024**2
+"""retention.max_disk_mb counts 1024² bytes (service.retention)."""
+
+
+def _disk(ctx: CtxDep) -> dict[str, float | None]:
+    """Disk use against the retention quota (issue #21): from the database, no folder walk."""
+    try:
+        free_mb: float | None = shutil.disk_usage(ctx.settings.data_dir).free / MB
+    except OSError:
+        free_mb = None
+    return {
+        "scans_mb": ctx.db.scans.stored_bytes() / MB,
+        "quota_mb": ctx.settings.retention.max_disk_mb,
+        "data_dir_free_mb": free_mb,
+    }
 
 
 @router.get(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -12,6 +13,7 @@ from fastapi.responses import FileResponse
 from service.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
 from service.api.models import VerificationOut, VerifyRequest, verification_out
 from service.api.problems import problem_responses
+from service.api.qa import resolve_pose
 from service.audit import audited
 from service.errors import NotFoundError
 
@@ -33,8 +35,11 @@ async def verify(
     ctx: CtxDep, principal: PrincipalDep, body: Annotated[VerifyRequest | None, Body()] = None
 ) -> VerificationOut:
     req = body or VerifyRequest()
+    qa_check = resolve_pose(ctx, req.qa_protocol_id, req.qa_pose)  # refused before anything runs
     with audited(ctx, principal, "verify", "verification") as note:
         rec = await anyio.to_thread.run_sync(ctx.orchestrator.verify, req.scan_id)
+        if qa_check is not None:
+            ctx.db.qa.insert_check(replace(qa_check, verification_id=rec.id))
         outcome = "passed" if rec.passed else "failed"
         note(
             rec.id,

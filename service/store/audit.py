@@ -12,7 +12,7 @@ from typing import Literal
 
 from service.store.base import Connection, utc_now
 
-AuditAction = Literal["register", "verify", "activate", "delete", "pacs_export"]
+AuditAction = Literal["register", "verify", "activate", "delete", "pacs_export", "qa_protocol_create"]
 MAX_DETAIL_CHARS = 500
 
 

@@ -13,6 +13,7 @@ from service.store.audit import AuditStore
 from service.store.base import Connection
 from service.store.calibrations import CalibrationStore
 from service.store.pacs_exports import PacsExportStore
+from service.store.qa import QaStore
 from service.store.registrations import RegistrationStore
 from service.store.scan_instances import ScanInstanceStore
 from service.store.scans import ScanStore
@@ -36,6 +37,7 @@ class Database:
         self._lock_file: IO[bytes] | None = None
         self.calibrations = CalibrationStore(conn)
         self.pacs_exports = PacsExportStore(conn)  # the PACS archive queue
+        self.qa = QaStore(conn)  # QA protocols and the checks taken at their poses
 
     @classmethod
     def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:

@@ -32,6 +32,8 @@
     the SHA-256 and size of every stored instance of a scan; every state change of a scan and why
     (:mod:`service.scan_lifecycle`); ``verifications`` / ``calibrations`` gain ``withdrawn_at`` /
     ``withdrawn_reason``.
+``qa_protocols``, ``qa_checks``
+    named sets of verification poses; which verification was taken at which pose of which protocol.
 """
 
 from __future__ import annotations
@@ -290,6 +292,25 @@ PACS_EXPORTS_MIGRATION = """
 """Issue #23: the PACS archive queue, one row per accepted registration (service.pacs).  A row stays
 ``pending`` while it is being sent, so a service killed mid-send sends it again after restart."""
 MIGRATIONS = (*MIGRATIONS, PACS_EXPORTS_MIGRATION)
+
+QA_PROTOCOLS_MIGRATION = """
+    CREATE TABLE qa_protocols (
+        id INTEGER PRIMARY KEY,
+        name TEXT NOT NULL UNIQUE,
+        description TEXT NOT NULL DEFAULT '',
+        poses_json TEXT NOT NULL,
+        created_at TEXT NOT NULL
+    );
+    CREATE TABLE qa_checks (
+        verification_id INTEGER PRIMARY KEY REFERENCES verifications(id),
+        protocol_id INTEGER NOT NULL REFERENCES qa_protocols(id),
+        pose TEXT NOT NULL
+    );
+    CREATE INDEX qa_checks_protocol ON qa_checks (protocol_id)
+"""
+"""Issue #21: QA protocols (a named set of verification poses, :mod:`service.store.qa`) and which
+verification was taken at which pose of which protocol."""
+MIGRATIONS = (*MIGRATIONS, QA_PROTOCOLS_MIGRATION)
 
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""

@@ -224,6 +224,15 @@ class ScanStore:
         )
         return [(int(r[0]), str(r[1]), str(r[2])) for r in rows]
 
+    def stored_bytes(self) -> int:
+        """Bytes of the recorded instances of every scan whose files were not deleted yet (the
+        ``scan_files`` sizes: what retention's ``max_disk_mb`` is measured against, without a walk)."""
+        rows = self._db.query(
+            "SELECT COALESCE(SUM(f.bytes), 0) FROM scan_files f JOIN scans s ON s.id = f.scan_id "
+            "WHERE s.files_deleted_at IS NULL"
+        )
+        return int(rows[0][0])
+
     def has_complete(self, series_uid: str) -> bool:
         rows = self._db.query(
             "SELECT 1 FROM scans WHERE series_uid = ? AND status = 'complete'", (series_uid,)

@@ -15,6 +15,8 @@ from pathlib import Path
 from tests.browser import harness as h
 
 VIEWPORT = {"width": 1400, "height": 900}
+QUOTA_MB = 2048.0
+"""A retention quota for the status panel's disk line (nothing near it is used)."""
 
 
 def main(argv: list[str]) -> int:
@@ -30,7 +32,7 @@ def main(argv: list[str]) -> int:
     world = h.make_world(load_phantom(default_phantom()))
     with (
         tempfile.TemporaryDirectory(prefix="oarmreg-shots-") as tmp,
-        h.running_service(Path(tmp), world) as svc,
+        h.running_service(Path(tmp), world, **{"retention.max_disk_mb": QUOTA_MB}) as svc,
     ):
         h.build_history(svc, world)
         q = (*h.Q1[:5], h.Q1[5] + 0.04)  # a failed verification: the link reports J6 turned

@@ -26,6 +26,8 @@ pytestmark = pytest.mark.skipif(
 
 LIVE_DEADLINE_MS = 2000
 """A new registration must appear this soon after /register answers, without a reload (issue #21)."""
+QUOTA_MB = 10000.0
+"""A retention quota far above what the module's scans use (nothing is deleted), shown on the page."""
 LOAD_DEADLINE_MS = 5000
 """The page shows the current registration this soon after opening (issue #21, done-when)."""
 
@@ -61,7 +63,8 @@ def svc(
     tmp_path_factory: pytest.TempPathFactory, world: h.World, nav_ui: Any
 ) -> Iterator[tuple[h.Service, dict[str, Any]]]:
     root = tmp_path_factory.mktemp("page")
-    kw = {"api.allowed_origins": [nav_ui.base_url], "igtl.enabled": True, "igtl.port": 0}
+    kw = {"api.allowed_origins": [nav_ui.base_url], "igtl.enabled": True, "igtl.port": 0,
+          "retention.max_disk_mb": QUOTA_MB}  # fmt: skip
     with h.running_service(root, world, **kw) as s:
         yield s, h.build_history(s, world)
 
@@ -131,6 +134,13 @@ def test_fragment_sign_in_shows_the_current_registration_as_the_api_gives_it(
     assert float(p.get_attribute("#current-tre", "data-value")) == max(cur["predicted_tre_mm"])
     assert json.loads(p.get_attribute("#current-matrix", "data-value")) == cur["image_from_robot"]
     assert p.locator("#current-chart svg rect").count() == len(cur["spheres"])
+    # disk use against the retention quota: /status counts the scan files on disk, the page shows it
+    disk = s.client.get("/status").json()["disk"]
+    on_disk = sum(f.stat().st_size for f in s.watch.rglob("*") if f.is_file())
+    assert on_disk > 0 and disk["scans_mb"] * 1024**2 == pytest.approx(on_disk, rel=1e-12)
+    assert disk["quota_mb"] == QUOTA_MB and disk["data_dir_free_mb"] > 0
+    assert float(p.get_attribute("#disk", "data-value")) == pytest.approx(disk["scans_mb"], rel=1e-12)
+    assert f"of the {QUOTA_MB:.0f} MB quota" in p.text_content("#disk")
     # the token: out of the address bar, in sessionStorage, sent as the bearer header, never a cookie
     assert "token" not in p.url
     assert p.evaluate("sessionStorage.getItem('oarmreg.token')") == h.TOKEN

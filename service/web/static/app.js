@@ -250,7 +250,14 @@ function renderStatus(st) {
   setText("igtl", !g.enabled ? "off" : `${g.host}:${g.port}, clients ${g.clients ?? 0}` +
     (g.counters ? ", " + Object.entries(g.counters).map(([k, v]) => `${k} ${v}`).join(", ") : ""));
   const disk = st.disk;
-  setText("disk", disk ? Object.entries(disk).map(([k, v]) => `${k}: ${v}`).join(", ") : "not reported by /status");
+  if (!disk) setText("disk", "not reported by /status");
+  else {
+    const quota = disk.quota_mb == null ? "no quota (retention.max_disk_mb unset)"
+      : `${fmt(100 * disk.scans_mb / disk.quota_mb, 0)} % of the ${fmt(disk.quota_mb, 0)} MB quota`;
+    setText("disk", `scans ${fmt(disk.scans_mb, 1)} MB, ${quota}; data folder ${fmt(disk.data_dir_free_mb, 0)} MB free`,
+      disk.scans_mb);
+    $("disk").className = disk.quota_mb != null && disk.scans_mb > disk.quota_mb ? "bad" : "";
+  }
   const ac = st.active_calibration;
   setText("active-calibration", ac ? `calibration ${ac.calibration_id} (${String(ac.calibration_hash).slice(0, 12)}), ` +
     `predicted held-out RMS ${fmt(ac.predicted_held_out_rms_mm, 3)} mm, since ${when(ac.activated_at)}`
