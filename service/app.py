@@ -347,7 +347,7 @@ def _install_routes(app: FastAPI) -> None:
         audit.router,
         calibrations_router,
     )
-    from service.api.qa import router as qa_router  # issue #21
+    from service.api.qa import router as qa_router
 
     for r in (*routers, qa_router):
         app.include_router(r, dependencies=[AuthDep])

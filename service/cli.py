@@ -32,7 +32,7 @@ COMMANDS: dict[str, str] = {
     "backup": "service.commands.backup",
     "restore": "service.commands.restore",
     "config": "service.commands.config",
-    "qa": "service.commands.qa",  # issue #21: QA protocols
+    "qa": "service.commands.qa",  # QA protocols
 }
 
 

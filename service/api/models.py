@@ -100,7 +100,7 @@ class VerifyRequest(BaseModel):
         description="A scan newer than the current registration's scan; default: the latest complete scan.",
     )
     qa_protocol_id: DbId | None = Field(
-        default=None, description="The QA protocol this check belongs to (with `qa_pose`; issue #21)."
+        default=None, description="The QA protocol this check belongs to (with `qa_pose`)."
     )
     qa_pose: str | None = Field(
         default=None, min_length=1, max_length=64, description="The protocol's pose the robot is at."

@@ -62,7 +62,7 @@ MB = 1024**2
 
 
 def _disk(ctx: CtxDep) -> dict[str, float | None]:
-    """Disk use against the retention quota (issue #21): from the database, no folder walk."""
+    """Disk use against the retention quota: from the database, no folder walk."""
     try:
         free_mb: float | None = shutil.disk_usage(ctx.settings.data_dir).free / MB
     except OSError:
