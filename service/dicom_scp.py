@@ -345,6 +345,8 @@ class StorageScp:
     ) -> None:
         self.config = config
         self.intake_dir = Path(intake_dir)
+        self.write_failure: str | None = None
+        """Why the last instance could not be written (ENOSPC, EIO…); None once one is stored again."""
         self.callbacks = callbacks or ScpCallbacks()
         self._write = write
         self._networks = config.networks()
@@ -498,6 +500,8 @@ class StorageScp:
             outcome = self._store(target, event.dataset_path)
         except OSError as e:
             reason = f"cannot write {target} ({e.strerror or e}); check free space on {self.intake_dir}"
+            with self._lock:
+                self.write_failure = reason
             self._refuse(
                 ScpRefusal("disk", reason, state.calling_ae, state.peer, sop, STATUS_OUT_OF_RESOURCES)
             )
@@ -511,6 +515,7 @@ class StorageScp:
             self._tally_failed(state, target.parent, f"0x{STATUS_OUT_OF_RESOURCES:04X} {reason}")
             return STATUS_OUT_OF_RESOURCES
         with self._lock:
+            self.write_failure = None
             self.counters[outcome] += 1
             self.counters["bytes"] += target.stat().st_size if outcome != "duplicates" else 0
             state.series[target.parent] = state.series.get(target.parent, 0) + 1

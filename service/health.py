@@ -113,6 +113,23 @@ def data_dir_problems(ctx: ServiceContext) -> list[HealthProblem]:
     return []
 
 
+def intake_write_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """The C-STORE intake could not write the last instance it received (its folder may be a mount
+    of its own, so the data-folder probe does not see it); cleared by the next instance stored."""
+    oi = ctx.or_integration
+    why = None if oi is None or oi.scp is None else oi.scp.write_failure
+    if why is None:
+        return []
+    return [
+        HealthProblem(
+            "intake-unwritable",
+            "C-STORE intake refuses writes",
+            f"the DICOM intake answers 0xA700 (out of resources): {why}; the O-arm's scans are not "
+            "stored until space is freed there, then send the series again",
+        )
+    ]
+
+
 def retention_problems(ctx: ServiceContext) -> list[HealthProblem]:
     """Retention could not bring the scan folders under ``retention.max_disk_mb``."""
     p = ctx.retention_problem
@@ -125,6 +142,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     watcher_problems,
     listener_problems,
     data_dir_problems,
+    intake_write_problems,
     retention_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""

@@ -554,3 +554,10 @@ def test_item3_full_disk_a_series_whose_tail_could_not_be_written_is_not_complet
         assert "0xA700" in scan["reason"], scan["reason"]
         r = lc.client.post("/register", json={"scan_id": scan["id"]})
         assert r.status_code == 422, r.text
+        status = lc.client.get("/status").json()
+        assert not status["healthy"], status
+        assert "C-STORE intake refuses writes" in [p["title"] for p in status["problem_details"]], status
+    # space again: the next instance stored clears the problem
+    send(lc.port, read_all(sorted(write_series(lc.root / "outbox" / "item3-after", ramp_volume(2)))))
+    status = lc.client.get("/status").json()
+    assert "C-STORE intake refuses writes" not in [p["title"] for p in status["problem_details"]], status
