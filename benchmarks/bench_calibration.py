@@ -5,7 +5,7 @@ A seeded :class:`mocks.cell.TrueCell` (joint-origin errors σ 0.12 mm / 0.012°,
 noise).  Session: a first scan at the start pose is registered with the nominal model; the pose
 planner proposes the calibration poses from it; each is scanned (simulated, written as DICOM
 with the session's FrameOfReferenceUID, reloaded, detected), matched by the click-free
-registration on the nominal model, and :func:`registration.calibration.calibrate` runs.  Then the
+registration on the nominal model, and :func:`registration.calibration.solver.calibrate` runs.  Then the
 O-arm is moved, one registration scan is taken and registered twice — with the calibrated model
 and rod, and with the nominal ones — and the sphere centres at 20 held-out poses (other feasible
 poses of the planner, not scanned: their truth is known) are predicted.  The held-out error is
@@ -30,7 +30,7 @@ chosen on).  ``--dicom-session [--seed 1] [--poses 10]``: issue #10's one DICOM 
 ``--solve-only``: no simulation or detection; a synthetic 10-pose × 28-sphere session of the same
 true cell (detections = truth + 0.07 mm RMS noise) is calibrated several times and the median solve
 time of ``least_squares`` (this tree) is printed next to the hand-written Levenberg–Marquardt it
-replaced (``registration/calibration.py`` at ``--old-ref``, imported from ``git show``), with the
+replaced (``registration/calibration/solver.py`` at ``--old-ref``, imported from ``git show``), with the
 error at 20 held-out poses of each, and the closed-form floor measured in the same run.
 """
 
@@ -52,13 +52,21 @@ from numpy.typing import NDArray
 
 from mocks.cell import SPREAD_JOINTS_RAD, CellErrorSizes, SimulatedPose, TrueCell, simulate_pose_scan
 from mocks.oarm.simulator import AcquisitionSettings
-from registration import frames
-from registration.calibration import CalibrationParams, CalibrationResult, MatchedPose, calibrate, match_pose
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.phantom import Phantom, load_phantom
-from registration.pose_planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
-from registration.register import register_points
-from registration.urdf_writer import SerialChain, read_chain
+from registration.calibration.planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
+from registration.calibration.records import (
+    CalibrationParams,
+    CalibrationResult,
+    MatchedPose,
+)
+from registration.calibration.solver import (
+    calibrate,
+    match_pose,
+)
+from registration.calibration.urdf import SerialChain, read_chain
+from registration.matching.register import register_points
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
+from registration.model.phantom import Phantom, load_phantom
 
 F64 = NDArray[np.float64]
 REPO = Path(__file__).resolve().parents[1]
@@ -228,12 +236,12 @@ SYNTHETIC_FLE_RMS_MM = 0.07
 
 
 def _old_calibration(ref: str) -> Any:
-    """``registration/calibration.py`` at git ``ref`` as a module of its own."""
+    """``registration/calibration/solver.py`` at git ``ref`` as a module of its own."""
     import importlib.util
     import subprocess
 
     src = subprocess.run(
-        ["git", "-C", str(REPO), "show", f"{ref}:registration/calibration.py"],
+        ["git", "-C", str(REPO), "show", f"{ref}:registration/calibration/solver.py"],
         check=True,
         capture_output=True,
         text=True,
@@ -251,7 +259,8 @@ def _old_calibration(ref: str) -> Any:
 def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: str) -> int:
     """Median solve time and held-out error of the new and the old solver on one synthetic session."""
     from benchmarks.common import median_time_s, print_table
-    from registration import calibration as new
+    from registration.calibration import model as cal_model
+    from registration.calibration import solver as new
 
     phantom, model, chain, rod, cell, rng = _true_cell(seed)
     pts = phantom.centres_phantom_mm
@@ -272,7 +281,7 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
     truth = [frames.apply(cell.image_from_phantom_true(SYNTHETIC_Y, q), pts) for q in held]
     old = _old_calibration(old_ref)
     no_lopo = CalibrationParams(leave_one_out=False)
-    floor_s, _ = median_time_s(lambda: new._initial_estimate(poses, chain, pts), repeats=repeats)
+    floor_s, _ = median_time_s(lambda: cal_model._initial_estimate(poses, chain, pts), repeats=repeats)
     rows: list[tuple[str, Any]] = [
         (f"session: {n_poses} poses × {len(pts)} spheres, FLE {SYNTHETIC_FLE_RMS_MM} mm", ""),
         ("closed-form floor (Shah + rigid fits) median (s)", floor_s),
@@ -350,7 +359,9 @@ def matrix(seeds: tuple[int, ...], scales: tuple[float, ...], n_poses: int) -> i
     """Every case of :mod:`benchmarks.calib_testbed`; one row per case and a summary."""
     from benchmarks import calib_testbed as tb
     from benchmarks.common import print_table
-    from registration.calibration import CalibrationError
+    from registration.calibration.records import (
+        CalibrationError,
+    )
 
     today = CalibrationParams(estimator="ls", max_condition=100.0, max_predicted_error_mm=math.inf)
     today_drop = CalibrationParams(
@@ -520,7 +531,9 @@ def main(argv: list[str] | None = None) -> int:
     no_lopo = CalibrationParams(leave_one_out=False)
     solve_s, _ = median_time_s(lambda: calibrate(s.matched, s.chain, s.rod, pts, no_lopo), repeats=5)
     # floor measured in the same run: one Shah closed form + per-pose rigid fits (no iteration)
-    from registration.calibration import _initial_estimate
+    from registration.calibration.model import (
+        _initial_estimate,
+    )
 
     floor_s, _ = median_time_s(lambda: _initial_estimate(s.matched, s.chain, pts), repeats=5)
     r = s.result

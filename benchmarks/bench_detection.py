@@ -137,10 +137,10 @@ def _match(c: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, int, int]:
 def accuracy_sweep(n_scans: int, quick: bool) -> None:
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, scan_to_volume, simulate_scan
-    from registration import frames
     from registration.detection import DetectionParams, detect_spheres
     from registration.dicom import load_series
-    from registration.phantom import load_phantom
+    from registration.model import frames
+    from registration.model.phantom import load_phantom
 
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
     configs = {
@@ -258,7 +258,7 @@ def speed() -> None:
     from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, demo_pose, simulate_scan
     from registration.detection import DetectionParams, detect_spheres
     from registration.dicom import load_series
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
     scan = simulate_scan(
@@ -411,7 +411,7 @@ many times its own predicted TRE there."""
 
 
 def hard_pose(cond: dict[str, Any], seed: int) -> np.ndarray:
-    from registration import frames
+    from registration.model import frames
 
     rng = np.random.default_rng(seed)
     pose = (
@@ -445,7 +445,7 @@ def hard_settings(cond: dict[str, Any], seed: int) -> Any:
 def hard_scene(cond: dict[str, Any]) -> tuple[Any, Any]:
     """(phantom, :class:`~mocks.oarm.simulator.SceneExtras`) of a hard condition."""
     from mocks.oarm.simulator import SceneExtras
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     phantom = load_phantom(REPO / "configs" / "phantoms" / f"{cond['phantom']}.toml")
     return phantom, SceneExtras(
@@ -492,9 +492,9 @@ def _cached_hard_scan(cond: dict[str, Any], seed: int, cache_dir: Path | None) -
 
 def _hard_outcome(phantom: Any, scan: Any, centres: np.ndarray) -> tuple[str, float]:
     """("answered" | "refused" | "wrong", worst TRE at the targets mm) of one registration."""
-    from registration import frames
     from registration.errors import RegistrationError
-    from registration.register import register_points
+    from registration.matching.register import register_points
+    from registration.model import frames
 
     truth = frames.apply(scan.image_from_phantom, phantom.centres_phantom_mm)
     try:

@@ -37,14 +37,14 @@ from scipy.spatial.transform import Rotation
 from benchmarks.common import print_table
 from mocks.oarm.dicom_export import write_dicom_series
 from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, image_from_scanner, simulate_scan
-from registration import frames
 from registration.detection import DetectionParams, detect_spheres
 from registration.dicom import load_series
 from registration.errors import RegistrationError
-from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
-from registration.phantom import Phantom, load_phantom
-from registration.quality import predicted_tre_mm
-from registration.register import register_points
+from registration.matching.quality import predicted_tre_mm
+from registration.matching.register import register_points
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
+from registration.model.phantom import Phantom, load_phantom
 
 F64 = NDArray[np.float64]
 REPO = Path(__file__).resolve().parents[1]

@@ -38,7 +38,7 @@ CONDITIONS: Final = ("steel partial x40", "WC partial x45")
 def edge_pose(cond: dict[str, Any], seed: int, margin_mm: float) -> np.ndarray:
     """``hard_pose`` shifted in-plane so the outermost slab sphere's surface is ``margin_mm``
     inside the FOV circle (image = scanner axes for the axial orientation of these scans)."""
-    from registration import frames
+    from registration.model import frames
 
     phantom, ex = hard_scene(cond)
     s = hard_settings(cond, seed)
@@ -75,8 +75,8 @@ def _scan(cond: dict[str, Any], seed: int, margin_mm: float, cache_dir: Path | N
 def score(phantom: Any, scan: Any) -> list[tuple[float, float | None]]:
     """(margin mm, error mm of the reported centre or None) of every sphere near the circle."""
     from mocks.oarm.simulator import scan_to_volume
-    from registration import frames
     from registration.detection import detect_spheres, params_for_spheres
+    from registration.model import frames
 
     s = scan.settings
     res = detect_spheres(

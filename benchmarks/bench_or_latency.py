@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-or-") as tmp:
         root = Path(tmp)
         t = time.perf_counter()
-        from registration.phantom import load_phantom
+        from registration.model.phantom import load_phantom
         from service.settings import DEFAULT_PHANTOM_FILE
 
         scan = simulate_scan(

@@ -11,9 +11,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from benchmarks.common import median_time_s, print_table
-from registration import frames
-from registration.phantom import load_phantom
-from registration.register import register_points
+from registration.matching.register import register_points
+from registration.model import frames
+from registration.model.phantom import load_phantom
 
 REPO = Path(__file__).resolve().parents[1]
 TARGET_MS = 20.0

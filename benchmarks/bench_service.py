@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             app = create_app(settings)
             ctx = app.state.ctx
             t0p = settings.robot.tool0_from_phantom.matrix()
-            from registration.frames import invert
+            from registration.model.frames import invert
 
             image_from_robot = demo_pose() @ invert(ctx.robot_model.robot_from_tool0(HOME_RAD) @ t0p)
             image_from_phantom = image_from_robot @ ctx.robot_model.robot_from_tool0(HOME_RAD) @ t0p

@@ -128,7 +128,7 @@ def cbct_pictures(out_dir: Path) -> list[Path]:
 
     from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
     from mocks.oarm.simulator import SceneExtras, best_slice, demo_pose
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     phantom = load_phantom(REPO / "configs" / "phantoms" / "bai2018_cube.toml")
     s = ConeBeamSettings.preset("cbct-ci")
@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
     from mocks.oarm.cbct import CBCT_PRESET_NAMES, ConeBeamSettings, simulate_cbct
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     args = sys.argv[1:] if argv is None else argv
     if "--cbct-png" in args:

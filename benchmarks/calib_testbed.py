@@ -3,12 +3,12 @@
 One *case* = (seed, error scale, pose set).  Per case:
 
 * a true cell (:class:`mocks.cell.TrueCell`) whose per-joint errors are ``scale`` × the solver's
-  priors (:data:`registration.calibration.PRIORS`), J2/J3 sag, a rod off in 6 DoF, 0.02 mm
+  priors (:data:`registration.calibration.solver.PRIORS`), J2/J3 sag, a rod off in 6 DoF, 0.02 mm
   repeatability and encoder noise — the scale is swept (0.5 … 2 ×) so the priors are not the truth;
 * an O-arm placement whose scan volume is *not* centred on the phantom at the start pose;
 * a pose set the solver did not choose: ``random`` (poses drawn inside the O-arm volume, every
-  sphere ≥ 5 mm inside by the nominal model) or ``planned`` (:func:`registration.pose_planner.plan_poses`
-  given the scan's real volume);
+  sphere ≥ 5 mm inside by the nominal model) or ``planned``
+  (:func:`registration.calibration.planner.plan_poses` given the scan's real volume);
 * the O-arm is then moved; one registration scan at a pose of its own; 20 held-out poses spread
   over the *working volume* (the scan volume grown by :data:`WORKING_MARGIN_MM`) and ≥ 20° in
   phantom orientation from every calibration pose;
@@ -42,26 +42,30 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from mocks.cell import CellErrorSizes, TrueCell
-from registration import frames
-from registration.calibration import (
-    PRIORS,
-    CalibrationParams,
-    CalibrationResult,
-    MatchedPose,
+from registration.calibration.model import (
     _Data,
     _initial_estimate,
     _Model,
     _residuals,
     _stack,
-    calibrate,
     parameter_candidates,
 )
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.phantom import Phantom, load_phantom
-from registration.pose_planner import PlannerParams, ScanVolume, plan_poses, solve_ik
-from registration.pose_sampling import _wrist_flip
-from registration.rigid import fit_rigid
-from registration.urdf_writer import SerialChain, read_chain, rotation_about
+from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses, solve_ik
+from registration.calibration.records import (
+    PRIORS,
+    CalibrationParams,
+    CalibrationResult,
+    MatchedPose,
+)
+from registration.calibration.sampling import _wrist_flip
+from registration.calibration.solver import (
+    calibrate,
+)
+from registration.calibration.urdf import SerialChain, read_chain, rotation_about
+from registration.matching.rigid import fit_rigid
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
+from registration.model.phantom import Phantom, load_phantom
 
 F64 = NDArray[np.float64]
 REPO: Final = Path(__file__).resolve().parents[1]

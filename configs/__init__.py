@@ -1,4 +1,4 @@
 """Shipped in the wheel as the package ``oarmreg_configs`` (see ``pyproject.toml``).
 
-Read through :mod:`registration.resources`; edit the TOML and URDF files beside this one.
+Read through :mod:`registration.io.resources`; edit the TOML and URDF files beside this one.
 """

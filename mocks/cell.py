@@ -32,9 +32,9 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.frames import as_transform, make_transform
-from registration.kinematics import RobotModel
-from registration.urdf_writer import SerialChain, read_chain, rotation_about
+from registration.calibration.urdf import SerialChain, read_chain, rotation_about
+from registration.model.frames import as_transform, make_transform
+from registration.model.kinematics import RobotModel
 
 F64 = NDArray[np.float64]
 

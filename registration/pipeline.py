@@ -2,8 +2,8 @@
 
 :func:`register_scan` runs detection (:func:`registration.detection.detect_spheres`), puts the
 phantom's sphere centres into the robot frame through the kinematics
-(:func:`registration.kinematics.sphere_centres_robot_mm`), registers the two point sets
-(:func:`registration.register.register_points`, Bai et al. 2018,
+(:func:`registration.model.kinematics.sphere_centres_robot_mm`), registers the two point sets
+(:func:`registration.matching.register.register_points`, Bai et al. 2018,
 doi:10.1088/1742-6596/1016/1/012006) and predicts the TRE (Fitzpatrick 1998 eq. 46) at targets
 given in the image frame.  :func:`verify_scan` is the paper's error analysis (§3, eq. 10) of a
 second scan against an existing ``image_from_robot``.
@@ -22,13 +22,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.detection import DetectionParams, DetectionResult, detect_spheres
-from registration.frames import apply, invert
-from registration.kinematics import RobotModel, sphere_centres_robot_mm
-from registration.phantom import Phantom
-from registration.quality import predicted_tre_mm
-from registration.register import RegistrationParams, RegistrationResult, register_points
-from registration.verification import VerificationResult, verify_registration
-from registration.volume import Volume
+from registration.imaging.volume import Volume
+from registration.matching.quality import predicted_tre_mm
+from registration.matching.records import (
+    RegistrationParams,
+    RegistrationResult,
+)
+from registration.matching.register import (
+    register_points,
+)
+from registration.matching.verification import VerificationResult, verify_registration
+from registration.model.frames import apply, invert
+from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
+from registration.model.phantom import Phantom
 
 F64 = NDArray[np.float64]
 
@@ -41,7 +47,7 @@ class PipelineParams:
     ----------
     detection, registration
         Passed to :func:`~registration.detection.detect_spheres` and
-        :func:`~registration.register.register_points` unchanged.
+        :func:`~registration.matching.register.register_points` unchanged.
     default_target_distance_mm : float
         Without targets, the TRE is predicted at the 6 points this far from the phantom centre
         along ±x, ±y, ±z of the robot frame.

@@ -28,8 +28,8 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from drivers.base import RobotLink
 from registration import __version__
-from registration.kinematics import RobotModel
-from registration.phantom import Phantom
+from registration.model.kinematics import RobotModel
+from registration.model.phantom import Phantom
 from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.context import ServiceContext
@@ -79,7 +79,8 @@ def create_app(
     robot_link : RobotLink, optional
         Default: ``drivers.base.open_link(settings.robot.link_url)`` (not connected until start-up).
     phantom, robot_model : optional
-        Pre-loaded :class:`registration.phantom.Phantom` / :class:`registration.kinematics.RobotModel`.
+        Pre-loaded :class:`registration.model.phantom.Phantom` /
+        :class:`registration.model.kinematics.RobotModel`.
     start_watcher : bool
         False to run without the folder watcher (tests that record scans themselves).
 
@@ -130,7 +131,7 @@ def _install_browser_layer(app: FastAPI, settings: Settings) -> None:
 
 
 def _load_phantom(settings: Settings) -> Phantom:
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     return load_phantom(settings.phantom_file)
 

@@ -4,8 +4,8 @@
 at once — stored with the reason — fewer than ``MIN_POSES`` scans or scans from several O-arm
 placements (FrameOfReferenceUID (0020,0052)), stores a ``running`` row and starts one worker
 thread.  The worker checks each scan's recorded capture (robot still, joints known), detects the
-spheres, matches them with the nominal model and rod (:func:`registration.calibration.match_pose`),
-and runs :func:`registration.calibration.calibrate`; it publishes ``calibration_progress`` (pose i
+spheres, matches them with the nominal model and rod (:func:`registration.calibration.solver.match_pose`),
+and runs :func:`registration.calibration.solver.calibrate`; it publishes ``calibration_progress`` (pose i
 of K, then the fit), then ``calibration_done`` or ``calibration_refused`` (stored with the reason).
 The calibrated URDF is written to ``data_dir/calibrations/<id>/robot.urdf`` and kept in the row.
 
@@ -32,18 +32,20 @@ from numpy.typing import NDArray
 
 from drivers.errors import RobotLinkError
 from registration import __version__
-from registration.calibration import (
+from registration.calibration.records import (
     MIN_POSES,
     CalibrationParams,
     MatchedPose,
+)
+from registration.calibration.solver import (
     calibrate,
     check_session,
     match_pose,
 )
+from registration.calibration.urdf import read_chain, write_calibrated_urdf
 from registration.errors import OarmRegError, RegistrationError
-from registration.kinematics import RobotModel, sphere_centres_robot_mm
-from registration.phantom import Phantom
-from registration.urdf_writer import read_chain, write_calibrated_urdf
+from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
+from registration.model.phantom import Phantom
 from service.error_map import http_status_of, title_of
 from service.errors import InternalError, NotFoundError
 from service.orchestrator import Orchestrator
@@ -286,7 +288,7 @@ class CalibrationJobs:
 
     def _match_all(self, cal_id: int, scans: list[ScanRecord]) -> tuple[list[MatchedPose], Any]:
         """Matched poses and the first scan's series geometry (the session's scan volume)."""
-        from registration.scan_geometry import series_geometry
+        from registration.imaging.scan_geometry import series_geometry
 
         det_params = self.orchestrator.params.detection
         out = []

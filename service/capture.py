@@ -7,7 +7,7 @@ configured on the link URL (``backoff_initial_s``, ``backoff_max_s``, seconds; s
 docs/robot-link.md).  :class:`Capture` only starts the link (never retries by itself),
 watches its health and publishes ``link_state`` events on every change.
 :meth:`Capture.snapshot` (thread-safe) takes the joints at a scan's arrival and asks
-:func:`registration.stillness.assess_stillness` whether the robot was still over
+:func:`registration.model.stillness.assess_stillness` whether the robot was still over
 ``stillness.window_s`` before the first file appeared and until the last file landed.
 """
 
@@ -184,7 +184,7 @@ class Capture:
         The window runs from ``stillness.window_s`` before ``first_seen_t_s`` (the first file of the
         series appeared) to ``last_change_t_s`` (the last file landed), monotonic seconds.
         """
-        from registration.stillness import assess_stillness
+        from registration.model.stillness import assess_stillness
 
         st = self.settings.stillness
         h = self.health()
@@ -261,7 +261,7 @@ class Capture:
 
     def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
         """The measured frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
-        from registration.stillness import stream_period_s
+        from registration.model.stillness import stream_period_s
 
         same = [s.t_s for s in self.link.history(end_t_s - PERIOD_HISTORY_S) if s.session == last.session]
         return stream_period_s(same)

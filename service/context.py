@@ -8,8 +8,8 @@ from datetime import UTC, datetime
 from typing import IO
 
 from drivers.base import RobotLink
-from registration.kinematics import RobotModel
-from registration.phantom import Phantom
+from registration.model.kinematics import RobotModel
+from registration.model.phantom import Phantom
 from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.event_bus import EventBus

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from registration import __version__
-from registration.phantom import Phantom
+from registration.matching.verification import VerificationResult
+from registration.model.phantom import Phantom
 from registration.pipeline import ScanRegistration, SpherePair
-from registration.verification import VerificationResult
 from service.records import (
     DetectionSummary,
     JointSnapshot,

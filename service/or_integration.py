@@ -66,7 +66,7 @@ from service.watcher import SeriesArrival
 
 if TYPE_CHECKING:
     from drivers.base import RobotLink
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
     from service.capture import Capture
     from service.event_bus import EventBus
     from service.orchestrator import Orchestrator

@@ -24,14 +24,18 @@ from numpy.typing import NDArray
 
 from drivers.errors import RobotLinkError
 from registration import __version__
-from registration.calibration import chain_error_figure
+from registration.calibration.records import (
+    chain_error_figure,
+)
 from registration.detection import params_for_spheres
 from registration.errors import DicomSeriesError, OarmRegError
-from registration.kinematics import RobotModel
-from registration.phantom import Phantom
+from registration.imaging.scan_geometry import series_geometry
+from registration.matching.records import (
+    RegistrationParams,
+)
+from registration.model.kinematics import RobotModel
+from registration.model.phantom import Phantom
 from registration.pipeline import PipelineParams, register_scan, verify_scan
-from registration.register import RegistrationParams
-from registration.scan_geometry import series_geometry
 from service.error_map import http_status_of, title_of
 from service.errors import (
     InternalError,

@@ -97,9 +97,9 @@ class JointSnapshot:
 
     @property
     def verdict(self) -> str:
-        """``still`` / ``moved`` / ``incomplete`` (registration.stillness.VERDICTS), derived from
+        """``still`` / ``moved`` / ``incomplete`` (registration.model.stillness.VERDICTS), derived from
         ``still`` and the reason: every "moved" reason starts with "robot moved"
-        (registration.stillness.assess_stillness), so records stored before the verdict existed
+        (registration.model.stillness.assess_stillness), so records stored before the verdict existed
         read the same way."""
         if self.still:
             return "still"
@@ -205,7 +205,8 @@ class RegistrationFigures:
     calibration's posterior figure, or the nominal model's prior when none; None before this version."""
     chain_error_source: str = ""
     series_geometry: JSONDict | None = None
-    """The scan's volume (:class:`registration.scan_geometry.SeriesGeometry`), for the pose planner."""
+    """The scan's volume (:class:`registration.imaging.scan_geometry.SeriesGeometry`), for the
+    pose planner."""
 
     def to_json(self) -> JSONDict:
         return {

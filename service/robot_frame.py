@@ -1,6 +1,6 @@
 """The robot base frame's DICOM Frame of Reference UID, minted once per data folder.
 
-The Spatial Registration object (``registration/sro.py``) names the robot frame by a UID;
+The Spatial Registration object (``registration/io/sro.py``) names the robot frame by a UID;
 it must stay the same for every registration of an installation, so it is stored in
 ``<data_dir>/robot_frame_of_reference_uid.txt``.  Minting is atomic and race-free: the UID
 is written to a temp file (fsync) and hard-linked into place, so two processes starting at

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 
 log = logging.getLogger(__name__)
 

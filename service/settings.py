@@ -46,9 +46,11 @@ from pydantic_settings import (
 )
 
 from registration.errors import ConfigError
-from registration.register import RegistrationParams
-from registration.resources import default_phantom
-from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
+from registration.io.resources import default_phantom
+from registration.matching.records import (
+    RegistrationParams,
+)
+from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
 from service.netaddr import is_loopback
 
 _REG_DEFAULTS = RegistrationParams()
@@ -80,7 +82,7 @@ class Tool0FromPhantom(_Section):
 
     def matrix(self) -> NDArray[np.float64]:
         """4 × 4 ``tool0_from_phantom`` (mm), URDF rpy convention."""
-        from registration.frames import transform_from_xyz_rpy
+        from registration.model.frames import transform_from_xyz_rpy
 
         return transform_from_xyz_rpy(self.translation_mm, self.rpy_deg)
 
@@ -202,7 +204,7 @@ class Tool0FromTcp(_Section):
 
     def matrix(self) -> NDArray[np.float64]:
         """4 × 4 ``tool0_from_tcp`` (mm), URDF rpy convention (identity by default)."""
-        from registration.frames import transform_from_xyz_rpy
+        from registration.model.frames import transform_from_xyz_rpy
 
         return transform_from_xyz_rpy(self.translation_mm, self.rpy_deg)
 

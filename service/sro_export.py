@@ -1,6 +1,6 @@
 """The DICOM Spatial Registration object of a stored registration (``GET /registrations/{id}/dicom``).
 
-Built by :func:`registration.sro.build_spatial_registration` from the registration record
+Built by :func:`registration.io.sro.build_spatial_registration` from the registration record
 (``image_from_robot``, FRE, predicted TRE, its state) and what was stored of its scan
 (:mod:`service.store.scan_instances`).  The SOP Instance and Series Instance UIDs are derived
 from the robot frame's UID and the registration id and time, so fetching the same
@@ -54,7 +54,7 @@ def sro_dataset(
     SroError
         The stored matrix is not rigid (never for an accepted registration).
     """
-    from registration.sro import build_spatial_registration
+    from registration.io.sro import build_spatial_registration
 
     if rec.status != "accepted" or rec.image_from_robot is None or rec.fre_mm is None:
         raise SroUnavailableError(

@@ -6,7 +6,7 @@ import threading
 from collections import OrderedDict
 
 from registration.errors import DicomSeriesError
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 from service.records import ScanRecord
 
 VOLUME_CACHE_SIZE = 2

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.errors import DicomSeriesError, OarmRegError
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ class SeriesArrival:
 
     ``first_seen_t_s`` / ``last_change_t_s`` are ``time.monotonic()`` values: when the
     watcher first saw the folder's current content appear and when it last changed.
-    ``volume`` is the loaded :class:`registration.volume.Volume` (None when ``error`` is set
+    ``volume`` is the loaded :class:`registration.imaging.volume.Volume` (None when ``error`` is set
     or when ``duplicate``).
     """
 

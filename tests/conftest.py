@@ -105,6 +105,6 @@ def phantom_path() -> Path:
 
 @pytest.fixture(scope="session")
 def phantom(phantom_path: Path):  # type: ignore[no-untyped-def]
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     return load_phantom(phantom_path)

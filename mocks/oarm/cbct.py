@@ -74,9 +74,9 @@ from mocks.oarm.simulator import (
     image_from_scanner,
     kernel_scatter,
 )
-from registration import frames
 from registration.errors import ConfigError
-from registration.phantom import Phantom
+from registration.model import frames
+from registration.model.phantom import Phantom
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]

@@ -126,7 +126,7 @@ MATERIALS: dict[str, Material] = {
 }
 
 SPHERE_MATERIALS = ("steel", "tungsten_carbide", "titanium")
-"""Materials a phantom's spheres can be made of (registration/phantom.py lists the same names)."""
+"""Materials a phantom's spheres can be made of (registration/model/phantom.py lists the same names)."""
 
 SCENE_MATERIALS = ("water", "plastic", "bone_cortical", "bone_cancellous", "steel", "sphere")
 """Material slots of the simulator's line-integral arrays (``plastic`` is POM or PMMA; ``sphere``

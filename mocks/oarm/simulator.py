@@ -58,10 +58,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocks.oarm import physics
-from registration import frames
 from registration.errors import ConfigError
-from registration.phantom import Phantom
-from registration.volume import Volume
+from registration.imaging.volume import Volume
+from registration.model import frames
+from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)
 
@@ -1156,7 +1156,7 @@ def _apply_psf(vol: F32, s: AcquisitionSettings, inside: NDArray[np.bool_], fill
 
 
 def scan_to_volume(scan: SimulatedScan) -> Volume:
-    """The scan as a :class:`~registration.volume.Volume` (what the DICOM loader would return)."""
+    """The scan as a :class:`~registration.imaging.volume.Volume` (what the DICOM loader would return)."""
     return Volume(
         voxels=scan.hu,
         image_from_voxel=scan.image_from_voxel.copy(),

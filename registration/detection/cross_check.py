@@ -1,8 +1,8 @@
 """Step 5 of the detection: the circles in a sphere's slices, the cross-check of its 3-D centre.
 
 In each slice a sphere spans, a square patch around the centre is searched for circles by moment
-invariants (:mod:`registration.circles`, Bai 2018 §2.2), after the polar MAR
-(:mod:`registration.mar`) on every patch when the circles are the measurement (``paper``), else
+invariants (:mod:`registration.imaging.circles`, Bai 2018 §2.2), after the polar MAR
+(:mod:`registration.imaging.mar`) on every patch when the circles are the measurement (``paper``), else
 only on a patch whose raw cross-section fails the circle test.  The accepted circle nearest the
 3-D centre per slice gives the sphere's slice count, its fitted (apparent) radius and its score;
 a blob with none is refused unless it is a split core (its 3-D shape was already tested).
@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.circles import CircleParams, find_circles
 from registration.detection.candidates import Support
 from registration.detection.centroid import _support_mask
 from registration.detection.params import DetectionParams
 from registration.detection.timing import StageTimer
-from registration.mar import reduce_metal_artifacts
+from registration.imaging.circles import CircleParams, find_circles
+from registration.imaging.mar import reduce_metal_artifacts
 
 F64 = NDArray[np.float64]
 

@@ -44,7 +44,7 @@ from registration.detection.rejections import (
 )
 from registration.detection.timing import TIMED_STAGES, StageTimer
 from registration.errors import DetectionError
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 
 log = logging.getLogger(__name__)
 

@@ -13,19 +13,19 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final
 
-from registration.circles import CircleParams
 from registration.detection.estimators import METHODS
 from registration.detection.estimators.core_centroid import CoreParams
 from registration.detection.estimators.ray_fit import RayParams
 from registration.errors import DetectionError
-from registration.mar import MarParams
+from registration.imaging.circles import CircleParams
+from registration.imaging.mar import MarParams
 
 METHOD_FOR_MATERIAL: Final[Mapping[str, str]] = {
     "tungsten_carbide": "core",
     "steel": "rays",
     "titanium": "rays",
 }
-"""Centre estimator per sphere material (``registration.phantom``'s names) where it is not the
+"""Centre estimator per sphere material (``registration.model.phantom``'s names) where it is not the
 default ``subvoxel``.  On the simulator's hard scans (``python -m benchmarks.bench_detection
 --hard 40``, and held-out seeds) ``core`` measured best on tungsten carbide and worse on steel and
 titanium, ``rays`` best on steel and titanium and worse than ``core`` on tungsten carbide:

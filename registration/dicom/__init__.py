@@ -1,4 +1,4 @@
-"""Load one CT series (folder or DICOMDIR) into a :class:`~registration.volume.Volume`.
+"""Load one CT series (folder or DICOMDIR) into a :class:`~registration.imaging.volume.Volume`.
 
 The package, in the order a load runs:
 

@@ -1,4 +1,5 @@
-"""Load one CT series from a folder or a DICOMDIR file-set into a :class:`~registration.volume.Volume`.
+"""Load one CT series from a folder or a DICOMDIR file-set into a
+:class:`~registration.imaging.volume.Volume`.
 
 The loader is the one I/O edge of :mod:`registration` (design.md §3,
 research/image-side.md §1.2): find files and read their headers
@@ -25,7 +26,7 @@ from registration.dicom.selection import (
     select_series,
     summarise,
 )
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from registration.resources import default_phantom
+from registration.io.resources import default_phantom
 from service.commands.detect import add_method_argument
 
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
@@ -131,8 +131,10 @@ N_JOINTS = 6
 
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
     """(robot_model, [(name, scan_dir, joints_rad)]) from POSES.json; paths resolved against its folder."""
-    from registration.calibration import MIN_POSES  # checked here before any scan is read
-    from registration.points_io import _load_json
+    from registration.calibration.records import (
+        MIN_POSES,
+    )
+    from registration.io.points import _load_json
 
     obj = _load_json(path)
     poses = obj.get("poses") if isinstance(obj, dict) else None
@@ -169,11 +171,11 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
 
 
 def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, Any]) -> Any:
-    from registration.calibration import match_pose
+    from registration.calibration.solver import match_pose
     from registration.detection import detect_spheres
     from registration.dicom import load_series
-    from registration.kinematics import sphere_centres_robot_mm
-    from registration.scan_geometry import series_geometry
+    from registration.imaging.scan_geometry import series_geometry
+    from registration.model.kinematics import sphere_centres_robot_mm
 
     volume = load_series(scan_dir)
     ctx.setdefault("geometry", series_geometry(volume))
@@ -201,8 +203,10 @@ def calibration_params(
 ) -> Any:
     """The one mapping from the CLI flags / the service's request fields to ``CalibrationParams``:
     ``oarmreg calibrate run``, ``POST /calibrations`` and ``oarmreg demo --calibrate`` all pass
-    through here, so their defaults are :class:`registration.calibration.CalibrationParams`'s."""
-    from registration.calibration import CalibrationParams
+    through here, so their defaults are :class:`registration.calibration.solver.CalibrationParams`'s."""
+    from registration.calibration.records import (
+        CalibrationParams,
+    )
 
     extra: dict[str, Any] = {}
     if estimator is not None:
@@ -228,11 +232,11 @@ def run_calibration(args: argparse.Namespace) -> int:
     import dataclasses
 
     from registration import __version__
-    from registration.calibration import calibrate
-    from registration.kinematics import RobotModel, default_tool0_from_phantom
-    from registration.phantom import load_phantom
-    from registration.points_io import write_json
-    from registration.urdf_writer import read_chain, write_calibrated_urdf
+    from registration.calibration.solver import calibrate
+    from registration.calibration.urdf import read_chain, write_calibrated_urdf
+    from registration.io.points import write_json
+    from registration.model.kinematics import RobotModel, default_tool0_from_phantom
+    from registration.model.phantom import load_phantom
 
     robot_name, poses = read_poses_file(args.poses)
     model = RobotModel.load(args.robot or robot_name or "tx60")
@@ -330,9 +334,9 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
     import numpy as np
 
     from registration.errors import ConfigError
-    from registration.frames import NotRigidError, as_transform
-    from registration.kinematics import RobotModel
-    from registration.points_io import _load_json
+    from registration.io.points import _load_json
+    from registration.model.frames import NotRigidError, as_transform
+    from registration.model.kinematics import RobotModel
 
     path = Path(caldir) / CALIBRATION_FILE
     if not path.is_file():
@@ -350,9 +354,9 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
 
 def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
     """Sphere centres (robot frame) for ``oarmreg register --joints [--calibration]``."""
-    from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
-    from registration.phantom import load_phantom
-    from registration.points_io import _load_json
+    from registration.io.points import _load_json
+    from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
+    from registration.model.phantom import load_phantom
 
     obj = _load_json(args.joints)
     joints = obj.get("joints_rad") if isinstance(obj, dict) else None
@@ -388,12 +392,12 @@ def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any
 def run_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from registration import frames
-    from registration.kinematics import RobotModel, default_tool0_from_phantom
-    from registration.phantom import load_phantom
-    from registration.points_io import _load_json, read_registration, write_json
-    from registration.pose_planner import PlannerParams, ScanVolume, plan_poses
-    from registration.urdf_writer import read_chain
+    from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses
+    from registration.calibration.urdf import read_chain
+    from registration.io.points import _load_json, read_registration, write_json
+    from registration.model import frames
+    from registration.model.kinematics import RobotModel, default_tool0_from_phantom
+    from registration.model.phantom import load_phantom
 
     if args.n < 6:
         raise _config_error(f"--n {args.n}: a calibration needs at least 6 poses")
@@ -418,7 +422,7 @@ def run_plan(args: argparse.Namespace) -> int:
     pts = load_phantom(args.phantom).centres_phantom_mm
     geometry = reg_doc.get("series_geometry")
     if geometry is not None:
-        from registration.scan_geometry import SeriesGeometry
+        from registration.imaging.scan_geometry import SeriesGeometry
 
         base = SeriesGeometry.from_dict(geometry).scan_volume()
         source = f"series_geometry of {args.registration}"

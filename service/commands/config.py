@@ -82,8 +82,8 @@ def validate_resources(settings: Any) -> None:
     """What ``serve`` checks at start-up besides the settings themselves; ConfigError naming the key."""
     from drivers.factory import open_link
     from registration.errors import ConfigError
-    from registration.kinematics import RobotModel
-    from registration.phantom import load_phantom
+    from registration.model.kinematics import RobotModel
+    from registration.model.phantom import load_phantom
 
     try:
         load_phantom(settings.phantom_file)

@@ -38,8 +38,8 @@ if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-    from registration.kinematics import RobotModel
-    from registration.phantom import Phantom
+    from registration.model.kinematics import RobotModel
+    from registration.model.phantom import Phantom
     from service.context import ServiceContext
     from service.settings import Settings
 
@@ -251,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
     from mocks.oarm.simulator import demo_pose
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from registration.frames import invert
+    from registration.model.frames import invert
     from service.app import create_app
     from service.commands.serve import serve_in_thread
 
@@ -321,7 +321,7 @@ def _scan_and_register(d: _Demo) -> None:
 
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
-    from registration.frames import apply, rotation_angle_deg
+    from registration.model.frames import apply, rotation_angle_deg
 
     acq = AcquisitionSettings.preset(d.preset)
     scan1 = simulate_scan(d.phantom, d.image_from_phantom_1, acq, progress=_Progress("O-arm scan 1"))

@@ -4,7 +4,7 @@ Called by :mod:`service.commands.demo` once its own registration and verificatio
 and the simulated O-arm pose the phantom through the TRUE cell, :class:`mocks.cell.TrueCell`,
 while the service believes the nominal robot and rod).
 
-1. plan K poses (:func:`registration.pose_planner.plan_poses`) from the current registration;
+1. plan K poses (:func:`registration.calibration.planner.plan_poses`) from the current registration;
 2. move the mock robot to each, scan (one FrameOfReferenceUID), export into the watch folder;
 3. ``POST /calibrations`` with those scans, wait for it;
 4. move the O-arm (a new hidden ``image_from_robot``, a new FrameOfReferenceUID), scan once at a
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from registration import frames
+from registration.model import frames
 
 N_POSES = 10
 N_HELD_OUT = 10
@@ -112,8 +112,8 @@ def _true_errors_mm(d: Any, reg: dict[str, Any], model: Any, rod: Any, y_true: A
 
 def _plan(d: Any) -> tuple[Any, Any]:
     """K calibration poses from the current registration; held-out candidates at the moved O-arm."""
-    from registration.pose_planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
-    from registration.urdf_writer import read_chain
+    from registration.calibration.planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
+    from registration.calibration.urdf import read_chain
 
     acq = _acq()
     volume = ScanVolume(
@@ -196,7 +196,7 @@ def _register_and_verify(
 def _before_after(
     d: Any, h: DemoHooks, cal: dict[str, Any], urdf: Path, cand: Any, rng: Any, t0: float
 ) -> None:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     y2 = _moved_y(d)
     idx = np.linspace(0, len(cand) - 1, N_HELD_OUT + 2).round().astype(int)

@@ -23,12 +23,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from registration.resources import default_phantom
+from registration.io.resources import default_phantom
 from service.commands.argtypes import positive_float
 
 if TYPE_CHECKING:
     from registration.detection import DetectionParams
-    from registration.phantom import Phantom
+    from registration.model.phantom import Phantom
 
 DEFAULT_PHANTOM = default_phantom()
 
@@ -85,7 +85,7 @@ def detection_params_for_phantom(
     :class:`~registration.detection.DetectionParams` fields.
     """
     from registration.detection import params_for_spheres
-    from registration.phantom import Phantom, load_phantom
+    from registration.model.phantom import Phantom, load_phantom
 
     if not isinstance(phantom, Phantom):
         phantom = load_phantom(

@@ -10,7 +10,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from registration.resources import default_phantom
+from registration.io.resources import default_phantom
 from service.commands.argtypes import float_below, positive_float, positive_int
 from service.commands.detect import add_method_argument
 
@@ -124,7 +124,7 @@ def sha256_of(path: Path) -> str:
 def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timings: dict[str, float]) -> Any:
     """(M, 3) image-frame centres from ``--image-points`` or by loading + detecting ``dicom_dir``."""
     from registration.errors import PointsFileError
-    from registration.points_io import read_points
+    from registration.io.points import read_points
 
     if (args.dicom_dir is None) == (args.image_points is None):
         raise PointsFileError("give either DICOM_DIR or --image-points FILE.json (exactly one of them)")
@@ -142,7 +142,7 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
     t0 = time.perf_counter()
     volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     timings["load_s"] = time.perf_counter() - t0
-    from registration.scan_geometry import series_geometry
+    from registration.imaging.scan_geometry import series_geometry
 
     # the scan's real volume, for `oarmreg calibrate plan` (moved to the top level by run)
     provenance["series_geometry"] = series_geometry(volume).to_dict()
@@ -179,8 +179,8 @@ def parse_prior(text: str | None) -> Any:
     import numpy as np
 
     from registration.errors import PointsFileError
-    from registration.frames import transform_from_xyz_rpy
-    from registration.points_io import _load_json
+    from registration.io.points import _load_json
+    from registration.model.frames import transform_from_xyz_rpy
 
     path = Path(text)
     if path.suffix.lower() == ".json" or path.is_file():
@@ -218,7 +218,7 @@ def parse_prereg(text: str | None) -> list[tuple[int, int]] | None:
 def write_refusal(path: Path | None, error: Exception) -> None:
     if path is None:
         return
-    from registration.points_io import write_json
+    from registration.io.points import write_json
 
     write_json(path, {"refused": True, "reason": str(error), "error": type(error).__name__})
 
@@ -230,9 +230,15 @@ def run(args: argparse.Namespace) -> int:
 
     from registration import __version__
     from registration.errors import OarmRegError
-    from registration.phantom import load_phantom
-    from registration.points_io import read_points, read_targets, write_json
-    from registration.register import RegistrationParams, params_dict, register_points
+    from registration.io.points import read_points, read_targets, write_json
+    from registration.matching.records import (
+        RegistrationParams,
+        params_dict,
+    )
+    from registration.matching.register import (
+        register_points,
+    )
+    from registration.model.phantom import load_phantom
 
     try:
         timings: dict[str, float] = {}
@@ -290,7 +296,9 @@ def run(args: argparse.Namespace) -> int:
     if geometry is not None:
         doc["series_geometry"] = geometry
     if args.joints is not None:  # the chain's figure (calibration posterior or nominal prior)
-        from registration.calibration import chain_error_figure
+        from registration.calibration.records import (
+            chain_error_figure,
+        )
 
         cal = (doc.get("provenance") or {}).get("calibration")
         doc["predicted_chain_error_mm"], doc["chain_error_source"] = chain_error_figure(cal)
@@ -318,7 +326,7 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     """
     from registration.dicom import list_series
     from registration.errors import PointsFileError
-    from registration.sro import build_spatial_registration
+    from registration.io.sro import build_spatial_registration
     from service.or_integration import scan_instances_from_files
     from service.robot_frame import _UID_RE, RobotFrameUidError, robot_frame_uid
     from service.sro_export import ct_headers

@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from registration.resources import default_phantom
+from registration.io.resources import default_phantom
 from service.commands.argtypes import positive_float
 
 HELP = "read joint angles from the robot controller, or the sphere centres in the robot frame"
@@ -153,8 +153,8 @@ def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
     import numpy as np
 
     from registration.errors import ConfigError
-    from registration.frames import as_transform, transform_from_xyz_rpy
-    from registration.kinematics import default_tool0_from_phantom
+    from registration.model.frames import as_transform, transform_from_xyz_rpy
+    from registration.model.kinematics import default_tool0_from_phantom
 
     if cli:
         if len(cli) == 6:
@@ -188,9 +188,9 @@ async def _points(args: argparse.Namespace) -> int:
     from drivers.errors import LinkConfigError
     from drivers.factory import open_link
     from registration.errors import JointHistoryIncompleteError, RobotMovedError
-    from registration.kinematics import RobotModel, sphere_centres_robot_mm
-    from registration.phantom import load_phantom
-    from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S, assess_stillness
+    from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
+    from registration.model.phantom import load_phantom
+    from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S, assess_stillness
 
     cfg, base = _load_config(args.config)
     robot_cfg = cfg.get("robot", {})

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from registration.resources import default_phantom
+from registration.io.resources import default_phantom
 from service.commands.argtypes import positive_float, positive_int
 
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, pose_from_string, simulate_scan
     from registration.errors import ConfigError
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
 
     if args.dose <= 0:
         raise ConfigError(f"--dose must be > 0, got {args.dose}")

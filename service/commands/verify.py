@@ -36,8 +36,8 @@ def run(args: argparse.Namespace) -> int:
 
     from registration import __version__
     from registration.errors import OarmRegError
-    from registration.points_io import read_points, read_registration, write_json
-    from registration.verification import verify_registration
+    from registration.io.points import read_points, read_registration, write_json
+    from registration.matching.verification import verify_registration
 
     timings: dict[str, float] = {}
     provenance: dict[str, Any] = {

@@ -24,7 +24,7 @@ CalibrationStatus = Literal["running", "done", "refused"]
 class CalibrationRecord:
     """One calibration session (``id`` 0 until stored).
 
-    ``result`` is :meth:`registration.calibration.CalibrationResult.to_dict` plus ``provenance``
+    ``result`` is :meth:`registration.calibration.solver.CalibrationResult.to_dict` plus ``provenance``
     (None unless ``done``); ``urdf_text`` the calibrated URDF; ``calibration_hash`` the SHA-256 of
     the URDF and ``tool0_from_phantom`` (what a registration's provenance names).
     """

@@ -29,11 +29,11 @@ from numpy.typing import NDArray
 
 from mocks.cell import CellErrorSizes, SimulatedPose, TrueCell, simulate_pose_scan
 from mocks.oarm.simulator import AcquisitionSettings
-from registration import frames
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.pose_planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
-from registration.register import register_points
-from registration.urdf_writer import read_chain
+from registration.calibration.planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
+from registration.calibration.urdf import read_chain
+from registration.matching.register import register_points
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from service.cli import main
 
 F64 = NDArray[np.float64]

@@ -16,9 +16,9 @@ import pytest
 
 from mocks.oarm import cbct
 from mocks.oarm.simulator import SceneExtras, scan_to_volume
-from registration import frames
 from registration.detection import detect_spheres
-from registration.phantom import load_phantom
+from registration.model import frames
+from registration.model.phantom import load_phantom
 from tests.helpers.accuracy import _every_sphere_and_a_correct_registration, _match, _params
 from tests.helpers.paths import CONFIGS
 

@@ -17,9 +17,9 @@ import pytest
 
 from mocks.oarm import simulator as sim
 from mocks.oarm.dicom_export import write_dicom_series
-from registration import frames
 from registration.detection import DetectionParams, DetectionResult, detect_spheres, params_for_spheres
 from registration.dicom import load_series
+from registration.model import frames
 
 pytestmark = pytest.mark.slow  # two simulated scans and six detections: tens of seconds
 

@@ -29,11 +29,16 @@ from mocks.oarm.simulator import (
     image_from_scanner,
     simulate_scan,
 )
-from registration import frames
 from registration.detection import detect_spheres, params_for_spheres
 from registration.dicom import load_series
-from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
-from registration.register import RegistrationResult, register_points
+from registration.matching.records import (
+    RegistrationResult,
+)
+from registration.matching.register import (
+    register_points,
+)
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 
 F64 = NDArray[np.float64]
 TARGET_DISTANCE_MM = 150.0

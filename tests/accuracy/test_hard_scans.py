@@ -25,7 +25,7 @@ import pytest
 
 from mocks.oarm import simulator as sim
 from registration.detection import detect_spheres
-from registration.register import register_points
+from registration.matching.register import register_points
 from tests.helpers.accuracy import (
     STEEL_MAX_MM,
     WC_MAX_MM,

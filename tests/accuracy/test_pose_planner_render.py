@@ -22,13 +22,13 @@ import numpy as np
 
 from mocks.cell import CellErrorSizes, TrueCell, simulate_pose_scan
 from mocks.oarm.simulator import AcquisitionSettings
-from registration import frames
+from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses
+from registration.calibration.urdf import read_chain
 from registration.dicom import load_series
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.pose_planner import PlannerParams, ScanVolume, plan_poses
-from registration.register import register_points
-from registration.scan_geometry import series_geometry
-from registration.urdf_writer import read_chain
+from registration.imaging.scan_geometry import series_geometry
+from registration.matching.register import register_points
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 
 START_JOINTS_RAD = np.array([0.2, -0.15, 1.75, 0.3, 0.6, -0.9])
 FOR_UID = "1.2.826.0.1.3680043.8.498.2020"

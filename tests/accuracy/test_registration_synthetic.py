@@ -15,10 +15,15 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from registration import frames
 from registration.errors import AmbiguousMatchError, RegistrationError
-from registration.phantom import Phantom
-from registration.register import RegistrationResult, register_points
+from registration.matching.records import (
+    RegistrationResult,
+)
+from registration.matching.register import (
+    register_points,
+)
+from registration.model import frames
+from registration.model.phantom import Phantom
 
 N_CASES = 60
 IMAGE_SIGMA_MM = 0.05

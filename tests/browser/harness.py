@@ -65,8 +65,8 @@ class World:
 
 def make_world(phantom: Any) -> World:
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
-    from registration.frames import invert, transform_from_xyz_rpy
-    from registration.kinematics import RobotModel
+    from registration.model.frames import invert, transform_from_xyz_rpy
+    from registration.model.kinematics import RobotModel
 
     model = RobotModel.load("tx60")
     t0p = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])

@@ -20,8 +20,8 @@ QUOTA_MB = 2048.0
 
 
 def main(argv: list[str]) -> int:
-    from registration.phantom import load_phantom
-    from registration.resources import default_phantom
+    from registration.io.resources import default_phantom
+    from registration.model.phantom import load_phantom
 
     out = Path(argv[0] if argv else "docs/img")
     out.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from registration.frames import transform_from_xyz_rpy
+from registration.model.frames import transform_from_xyz_rpy
 from tests.faults._service import Events, Svc, factory_series, in_process_service, wait_for
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
@@ -78,7 +78,7 @@ def _fill(folder: Path) -> Path:
 def test_disk_full_on_the_data_folder_is_507_and_loses_nothing(
     tmpfs_root: Path, phantom: Any, small_scan: Any
 ) -> None:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     loose = {"stillness.window_s": 1.2, "stillness.max_gap_s": 0.6}
     with in_process_service(tmpfs_root, phantom, RobotModel.load("tx60"), **loose) as svc:
@@ -107,7 +107,7 @@ def test_disk_full_on_the_data_folder_is_507_and_loses_nothing(
 def test_link_dropped_mid_scan_is_refused_with_the_reason_and_recovers(
     tmp_path: Path, phantom: Any, small_scan: Any
 ) -> None:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     loose = {"stillness.window_s": 1.2, "stillness.max_gap_s": 0.3}
     with in_process_service(tmp_path, phantom, RobotModel.load("tx60"), **loose) as svc:
@@ -136,7 +136,7 @@ def test_link_dropped_mid_scan_is_refused_with_the_reason_and_recovers(
 
 
 def test_a_burst_of_ten_scans_is_recorded_completely(tmp_path: Path, phantom: Any) -> None:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     with in_process_service(tmp_path, phantom, RobotModel.load("tx60")) as svc:
         staging = tmp_path / "burst"

@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from registration.frames import transform_from_xyz_rpy
+from registration.model.frames import transform_from_xyz_rpy
 from tests.faults._service import DEADLINE_S, Events, Svc, factory_series, in_process_service, wait_for
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
@@ -28,7 +28,7 @@ IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0]
 
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Svc]:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     # a wider gap tolerance than the default test settings: the suite shares 2 cores with the others
     root = tmp_path_factory.mktemp("faults-files")
@@ -245,7 +245,7 @@ def test_a_phantom_file_that_is_not_a_regular_file_is_refused_unread(tmp_path: P
     import threading
 
     from registration.errors import PhantomDefinitionError
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
     from service.cli import main
     from service.error_map import EXIT_CONFIG
 

@@ -25,7 +25,7 @@ from typing import Any
 
 import httpx
 
-from registration.frames import invert, transform_from_xyz_rpy
+from registration.model.frames import invert, transform_from_xyz_rpy
 from tests.faults._service import (
     DEADLINE_S,
     Q1,
@@ -117,7 +117,7 @@ def _world(root: Path, phantom: Any) -> Iterator[tuple[Path, Any, tuple[Any, Any
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     model = RobotModel.load("tx60")
     t0p = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])

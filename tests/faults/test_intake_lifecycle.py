@@ -36,7 +36,7 @@ from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 from pynetdicom import AE
 
-from registration.frames import transform_from_xyz_rpy
+from registration.model.frames import transform_from_xyz_rpy
 from tests.faults._service import (
     DEADLINE_S,
     TOKEN,
@@ -198,7 +198,7 @@ def sim_scan(phantom: Any) -> Any:
 
 @pytest.fixture(scope="module")
 def lc(tmp_path_factory: pytest.TempPathFactory, phantom: Any, sim_scan: Any) -> Iterator[Lc]:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     root = tmp_path_factory.mktemp("lifecycle")
     kw = {"dicom.enabled": True, "dicom.port": 0, "dicom.ae_title": AE_TITLE, **_supported(SCP_BOUNDS)}
@@ -356,7 +356,7 @@ def _try_send(port: int, datasets: list[Dataset]) -> list[int] | None:
 def test_item5_retention_covers_the_cstore_intake_folder_and_withdraws_nothing(
     tmp_path: Path, phantom: Any
 ) -> None:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     kw = {"dicom.enabled": True, "dicom.port": 0, "dicom.ae_title": AE_TITLE,
           "retention.max_disk_mb": 0.001, "retention.interval_s": 1.0}  # fmt: skip

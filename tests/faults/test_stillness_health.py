@@ -28,8 +28,8 @@ from tests.faults._service import (
 
 @pytest.fixture(scope="module")
 def world() -> Any:
-    from registration.kinematics import RobotModel
-    from registration.phantom import load_phantom
+    from registration.model.kinematics import RobotModel
+    from registration.model.phantom import load_phantom
     from service.settings import DEFAULT_PHANTOM_FILE
 
     return load_phantom(DEFAULT_PHANTOM_FILE), RobotModel.load("tx60")

@@ -41,8 +41,8 @@ STOP_S = 0.4
 def _service(root: Path, kind: str) -> Iterator[Svc]:
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from registration.kinematics import RobotModel
-    from registration.phantom import load_phantom
+    from registration.model.kinematics import RobotModel
+    from registration.model.phantom import load_phantom
     from service.app import create_app
     from service.commands.serve import serve_in_thread
     from service.settings import DEFAULT_PHANTOM_FILE, load_settings

@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 import pytest
 
-from registration.frames import transform_from_xyz_rpy
+from registration.model.frames import transform_from_xyz_rpy
 from tests.faults.conftest import (
     JSON,
     RAW_TIMEOUT_S,
@@ -122,7 +122,7 @@ def mock_controller_process() -> Iterator[str]:
 
 @pytest.fixture(scope="module")
 def running(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Any]:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     root = tmp_path_factory.mktemp("stream")
     with mock_controller_process() as url:

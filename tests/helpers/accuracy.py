@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from mocks.oarm import simulator as sim
-from registration import frames
 from registration.detection import DetectionParams, DetectionResult, params_for_spheres
-from registration.phantom import Phantom, load_phantom
-from registration.register import register_points
+from registration.matching.register import register_points
+from registration.model import frames
+from registration.model.phantom import Phantom, load_phantom
 from tests.helpers.paths import CONFIGS
 
 MAX_MATCH_MM = 1.0

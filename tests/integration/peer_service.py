@@ -17,7 +17,7 @@ import pydicom
 from pydicom.uid import CTImageStorage
 from pynetdicom import AE
 
-from registration.frames import transform_from_xyz_rpy
+from registration.model.frames import transform_from_xyz_rpy
 from tests.integration.polling import poll_until
 
 TOKEN = "peer-suite-test-token-0123456789"
@@ -70,7 +70,7 @@ def running_service(root: Path, phantom: Any, **overrides: Any) -> Iterator[Peer
     """The service on ``root`` (``overrides``: more ``load_settings`` keys, e.g. ``pacs.port``)."""
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
     from service.app import create_app
     from service.commands.serve import serve_in_thread
     from service.settings import load_settings

@@ -24,7 +24,7 @@ import httpx
 import numpy as np
 import pytest
 
-from registration import frames
+from registration.model import frames
 from tests.integration.polling import poll_until
 
 TOKEN = "calibration-test-token-0123456789"
@@ -103,9 +103,9 @@ def session(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from registration.kinematics import RobotModel
-    from registration.pose_planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
-    from registration.urdf_writer import read_chain
+    from registration.calibration.planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
+    from registration.calibration.urdf import read_chain
+    from registration.model.kinematics import RobotModel
     from service.app import create_app
     from service.commands.serve import serve_in_thread
     from service.settings import load_settings
@@ -194,7 +194,7 @@ def _true_error_mm(s: Session, reg: dict[str, Any], model: Any, rod: np.ndarray,
 
 
 def test_calibrate_activate_retire_and_register_with_it(session: Session, phantom: Any) -> None:
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     c = session.client
     before = c.post("/register", json={"scan_id": session.scan_ids[-1]})

@@ -71,7 +71,7 @@ def test_detect_uses_the_phantom_materials_method_as_the_service_does(export, tm
     """No ``--method``: the estimator the service would use for the phantom's sphere material
     (steel → ``rays``; a tungsten-carbide phantom file → ``core``); ``--method`` overrides it."""
     from registration.detection import method_for_material
-    from registration.resources import default_phantom
+    from registration.io.resources import default_phantom
 
     folder, _ = export
     assert main(["detect", str(folder), "--json", str(tmp_path / "a.json")]) == 0
@@ -102,7 +102,7 @@ def test_detect_refuses_a_bad_phantom_file_with_the_config_exit_code(export, tmp
 def wc_export(tmp_path_factory: pytest.TempPathFactory, phantom):  # type: ignore[no-untyped-def]
     """A tungsten-carbide series and the phantom file that names the material."""
     from mocks.oarm.simulator import SceneExtras
-    from registration.resources import default_phantom
+    from registration.io.resources import default_phantom
 
     settings = AcquisitionSettings.preset("demo", rows=256, columns=256, n_views=180)
     scan = simulate_scan(phantom, demo_pose(), settings, SceneExtras(sphere_material="tungsten_carbide"))
@@ -123,8 +123,8 @@ def test_detect_and_register_find_the_same_spheres(  # type: ignore[no-untyped-d
     phantom file's material, as the service): on the same series they report the same estimator
     and the same sphere centres, for steel (``rays``) and tungsten carbide (``core``)."""
     from registration.detection import method_for_material
-    from registration.points_io import write_json
-    from registration.resources import default_phantom
+    from registration.io.points import write_json
+    from registration.io.resources import default_phantom
 
     folder, phantom_file = (export[0], default_phantom()) if material == "steel" else wc_export
     det_json, reg_json, robot_json = tmp_path / "det.json", tmp_path / "reg.json", tmp_path / "robot.json"

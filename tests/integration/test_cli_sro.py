@@ -9,8 +9,8 @@ import numpy as np
 import pydicom
 import pytest
 
-from registration.frames import apply, transform_from_xyz_rpy
-from registration.points_io import write_json
+from registration.io.points import write_json
+from registration.model.frames import apply, transform_from_xyz_rpy
 from service.cli import main
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
@@ -36,7 +36,7 @@ def _robot_points(tmp_path: Path, phantom: Any) -> Path:
 def test_register_writes_an_sro_with_the_stored_robot_frame_uid(
     scan_dir: Path, phantom: Any, tmp_path: Path
 ) -> None:
-    from registration.sro import image_from_robot_of
+    from registration.io.sro import image_from_robot_of
     from service.robot_frame import robot_frame_uid
 
     data, sro, js = tmp_path / "data", tmp_path / "out" / "reg.dcm", tmp_path / "reg.json"

@@ -20,7 +20,7 @@ from polling import wait_until
 from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
-from registration.kinematics import RobotModel
+from registration.model.kinematics import RobotModel
 from service.igtl import wire
 from service.igtl.server import (
     RAS_FROM_LPS,

@@ -250,8 +250,8 @@ def test_motion_port_and_bad_urls_refused() -> None:
 def test_cli_robot_joints_json_and_points(capsys: pytest.CaptureFixture[str]) -> None:
     import json
 
-    from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
-    from registration.phantom import load_phantom
+    from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
+    from registration.model.phantom import load_phantom
     from service.cli import main
 
     q = [math.radians(d) for d in Q_DEG]

@@ -15,7 +15,7 @@ from polling import wait_until
 from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
-from registration.stillness import assess_stillness
+from registration.model.stillness import assess_stillness
 
 Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
 KINDS = [

@@ -21,7 +21,7 @@ from drivers.errors import RobotLinkError
 from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
-from registration.stillness import DEFAULT_MAX_GAP_S, assess_stillness
+from registration.model.stillness import DEFAULT_MAX_GAP_S, assess_stillness
 
 Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
 BLOCK_S = 1.0

@@ -25,7 +25,7 @@ import pytest
 from pydicom.uid import CTImageStorage, MRImageStorage, generate_uid
 from pynetdicom import AE
 
-from registration.frames import invert, transform_from_xyz_rpy
+from registration.model.frames import invert, transform_from_xyz_rpy
 from tests.integration.polling import poll_until
 
 pyigtl = pytest.importorskip("pyigtl")
@@ -108,7 +108,7 @@ def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Serv
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
     from service.app import create_app
     from service.commands.serve import serve_in_thread
     from service.settings import load_settings
@@ -412,7 +412,7 @@ def test_own_decoder_and_pyigtl_agree_on_the_wire(svc: Service, current: Current
 
 @pytest.mark.skipif(DCIODVFY is None, reason="dicom3tools dciodvfy not installed")
 def test_sro_from_the_api_has_no_dciodvfy_errors(svc: Service, current: Current, tmp_path: Path) -> None:
-    from registration.sro import image_from_robot_of
+    from registration.io.sro import image_from_robot_of
     from service.robot_frame import robot_frame_uid
 
     reg = current.registration

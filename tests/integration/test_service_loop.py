@@ -29,7 +29,7 @@ import httpx
 import numpy as np
 import pytest
 
-from registration.frames import apply, invert, transform_from_xyz_rpy
+from registration.model.frames import apply, invert, transform_from_xyz_rpy
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import poll_until, wait_robot_still
 
@@ -64,7 +64,7 @@ class World:
 @pytest.fixture(scope="module")
 def world(phantom) -> World:  # type: ignore[no-untyped-def]
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
-    from registration.kinematics import RobotModel
+    from registration.model.kinematics import RobotModel
 
     model = RobotModel.load("tx60")
     t0p = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])

@@ -25,8 +25,8 @@ from mocks.oarm.simulator import (
     scan_to_volume,
     simulate_scan,
 )
-from registration import frames
 from registration.errors import ConfigError
+from registration.model import frames
 
 POSE = frames.transform_from_xyz_rpy([0.0, 0.0, 0.0], [0.0, 0.0, 30.0])
 ROW = ("+x-r1c1", "+x-r1c2", "+x-r1c3")

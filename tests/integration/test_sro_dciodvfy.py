@@ -12,7 +12,7 @@ import pytest
 from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, generate_uid
 
-from registration.sro import build_spatial_registration
+from registration.io.sro import build_spatial_registration
 
 DCIODVFY = shutil.which("dciodvfy")
 

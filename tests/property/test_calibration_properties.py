@@ -15,11 +15,20 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from mocks.cell import SPREAD_BASE_JOINTS_RAD, SPREAD_OFFSETS_RAD
-from registration import frames
-from registration.calibration import CalibrationParams, MatchedPose, calibrate, predict_image_mm
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.phantom import load_phantom
-from registration.urdf_writer import read_chain, rotation_about
+from registration.calibration.model import (
+    predict_image_mm,
+)
+from registration.calibration.records import (
+    CalibrationParams,
+    MatchedPose,
+)
+from registration.calibration.solver import (
+    calibrate,
+)
+from registration.calibration.urdf import read_chain, rotation_about
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
+from registration.model.phantom import load_phantom
 from tests.helpers.paths import CONFIGS
 
 F64 = NDArray[np.float64]

@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from registration.frames import invert
-from registration.kinematics import RobotModel
+from registration.model.frames import invert
+from registration.model.kinematics import RobotModel
 
 TX60 = RobotModel.load("tx60")
 TX2_60 = RobotModel.load("tx2_60")

@@ -25,9 +25,14 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from registration.errors import RegistrationError
-from registration.phantom import load_phantom
-from registration.register import RegistrationParams, register_points
-from registration.rigid import fit_rigid_batch, rotation_difference_deg
+from registration.matching.records import (
+    RegistrationParams,
+)
+from registration.matching.register import (
+    register_points,
+)
+from registration.matching.rigid import fit_rigid_batch, rotation_difference_deg
+from registration.model.phantom import load_phantom
 
 F64 = NDArray[np.float64]
 P = RegistrationParams()

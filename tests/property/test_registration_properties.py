@@ -10,9 +10,9 @@ from hypothesis.extra.numpy import arrays
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from registration import frames
 from registration.errors import MirroredInputError
-from registration.register import register_points
+from registration.matching.register import register_points
+from registration.model import frames
 
 F64 = NDArray[np.float64]
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

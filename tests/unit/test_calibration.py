@@ -16,26 +16,30 @@ import pytest
 from numpy.typing import NDArray
 
 from mocks.cell import SPREAD_BASE_JOINTS_RAD, SPREAD_OFFSETS_RAD
-from registration import frames
-from registration.calibration import (
+from registration.calibration.model import (
+    _Data,
+    _jacobian,
+    _jacobian_fd,
+    _Model,
+    minimal_parameter_set,
+    predict_image_mm,
+    shah_ax_yb,
+)
+from registration.calibration.records import (
     CalibrationParams,
     MatchedPose,
     NotIdentifiableError,
     OutlierPoseError,
     SessionMismatchError,
     TooFewPosesError,
-    _Data,
-    _jacobian,
-    _jacobian_fd,
-    _Model,
+)
+from registration.calibration.solver import (
     calibrate,
     match_pose,
-    minimal_parameter_set,
-    predict_image_mm,
-    shah_ax_yb,
 )
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.urdf_writer import SerialChain, read_chain, rotation_about
+from registration.calibration.urdf import SerialChain, read_chain, rotation_about
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 
 F64 = NDArray[np.float64]
 BASE_JOINTS_RAD = SPREAD_BASE_JOINTS_RAD

@@ -10,11 +10,16 @@ import numpy as np
 import pytest
 
 from mocks.cell import SPREAD_JOINTS_RAD, CellErrorSizes, ExactCell, TrueCell
-from registration import frames
-from registration.calibration import MatchedPose, calibrate
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.rigid import rotation_difference_deg
-from registration.urdf_writer import read_chain
+from registration.calibration.records import (
+    MatchedPose,
+)
+from registration.calibration.solver import (
+    calibrate,
+)
+from registration.calibration.urdf import read_chain
+from registration.matching.rigid import rotation_difference_deg
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 
 Y = frames.transform_from_xyz_rpy([300.0, -100.0, 500.0], [10.0, 80.0, -30.0])
 JOINTS = SPREAD_JOINTS_RAD

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from registration import frames
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.pose_planner import ScanVolume
+from registration.calibration.planner import ScanVolume
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from service.cli import main
 from service.error_map import EXIT_INPUT, EXIT_OK
 

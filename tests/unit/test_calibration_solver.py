@@ -7,10 +7,19 @@ from typing import Any
 import numpy as np
 
 from mocks.cell import SPREAD_JOINTS_RAD
-from registration import frames
-from registration.calibration import CalibrationParams, MatchedPose, _sphere_soft_l1, calibrate
-from registration.kinematics import RobotModel, default_tool0_from_phantom
-from registration.urdf_writer import read_chain
+from registration.calibration.fit import (
+    _sphere_soft_l1,
+)
+from registration.calibration.records import (
+    CalibrationParams,
+    MatchedPose,
+)
+from registration.calibration.solver import (
+    calibrate,
+)
+from registration.calibration.urdf import read_chain
+from registration.model import frames
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 
 JOINTS_RAD = SPREAD_JOINTS_RAD
 """The poses of tests/unit/test_calibration.py (well-conditioned for the full set)."""

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration import frames
+from registration.calibration.urdf import read_chain, rotation_about, write_calibrated_urdf
 from registration.errors import ConfigError
-from registration.kinematics import RobotModel
-from registration.urdf_writer import read_chain, rotation_about, write_calibrated_urdf
+from registration.model import frames
+from registration.model.kinematics import RobotModel
 
 # joint vectors spanning the limits of every joint (rad)
 JOINTS = np.array(

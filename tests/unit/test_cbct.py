@@ -16,7 +16,7 @@ import pytest
 from mocks.oarm import cbct
 from mocks.oarm.cbct import ConeBeamSettings, projection_matrix, simulate_cbct_mu
 from mocks.oarm.simulator import HU_MAX, HU_MIN, SceneExtras, image_from_scanner
-from registration import frames
+from registration.model import frames
 
 CENTROID_TOL_MM = 0.01
 """Issue #11: noise-free spheres at and 35 mm off the central plane, centroids within 0.01 mm."""

@@ -1,4 +1,4 @@
-"""Circle recognition by moment invariants (registration/circles.py): discs, ellipses, non-circles."""
+"""Circle recognition by moment invariants (registration/imaging/circles.py): discs, ellipses, non-circles."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.circles import (
+from registration.imaging.circles import (
     PHI1_DISC,
     CircleParams,
     evaluate_contour,

@@ -22,7 +22,7 @@ from registration.detection.estimators.core import core_edge_centre
 from registration.detection.estimators.core_centroid import CoreParams, CoreWeights, core_centroid
 from registration.detection.estimators.sphere_fit import blurred_ball
 from registration.errors import DetectionError
-from registration.phantom import SPHERE_MATERIALS
+from registration.model.phantom import SPHERE_MATERIALS
 
 SAT_HU = 3071.0
 RADIUS_MM = 1.25

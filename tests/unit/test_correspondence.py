@@ -7,14 +7,6 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from registration import frames
-from registration.correspondence import (
-    choose_base_triples,
-    exhaustive_runner_ups,
-    find_hypotheses,
-    pairwise_distances,
-    same_pose,
-)
 from registration.errors import (
     AccuracyGateError,
     AmbiguousMatchError,
@@ -23,10 +15,25 @@ from registration.errors import (
     MirroredInputError,
     TooFewSpheresError,
 )
-from registration.phantom import Phantom
-from registration.register import PointSetError, PriorMismatchError, RegistrationParams, register_points
-from registration.rigid import rotation_difference_deg
-from registration.verification import verify_registration
+from registration.matching.correspondence import (
+    choose_base_triples,
+    exhaustive_runner_ups,
+    find_hypotheses,
+    pairwise_distances,
+    same_pose,
+)
+from registration.matching.records import (
+    PointSetError,
+    PriorMismatchError,
+    RegistrationParams,
+)
+from registration.matching.register import (
+    register_points,
+)
+from registration.matching.rigid import rotation_difference_deg
+from registration.matching.verification import verify_registration
+from registration.model import frames
+from registration.model.phantom import Phantom
 
 F64 = NDArray[np.float64]
 

@@ -8,9 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from registration.correspondence import DEFAULT_DISTINCT_ROTATION_DEG, find_hypotheses
-from registration.register import RegistrationParams
-from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S, assess_stillness
+from registration.matching.correspondence import DEFAULT_DISTINCT_ROTATION_DEG, find_hypotheses
+from registration.matching.records import (
+    RegistrationParams,
+)
+from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S, assess_stillness
 from service.settings import QualitySettings, StillnessSettings
 
 REPO = Path(__file__).resolve().parents[2]

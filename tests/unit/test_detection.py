@@ -21,7 +21,7 @@ from registration.detection import (
 from registration.detection.cross_check import _fit_radius, _SliceCircle
 from registration.detection.estimators.paper import _paper_depth
 from registration.errors import DetectionError
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 
 SPACING = (0.415, 0.415, 0.833)  # (i, j, k) mm: the commonly quoted O-arm grid
 SHAPE = (40, 96, 96)  # (k, j, i)

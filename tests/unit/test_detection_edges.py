@@ -32,7 +32,7 @@ from registration.detection.rejections import (
     core_axis_ratio,
 )
 from registration.errors import DetectionError
-from registration.volume import Volume
+from registration.imaging.volume import Volume
 
 SP = np.array(SPACING)
 

@@ -30,8 +30,8 @@ from registration.detection.estimators.paper import PaperCircles
 from registration.detection.fov import edge_reject_reason, fov_reject_reason
 from registration.detection.rejections import SizeLimits, blob_reject_reason
 from registration.errors import DetectionError
-from registration.mar import reduce_metal_artifacts
-from registration.volume import Volume
+from registration.imaging.mar import reduce_metal_artifacts
+from registration.imaging.volume import Volume
 
 F64 = NDArray[np.float64]
 SP = np.array(SPACING)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from registration.errors import ConfigError, KinematicsError, OarmRegError
-from registration.frames import transform_from_xyz_rpy
-from registration.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
+from registration.model.frames import transform_from_xyz_rpy
+from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 
 REFERENCE = Path(
     os.environ.get("OARMREG_REFERENCE_DIR")

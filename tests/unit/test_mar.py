@@ -1,4 +1,4 @@
-"""Polar metal artefact reduction (registration/mar.py) on simulated slices with streaks."""
+"""Polar metal artefact reduction (registration/imaging/mar.py) on simulated slices with streaks."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.mar import (
+from registration.imaging.mar import (
     LAMBDA_MAX_ROWS,
     LAMBDA_MIN_ROWS,
     MarParams,

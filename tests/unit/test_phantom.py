@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from registration.errors import PhantomDefinitionError
-from registration.phantom import load_phantom, phantom_from_dict
+from registration.model.phantom import load_phantom, phantom_from_dict
 
 
 def _base(phantom_path: Path) -> dict:

@@ -12,16 +12,16 @@ import pytest
 from numpy.typing import NDArray
 
 from registration.errors import RegistrationError
-from registration.frames import apply, invert, transform_from_xyz_rpy
-from registration.kinematics import RobotModel
-from registration.phantom import Phantom
+from registration.imaging.volume import Volume
+from registration.model.frames import apply, invert, transform_from_xyz_rpy
+from registration.model.kinematics import RobotModel
+from registration.model.phantom import Phantom
 from registration.pipeline import (
     PipelineParams,
     default_targets_robot_mm,
     register_scan,
     verify_scan,
 )
-from registration.volume import Volume
 
 Q = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 TOOL0_FROM_PHANTOM = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])
@@ -110,7 +110,9 @@ def test_a_scan_without_spheres_is_refused(case: Case) -> None:
 
 
 def test_the_params_gates_apply(case: Case) -> None:
-    from registration.register import RegistrationParams
+    from registration.matching.records import (
+        RegistrationParams,
+    )
 
     strict = PipelineParams(registration=RegistrationParams(max_fre_mm=1e-4))
     with pytest.raises(RegistrationError, match="FRE"):

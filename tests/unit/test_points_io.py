@@ -9,10 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from registration import frames
 from registration.errors import PointsFileError
-from registration.phantom import Phantom
-from registration.points_io import (
+from registration.io.points import (
     read_points,
     read_registration,
     read_targets,
@@ -20,6 +18,8 @@ from registration.points_io import (
     write_points,
     write_targets,
 )
+from registration.model import frames
+from registration.model.phantom import Phantom
 from service.cli import main
 from service.error_map import EXIT_REFUSED
 

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from registration import frames
 from registration.errors import DegenerateConfigurationError
-from registration.quality import (
+from registration.matching.quality import (
     assert_proper_rotation,
     check_configuration,
     conditioning,
@@ -18,7 +17,8 @@ from registration.quality import (
     predicted_tre_mm,
     principal_axes,
 )
-from registration.rigid import fit_rigid
+from registration.matching.rigid import fit_rigid
+from registration.model import frames
 
 CUBE = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * 30.0
 

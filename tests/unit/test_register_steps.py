@@ -1,4 +1,4 @@
-"""The steps of :func:`registration.register.register_points`, one refusal each (issue #9 item 3)."""
+"""The steps of :func:`registration.matching.register.register_points`, one refusal each (issue #9 item 3)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,6 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from registration import frames
-from registration.correspondence import Hypothesis, farthest_point_order
 from registration.errors import (
     AccuracyGateError,
     AmbiguousMatchError,
@@ -25,14 +23,9 @@ from registration.errors import (
     TooFewSpheresError,
     TooFewWithinGateError,
 )
-from registration.icp import IcpResult
-from registration.phantom import Phantom
-from registration.register import (
+from registration.matching.correspondence import Hypothesis, farthest_point_order
+from registration.matching.hypotheses import (
     CandidatePool,
-    PointSetError,
-    PriorMismatchError,
-    RegistrationInputs,
-    RegistrationParams,
     _Candidate,
     candidate_pool,
     check_enough_matched,
@@ -40,11 +33,22 @@ from registration.register import (
     check_runner_up,
     exhaustive_candidates,
     find_runner_up,
+    within_prior,
+)
+from registration.matching.icp import IcpResult
+from registration.matching.records import (
+    PointSetError,
+    PriorMismatchError,
+    RegistrationInputs,
+    RegistrationParams,
+)
+from registration.matching.register import (
     quality_figures,
     register_points,
     validate_inputs,
-    within_prior,
 )
+from registration.model import frames
+from registration.model.phantom import Phantom
 
 F64 = NDArray[np.float64]
 P = RegistrationParams()

@@ -1,4 +1,4 @@
-"""Shipped configuration files are found through registration.resources (issue #9 item 6)."""
+"""Shipped configuration files are found through registration.io.resources (issue #9 item 6)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from registration import resources
 from registration.errors import ConfigError
-from registration.kinematics import RobotModel
-from registration.phantom import load_phantom
+from registration.io import resources
+from registration.model.kinematics import RobotModel
+from registration.model.phantom import load_phantom
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -7,11 +7,11 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from registration import frames
 from registration.errors import DegenerateConfigurationError, MirroredInputError
-from registration.icp import icp, unique_pairs
-from registration.prereg import PreregistrationError, preregister
-from registration.rigid import fit_rigid, fit_rigid_batch, nearest_rotation, rotation_difference_deg
+from registration.matching.icp import icp, unique_pairs
+from registration.matching.prereg import PreregistrationError, preregister
+from registration.matching.rigid import fit_rigid, fit_rigid_batch, nearest_rotation, rotation_difference_deg
+from registration.model import frames
 
 F64 = NDArray[np.float64]
 

@@ -220,7 +220,7 @@ def test_kernel_scatter_has_the_requested_spr_behind_the_object() -> None:
 def test_scatter_cups_a_uniform_block() -> None:
     """Centre-minus-edge HU of the plastic cube drops as the scatter-to-primary ratio rises."""
     from mocks.oarm.simulator import SceneExtras, simulate_scan
-    from registration.phantom import load_phantom
+    from registration.model.phantom import load_phantom
     from tests.helpers.paths import CONFIGS
 
     ph = load_phantom(CONFIGS / "phantoms" / "bai2018_cube.toml")

@@ -13,7 +13,7 @@ import pytest
 from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, generate_uid
 
-from registration.sro import (
+from registration.io.sro import (
     SPATIAL_REGISTRATION_STORAGE,
     SroError,
     build_spatial_registration,

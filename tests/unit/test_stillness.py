@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from registration.stillness import DEFAULT_MAX_DEVIATION_RAD, assess_stillness
+from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, assess_stillness
 
 KW = {"window_s": 1.0, "max_deviation_rad": 0.0005, "max_gap_s": 0.1}
 

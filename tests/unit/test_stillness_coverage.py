@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from registration.stillness import (
+from registration.model.stillness import (
     VERDICT_INCOMPLETE,
     VERDICT_MOVED,
     VERDICT_STILL,

@@ -1,0 +1,270 @@
+"""How large the calibrated chain's error will be where surgery happens: the posterior covariance
+propagated through the kinematics at poses spread over the working volume, the unmodelled residual,
+and the inflation a farthest-poses split measures (docs/calibration.md, "Predicted error")."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any, Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.calibration.fit import (
+    _fit,
+)
+from registration.calibration.model import (
+    _Data,
+    _jacobian,
+    _Model,
+    _residuals,
+)
+from registration.calibration.records import (
+    PRIORS,
+    CalibrationParams,
+    WorkingPrediction,
+)
+
+if TYPE_CHECKING:
+    from registration.calibration.sampling import ScanVolume
+
+
+F64 = NDArray[np.float64]
+
+
+I64 = NDArray[np.int64]
+
+
+WORKING_POSES: Final = 40
+"""Poses sampled over the working volume for the predicted error (and the refusal)."""
+
+
+WORKING_SEED: Final = 20201202
+"""Fixed: the working-volume sample is a property of the session, not a random draw per call."""
+
+
+def _posterior_cov(model: _Model, data: _Data, values: F64, params: CalibrationParams, scale: float) -> F64:
+    """(JᵀJ / σ̂² + Σ_prior⁻¹)⁻¹: the Gauss–Newton posterior covariance of the estimate.
+
+    σ̂² = Σr² / (m − P) from the sphere residuals (at least (1 µm)²).  The prior (robot parameters:
+    :data:`PRIORS` × the cross-validated scale for ``"map"``, × 1 for ``"ls"``; rod and placement:
+    :meth:`Priors.sigma_posterior`) bounds what the poses cannot see, so a direction they miss
+    shows in the predicted error instead of vanishing in a pseudo-inverse."""
+    jac = _jacobian(model, data, values)
+    r = _residuals(model, data, values)
+    s2 = max(float(r @ r) / max(len(r) - len(values), 1), 1e-6)
+    sig = np.array([PRIORS.sigma_posterior(p) for p in model.params])
+    robot = np.array([p.group not in ("image_from_robot", "tool0_from_phantom") for p in model.params])
+    sig = np.where(robot, sig * (scale if math.isfinite(scale) else 1.0), sig)
+    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(1.0 / sig**2)
+    d = np.sqrt(np.diag(a))
+    return np.asarray(np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d), dtype=np.float64)
+
+
+def _skew_rows(p: F64) -> F64:
+    """(3N, 6) Jacobian of a small rigid motion (ω, t) of points p (N, 3): ω × p + t."""
+    n = len(p)
+    g = np.zeros((n, 3, 6))
+    g[:, 0, 1], g[:, 0, 2] = p[:, 2], -p[:, 1]
+    g[:, 1, 0], g[:, 1, 2] = -p[:, 2], p[:, 0]
+    g[:, 2, 0], g[:, 2, 1] = p[:, 1], -p[:, 0]
+    g[:, :, 3:] = np.eye(3)
+    return g.reshape(3 * n, 6)
+
+
+def _effective_jacobians(model: _Model, values: F64, joints_rad: F64, reg_joints_rad: F64, pts: F64) -> F64:
+    """(W, 3N, P) sphere-position Jacobians at ``joints_rad`` after a one-scan re-registration at
+    ``reg_joints_rad``: J_q − G_q G_reg⁺ J_reg (the rigid part the registration absorbs removed)."""
+    q = np.vstack([joints_rad, reg_joints_rad[None]])
+    n = len(pts)
+    data = _Data(q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n))
+    jac = _jacobian(model, data, values).reshape(len(q), 3 * n, len(values))
+    world = model.predict(values, q, data.pts_phantom_mm, data.pose_of).reshape(len(q), n, 3)
+    g_reg = _skew_rows(world[-1])
+    proj = np.linalg.pinv(g_reg) @ jac[-1]  # (6, P)
+    g_q = np.stack([_skew_rows(w) for w in world[:-1]])  # (W, 3N, 6)
+    return np.asarray(jac[:-1] - g_q @ proj, dtype=np.float64)
+
+
+def _unmodelled_rms_mm(model: _Model, data: _Data, values: F64, fle_rms_mm: float) -> float:
+    """RMS of the per-pose rigid part of the residuals beyond what FLE leaks into it: errors no
+    geometric model has (repeatability, sag) as seen at the calibration poses."""
+    r = _residuals(model, data, values).reshape(-1, 3)
+    world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
+    ms = []
+    for i in range(len(data.joints_rad)):
+        rows = data.pose_of == i
+        if rows.sum() < 3:
+            continue
+        g = _skew_rows(world[rows])
+        sol, *_ = np.linalg.lstsq(g, r[rows].reshape(-1), rcond=None)
+        rigid = (g @ sol).reshape(-1, 3)
+        ms.append(float(np.mean(np.sum(rigid**2, axis=1))) - 2.0 * fle_rms_mm**2 / int(rows.sum()))
+    return math.sqrt(max(float(np.mean(ms)) if ms else 0.0, 0.0))
+
+
+def predict_working_error(
+    model: _Model,
+    values: F64,
+    cov: F64,
+    working_joints_rad: F64,
+    registration_joints_rad: F64,
+    pts: F64,
+    *,
+    unmodelled_rms_mm: float,
+    registration_tre_rms_mm: float,
+    candidate_joints_rad: F64 | None = None,
+) -> WorkingPrediction:
+    """Posterior covariance propagated through the kinematics to the working poses (after a one-scan
+    re-registration at ``registration_joints_rad``), plus √2 × the unmodelled error (at the
+    pose and at the registration pose) and the registration's own TRE, in quadrature."""
+    jeff = _effective_jacobians(model, values, working_joints_rad, registration_joints_rad, pts)
+    n = len(pts)
+    chain_ms = np.einsum("wip,pq,wiq->w", jeff, cov, jeff) / n
+    chain_rms = np.sqrt(np.clip(chain_ms, 0.0, None))
+    per = np.sqrt(chain_ms + 2.0 * unmodelled_rms_mm**2 + registration_tre_rms_mm**2)
+    worst = int(np.argmax(per))
+    lam, vec = np.linalg.eigh((cov + cov.T) / 2.0)
+    lo = vec * np.sqrt(np.clip(lam, 0.0, None))
+    _, _, vt = np.linalg.svd(jeff[worst] @ lo, full_matrices=False)
+    direction = lo @ vt[0]
+    share = np.abs(direction) / np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    share = share / share.sum()
+    order = np.argsort(-share)[:4]
+    weak = tuple((model.params[j].name, float(share[j])) for j in order)
+    exciting = np.zeros((0, len(registration_joints_rad)))
+    if candidate_joints_rad is not None and len(candidate_joints_rad):
+        c = candidate_joints_rad
+        data = _Data(c, np.tile(pts, (len(c), 1)), np.zeros((len(c) * n, 3)), np.repeat(np.arange(len(c)), n))
+        jc = _jacobian(model, data, values).reshape(len(c), 3 * n, len(values))
+        gain = np.linalg.norm(jc @ direction, axis=1)
+        exciting = c[np.argsort(-gain)[:3]]
+    return WorkingPrediction(
+        working_joints_rad,
+        registration_joints_rad,
+        per,
+        chain_rms,
+        float(np.sqrt(np.mean(per**2))),
+        float(per.max()),
+        weak,
+        exciting,
+    )
+
+
+def _farthest_split_inflation(
+    model: _Model,
+    data: _Data,
+    values: F64,
+    params: CalibrationParams,
+    fle_rms_mm: float,
+    unmodelled_rms_mm: float,
+) -> tuple[float, tuple[int, ...]]:
+    """How optimistic the posterior is away from the poses: hold out the poses farthest from the
+    rest (largest RMS sphere distance to their nearest other pose, ⌈K/4⌉ of them, ≥ 2), fit the
+    others, and compare the held-out poses' squared error (detection error removed) with what the
+    split fit's posterior (+ unmodelled) predicts there.  Returns (k² ≥ 1, held-out pose indices)."""
+    k = len(data.joints_rad)
+    n_out = max(2, math.ceil(k / 4))
+    if k - n_out < 3:
+        return 1.0, ()
+    world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
+    pts = data.pts_phantom_mm[data.pose_of == 0]
+    q = data.joints_rad
+    full = _Data(q, np.tile(pts, (k, 1)), np.zeros((k * len(pts), 3)), np.repeat(np.arange(k), len(pts)))
+    w = model.predict(values, q, full.pts_phantom_mm, full.pose_of).reshape(k, len(pts), 3)
+    d = np.sqrt(np.mean(np.sum((w[:, None] - w[None]) ** 2, axis=-1), axis=-1))
+    np.fill_diagonal(d, np.inf)
+    out = tuple(int(i) for i in np.argsort(-d.min(axis=1))[:n_out])
+    del world
+    held = np.zeros(k, dtype=bool)
+    held[list(out)] = True
+    train = data.subset(~held)
+    v = _fit(model, train, values, params)
+    cov = _posterior_cov(model, train, v, params, 1.0)
+    test = data.subset(held)
+    r = _residuals(model, test, v).reshape(-1, 3)
+    obs = float(np.mean(np.sum(r**2, axis=1))) - fle_rms_mm**2
+    jac = _jacobian(model, test, v).reshape(len(r), 3, len(v))
+    pred = float(np.mean(np.einsum("lip,pq,liq->l", jac, cov, jac))) + unmodelled_rms_mm**2
+    if pred <= 0.0:
+        return 1.0, out
+    return max(1.0, obs / pred), out
+
+
+def _default_volume(meas_image_mm: F64) -> ScanVolume:
+    from registration.calibration.sampling import ScanVolume
+
+    d = ScanVolume()
+    c = meas_image_mm.mean(axis=0)
+    return ScanVolume(
+        (float(c[0]), float(c[1]), float(c[2])), d.fov_radius_mm, d.half_length_mm, d.axis_image
+    )
+
+
+def _working_prediction(
+    model: _Model,
+    values: F64,
+    cov: F64,
+    data: _Data,
+    pts: F64,
+    params: CalibrationParams,
+    scan_volume: ScanVolume | None,
+    unmodelled_rms_mm: float,
+    registration_tre_rms_mm: float,
+) -> tuple[WorkingPrediction, dict[str, Any]]:
+    """Sample the working volume (scan volume + margin) with the calibrated model and predict."""
+    from registration.calibration.sampling import sample_poses_in_volume
+
+    y, x, cal_chain = model.unpack(values)
+    vol = scan_volume if scan_volume is not None else _default_volume(data.meas_image_mm)
+    work = vol.grown(params.working_margin_mm)
+    rng = np.random.default_rng(WORKING_SEED)
+    q0 = data.joints_rad[0]
+    wq = sample_poses_in_volume(
+        y,
+        cal_chain,
+        x,
+        pts,
+        q0,
+        work,
+        rng,
+        n=WORKING_POSES,
+        max_tilt_deg=75.0,
+        margin_mm=0.0,
+        n_candidates=300,
+    )
+    inside = sample_poses_in_volume(
+        y, cal_chain, x, pts, q0, vol, rng, n=30, max_tilt_deg=75.0, margin_mm=5.0, n_candidates=300
+    )
+    if len(wq) == 0:
+        wq = data.joints_rad
+    if len(inside):
+        centres = (y @ cal_chain.robot_from_tool0_batch(inside) @ x)[:, :3, 3]
+        q_reg = inside[int(np.argmin(np.linalg.norm(centres - np.asarray(vol.centre_image_mm), axis=1)))]
+    else:
+        q_reg = q0
+    pred = predict_working_error(
+        model,
+        values,
+        cov,
+        wq,
+        q_reg,
+        pts,
+        unmodelled_rms_mm=unmodelled_rms_mm,
+        registration_tre_rms_mm=registration_tre_rms_mm,
+        candidate_joints_rad=inside,
+    )
+    doc = {
+        "scan_volume": {
+            "centre_image_mm": list(vol.centre_image_mm),
+            "fov_radius_mm": vol.fov_radius_mm,
+            "half_length_mm": vol.half_length_mm,
+            "axis_image": list(vol.axis_image),
+            "from": "series geometry"
+            if scan_volume is not None
+            else "default O-arm cylinder on the detections",
+        },
+        "margin_mm": params.working_margin_mm,
+        "n_poses": len(wq),
+    }
+    return pred, doc

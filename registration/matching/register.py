@@ -1,0 +1,315 @@
+"""From sphere centres to ``image_from_robot``: correspondence, ICP, symmetry and quality checks.
+
+:func:`register_points` is the contract (brief "Registration"):
+
+1. the robot configuration is checked (collinear / coplanar refused);
+2. candidate poses come from the click-free triple search
+   (:func:`registration.matching.correspondence.find_hypotheses`), or from the paper's
+   four-mark pre-registration (eq. 7, :mod:`registration.matching.prereg`) when
+   ``prereg_pairs`` are given;
+3. an orientation prior, if any, discards poses rotated further than its
+   tolerance (< 45°, half the 90° symmetry of the hole grid: research §1.6);
+4. the best candidates and, when a :class:`~registration.model.phantom.Phantom` is
+   given, every symmetry twin of the best pose are refined by gated ICP
+   (:mod:`registration.matching.icp`); the best must explain at least
+   ``min_runner_up_margin`` more spheres than the best *distinct* runner-up or
+   the result is refused as ambiguous (design.md §4).  On a subset (at most
+   ``exhaustive_runner_up_max_points`` detections) the runner-up comes from an
+   exhaustive triple search
+   (:func:`registration.matching.correspondence.exhaustive_runner_ups`), not only from
+   the hypotheses that found the best pose;
+5. the mirrored problem (image z → −z) is tried whenever it could explain
+   clearly more spheres; if it does, the input is refused as mirrored;
+6. quality figures (design.md §5) are computed and gated.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from typing import Final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from registration import __version__
+from registration.errors import (
+    AccuracyGateError,
+    ConfigError,
+    ImproperRotationError,
+    TooFewSpheresError,
+)
+from registration.matching.hypotheses import (
+    CandidatePool,
+    RunnerUp,
+    _Candidate,
+    candidate_pool,
+    check_enough_matched,
+    check_mirror,
+    check_runner_up,
+    exhaustive_candidates,
+)
+from registration.matching.icp import IcpResult
+from registration.matching.quality import (
+    check_configuration,
+    fle_from_fre,
+    predicted_tre_mm,
+)
+from registration.matching.records import (
+    MAX_PRIOR_TOLERANCE_DEG,
+    PointSetError,
+    QualityFigures,
+    RegistrationInputs,
+    RegistrationParams,
+    RegistrationResult,
+    _as_points,
+    _as_rotation,
+)
+from registration.matching.rigid import rotation_difference_deg
+from registration.model.phantom import Phantom
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+DET_TOL: Final = 1e-9
+"""det R of the result must be 1 within this: Kabsch with the determinant fix gives 1 to rounding."""
+
+
+# ----------------------------------------------------------------------------- the steps
+# register_points runs these in order; each refuses with its own typed error.
+
+
+def _prereg_pairs(pairs_in: Sequence[tuple[int, int]], n: int, m: int) -> tuple[tuple[int, int], ...]:
+    pairs = tuple((int(a), int(b)) for a, b in pairs_in)
+    if len(pairs) != 4:
+        raise PointSetError(f"pre-registration needs exactly 4 (robot, image) index pairs, got {len(pairs)}")
+    ri = [a for a, _ in pairs]
+    ii = [b for _, b in pairs]
+    if min(ri) < 0 or max(ri) >= n or min(ii) < 0 or max(ii) >= m:
+        raise PointSetError(
+            f"pre-registration pairs {list(pairs)}: robot indices must be in 0..{n - 1}, "
+            f"image indices in 0..{m - 1}"
+        )
+    if len(set(ri)) != 4 or len(set(ii)) != 4:
+        raise PointSetError(f"pre-registration pairs {list(pairs)}: each sphere may be named only once")
+    return pairs
+
+
+def validate_inputs(
+    robot_mm: ArrayLike,
+    image_mm: ArrayLike,
+    params: RegistrationParams,
+    *,
+    targets_robot_mm: ArrayLike | None = None,
+    orientation_prior: ArrayLike | None = None,
+    prior_tolerance_deg: float = 30.0,
+    prereg_pairs: Sequence[tuple[int, int]] | None = None,
+) -> RegistrationInputs:
+    """Step 1: arrays, robot configuration, detection count, prior and pre-registration marks.
+
+    Raises PointSetError, DegenerateConfigurationError, TooFewSpheresError (< 3 detections) or
+    ConfigError (prior not a rotation, tolerance not below 45°).
+    """
+    p = params
+    robot = _as_points(robot_mm, "robot points")
+    image = _as_points(image_mm, "image points")
+    n, m = len(robot), len(image)
+    targets = (
+        np.empty((0, 3))
+        if targets_robot_mm is None
+        else _as_points(np.reshape(targets_robot_mm, (-1, 3)), "targets")
+    )
+    check_configuration(
+        robot,
+        "robot points",
+        min_collinear_ratio=p.min_collinear_ratio,
+        min_coplanar_ratio=p.min_coplanar_ratio,
+    )
+    if m < 3:
+        raise TooFewSpheresError(
+            f"{m} sphere(s) detected, {n} expected: a registration needs at least {p.min_matched} matched "
+            "spheres. Check that the phantom is inside the scanned volume and the detection threshold"
+        )
+    prior = None if orientation_prior is None else _as_rotation(orientation_prior)
+    if not 0.0 < prior_tolerance_deg < MAX_PRIOR_TOLERANCE_DEG:
+        raise ConfigError(
+            f"orientation prior tolerance must be in (0, {MAX_PRIOR_TOLERANCE_DEG:g})°, got "
+            f"{prior_tolerance_deg:g}°: the hole grid repeats every 90°"
+        )
+    pairs = None if prereg_pairs is None else _prereg_pairs(prereg_pairs, n, m)
+    return RegistrationInputs(robot, image, targets, prior, float(prior_tolerance_deg), pairs)
+
+
+def quality_figures(
+    r: IcpResult, image_from_robot: F64, inp: RegistrationInputs, p: RegistrationParams
+) -> QualityFigures:
+    """Step 6: conditioning of the matched spheres, det R, FRE, FLE, predicted TRE; the FRE gate.
+
+    Raises DegenerateConfigurationError, ImproperRotationError or AccuracyGateError.
+    """
+    matched = inp.robot[r.robot_indices]
+    cond = check_configuration(
+        matched,
+        "matched spheres",
+        min_collinear_ratio=p.min_collinear_ratio,
+        min_coplanar_ratio=p.min_coplanar_ratio,
+    )
+    det = float(np.linalg.det(image_from_robot[:3, :3]))
+    if not abs(det - 1.0) < DET_TOL:
+        raise ImproperRotationError(
+            f"det(R) = {det}: the registration produced a reflection or a scaled rotation, which the "
+            "determinant fix must prevent; report this input as a bug"
+        )
+    fre = float(np.sqrt(np.mean(r.residuals_mm**2)))
+    fle = fle_from_fre(fre, r.n_matched)
+    tre = predicted_tre_mm(fle, matched, inp.targets) if len(inp.targets) else np.empty(0)
+    if fre > p.max_fre_mm:
+        raise AccuracyGateError(
+            f"FRE {fre:.3f} mm over {r.n_matched} matched spheres exceeds the gate of {p.max_fre_mm:g} mm "
+            f"(largest residual {float(np.max(r.residuals_mm)):.3f} mm at robot sphere "
+            f"{int(r.robot_indices[int(np.argmax(r.residuals_mm))])}). Check that the robot did not move "
+            "during the scan, the robot points' pose, and the detection"
+        )
+    return QualityFigures(cond, det, fre, fle, np.asarray(tre, dtype=np.float64))
+
+
+def _result(
+    inp: RegistrationInputs,
+    cands: CandidatePool,
+    best: _Candidate,
+    r: IcpResult,
+    ru: RunnerUp,
+    q: QualityFigures,
+    mirror_checked: bool,
+    timings: dict[str, float],
+) -> RegistrationResult:
+    t_best = best.image_from_robot
+    return RegistrationResult(
+        image_from_robot=t_best,
+        fre_mm=q.fre_mm,
+        fle_mm=q.fle_mm,
+        robot_indices=r.robot_indices,
+        image_indices=r.image_indices,
+        residuals_mm=r.residuals_mm,
+        n_expected=inp.n,
+        n_detected=inp.m,
+        n_matched=r.n_matched,
+        predicted_tre_mm=q.predicted_tre_mm,
+        symmetry_margin=int(ru.margin),
+        rotation_det=q.rotation_det,
+        timings_s=timings,
+        robot_mm=inp.robot,
+        image_mm=inp.image,
+        targets_robot_mm=inp.targets,
+        runner_up_matched=int(ru.n_matched),
+        runner_up_rotation_deg=ru.rotation_deg,
+        runner_up_source=ru.candidate.source if ru.candidate else "",
+        method="prereg+icp" if cands.prereg is not None else "triples+icp",
+        n_icp_iterations=r.n_iterations,
+        collinearity=q.conditioning.collinearity,
+        planarity=q.conditioning.planarity,
+        prior_angle_deg=None if cands.prior is None else rotation_difference_deg(t_best[:3, :3], cands.prior),
+        prereg=cands.prereg,
+        mirror_checked=mirror_checked,
+        provenance={"software": f"oarmreg {__version__}"},
+    )
+
+
+def register_points(
+    robot_mm: ArrayLike,
+    image_mm: ArrayLike,
+    *,
+    params: RegistrationParams = RegistrationParams(),
+    targets_robot_mm: ArrayLike | None = None,
+    orientation_prior: ArrayLike | None = None,
+    prior_tolerance_deg: float = 30.0,
+    prereg_pairs: Sequence[tuple[int, int]] | None = None,
+    phantom: Phantom | None = None,
+) -> RegistrationResult:
+    """Register labelled robot-space sphere centres to unlabelled image detections.
+
+    Parameters
+    ----------
+    robot_mm : array_like, shape (N, 3)
+        Sphere centres in the robot frame (mm), in the phantom's sphere order.
+    image_mm : array_like, shape (M, 3)
+        Detected centres in the image frame (DICOM LPS, mm), any order; some may
+        be missing, some spurious.
+    params : RegistrationParams
+    targets_robot_mm : array_like, shape (T, 3), optional
+        Points (robot frame, mm) where Fitzpatrick's TRE is predicted.
+    orientation_prior : array_like, shape (3, 3) or (4, 4), optional
+        Expected rotation of ``image_from_robot``; poses further than
+        ``prior_tolerance_deg`` from it are discarded (resolves a symmetric phantom).
+    prior_tolerance_deg : float
+        Must be < 45°.
+    prereg_pairs : sequence of 4 (robot_index, image_index), optional
+        Four named marks for the paper's pre-registration (eq. 7); ICP starts
+        from its rigid projection, and its rotation acts as the orientation
+        prior unless one is given.
+    phantom : Phantom, optional
+        When given (and the robot points are this phantom's spheres), every
+        symmetry twin of the best pose is refined and compared explicitly.
+
+    Returns
+    -------
+    RegistrationResult
+
+    Raises
+    ------
+    PointSetError
+        Malformed input arrays.
+    DegenerateConfigurationError
+        Robot or matched spheres collinear / coplanar; coplanar marks.
+    TooFewSpheresError
+        Fewer than ``params.min_matched`` spheres matched.
+    AmbiguousMatchError
+        The best pose does not beat the best distinct runner-up by
+        ``params.min_runner_up_margin`` matched spheres.
+    MirroredInputError
+        The detections match the robot points only as a mirror image.
+    PriorMismatchError
+        No pose within the prior's tolerance explains enough spheres.
+    AccuracyGateError
+        FRE above ``params.max_fre_mm``.
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    inp = validate_inputs(
+        robot_mm,
+        image_mm,
+        params,
+        targets_robot_mm=targets_robot_mm,
+        orientation_prior=orientation_prior,
+        prior_tolerance_deg=prior_tolerance_deg,
+        prereg_pairs=prereg_pairs,
+    )
+    tree = cKDTree(inp.image)
+    cands = candidate_pool(inp, tree, params, phantom, timings)
+    t0 = time.perf_counter()
+    mirror_checked = check_mirror(inp, cands, tree, params)
+    timings["mirror_check_s"] = time.perf_counter() - t0
+    best, r = check_enough_matched(inp, cands, params)
+    t0 = time.perf_counter()
+    extra = exhaustive_candidates(best, cands.pool, inp, cands.prior, tree, params)
+    timings["exhaustive_runner_up_s"] = time.perf_counter() - t0
+    ru = check_runner_up(best, [*cands.pool, *extra], inp.robot, tree, params)
+    t0 = time.perf_counter()
+    q = quality_figures(r, best.image_from_robot, inp, params)
+    timings["quality_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    log.info(
+        "registered %d/%d spheres (%d detected): FRE %.3f mm, FLE %.3f mm, margin %d",
+        r.n_matched,
+        inp.n,
+        inp.m,
+        q.fre_mm,
+        q.fle_mm,
+        ru.margin,
+    )
+    return _result(inp, cands, best, r, ru, q, mirror_checked, timings)

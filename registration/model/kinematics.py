@@ -1,0 +1,205 @@
+"""Forward kinematics of the Stäubli arm (Pinocchio) and sphere centres in the robot frame.
+
+The paper obtains the sphere positions in robot space "by the kinematics of the
+robot" (Bai et al. 2018, doi:10.1088/1742-6596/1016/1/012006, §2.3):
+
+    centres_robot = robot_from_tool0(q) @ tool0_from_phantom @ centres_phantom
+
+``robot`` is the Stäubli world frame (the URDF root link ``base``), ``tool0``
+the flange frame (z out of the flange).  The project's URDFs live in
+``configs/robots/`` (see the README there).  Pinocchio works in metres; this
+module converts to millimetres in exactly one place, :func:`_placement_to_mm`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.errors import ConfigError, KinematicsError
+from registration.io.resources import robot_urdf, robots_dir
+from registration.model.frames import apply, as_transform
+
+F64 = NDArray[np.float64]
+
+ROOT_FRAME = "base"
+TOOL_FRAME = "tool0"
+
+MM_PER_M = 1000.0
+
+JOINT_LIMIT_TOLERANCE_RAD = 1e-9
+"""Slack on the joint limits for float round-off (a value exactly at a limit is legal)."""
+
+DEFAULT_TOOL0_FROM_PHANTOM_XYZ_MM = (0.0, 0.0, 200.0)
+DEFAULT_TOOL0_FROM_PHANTOM_RPY_DEG = (180.0, 0.0, 0.0)
+"""Default connecting rod: phantom centre 200 mm along tool0 +z, phantom +z pointing back at the
+flange (the project brief); a real cell measures its own and sets it in config."""
+
+
+def _placement_to_mm(rotation: Any, translation_m: Any) -> F64:
+    """The single metre → millimetre boundary: a Pinocchio placement as a 4 × 4 mm transform."""
+    out = np.eye(4)
+    out[:3, :3] = np.asarray(rotation, dtype=np.float64)
+    out[:3, 3] = np.asarray(translation_m, dtype=np.float64).reshape(3) * MM_PER_M
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class RobotModel:
+    """A loaded arm model.  Constant; per-call workspaces are created by each call.
+
+    Attributes
+    ----------
+    name : str
+    urdf_path : Path
+    joint_names : tuple of str
+        Actuated joints in configuration order (``joint_1`` … ``joint_6``).
+    lower_rad, upper_rad : ndarray, shape (n_joints,)
+        Joint limits from the URDF.
+    """
+
+    name: str
+    urdf_path: Path
+    joint_names: tuple[str, ...]
+    lower_rad: F64
+    upper_rad: F64
+    _model: Any = field(repr=False)
+    _root_frame_id: int = field(repr=False)
+    _tool_frame_id: int = field(repr=False)
+
+    @classmethod
+    def load(cls, name_or_urdf: str | Path) -> RobotModel:
+        """Load ``"tx60"`` / ``"tx2_60"`` (from ``configs/robots``) or a URDF path.
+
+        The URDF must have a ``base`` and a ``tool0`` frame and revolute joints only.
+
+        Raises
+        ------
+        ConfigError
+            Unknown name, missing file, unparsable URDF, or missing frames.
+        """
+        import pinocchio as pin
+
+        text = str(name_or_urdf)
+        path = Path(text)
+        if not text.endswith(".urdf"):
+            path = robot_urdf(text)
+            if not path.is_file():
+                known = sorted(p.stem for p in robots_dir().glob("*.urdf"))
+                raise ConfigError(f"unknown robot model {text!r}: expected one of {known} or a .urdf path")
+        if not path.is_file():
+            raise ConfigError(f"robot URDF {path} does not exist")
+        try:
+            model = pin.buildModelFromUrdf(str(path))
+        except (ValueError, RuntimeError) as e:
+            raise ConfigError(f"cannot load robot URDF {path}: {e}") from None
+        ids = {}
+        for frame in (ROOT_FRAME, TOOL_FRAME):
+            if not model.existFrame(frame):
+                raise ConfigError(
+                    f"robot URDF {path} has no frame {frame!r} (needed: {ROOT_FRAME}, {TOOL_FRAME})"
+                )
+            ids[frame] = model.getFrameId(frame)
+        if model.nq != model.nv:
+            raise ConfigError(f"robot URDF {path}: only revolute / prismatic joints are supported")
+        names = tuple(str(n) for n in list(model.names)[1:])
+        return cls(
+            name=path.stem,
+            urdf_path=path,
+            joint_names=names,
+            lower_rad=np.array(model.lowerPositionLimit, dtype=np.float64),
+            upper_rad=np.array(model.upperPositionLimit, dtype=np.float64),
+            _model=model,
+            _root_frame_id=ids[ROOT_FRAME],
+            _tool_frame_id=ids[TOOL_FRAME],
+        )
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    def check_joints(self, joints_rad: ArrayLike) -> F64:
+        """Return ``joints_rad`` as float64 (n_joints,) after checking count, NaN and limits.
+
+        Raises
+        ------
+        KinematicsError
+            Wrong count, non-finite value, or a joint outside its limit (named,
+            with value and limit in degrees).
+        """
+        q = np.asarray(joints_rad, dtype=np.float64).reshape(-1)
+        if q.size != self.n_joints:
+            raise KinematicsError(
+                f"{self.name}: expected {self.n_joints} joint values ({', '.join(self.joint_names)}), "
+                f"got {q.size}"
+            )
+        bad = [self.joint_names[i] for i in range(q.size) if not math.isfinite(q[i])]
+        if bad:
+            raise KinematicsError(f"{self.name}: joint values must be finite; {', '.join(bad)} = NaN/inf")
+        for i, name in enumerate(self.joint_names):
+            lo, hi = self.lower_rad[i], self.upper_rad[i]
+            if not lo - JOINT_LIMIT_TOLERANCE_RAD <= q[i] <= hi + JOINT_LIMIT_TOLERANCE_RAD:
+                raise KinematicsError(
+                    f"{self.name}: {name} = {math.degrees(q[i]):.4f}° is outside its limit "
+                    f"[{math.degrees(lo):.4f}°, {math.degrees(hi):.4f}°] ({self.urdf_path.name}); "
+                    "check the joint units (radians expected) and the robot model"
+                )
+        return q
+
+    def robot_from_tool0(self, joints_rad: ArrayLike) -> F64:
+        """Pose of ``tool0`` in the robot frame (4 × 4, mm) at joint angles ``joints_rad`` (rad).
+
+        Raises
+        ------
+        KinematicsError
+            See :meth:`check_joints`.
+        """
+        import pinocchio as pin
+
+        q = self.check_joints(joints_rad)
+        data = self._model.createData()
+        pin.framesForwardKinematics(self._model, data, q)
+        base_m = data.oMf[self._root_frame_id]
+        tool_m = data.oMf[self._tool_frame_id]
+        base_from_tool = base_m.actInv(tool_m)  # base⁻¹ · tool, both in metres
+        return _placement_to_mm(base_from_tool.rotation, base_from_tool.translation)
+
+
+def sphere_centres_robot_mm(
+    model: RobotModel, joints_rad: ArrayLike, tool0_from_phantom: ArrayLike, centres_phantom_mm: ArrayLike
+) -> F64:
+    """Sphere centres in the robot frame.
+
+    Parameters
+    ----------
+    model : RobotModel
+    joints_rad : array_like, shape (n_joints,)
+        Joint angles in radians.
+    tool0_from_phantom : array_like, shape (4, 4)
+        The connecting rod (mm); checked to be rigid.
+    centres_phantom_mm : array_like, shape (N, 3)
+        Sphere centres in the phantom frame (mm), in phantom sphere order.
+
+    Returns
+    -------
+    ndarray, shape (N, 3), float64
+        Centres in the ``robot`` frame (mm), same order.
+    """
+    rod = as_transform(tool0_from_phantom, "tool0_from_phantom")
+    pts = np.asarray(centres_phantom_mm, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise KinematicsError(f"centres_phantom_mm must have shape (N, 3), got {pts.shape}")
+    robot_from_phantom = model.robot_from_tool0(joints_rad) @ rod
+    return apply(robot_from_phantom, pts)
+
+
+def default_tool0_from_phantom() -> F64:
+    """The brief's default connecting rod (see :data:`DEFAULT_TOOL0_FROM_PHANTOM_XYZ_MM`)."""
+    from registration.model.frames import transform_from_xyz_rpy
+
+    return transform_from_xyz_rpy(DEFAULT_TOOL0_FROM_PHANTOM_XYZ_MM, DEFAULT_TOOL0_FROM_PHANTOM_RPY_DEG)

@@ -1,0 +1,242 @@
+"""Was the robot still over a time window?  (Refuse a registration if it moved during the scan.)
+
+The paper's method assumes the phantom did not move between the joint reading
+and the O-arm scan (Bai et al. 2018, doi:10.1088/1742-6596/1016/1/012006):
+the sphere positions in robot space come from one joint vector.  The service
+therefore checks the recorded joint history over the scan window and gives one of
+three verdicts (docs/safety.md, "Stillness and health"):
+
+* ``moved``: some joint deviated more than ``max_deviation_rad`` from its value at
+  the window end (the pose used for the registration).  Proof of motion wins over
+  everything else.
+* ``incomplete``: the history does not cover the window, so nobody can say the robot
+  was still: no samples; the window began before the link's session connected (the
+  first scan after start-up); the link reconnected inside the window; or frames are
+  missing.  How "missing" is judged depends on the link:
+
+  - a **streamed** link (simple_message over TCP, serial) delivers late frames
+    intact and in order, so a receive-clock gap inside one unbroken session is not a
+    hole in the robot's history.  Coverage is the frame count against the stream's
+    measured period (:func:`stream_period_s`): at most ``max_gap_s`` worth of frames may
+    be missing.  The controller's own clock is not used: the VAL3 driver sends
+    JOINT_POSITION with sequence number 0 and never JOINT_FEEDBACK
+    (research/staubli-link.md §1.4, §1.7).
+  - a **polled** link (Modbus) has a sample only when its poller ran: no gap between
+    receive times (and the window edges) may exceed ``max_gap_s``.
+* ``still``: covered and within the deviation limit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+DEFAULT_MAX_DEVIATION_RAD = 0.0005
+"""≈ 0.029°.  At the TX60's 670 mm reach an angular error of 0.0005 rad moves the flange by
+≈ 0.34 mm, the order of the registration error budget (nominal-model error ≈ 0.3 mm,
+research/staubli-link.md §3.1 item 4); encoder noise of a standing arm is far below it."""
+
+DEFAULT_MAX_GAP_S = 0.25
+"""12 frame periods at 50 Hz: a longer hole in the history means the link was not watching; 0.25 s
+(not 5 periods) tolerates scheduling hiccups of a loaded service PC.  The value of
+``stillness.max_gap_s`` in configs/oarmreg.toml; service/settings.py takes its default from here."""
+
+STREAM_PERIOD_MIN_INTERVALS = 10
+"""Fewest inter-frame intervals from which :func:`stream_period_s` measures a stream's period; with
+fewer the coverage is judged by receive gaps, as for a polled link."""
+
+VERDICT_STILL = "still"
+VERDICT_MOVED = "moved"
+VERDICT_INCOMPLETE = "incomplete"
+VERDICTS = (VERDICT_STILL, VERDICT_MOVED, VERDICT_INCOMPLETE)
+"""The stillness verdicts (docs/safety.md lists them with the refusal each one gives)."""
+
+DEFAULT_WINDOW_S = 2.0
+"""Default window for a manual capture; the service uses the scan's acquisition interval."""
+
+
+@dataclass(frozen=True)
+class StillnessResult:
+    """Outcome of :func:`assess_stillness`.
+
+    Attributes
+    ----------
+    still : bool
+    max_deviation_rad : float
+        Largest |q(t) − q(window_end)| over the window and all joints (NaN if no samples).
+    covered_s : float
+        Span of the window covered by samples without a gap > ``max_gap_s``.
+    n_samples : int
+        Samples inside the window.
+    reason : str
+        Why not still (empty if still).
+    verdict : str
+        ``still``, ``moved`` or ``incomplete`` (:data:`VERDICTS`).
+    max_receive_gap_s : float
+        Largest time between consecutive samples or a window edge and its nearest sample (s), by
+        the receive clock (NaN if no samples).
+    missing_frames : float
+        Streamed links: frames expected at the measured period minus frames received (NaN when
+        coverage was judged by receive gaps).
+    """
+
+    still: bool
+    max_deviation_rad: float
+    covered_s: float
+    n_samples: int
+    reason: str
+    verdict: str = VERDICT_STILL
+    max_receive_gap_s: float = math.nan
+    missing_frames: float = math.nan
+
+
+def stream_period_s(t_s: ArrayLike, *, min_intervals: int = STREAM_PERIOD_MIN_INTERVALS) -> float | None:
+    """The measured frame period of a stream: the median interval between receive times (s).
+
+    The median ignores both a controller stall (one long interval) and the burst of late frames
+    that follows a receive delay (a few near-zero intervals).  None with fewer than
+    ``min_intervals`` intervals.
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    if t.size - 1 < min_intervals:
+        return None
+    period = float(np.median(np.diff(t)))
+    return period if period > 0 and math.isfinite(period) else None
+
+
+def assess_stillness(
+    t_s: ArrayLike,
+    joints_rad: ArrayLike,
+    *,
+    window_end_t_s: float,
+    window_s: float,
+    max_deviation_rad: float = DEFAULT_MAX_DEVIATION_RAD,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    watched_from_t_s: float | None = None,
+    sessions: ArrayLike | None = None,
+    period_s: float | None = None,
+) -> StillnessResult:
+    """Decide whether the robot was still during ``[window_end_t_s − window_s, window_end_t_s]``.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (M,)
+        Sample times (``time.monotonic()`` seconds), non-decreasing.
+    joints_rad : array_like, shape (M, n_joints)
+        Joint samples in radians.
+    window_end_t_s, window_s : float
+        The window; its start is ``window_end_t_s − window_s``.
+    max_deviation_rad : float
+        Largest allowed |q(t) − q_end| per joint, where q_end is the last sample at or
+        before ``window_end_t_s``.
+    max_gap_s : float
+        Polled links (``period_s`` None): largest allowed time without a sample, between
+        consecutive samples in the window, from the window start to the first sample,
+        and from the last sample to the window end.  Streamed links: the frames of this
+        much time may be missing from the count.
+    watched_from_t_s : float, optional
+        When the link session that delivered the window's samples connected; a window
+        starting before it is ``incomplete`` (nobody watched the robot then).
+    sessions : array_like of int, shape (M,), optional
+        The transport session of each sample; more than one inside the window (a
+        reconnect) is ``incomplete``.
+    period_s : float, optional
+        A streamed link's measured frame period (:func:`stream_period_s`): coverage is
+        judged by the frame count, not by receive gaps.  None for a polled link.
+
+    Returns
+    -------
+    StillnessResult
+        ``still`` is True iff the window is covered and the deviation is within the limit;
+        ``verdict`` says which of ``still`` / ``moved`` / ``incomplete``.
+
+    Raises
+    ------
+    ValueError
+        Shapes disagree, times decrease, or a parameter is not positive.
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    q = np.asarray(joints_rad, dtype=np.float64)
+    if q.ndim != 2 or q.shape[0] != t.size:
+        raise ValueError(f"joints_rad must have shape ({t.size}, n_joints), got {q.shape}")
+    if not (window_s > 0 and max_gap_s > 0 and max_deviation_rad >= 0):
+        raise ValueError("window_s and max_gap_s must be > 0 and max_deviation_rad >= 0")
+    if t.size > 1 and np.any(np.diff(t) < 0):
+        raise ValueError("t_s must be non-decreasing")
+    if period_s is not None and not (period_s > 0 and math.isfinite(period_s)):
+        raise ValueError(f"period_s must be a positive number of seconds, got {period_s}")
+    start = window_end_t_s - window_s
+    inside = (t >= start) & (t <= window_end_t_s)
+    n = int(inside.sum())
+    if n == 0:
+        return StillnessResult(
+            False, math.nan, 0.0, 0,
+            f"joint history incomplete: no joint samples in the {window_s:g} s window", VERDICT_INCOMPLETE,
+        )  # fmt: skip
+    tw, qw = t[inside], q[inside]
+    if not np.all(np.isfinite(qw)):
+        return StillnessResult(
+            False, math.nan, 0.0, n, "joint history incomplete: non-finite joint values in the window",
+            VERDICT_INCOMPLETE,
+        )  # fmt: skip
+    q_end = qw[-1]
+    per_joint = np.max(np.abs(qw - q_end), axis=0)
+    deviation = float(np.max(per_joint))
+    edges = np.concatenate(([start], tw, [window_end_t_s]))
+    gaps = np.diff(edges)
+    worst_gap = float(gaps.max())
+    if deviation > max_deviation_rad:
+        j = int(np.argmax(per_joint))
+        return StillnessResult(
+            False, deviation, float(np.sum(gaps[gaps <= max_gap_s])), n,
+            f"robot moved: joint {j + 1} deviated {math.degrees(deviation):.4f}° "
+            f"({deviation:.6f} rad > {max_deviation_rad:g} rad) during the {window_s:g} s window",
+            VERDICT_MOVED, worst_gap,
+        )  # fmt: skip
+    if watched_from_t_s is not None and watched_from_t_s > start:
+        return StillnessResult(
+            False, deviation, max(0.0, window_end_t_s - watched_from_t_s), n,
+            f"joint history incomplete: the {window_s:g} s window began "
+            f"{watched_from_t_s - start:.3f} s before the robot link connected, so nobody watched the "
+            "robot then",
+            VERDICT_INCOMPLETE, worst_gap,
+        )  # fmt: skip
+    if sessions is not None:
+        sw = np.asarray(sessions).reshape(-1)
+        if sw.size != t.size:
+            raise ValueError(f"sessions must have shape ({t.size},), got {sw.shape}")
+        n_sessions = len(set(sw[inside].tolist()))
+        if n_sessions > 1:
+            return StillnessResult(
+                False, deviation, 0.0, n,
+                f"joint history incomplete: the robot link reconnected {n_sessions - 1} time(s) inside the "
+                f"{window_s:g} s window, so frames may be lost",
+                VERDICT_INCOMPLETE, worst_gap,
+            )  # fmt: skip
+    if period_s is not None:
+        missing = window_s / period_s - n
+        covered = min(window_s, n * period_s)
+        if missing * period_s > max_gap_s:
+            return StillnessResult(
+                False, deviation, covered, n,
+                f"joint history incomplete: {n} joint frames in the {window_s:g} s window where the stream's "
+                f"measured period ({period_s * 1e3:.1f} ms) gives {window_s / period_s:.0f}; "
+                f"{missing * period_s:.3f} s of frames are missing (> {max_gap_s:g} s), the longest receive "
+                f"gap is {worst_gap:.3f} s: the controller stopped sending",
+                VERDICT_INCOMPLETE, worst_gap, missing,
+            )  # fmt: skip
+        return StillnessResult(True, deviation, covered, n, "", VERDICT_STILL, worst_gap, missing)
+    covered = float(np.sum(gaps[gaps <= max_gap_s]))
+    if worst_gap > max_gap_s:
+        i = int(np.argmax(gaps))
+        return StillnessResult(
+            False, deviation, covered, n,
+            f"joint history incomplete: a {worst_gap:.3f} s gap (> {max_gap_s:g} s) at "
+            f"{edges[i] - start:.3f} s into the {window_s:g} s window: "
+            "the link did not watch the whole window",
+            VERDICT_INCOMPLETE, worst_gap,
+        )  # fmt: skip
+    return StillnessResult(True, deviation, covered, n, "", VERDICT_STILL, worst_gap)
