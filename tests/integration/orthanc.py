@@ -92,8 +92,13 @@ class Orthanc:
 
 
 @contextlib.contextmanager
-def running_orthanc(root: Path, *, modalities: dict[str, list[Any]] | None = None) -> Iterator[Orthanc]:
-    """Orthanc on free loopback ports with its data in ``root`` (stopped and reaped on exit)."""
+def running_orthanc(
+    root: Path, *, modalities: dict[str, list[Any]] | None = None, tls: tuple[Path, Path, Path] | None = None
+) -> Iterator[Orthanc]:
+    """Orthanc on free loopback ports with its data in ``root`` (stopped and reaped on exit).
+
+    ``tls`` = (certificate, private key, trusted CA certificates): its DICOM port speaks only
+    DICOM TLS (Orthanc ≥ 1.9; client certificates not required)."""
     assert ORTHANC is not None
     root.mkdir(parents=True, exist_ok=True)
     http_port, dicom_port = free_port(), free_port()
@@ -115,6 +120,15 @@ def running_orthanc(root: Path, *, modalities: dict[str, list[Any]] | None = Non
         "LuaScripts": [str(root / "filter.lua")],
         "HttpsCACertificates": "",
     }
+    if tls is not None:
+        cert, key, trusted = tls
+        config |= {
+            "DicomTlsEnabled": True,
+            "DicomTlsCertificate": str(cert),
+            "DicomTlsPrivateKey": str(key),
+            "DicomTlsTrustedCertificates": str(trusted),
+            "DicomTlsRemoteCertificateRequired": False,
+        }
     cfg = root / "orthanc.json"
     cfg.write_text(json.dumps(config, indent=2))
     log = root / "orthanc.log"
