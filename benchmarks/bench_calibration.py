@@ -231,7 +231,7 @@ def held_out_errors(s: Session, rng: np.random.Generator) -> dict[str, F64]:
 
 SYNTHETIC_Y = frames.transform_from_xyz_rpy([300.0, -100.0, 500.0], [10.0, 80.0, -30.0])
 SYNTHETIC_JOINTS_RAD = SPREAD_JOINTS_RAD
-"""The poses of tests/unit/test_calibration_cell.py (well-conditioned for the full set)."""
+"""The poses of tests/unit/mocks/test_calibration_cell.py (well-conditioned for the full set)."""
 SYNTHETIC_FLE_RMS_MM = 0.07
 
 

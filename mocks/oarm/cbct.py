@@ -2,7 +2,7 @@
 
 Needs only numpy, scipy and OpenCV: the FDK (:func:`fdk_numpy`) re-implements RTK's
 ``FDKConeBeamReconstructionFilter`` (weights, ramp kernel, voxel-driven bilinear back-projection)
-and is checked against it voxel for voxel in ``tests/unit/test_cbct.py`` (relative max difference
+and is checked against it voxel for voxel in ``tests/unit/mocks/test_cbct.py`` (relative max difference
 < 1e-4; 2e-6 measured).  RTK itself (``pip install 'oarmreg[cbct]'``, imported lazily by
 :func:`_rtk`) serves ``reconstructor="rtk"`` and the tests; the service never imports this module.
 
@@ -185,7 +185,7 @@ class ConeBeamSettings:
     traced).  0.9 mm puts the simulated O-arm's PSF at the published, geometrically calibrated
     O-arm's 0.65 mm FWHM (Uneri et al., Med Phys 45:4857 (2018); the uncalibrated O-arm: 0.80 mm,
     which the slice-wise ``*-realistic`` presets use): a 0.2 mm ball's in-plane FWHM, noise-free,
-    at and 32–38 mm off the isocentre, 0.648 mm mean (``tests/unit/test_cbct.py``); the earlier
+    at and 32–38 mm off the isocentre, 0.648 mm mean (``tests/unit/mocks/test_cbct.py``); the earlier
     0.6 mm gave 0.609 mm, sharper than any O-arm measurement found."""
     lag_components: LagModel = DETECTOR_LAG
     """The panel's true lag (:func:`apply_lag`); ``()`` for none."""

@@ -76,7 +76,7 @@ HU_MIN = -1024.0
 FBP_INTRINSIC_FWHM_PX = {"hann": 2.24, "shepp-logan": 1.46, "ram-lak": 1.39}
 """In-plane FWHM, in pixels, of the FBP alone (window, linear interpolation, detector pitch = pixel,
 bin aperture averaged over 9 sub-rays).  Measured on a reconstructed Ø0.06 mm wire; checked by
-tests/unit/test_simulator_physics.py.  The Gaussian PSF added on top brings the total to
+tests/unit/mocks/test_simulator_physics.py.  The Gaussian PSF added on top brings the total to
 ``psf_fwhm_mm``; Hann alone would already be 0.93 mm at 0.415 mm pixels, wider than the O-arm's
 0.65–0.8 mm, hence the Shepp-Logan default."""
 

@@ -45,7 +45,7 @@ FTOL: Final = 1e-12
 ``benchmarks/bench_calibration.py --solve-only`` it stops after ~15 evaluations instead of ~33 at
 machine epsilon, the parameters within 3e-8 (rad, mm) of the ε-converged ones (the smallest
 standard error is 1e-5); on exact data the cost falls by more than this every step until round-off, so
-held-out poses are still recovered to 1e-6 mm (tests/unit/test_calibration.py)."""
+held-out poses are still recovered to 1e-6 mm (tests/unit/registration/calibration/test_calibration.py)."""
 
 
 XTOL: Final = float(np.finfo(np.float64).eps)

@@ -8,7 +8,7 @@ The chain is the URDF's own description, joint by joint from the root link
 ``M_i`` is joint *i*'s ``<origin>`` (in its parent link, mm here), ``a_i`` its
 ``<axis>``; fixed joints between two actuated ones are folded into the next
 ``M``.  This is the same product Pinocchio evaluates for the URDF (checked to
-1e-9 mm in ``tests/unit/test_calibration_urdf.py``), written in numpy so that
+1e-9 mm in ``tests/unit/registration/calibration/test_calibration_urdf.py``), written in numpy so that
 the calibration can evaluate it for many poses and perturbed origins at once.
 
 :func:`write_calibrated_urdf` writes a copy of the nominal URDF with corrected

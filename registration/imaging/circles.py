@@ -60,7 +60,7 @@ class CircleParams:
         reach 0.45, an ellipse of axis ratio 0.5 gives ≥ 0.6).
     circularity_min : float
         Min 4πA/P².  Staircase perimeters of 3–5 px discs measure 0.75–0.9
-        (tests/unit/test_circles.py), a square is 0.785 but fails φ1 / θ1 only
+        (tests/unit/registration/imaging/test_circles.py), a square is 0.785 but fails φ1 / θ1 only
         when elongated, so this is a loose gate.
     axis_ratio_min : float
         Min minor/major axis of the fitted ellipse.  A sphere section is a

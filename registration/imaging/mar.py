@@ -65,7 +65,7 @@ class MarParams:
         Physical width of a streak; the SE spans ``(w / r) / (2π / n_angles)``
         rows at radius r, clipped to λ = 2 … 20 (image-side.md §2.3).  An SE
         shorter than the streak leaves it untouched; 1.5 mm removed ~50 % of
-        the annulus SD on simulated ~1 mm streaks (tests/unit/test_mar.py),
+        the annulus SD on simulated ~1 mm streaks (tests/unit/registration/imaging/test_mar.py),
         wider values gained little more (COA can at most halve a line).
     hough_votes : int
         Accumulator threshold of ``cv2.HoughLines`` (edge pixels on a line);

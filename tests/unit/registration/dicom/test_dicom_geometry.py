@@ -1,6 +1,6 @@
 """Geometry rules of :mod:`registration.dicom.geometry`, one test per rule function, on in-memory headers.
 
-``tests/unit/test_dicom_series.py`` checks the same refusals end to end on real files; these pin
+``test_dicom_series.py`` beside this file checks the same refusals end to end on real files; these pin
 each ``check_*`` function on its own: it passes a good stack, and refuses the one broken property
 with its error class, naming the offending file(s).
 """

@@ -16,7 +16,7 @@ from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 
 REFERENCE = Path(
     os.environ.get("OARMREG_REFERENCE_DIR")
-    or Path(__file__).resolve().parents[2].parent / "shared" / "reference" / "robots"
+    or Path(__file__).resolve().parents[4].parent / "shared" / "reference" / "robots"
 )
 """The steering repo's shared/ sits beside the project checkout (locally and in CI);
 ``OARMREG_REFERENCE_DIR`` points elsewhere (a worktree, for instance)."""
@@ -150,7 +150,7 @@ def test_unknown_model_and_missing_file() -> None:
 
 
 def test_load_by_path() -> None:
-    m = RobotModel.load(str(Path(__file__).resolve().parents[2] / "configs" / "robots" / "tx2_60.urdf"))
+    m = RobotModel.load(str(Path(__file__).resolve().parents[4] / "configs" / "robots" / "tx2_60.urdf"))
     assert m.name == "tx2_60" and m.n_joints == 6
 
 

@@ -10,7 +10,7 @@ import pytest
 from registration.errors import ConfigError
 from service.settings import Settings, is_loopback, load_settings
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 TOKEN = "t" * 24
 
 

@@ -15,7 +15,7 @@ from registration.matching.records import (
 from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S, assess_stillness
 from service.settings import QualitySettings, StillnessSettings
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 CONFIG = tomllib.loads((REPO / "configs" / "oarmreg.toml").read_text(encoding="utf-8"))
 
 # (section, key in the TOML / settings model, registration default)

@@ -12,7 +12,7 @@ from registration.io import resources
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import load_phantom
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[4]
 
 
 def test_checkout_configs_are_the_ones_used() -> None:

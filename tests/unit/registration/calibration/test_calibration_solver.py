@@ -22,7 +22,7 @@ from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 
 JOINTS_RAD = SPREAD_JOINTS_RAD
-"""The poses of tests/unit/test_calibration.py (well-conditioned for the full set)."""
+"""The poses of ``test_calibration.py`` beside this file (well-conditioned for the full set)."""
 
 
 def test_sphere_soft_l1_is_soft_l1_of_each_sphere_distance() -> None:
