@@ -196,12 +196,20 @@ def sim_scan(phantom: Any) -> Any:
     return simulate_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
 
 
+INTAKE_TESTS_MAX_GAP_S = 0.5
+"""These tests judge the intake, not stillness (tests/faults/test_stillness_*.py do): the mock
+controller shares the machine, and in the module's service its process, with the DICOM decoding,
+and on a loaded machine (CI, the coverage tracer) its sender fell 0.26 s behind — a correct
+"joint history incomplete" refusal of the mock, not of the intake.  Still below the 0.6 s window."""
+
+
 @pytest.fixture(scope="module")
 def lc(tmp_path_factory: pytest.TempPathFactory, phantom: Any, sim_scan: Any) -> Iterator[Lc]:
     from registration.model.kinematics import RobotModel
 
     root = tmp_path_factory.mktemp("lifecycle")
-    kw = {"dicom.enabled": True, "dicom.port": 0, "dicom.ae_title": AE_TITLE, **_supported(SCP_BOUNDS)}
+    kw = {"dicom.enabled": True, "dicom.port": 0, "dicom.ae_title": AE_TITLE, **_supported(SCP_BOUNDS),
+          "stillness.max_gap_s": INTAKE_TESTS_MAX_GAP_S}  # fmt: skip
     with in_process_service(root, phantom, RobotModel.load("tx60"), **kw) as svc:
         port = int(svc.client.get("/status").json()["listeners"]["dicom"]["port"])
         yield Lc(svc, port, sim_scan, root)
@@ -402,7 +410,7 @@ def _forked_service(root: Path) -> Iterator[tuple[ForkedServe, int, Any]]:
         write_config(cfg, {
             "watch_dir": str(root / "watch"), "data_dir": str(root / "data"), "api_token": TOKEN,
             "port": port, "robot.link_url": mock_url, "robot.connect_timeout_s": 2.0,
-            "stillness.window_s": 0.6, "stillness.max_gap_s": 0.25,
+            "stillness.window_s": 0.6, "stillness.max_gap_s": INTAKE_TESTS_MAX_GAP_S,
             "watcher.quiet_period_s": 0.3, "watcher.poll_interval_s": 0.2,
             "dicom.enabled": True, "dicom.port": dicom_port, "dicom.ae_title": AE_TITLE,
         })  # fmt: skip
