@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sqlite3
+from pathlib import Path
+
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -33,3 +36,34 @@ def test_a_series_under_the_limit_fires_only_on_a_monotonic_rise(means: list[flo
     assert (v is not None) == rising
     if v is not None:
         assert v.reason == "rise"
+
+
+def test_the_rule_reads_only_the_named_calibrations_checks_and_skips_withdrawn_ones(tmp_path: Path) -> None:
+    from service.store import Database
+    from tests.integration.qa_seed import seed_calibration, seed_qa_series
+
+    seed_qa_series(tmp_path, [0.1, 0.2, 0.3])
+    cal = seed_calibration(tmp_path)
+    _, mid = seed_qa_series(tmp_path, [0.7, 0.8])
+    seed_qa_series(tmp_path, [0.4])
+    _, under_cal = seed_qa_series(tmp_path, [0.9, 0.95], calibration_id=cal)
+    db = Database.open(tmp_path / "oarmreg.sqlite3")
+    try:
+        t = db.qa_trend
+        assert t.last_means(cal, 3) == [0.9, 0.95]
+        assert t.last_means(None, 3) == [0.7, 0.8, 0.4]
+        assert [p.verification_id for p in t.checks(cal)] == under_cal
+        assert len(t.checks()) == 8 and len(t.checks(nominal=True)) == 6
+        assert [f.calibration_id for f in t.fre()] == [None, None, None, cal]
+    finally:
+        db.close()
+    raw = sqlite3.connect(tmp_path / "oarmreg.sqlite3")  # a changed scan withdraws its verification
+    with raw:
+        raw.execute("UPDATE verifications SET withdrawn_at = 'x' WHERE id = ?", (mid[1],))
+    raw.close()
+    db = Database.open(tmp_path / "oarmreg.sqlite3")
+    try:
+        assert db.qa_trend.last_means(None, 3) == [0.3, 0.7, 0.4]
+        assert [p.withdrawn for p in db.qa_trend.checks() if p.verification_id == mid[1]] == [True]
+    finally:
+        db.close()
