@@ -136,6 +136,28 @@ def retention_problems(ctx: ServiceContext) -> list[HealthProblem]:
     return [] if p is None else [HealthProblem("retention-over-quota", "Retention over quota", p)]
 
 
+def qa_drift_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """The QA drift rule (:mod:`service.qa_drift`) over the checks under the active calibration."""
+    from service.qa_drift import drift
+
+    q = ctx.settings.qa
+    cal_id = ctx.db.calibrations.active_id()
+    means = ctx.db.qa_trend.last_means(cal_id, q.drift_window)
+    verdict = drift(means, window=q.drift_window, limit_mm=q.drift_mean_mm, rise_mm=q.drift_rise_mm)
+    if verdict is None:
+        return []
+    under = "the nominal robot model" if cal_id is None else f"calibration {cal_id}"
+    return [
+        HealthProblem(
+            "qa-drift",
+            "Recalibrate: QA drifting",
+            f"under {under}, {verdict.describe()}; the cell is drifting from its calibration: run a "
+            "calibration session (docs/calibration.md) and activate it, then repeat the QA protocol "
+            "(GET /qa/trend shows the series)",
+        )
+    ]
+
+
 PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     database_problems,
     robot_link_problems,
@@ -144,6 +166,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     data_dir_problems,
     intake_write_problems,
     retention_problems,
+    qa_drift_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""
 

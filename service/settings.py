@@ -385,6 +385,24 @@ class HealthSettings(_Section):
     link_hold_off_s: float = Field(default=3.0, gt=0, le=600)
 
 
+class QaSettings(_Section):
+    """The QA drift rule (issue #21, :mod:`service.qa_drift`, docs/operations.md "QA drift")."""
+
+    # the last N QA checks (verifications at a QA protocol's pose) under the active calibration the
+    # rule looks at.  3: one protocol run of three poses, or three weekly runs of one; fewer than N
+    # checks never fire (one bad pose is the verification gate's business, not a drift)
+    drift_window: int = Field(default=3, ge=2, le=100)
+    # mm; their mean above this fires.  0.5 mm: half the verification gate's default pass limit
+    # (quality.max_verification_error_mm, 1.0 mm) and the calibration's own acceptance limit on its
+    # predicted error (max_predicted_error_mm, 0.5 mm, docs/calibration.md): a cell whose QA means
+    # exceed what its calibration predicts no longer behaves as calibrated, long before checks fail
+    drift_mean_mm: float = Field(default=0.5, gt=0, le=10.0)
+    # mm; the N means rising at every check and by more than this from first to last fires too.
+    # 0.2 mm: 40 % of drift_mean_mm, so a steady rise is caught before the limit; an engineering
+    # choice, not measured on a cell (revisit with the site's QA history)
+    drift_rise_mm: float = Field(default=0.2, gt=0, le=10.0)
+
+
 class Settings(BaseSettings):
     """Every setting of the service (see ``configs/oarmreg.toml`` for units and origins)."""
 
@@ -421,6 +439,7 @@ class Settings(BaseSettings):
     log: LogSettings = LogSettings()
 
     pacs: PacsSettings = PacsSettings()
+    qa: QaSettings = QaSettings()
 
     @classmethod
     def settings_customise_sources(

@@ -1,4 +1,5 @@
-"""``POST /qa/protocols``, ``GET /qa/protocols`` (paginated), ``GET /qa/protocols/{id}``.
+"""``POST /qa/protocols``, ``GET /qa/protocols`` (paginated), ``GET /qa/protocols/{id}``;
+``GET /qa/trend`` and ``GET /qa/trend.csv`` (QA checks and FRE over time, the drift rule).
 
 A QA protocol is a named set of verification poses, so successive QA checks of a cell are
 comparable; ``POST /verify`` names one with ``qa_protocol_id`` and ``qa_pose``.
@@ -9,7 +10,8 @@ from __future__ import annotations
 import math
 from typing import Annotated
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
+from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from service.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
@@ -17,7 +19,8 @@ from service.api.problems import problem_responses
 from service.audit import audited
 from service.context import ServiceContext
 from service.errors import NotFoundError, QaProtocolError, QaProtocolNameTakenError
-from service.store.qa import QaCheck, QaPose, QaProtocol
+from service.qa_drift import drift
+from service.store.qa import FrePoint, QaCheck, QaPose, QaProtocol, QaTrendPoint
 
 router = APIRouter(tags=["qa"])
 
@@ -164,3 +167,142 @@ def get_protocol(ctx: CtxDep, protocol_id: RecordId) -> QaProtocolOut:
     if proto is None:
         raise NotFoundError(f"QA protocol {protocol_id} does not exist; GET /qa/protocols lists them")
     return protocol_out(proto)
+
+
+# ---- QA trend --------------------------------------------------------------------------------
+
+CalibrationQuery = Annotated[
+    int | None,
+    Query(ge=1, le=2**63 - 1, description="Only records made under this calibration (GET /calibrations)"),
+]
+
+
+class QaTrendCheckOut(BaseModel):
+    verification_id: int
+    created_at: str
+    protocol_id: int
+    protocol_name: str
+    pose: str
+    mean_mm: float
+    max_mm: float
+    passed: bool
+    registration_id: int
+    calibration_id: int | None = Field(
+        description="Active when the registration was made; null: nominal model"
+    )
+    withdrawn: bool
+
+
+class FreOut(BaseModel):
+    registration_id: int
+    created_at: str
+    fre_mm: float
+    calibration_id: int | None
+
+
+class DriftOut(BaseModel):
+    """The drift rule on the last ``window`` QA checks under the active calibration."""
+
+    calibration_id: int | None
+    window: int
+    limit_mm: float
+    rise_limit_mm: float
+    means_mm: list[float]
+    drifting: bool
+    detail: str
+
+
+class QaTrendOut(BaseModel):
+    checks: list[QaTrendCheckOut]
+    fre: list[FreOut]
+    drift: DriftOut
+
+
+def _trend(
+    ctx: ServiceContext, calibration_id: int | None, limit: int, offset: int
+) -> tuple[list[QaTrendPoint], list[FrePoint]]:
+    if calibration_id is not None and ctx.db.calibrations.get(calibration_id) is None:
+        raise NotFoundError(f"calibration {calibration_id} does not exist; GET /calibrations lists them")
+    t = ctx.db.qa_trend
+    return (
+        t.checks(calibration_id, limit=limit, offset=offset),
+        t.fre(calibration_id, limit=limit, offset=offset),
+    )
+
+
+def drift_state(ctx: ServiceContext) -> DriftOut:
+    q = ctx.settings.qa
+    cal_id = ctx.db.calibrations.active_id()
+    means = ctx.db.qa_trend.last_means(cal_id, q.drift_window)
+    v = drift(means, window=q.drift_window, limit_mm=q.drift_mean_mm, rise_mm=q.drift_rise_mm)
+    return DriftOut(
+        calibration_id=cal_id,
+        window=q.drift_window,
+        limit_mm=q.drift_mean_mm,
+        rise_limit_mm=q.drift_rise_mm,
+        means_mm=means,
+        drifting=v is not None,
+        detail="" if v is None else v.describe(),
+    )
+
+
+@router.get(
+    "/qa/trend",
+    response_model=QaTrendOut,
+    summary="QA checks (mean / max, PASS/FAIL) and registrations' FRE over time, oldest first (paginated)",
+    responses=problem_responses(401, 404, 422),
+)
+def qa_trend(
+    ctx: CtxDep, calibration_id: CalibrationQuery = None, limit: Limit = 100, offset: Offset = 0
+) -> QaTrendOut:
+    checks, fre = _trend(ctx, calibration_id, limit, offset)
+    return QaTrendOut(
+        checks=[QaTrendCheckOut(**vars(c)) for c in checks],
+        fre=[FreOut(**vars(f)) for f in fre],
+        drift=drift_state(ctx),
+    )
+
+
+CSV_COLUMNS = (
+    "kind", "id", "created_at", "calibration_id", "protocol_id", "protocol_name", "pose",
+    "mean_mm", "max_mm", "passed", "registration_id", "withdrawn", "fre_mm",
+)  # fmt: skip
+"""``GET /qa/trend.csv``: one row per QA check (``kind`` qa_check) then per registration (``kind`` fre)."""
+
+
+@router.get(
+    "/qa/trend.csv",
+    response_class=Response,
+    summary="GET /qa/trend's checks and FRE as CSV (same filter and pages)",
+    responses={**problem_responses(401, 404, 422), 200: {"content": {"text/csv": {}}}},
+)
+def qa_trend_csv(
+    ctx: CtxDep, calibration_id: CalibrationQuery = None, limit: Limit = 100, offset: Offset = 0
+) -> Response:
+    import csv
+    import io
+
+    checks, fre = _trend(ctx, calibration_id, limit, offset)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\r\n")
+    w.writerow(CSV_COLUMNS)
+
+    def cal(c: int | None) -> str:
+        return "" if c is None else str(c)
+
+    for c in checks:
+        w.writerow(
+            ("qa_check", c.verification_id, c.created_at, cal(c.calibration_id), c.protocol_id,
+             c.protocol_name, c.pose, repr(c.mean_mm), repr(c.max_mm), "PASS" if c.passed else "FAIL",
+             c.registration_id, int(c.withdrawn), "")
+        )  # fmt: skip
+    for f in fre:
+        w.writerow(
+            ("fre", f.registration_id, f.created_at, cal(f.calibration_id), "", "", "", "", "", "",
+             f.registration_id, "", repr(f.fre_mm))
+        )  # fmt: skip
+    return Response(
+        buf.getvalue(),
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": 'attachment; filename="qa-trend.csv"'},
+    )

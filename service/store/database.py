@@ -13,7 +13,7 @@ from service.store.audit import AuditStore
 from service.store.base import Connection
 from service.store.calibrations import CalibrationStore
 from service.store.pacs_exports import PacsExportStore
-from service.store.qa import QaStore
+from service.store.qa import QaStore, QaTrendStore
 from service.store.registrations import RegistrationStore
 from service.store.scan_instances import ScanInstanceStore
 from service.store.scans import ScanStore
@@ -38,6 +38,7 @@ class Database:
         self.calibrations = CalibrationStore(conn)
         self.pacs_exports = PacsExportStore(conn)  # the PACS archive queue
         self.qa = QaStore(conn)  # QA protocols and the checks taken at their poses
+        self.qa_trend = QaTrendStore(conn)  # read-only: QA checks and FRE over time (issue #21)
 
     @classmethod
     def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:

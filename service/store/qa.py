@@ -87,3 +87,115 @@ def _protocol(r: sqlite3.Row) -> QaProtocol:
         QaPose(str(p["name"]), tuple(float(x) for x in p["joints_rad"])) for p in loads(r["poses_json"])
     )
     return QaProtocol(int(r["id"]), str(r["name"]), str(r["description"]), poses, str(r["created_at"]))
+
+
+# ---- QA trend (issue #21) ------------------------------------------------------------------
+
+_CALIBRATION_OF = "json_extract(r.figures_json, '$.provenance.calibration.calibration_id')"
+"""The calibration active when a registration was made (its provenance; NULL: the nominal model)."""
+
+
+@dataclass(frozen=True)
+class QaTrendPoint:
+    """One QA verification: a verification with a ``qa_checks`` row."""
+
+    verification_id: int
+    created_at: str
+    protocol_id: int
+    protocol_name: str
+    pose: str
+    mean_mm: float
+    max_mm: float
+    passed: bool
+    registration_id: int
+    calibration_id: int | None
+    """Active when the registration verified was made (None: the nominal robot model)."""
+    withdrawn: bool
+
+
+@dataclass(frozen=True)
+class FrePoint:
+    """One accepted registration's FRE."""
+
+    registration_id: int
+    created_at: str
+    fre_mm: float
+    calibration_id: int | None
+
+
+def _cal_filter(calibration_id: int | None, nominal: bool) -> tuple[str, tuple[object, ...]]:
+    if nominal:
+        return f" AND {_CALIBRATION_OF} IS NULL", ()
+    if calibration_id is None:
+        return "", ()
+    return f" AND {_CALIBRATION_OF} = ?", (calibration_id,)
+
+
+class QaTrendStore:
+    """Read-only queries over verifications, qa_checks and registrations for ``GET /qa/trend``."""
+
+    def __init__(self, db: Connection) -> None:
+        self._db = db
+
+    def checks(
+        self, calibration_id: int | None = None, *, nominal: bool = False, limit: int = 100, offset: int = 0
+    ) -> list[QaTrendPoint]:
+        """QA verifications, oldest first; ``calibration_id`` narrows to one calibration,
+        ``nominal`` to registrations made with the nominal model."""
+        where, args = _cal_filter(calibration_id, nominal)
+        rows = self._db.query(
+            "SELECT v.id, v.created_at, q.protocol_id, p.name AS protocol_name, q.pose, v.mean_mm, "
+            f"v.max_mm, v.passed, v.registration_id, {_CALIBRATION_OF} AS calibration_id, "
+            "v.withdrawn_at FROM verifications v JOIN qa_checks q ON q.verification_id = v.id "
+            "JOIN qa_protocols p ON p.id = q.protocol_id JOIN registrations r ON r.id = v.registration_id "
+            f"WHERE 1 = 1{where} ORDER BY v.id LIMIT ? OFFSET ?",
+            (*args, limit, offset),
+        )
+        return [
+            QaTrendPoint(
+                verification_id=int(x["id"]),
+                created_at=str(x["created_at"]),
+                protocol_id=int(x["protocol_id"]),
+                protocol_name=str(x["protocol_name"]),
+                pose=str(x["pose"]),
+                mean_mm=float(x["mean_mm"]),
+                max_mm=float(x["max_mm"]),
+                passed=bool(x["passed"]),
+                registration_id=int(x["registration_id"]),
+                calibration_id=None if x["calibration_id"] is None else int(x["calibration_id"]),
+                withdrawn=x["withdrawn_at"] is not None,
+            )
+            for x in rows
+        ]
+
+    def fre(
+        self, calibration_id: int | None = None, *, nominal: bool = False, limit: int = 100, offset: int = 0
+    ) -> list[FrePoint]:
+        """Accepted registrations' FRE, oldest first (same filter as :meth:`checks`)."""
+        where, args = _cal_filter(calibration_id, nominal)
+        rows = self._db.query(
+            f"SELECT r.id, r.created_at, r.fre_mm, {_CALIBRATION_OF} AS calibration_id FROM registrations r "
+            f"WHERE r.status = 'accepted' AND r.fre_mm IS NOT NULL{where} ORDER BY r.id LIMIT ? OFFSET ?",
+            (*args, limit, offset),
+        )
+        return [
+            FrePoint(
+                int(x["id"]),
+                str(x["created_at"]),
+                float(x["fre_mm"]),
+                None if x["calibration_id"] is None else int(x["calibration_id"]),
+            )
+            for x in rows
+        ]
+
+    def last_means(self, calibration_id: int | None, n: int) -> list[float]:
+        """The mean error (mm) of the last ``n`` QA checks made under ``calibration_id`` (None:
+        the nominal model), withdrawn ones left out; oldest first."""
+        where, args = _cal_filter(calibration_id, calibration_id is None)
+        rows = self._db.query(
+            "SELECT v.mean_mm FROM verifications v JOIN qa_checks q ON q.verification_id = v.id "
+            f"JOIN registrations r ON r.id = v.registration_id WHERE v.withdrawn_at IS NULL{where} "
+            "ORDER BY v.id DESC LIMIT ?",
+            (*args, n),
+        )
+        return [float(x["mean_mm"]) for x in reversed(rows)]

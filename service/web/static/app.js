@@ -16,6 +16,8 @@ const STATUS_POLL_MS = 2000;  // the link's frame age and joints change continuo
 const RECONNECT_MS = 2000;    // after the event stream drops, a new ticket and stream
 const REFRESH_DEBOUNCE_MS = 50;
 const VER_PAGE = 10;
+const QA_FETCH = 1000;  // GET /qa/trend's page limit; the chart shows the newest QA_SHOWN checks
+const QA_SHOWN = 40;
 
 const state = {
   token: null, es: null, statusTimer: null, refreshTimer: null, reconnectTimer: null,
@@ -148,6 +150,7 @@ async function refreshAll() {
     api("/status"), api("/registrations?limit=20"), api("/scans?limit=20"),
     api(`/verifications?limit=${VER_PAGE + 1}&offset=${state.verOffset}`), api("/calibrations?limit=20"),
   ]);
+  const qa = await api(`/qa/trend?limit=${QA_FETCH}`);
   if (!st.ok) return;
   state.registrations = regs.ok ? regs.body : [];
   state.calibrations = cals.ok ? cals.body : [];
@@ -164,6 +167,7 @@ async function refreshAll() {
   renderScans(scans.ok ? scans.body : []);
   renderVerifications(vers.ok ? vers.body : []);
   renderCalibrations(state.calibrations);
+  if (qa.ok) renderQa(qa.body);
   renderBanners(st.body, current, state.registrations);
 }
 
@@ -205,7 +209,16 @@ function noCurrentReason(regs) {
 
 function renderBanners(st, current, regs) {
   const out = [];
-  for (const p of st.problems || []) out.push(banner("bad", "Service problem: " + p, null));
+  for (const p of st.problem_details || []) {
+    if (p.type === "qa-drift") {
+      const b = banner("warn", `${p.title}: ${p.detail}`,
+        "Run a calibration session, activate it, then repeat the QA protocol (QA trend below).");
+      b.id = "recalibrate-banner";
+      out.push(b);
+    } else {
+      out.push(banner("bad", "Service problem: " + p.detail, null));
+    }
+  }
   if (!current) {
     const reason = noCurrentReason(regs);
     out.push(banner("bad", "No current registration: navigation must not use an old matrix. " + reason,
@@ -223,6 +236,24 @@ function renderBanners(st, current, regs) {
       "Registrations are refused until the controller streams joint angles again."));
   }
   $("banners").replaceChildren(...out);
+}
+
+// ---- QA trend (issue #21) -----------------------------------------------------------------------
+
+function renderQa(t) {
+  const checks = t.checks.slice(-QA_SHOWN);
+  const d = t.drift;
+  const under = d.calibration_id == null ? "the nominal robot model" : `calibration ${d.calibration_id}`;
+  $("qa-drift").textContent = d.drifting
+    ? `Drifting under ${under}: ${d.detail}.`
+    : `Steady under ${under}: last ${d.means_mm.length} of ${d.window} QA means ` +
+      `${d.means_mm.map((m) => fmt(m, 3)).join(", ") || "none yet"} mm ` +
+      `(limit ${d.limit_mm} mm, rise ${d.rise_limit_mm} mm).`;
+  $("qa-drift").className = d.drifting ? "bad" : "note";
+  $("qa-chart").replaceChildren(barChart(
+    checks.map((c) => ({ label: `#${c.verification_id} ${c.pose}`, value: c.mean_mm, cls: c.passed ? "" : "bad" })),
+    { title: "QA check mean error (mm), red: FAIL", unit: "mm", second: checks.map((c) => c.max_mm), secondLabel: "max" },
+  ));
 }
 
 // ---- status -----------------------------------------------------------------------------------
