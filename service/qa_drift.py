@@ -1,4 +1,4 @@
-"""The QA drift rule (issue #21; docs/operations.md "QA drift").
+"""The QA drift rule (docs/operations.md "QA drift").
 
 Over the last ``window`` QA checks (verifications taken at a QA protocol's pose) under the active
 calibration: their mean error above ``limit_mm`` fires, and so does a series that rises at every

@@ -386,7 +386,7 @@ class HealthSettings(_Section):
 
 
 class QaSettings(_Section):
-    """The QA drift rule (issue #21, :mod:`service.qa_drift`, docs/operations.md "QA drift")."""
+    """The QA drift rule (:mod:`service.qa_drift`, docs/operations.md "QA drift")."""
 
     # the last N QA checks (verifications at a QA protocol's pose) under the active calibration the
     # rule looks at.  3: one protocol run of three poses, or three weekly runs of one; fewer than N

@@ -115,7 +115,7 @@ def _augmented(model: _Model, data: _Data) -> tuple[Any, Any, Any]:
 def _fit(model: _Model, data: _Data, x0: F64, params: CalibrationParams) -> F64:
     """Robust least squares on all sphere residuals: ``scipy.optimize.least_squares`` (TRF) with
     the analytic Jacobian and a soft-L1 loss of scale ``robust_scale_mm`` on each sphere's 3-D
-    distance (issue #10); with ``model.prior_weights`` the MAP cost (prior rows squared, issue #20)."""
+    distance; with ``model.prior_weights`` the MAP cost (prior rows squared)."""
     fun, jac, loss = _augmented(model, data)
     res = least_squares(
         fun,

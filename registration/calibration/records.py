@@ -30,8 +30,8 @@ I64 = NDArray[np.int64]
 
 NOMINAL_CHAIN_ERROR_MM: Final = 1.0
 """``predicted_chain_error_mm`` of a registration made with the nominal model and rod (no active
-calibration): issue #20 measured 1.03 mm mean held-out error of the nominal model on a TX60 cell it
-was not tuned on; the test bed's nominal model gives 1.0–1.4 mm at error scale 1
+calibration): 1.03 mm mean held-out error of the nominal model was measured on a simulated TX60
+cell it was not tuned on; the test bed's nominal model gives 1.0–1.4 mm at error scale 1
 (``python -m benchmarks.bench_calibration``)."""
 
 
@@ -46,7 +46,7 @@ MIN_POSES: Final = 6
 
 @dataclass(frozen=True)
 class Priors:
-    """Gaussian prior widths (σ per component) of the robot's geometric errors (issue #20).
+    """Gaussian prior widths (σ per component) of the robot's geometric errors (docs/calibration.md).
 
     Origin: research/calibration.md §1 — an uncalibrated Stäubli TX60 is off by 0.312 mm / 0.221°
     on average (robotinfo.org summary of a published BAS-PSO study).  σ 0.1 mm per axis on each of
@@ -66,7 +66,7 @@ class Priors:
     rod_translation_mm: float = 1.0
     rod_rotation_deg: float = 0.5
     """σ per axis of the rod about its CAD pose, for the posterior only (the fit leaves it free):
-    the issue #20 cell's rod was off 0.8 mm / 0.4° in all; 1 mm / 0.5° per axis covers it."""
+    the unseen test cell's rod was off 0.8 mm / 0.4° in all; 1 mm / 0.5° per axis covers it."""
     placement_translation_mm: float = 1000.0
     placement_rotation_deg: float = 90.0
     """σ of the O-arm placement, for the posterior only: effectively flat (the O-arm can stand
@@ -128,7 +128,7 @@ class CalibrationParams:
     """``"ls"``: robust least squares over the minimal complete set, no prior; ``"map"``: maximum a
     posteriori with Gaussian priors (:data:`PRIORS`) on all 6 error components of every joint
     origin (``parameter_set="full"`` becomes ``"all"``), their weight chosen by cross-validation
-    over poses.  Default ``"ls"``: on the issue #20 test bed (tuning seeds 1–3 × error scales 1, 2
+    over poses.  Default ``"ls"``: on the calibration test bed (tuning seeds 1–3 × error scales 1, 2
     × random / planned poses) MAP with CV gave 1.015 × the LS held-out mean (fixed prior scale 2:
     0.98 ×) — a tie, so the simpler, faster one; the refusal is on the predicted error either way,
     not on the condition number (docs/calibration.md)."""
@@ -149,7 +149,7 @@ class CalibrationParams:
     data_sd_mm: float = 0.05
     """Reference σ (mm) per residual component the prior weight is written against: σ_d / (s σ_j)
     per parameter.  0.05 mm ≈ FLE 0.07 mm 3-D / √3 plus unmodelled (sag, repeatability) of the
-    issue #10 DICOM session; the cross-validated scale s absorbs any mismatch."""
+    DICOM calibration session; the cross-validated scale s absorbs any mismatch."""
     working_margin_mm: float = 40.0
     """Working volume = the scan volume grown by this (radius and half-length, mm): navigation
     uses the arm beyond the phantom's calibration positions — the phantom is 60 mm across and a
@@ -168,7 +168,7 @@ class CalibrationParams:
     max_predicted_error_mm: float = 0.5
     """Refuse when the predicted RMS sphere error at the worst pose of the working volume exceeds
     this (mm).  0.5 mm: research/calibration.md §6 suggested gate on predicted TRE, half the
-    ≈ 1 mm the nominal model gives (issue #20)."""
+    ≈ 1 mm the nominal model gives (docs/calibration.md)."""
     min_poses: int = MIN_POSES
     robust_scale_mm: float = 0.2
     """soft-L1 loss scale: residuals ≫ this (a wrong match, ≥ 1 mm) weigh linearly, not squared;
@@ -270,7 +270,7 @@ class CalibrationResult:
     def predicted_held_out_rms_mm(self) -> float:
         """Expected RMS sphere-centre error at a pose of the working volume after a one-scan
         registration with the calibrated model: the posterior propagated through the kinematics
-        (issue #20); without a prediction the LOPO figure :attr:`lopo_predicted_rms_mm`."""
+        (docs/calibration.md); without a prediction the LOPO figure :attr:`lopo_predicted_rms_mm`."""
         if self.prediction is not None:
             return self.prediction.rms_mm
         return self.lopo_predicted_rms_mm
@@ -407,13 +407,13 @@ class WorkingPrediction:
 
 def chain_error_figure(calibration: Mapping[str, Any] | None) -> tuple[float, str]:
     """(predicted_chain_error_mm, its source) of a registration made with ``calibration``: the
-    active calibration's posterior figure, else the nominal model's prior (issue #20)."""
+    active calibration's posterior figure, else the nominal model's prior."""
     if calibration is not None:
         v = calibration.get("predicted_chain_error_mm")
         if v is not None:
             return float(v), f"calibration {calibration.get('calibration_id')} posterior"
         return NOMINAL_CHAIN_ERROR_MM, (
             f"calibration {calibration.get('calibration_id')} has no posterior figure "
-            "(made before issue #20): nominal prior"
+            "(made before chain figures existed): nominal prior"
         )
     return NOMINAL_CHAIN_ERROR_MM, "nominal model prior (no active calibration)"

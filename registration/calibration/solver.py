@@ -1,4 +1,4 @@
-"""Multi-pose calibration of robot geometry, connecting rod and O-arm placement (issue #10).
+"""Multi-pose calibration of robot geometry, connecting rod and O-arm placement.
 
 One session = K ≥ 6 scans of the phantom at different robot poses with the
 O-arm left in place (one FrameOfReferenceUID).  Sphere ``k`` detected in scan

@@ -38,7 +38,7 @@ class Database:
         self.calibrations = CalibrationStore(conn)
         self.pacs_exports = PacsExportStore(conn)  # the PACS archive queue
         self.qa = QaStore(conn)  # QA protocols and the checks taken at their poses
-        self.qa_trend = QaTrendStore(conn)  # read-only: QA checks and FRE over time (issue #21)
+        self.qa_trend = QaTrendStore(conn)  # read-only: QA checks and FRE over time
 
     @classmethod
     def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:

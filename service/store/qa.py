@@ -89,7 +89,7 @@ def _protocol(r: sqlite3.Row) -> QaProtocol:
     return QaProtocol(int(r["id"]), str(r["name"]), str(r["description"]), poses, str(r["created_at"]))
 
 
-# ---- QA trend (issue #21) ------------------------------------------------------------------
+# ---- QA trend ----------------------------------------------------------------------------
 
 _CALIBRATION_OF = "json_extract(r.figures_json, '$.provenance.calibration.calibration_id')"
 """The calibration active when a registration was made (its provenance; NULL: the nominal model)."""

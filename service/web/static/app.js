@@ -238,7 +238,7 @@ function renderBanners(st, current, regs) {
   $("banners").replaceChildren(...out);
 }
 
-// ---- QA trend (issue #21) -----------------------------------------------------------------------
+// ---- QA trend ---------------------------------------------------------------------------------
 
 function renderQa(t) {
   const checks = t.checks.slice(-QA_SHOWN);
