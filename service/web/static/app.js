@@ -244,12 +244,17 @@ function renderQa(t) {
   const checks = t.checks.slice(-QA_SHOWN);
   const d = t.drift;
   const under = d.calibration_id == null ? "the nominal robot model" : `calibration ${d.calibration_id}`;
+  const rule = `(the drift rule reads the last ${d.window}; limit ${d.limit_mm} mm, rise ${d.rise_limit_mm} mm)`;
   $("qa-drift").textContent = d.drifting
     ? `Drifting under ${under}: ${d.detail}.`
-    : `Steady under ${under}: last ${d.means_mm.length} of ${d.window} QA means ` +
-      `${d.means_mm.map((m) => fmt(m, 3)).join(", ") || "none yet"} mm ` +
-      `(limit ${d.limit_mm} mm, rise ${d.rise_limit_mm} mm).`;
+    : d.means_mm.length === 0
+      ? `No QA check yet under ${under} ${rule}: verify at a QA protocol's poses (docs/operations.md).`
+      : `Steady under ${under}: QA means ${d.means_mm.map((m) => fmt(m, 3)).join(", ")} mm ${rule}.`;
   $("qa-drift").className = d.drifting ? "bad" : "note";
+  if (checks.length === 0) {
+    $("qa-chart").replaceChildren();
+    return;
+  }
   $("qa-chart").replaceChildren(barChart(
     checks.map((c) => ({ label: `#${c.verification_id} ${c.pose}`, value: c.mean_mm, cls: c.passed ? "" : "bad" })),
     { title: "QA check mean error (mm), red: FAIL", unit: "mm", second: checks.map((c) => c.max_mm), secondLabel: "max" },
