@@ -16,6 +16,7 @@ from typing import Any, Literal, cast
 
 from service.records import JSONDict
 from service.store.base import Connection, dumps, loads, utc_now
+from service.store.registrations import retire_accepted
 
 CalibrationStatus = Literal["running", "done", "refused"]
 
@@ -158,17 +159,7 @@ class CalibrationStore:
                 raise ValueError(f"calibration {cal_id} is {state}, not done")
             prev = c.execute("SELECT calibration_id FROM active_calibration WHERE singleton = 1").fetchone()
             cur = c.execute("SELECT registration_id FROM current_registration WHERE singleton = 1").fetchone()
-            retired = [
-                int(r[0])
-                for r in c.execute(
-                    "SELECT id FROM registrations WHERE status = 'accepted' AND retired_at IS NULL"
-                )
-            ]
-            c.execute(
-                "UPDATE registrations SET retired_at = ?, retired_by_calibration = ? "
-                "WHERE status = 'accepted' AND retired_at IS NULL",
-                (now, cal_id),
-            )
+            retired = retire_accepted(c, now, cal_id, also_withdrawn=True)
             c.execute("DELETE FROM current_registration WHERE singleton = 1")
             c.execute(
                 "INSERT INTO active_calibration (singleton, calibration_id, set_at) VALUES (1, ?, ?) "

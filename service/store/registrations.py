@@ -17,6 +17,20 @@ from service.records import (
 from service.store.base import Connection, dumps, loads, utc_now
 
 
+def retire_accepted(c: sqlite3.Connection, now: str, cal_id: int, *, also_withdrawn: bool) -> list[int]:
+    """Mark the accepted, not yet retired registrations retired by calibration ``cal_id`` (inside the
+    caller's transaction); returns their ids.  ``also_withdrawn=False`` leaves withdrawn ones as they
+    are (a withdrawal of the active calibration); activation retires them too."""
+    where = "status = 'accepted' AND retired_at IS NULL" + (
+        "" if also_withdrawn else " AND withdrawn_at IS NULL"
+    )
+    ids = [int(r[0]) for r in c.execute(f"SELECT id FROM registrations WHERE {where}")]
+    c.execute(
+        f"UPDATE registrations SET retired_at = ?, retired_by_calibration = ? WHERE {where}", (now, cal_id)
+    )
+    return ids
+
+
 @dataclass(frozen=True)
 class DerivedWithdrawal:
     """What :meth:`RegistrationStore.withdraw_derived` withdrew."""
@@ -116,18 +130,7 @@ class RegistrationStore:
             if active is None or int(active[0]) not in cals:
                 return DerivedWithdrawal(tuple(vers), tuple(cals), None, ())
             cal_id = int(active[0])
-            retired = [
-                int(r[0])
-                for r in c.execute(
-                    "SELECT id FROM registrations "
-                    "WHERE status = 'accepted' AND retired_at IS NULL AND withdrawn_at IS NULL"
-                )
-            ]
-            c.execute(
-                "UPDATE registrations SET retired_at = ?, retired_by_calibration = ? "
-                "WHERE status = 'accepted' AND retired_at IS NULL AND withdrawn_at IS NULL",
-                (now, cal_id),
-            )
+            retired = retire_accepted(c, now, cal_id, also_withdrawn=False)
             c.execute("DELETE FROM current_registration WHERE singleton = 1")
             c.execute("DELETE FROM active_calibration WHERE singleton = 1")
             return DerivedWithdrawal(tuple(vers), tuple(cals), cal_id, tuple(retired))

@@ -308,6 +308,8 @@ def test_folder_path_same_rule_a_file_replaced_in_place_withdraws_its_registrati
     name, same count; before issue 19 only a growing slice count reopened a folder series)."""
     import os
 
+    from tests.helpers.dicom_factory import rewrite_with_other_pixels
+
     uid, files = lc.export("folder-staging")
     lc.svc.wait_still()
     folder = lc.svc.watch / "folder-scan"
@@ -317,13 +319,7 @@ def test_folder_path_same_rule_a_file_replaced_in_place_withdraws_its_registrati
     r = lc.client.post("/register", json={"scan_id": scan["id"]})
     assert r.status_code == 200, r.text
     victim = sorted(folder.glob("*.dcm"))[40]
-    ds = pydicom.dcmread(victim)
-    px = bytearray(ds.PixelData)
-    px[100:104] = b"\xff\x0f\xff\x0f"
-    ds.PixelData = bytes(px)
-    tmp = victim.with_name(f".{victim.name}.part")
-    ds.save_as(tmp, enforce_file_format=True)
-    os.replace(tmp, victim)
+    rewrite_with_other_pixels(victim)
     detail = lc.wait_withdrawn(scan["id"], int(r.json()["id"]))
     assert "replaced" in detail and victim.name in detail, detail
     assert lc.scan_of(uid, "complete")["id"] == scan["id"]  # judged again: complete, new content

@@ -202,3 +202,19 @@ def slice_stack(n: int = 6, overrides: Mapping[int, Mapping[str, Any]] | None = 
     """``n`` :func:`slice_header` slices, ``overrides[k]`` replacing fields of slice k."""
     overrides = overrides or {}
     return [slice_header(k, **dict(overrides.get(k, {}))) for k in range(n)]
+
+
+def rewrite_with_other_pixels(path: Path) -> None:
+    """Re-export one slice with other pixel bytes under the same name, atomically (a temporary
+    file renamed over it), as a scanner re-sending changed content would."""
+    import os
+
+    import pydicom
+
+    ds = pydicom.dcmread(path)
+    px = bytearray(ds.PixelData)
+    px[100:104] = b"\xff\x0f\xff\x0f"
+    ds.PixelData = bytes(px)
+    tmp = path.with_name(f".{path.name}.part")
+    ds.save_as(tmp, enforce_file_format=True)
+    os.replace(tmp, path)

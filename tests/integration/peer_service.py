@@ -120,3 +120,15 @@ def send_files(port: int, files: list[Path], *, calling_ae: str = "OARM_TEST") -
         return [int(assoc.send_c_store(pydicom.dcmread(f)).Status) for f in files]
     finally:
         assoc.release()
+
+
+def wait_export(
+    svc: PeerService, registration_id: int, done: Callable[[dict[str, Any]], bool], what: str
+) -> dict[str, Any]:
+    """The registration's ``pacs_export`` once ``done`` holds for it (deadline)."""
+
+    def ok() -> dict[str, Any] | None:
+        exp = svc.client.get(f"/registrations/{registration_id}").json().get("pacs_export")
+        return exp if exp is not None and done(exp) else None
+
+    return wait_for(ok, f"the PACS export of registration {registration_id} to be {what}")  # type: ignore[no-any-return]

@@ -274,19 +274,11 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
 
 
 def _replace_one_slice(folder: Path) -> None:
-    """Re-export one slice of a recorded folder scan with other bytes (same name), atomically."""
-    import os
+    """Re-export the middle slice of a recorded folder scan with other bytes (same name)."""
+    from tests.helpers.dicom_factory import rewrite_with_other_pixels
 
-    import pydicom
-
-    victim = sorted(folder.glob("*.dcm"))[len(list(folder.glob("*.dcm"))) // 2]
-    ds = pydicom.dcmread(victim)
-    px = bytearray(ds.PixelData)
-    px[100:104] = b"\xff\x0f\xff\x0f"
-    ds.PixelData = bytes(px)
-    tmp = victim.with_name(f".{victim.name}.part")
-    ds.save_as(tmp, enforce_file_format=True)
-    os.replace(tmp, victim)
+    files = sorted(folder.glob("*.dcm"))
+    rewrite_with_other_pixels(files[len(files) // 2])
 
 
 def _assert_refused_and_stored(c: httpx.Client, body: dict[str, Any], title: str, words: str) -> None:

@@ -18,7 +18,13 @@ import pytest
 
 from tests.integration.orthanc import AE_TITLE as ORTHANC_AET
 from tests.integration.orthanc import ORTHANC, Orthanc, running_orthanc
-from tests.integration.peer_service import AE_TITLE, PeerService, running_service, simulated_series, wait_for
+from tests.integration.peer_service import (
+    AE_TITLE,
+    PeerService,
+    running_service,
+    simulated_series,
+    wait_export,
+)
 
 pytestmark = pytest.mark.skipif(ORTHANC is None, reason="Orthanc not installed (.ci/run installs it)")
 
@@ -37,11 +43,7 @@ class Setup:
 
 
 def export_of(svc: PeerService, registration_id: int, state: str) -> dict[str, Any]:
-    def done() -> dict[str, Any] | None:
-        exp = svc.client.get(f"/registrations/{registration_id}").json().get("pacs_export")
-        return exp if exp is not None and exp["state"] == state else None
-
-    return wait_for(done, f"the PACS export of registration {registration_id} to be {state}")  # type: ignore[no-any-return]
+    return wait_export(svc, registration_id, lambda e: bool(e["state"] == state), state)
 
 
 @pytest.fixture(scope="module")

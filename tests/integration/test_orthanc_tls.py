@@ -19,21 +19,13 @@ import pytest
 
 from tests.integration.orthanc import AE_TITLE as ORTHANC_AET
 from tests.integration.orthanc import ORTHANC, running_orthanc
-from tests.integration.peer_service import running_service, send_files, simulated_series, wait_for
+from tests.integration.peer_service import running_service, send_files, simulated_series, wait_export
 from tests.integration.test_or_integration import make_tls
 
 pytestmark = pytest.mark.skipif(
     ORTHANC is None or shutil.which("openssl") is None, reason="Orthanc / openssl not installed (.ci/run)"
 )
 CALLING_AET = "OARMREG_SCU"
-
-
-def _export(svc: Any, reg_id: int, done: Any) -> dict[str, Any]:
-    def ok() -> dict[str, Any] | None:
-        exp = svc.client.get(f"/registrations/{reg_id}").json().get("pacs_export")
-        return exp if exp is not None and done(exp) else None
-
-    return wait_for(ok, f"the PACS export of registration {reg_id}")  # type: ignore[no-any-return]
 
 
 def test_registration_archived_over_dicom_tls_and_refused_in_plain(tmp_path: Path, phantom: Any) -> None:
@@ -49,7 +41,7 @@ def test_registration_archived_over_dicom_tls_and_refused_in_plain(tmp_path: Pat
         with running_service(tmp_path / "tls", phantom, **pacs, **{"pacs.tls_ca_file": ca}) as svc:
             send_files(svc.dicom_port, files)
             reg = svc.wait_registration(svc.wait_scan(series_uid)["id"])
-            exp = _export(svc, reg["id"], lambda e: e["state"] == "sent")
+            exp = wait_export(svc, reg["id"], lambda e: bool(e["state"] == "sent"), "sent")
             assert exp["destination"].endswith("+tls"), exp
             instance = orthanc.find_instance(exp["sop_instance_uid"])
             assert instance is not None
@@ -59,6 +51,11 @@ def test_registration_archived_over_dicom_tls_and_refused_in_plain(tmp_path: Pat
         with running_service(tmp_path / "plain", phantom, **pacs) as svc:
             send_files(svc.dicom_port, files)
             reg = svc.wait_registration(svc.wait_scan(series_uid)["id"])
-            exp = _export(svc, reg["id"], lambda e: e["attempts"] >= 1 and e["state"] != "sent")
+            exp = wait_export(
+                svc,
+                reg["id"],
+                lambda e: bool(e["attempts"] >= 1 and e["state"] != "sent"),
+                "tried and not sent",
+            )
             assert exp["reason"], exp  # says why: no association with the TLS-only port
             assert svc.client.get(f"/registrations/{reg['id']}").json()["status"] == "accepted"
