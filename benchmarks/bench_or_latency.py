@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import print_table
+from service.events import Event, RegistrationDone, RegistrationRefused, ScanArrived, ScanInvalid
 
 TOKEN = "bench-or-latency-token-0123456789"
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         export = write_dicom_series(scan, root / "base", write_truth=False)
         datasets = [pydicom.dcmread(p) for p in sorted(export.paths)]
         sys.stderr.write(f"simulated + exported {len(datasets)} slices in {time.perf_counter() - t:.0f} s\n")
-        events: list[tuple[float, str, dict[str, Any]]] = []
+        events: list[tuple[float, Event]] = []
         with run_mock_controller("simple-message", ScriptedRobot(Q1)) as mock:
             settings = load_settings(None, {
                 "watch_dir": root / "watch", "data_dir": root / "data", "api_token": TOKEN,
@@ -102,14 +103,13 @@ def main(argv: list[str] | None = None) -> int:
                 "service.auto_register": True,
             })  # fmt: skip
             app = create_app(settings)
-            ctx = app.state.ctx
-            publish = ctx.bus.publish
+            bus = app.state.inputs.bus  # listened to before the app starts: first of its listeners
 
-            def recording_publish(event: str, data: dict[str, Any]) -> None:
-                events.append((time.perf_counter(), event, data))
-                publish(event, data)
+            def record(event: Event) -> None:
+                events.append((time.perf_counter(), event))
 
-            ctx.bus.publish = recording_publish  # type: ignore[method-assign]
+            for kind in (ScanArrived, ScanInvalid, RegistrationDone, RegistrationRefused):
+                bus.listen(kind, record)
             with serve_in_thread(app) as server:
                 import httpx
 
@@ -136,21 +136,28 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _one_run(
-    i: int, root: Path, datasets: list[Any], lst: dict[str, Any], events: list[Any], igtl: Any, client: Any,
-    send_series: Any,
+    i: int, root: Path, datasets: list[Any], lst: dict[str, Any], events: list[tuple[float, Event]],
+    igtl: Any, client: Any, send_series: Any,
 ) -> dict[str, float]:  # fmt: skip
     files = _resend_copy(datasets, root / f"run-{i}")
     uid = str(datasets[0].SeriesInstanceUID)
     res = send_series(files, "127.0.0.1", lst["dicom"]["port"], called_ae=lst["dicom"]["ae_title"])
 
-    def ev(name: str) -> tuple[float, dict[str, Any]] | None:
-        return next(((t, d) for t, e, d in list(events) if e == name and d.get("series_uid") == uid), None)
+    def ev(*kinds: type[Event]) -> tuple[float, Any] | None:
+        return next(
+            (
+                (t, e)
+                for t, e in list(events)
+                if isinstance(e, kinds) and getattr(e, "series_uid", None) == uid
+            ),
+            None,
+        )
 
-    t_scan, _ = _wait(lambda: ev("scan_arrived") or ev("scan_invalid"), "the scan record")
-    t_reg, reg = _wait(lambda: ev("registration_done") or ev("registration_refused"), "the auto-registration")
-    if "fre_mm" not in reg:
-        raise RuntimeError(f"run {i}: the registration was refused: {reg.get('reason')}")
-    want = str(reg["registration_id"])
+    t_scan, _ = _wait(lambda: ev(ScanArrived, ScanInvalid), "the scan record")
+    t_reg, reg = _wait(lambda: ev(RegistrationDone, RegistrationRefused), "the auto-registration")
+    if isinstance(reg, RegistrationRefused):
+        raise RuntimeError(f"run {i}: the registration was refused: {reg.reason}")
+    want = str(reg.registration_id)
 
     def transform() -> float | None:
         m = igtl.wait_for_message("RobotToImage", timeout=0.5)

@@ -190,15 +190,15 @@ def main(argv: list[str] | None = None) -> int:
                 },
             )
             app = create_app(settings)
-            ctx = app.state.ctx
+            inputs = app.state.inputs  # the running parts (app.state.ctx) exist once it serves
             t0p = settings.robot.tool0_from_phantom.matrix()
             from registration.model.frames import invert
 
-            image_from_robot = demo_pose() @ invert(ctx.robot_model.robot_from_tool0(HOME_RAD) @ t0p)
-            image_from_phantom = image_from_robot @ ctx.robot_model.robot_from_tool0(HOME_RAD) @ t0p
+            image_from_robot = demo_pose() @ invert(inputs.robot_model.robot_from_tool0(HOME_RAD) @ t0p)
+            image_from_phantom = image_from_robot @ inputs.robot_model.robot_from_tool0(HOME_RAD) @ t0p
             acq = AcquisitionSettings.preset(args.preset)
             sys.stderr.write(f"simulating a {acq.columns}x{acq.rows}x{acq.n_slices} scan ...\n")
-            scan = simulate_scan(ctx.phantom, image_from_phantom, acq)
+            scan = simulate_scan(inputs.phantom, image_from_phantom, acq)
             exp = write_dicom_series(scan, staging, write_truth=False)
             floor_s, _ = median_time_s(lambda: naive_read_series(staging), repeats=args.repeats)
             with (
@@ -229,8 +229,9 @@ def main(argv: list[str] | None = None) -> int:
                 warm_s, _ = median_time_s(post, repeats=args.repeats, warmup=1)
 
                 def post_cold() -> None:
-                    with ctx.orchestrator._volumes_lock:
-                        ctx.orchestrator._volumes.clear()
+                    orchestrator = app.state.ctx.orchestrator
+                    with orchestrator._volumes_lock:
+                        orchestrator._volumes.clear()
                     post()
 
                 cold_s, _ = median_time_s(post_cold, repeats=args.repeats, warmup=0)

@@ -2,8 +2,10 @@
 
 ``create_app(settings)`` validates what can fail early (phantom file, robot model, link
 URL) and returns an app whose lifespan opens the database, connects the robot link,
-starts the DICOM watcher (and, when enabled, the DICOM C-STORE SCP and the OpenIGTLink
-server, :mod:`service.or_integration`), and stops them again.  No settings or resources exist at
+starts the folder watcher and, when enabled, the operating-room pieces (each bound to the bus:
+:mod:`service.intake_scp`, :mod:`service.igtl.publisher`, :mod:`service.pacs.exporter`,
+:mod:`service.auto_register`; docs/or-integration.md), builds the
+:class:`service.context.ServiceContext` and stops them again.  No settings or resources exist at
 import time; tests inject settings, a robot link, or override dependencies.
 
 Routers (``service/api``): ``/health`` (no auth) · ``/status`` · ``/robot/joints`` ·
@@ -20,8 +22,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Coroutine
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -30,14 +33,18 @@ from drivers.base import RobotLink
 from registration import __version__
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
+from service.auto_register import AutoRegister
 from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
-from service.context import ServiceContext
+from service.context import ServiceContext, ServiceInputs
 from service.data_dir import hold_serve_lock, make_private
-from service.event_bus import EventBus
+from service.event_bus import EventBus, Subscriptions
+from service.events import RegistrationDone, RegistrationRefused, ScanArrived
+from service.igtl.publisher import IgtlPublisher
 from service.intake import Intake
-from service.or_integration import OrIntegration
+from service.intake_scp import INTAKE_FOLDER, CStoreIntake
 from service.orchestrator import Orchestrator
+from service.pacs.exporter import PacsExporter
 from service.scan_lifecycle import ScanLifecycle
 from service.security import SecurityGate
 from service.settings import Settings
@@ -90,7 +97,7 @@ def create_app(
         Bad phantom file, robot model or link URL (fail at start-up, naming the setting).
     """
     settings.check_serving()
-    ctx = ServiceContext(
+    inputs = ServiceInputs(
         settings=settings,
         bus=EventBus(),
         phantom=phantom if phantom is not None else _load_phantom(settings),
@@ -100,11 +107,9 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await _start(ctx, start_watcher=start_watcher)
-        try:
+        async with contextlib.AsyncExitStack() as stack:
+            app.state.ctx = await _start(inputs, stack, start_watcher=start_watcher)
             yield
-        finally:
-            await _stop(ctx)
 
     docs = settings.api.docs
     app = FastAPI(
@@ -112,7 +117,7 @@ def create_app(
         docs_url=None, redoc_url=None,  # /docs: the self-hosted shell of service.web
         openapi_url="/openapi.json" if docs else None,
     )  # fmt: skip
-    app.state.ctx = ctx
+    app.state.inputs = inputs  # app.state.ctx: set by the lifespan once every part runs
     _install_routes(app)
     app.add_middleware(CurrentRegistrationFastPath)
     app.add_middleware(SecurityGate)  # nothing is read before it admits the request
@@ -154,60 +159,121 @@ def _open_link(settings: Settings) -> RobotLink:
     return open_link(settings.robot.link_url)
 
 
-async def _start(ctx: ServiceContext, *, start_watcher: bool) -> None:
-    """Open the database, connect the robot link, start the watcher."""
-    settings = ctx.settings
-    ctx.bus.bind(asyncio.get_running_loop())
+async def _start(
+    inputs: ServiceInputs, stack: contextlib.AsyncExitStack, *, start_watcher: bool
+) -> ServiceContext:
+    """Start the parts in order, each one's stop pushed on ``stack`` as soon as it runs (a failure
+    half-way stops what had started); then build the context, complete.
+
+    Open the database, recover interrupted scan changes, connect the robot link, start the optional
+    operating-room pieces and bind them to the bus, start the intakes last (they deliver scans the
+    others react to).  Shutdown runs in reverse, except that the SSE streams end and the bus
+    listeners are removed first: a series the intakes finish while stopping is recorded but not
+    pushed or auto-registered.
+    """
+    settings, bus = inputs.settings, inputs.bus
+    publish = bus.publish
+    bus.bind(asyncio.get_running_loop())
     make_private(settings.data_dir)  # umask 077, folder 0700, files 0600
-    ctx.serve_lock = hold_serve_lock(settings.data_dir)  # a second serve on this folder: exit 3
-    try:
-        ctx.db = Database.open(settings.db_path)
-    except BaseException:
-        ctx.serve_lock.close()
-        raise
-    or_int = ctx.or_integration = OrIntegration(ctx)
-    ctx.db_watch_task = asyncio.create_task(_watch_database(ctx), name="oarmreg-db-watch")
-    ctx.orchestrator = Orchestrator(
-        settings, ctx.db, ctx.phantom, ctx.robot_model, ctx.bus.publish, volumes=ctx.volumes
+    serve_lock = hold_serve_lock(settings.data_dir)  # a second serve on this folder: exit 3
+    stack.callback(serve_lock.close)
+    db = Database.open(settings.db_path)
+    stack.callback(db.close)
+    _task(stack, _watch_database(db, settings.database.integrity_check_interval_s), "oarmreg-db-watch")
+    orchestrator = Orchestrator(
+        settings, db, inputs.phantom, inputs.robot_model, publish, volumes=inputs.volumes
     )
-    ctx.calibrations = CalibrationJobs(
-        settings, ctx.db, ctx.orchestrator, ctx.phantom, ctx.robot_model, ctx.volumes, ctx.bus.publish
+    # a registration still running on a worker thread finishes before the database closes
+    stack.push_async_callback(asyncio.to_thread, orchestrator.wait_idle)
+    calibrations = CalibrationJobs(
+        settings, db, orchestrator, inputs.phantom, inputs.robot_model, inputs.volumes, publish
     )
-    ctx.calibrations.restore()
-    or_int.lifecycle = ScanLifecycle(ctx.db, ctx.volumes, ctx.bus.publish, ctx.orchestrator.withdraw_scan)
-    await asyncio.to_thread(or_int.lifecycle.recover, cstore_root=or_int.intake_dir)  # after a crash
-    ctx.capture = Capture(ctx.robot_link, settings, ctx.bus.publish)
-    await ctx.capture.start()
+    stack.push_async_callback(asyncio.to_thread, calibrations.stop)
+    calibrations.restore()
+    lifecycle = ScanLifecycle(db, inputs.volumes, publish, orchestrator.withdraw_scan)
+    intake_dir = settings.data_dir / INTAKE_FOLDER
+    await asyncio.to_thread(lifecycle.recover, cstore_root=intake_dir)  # after a crash
+    capture = Capture(inputs.robot_link, settings, publish)
+    await capture.start()
+    stack.push_async_callback(capture.stop)
+    intake = Intake(
+        db, capture, inputs.volumes, publish, withdraw=orchestrator.withdraw_scan, lifecycle=lifecycle
+    )
+
+    subs = Subscriptions(bus)
+    stack.callback(subs.close)
+    auto_register: AutoRegister | None = None
+    if settings.service.auto_register:
+        auto_register = AutoRegister(orchestrator)
+        await auto_register.start()
+        stack.push_async_callback(auto_register.stop)
+        subs.listen(ScanArrived, auto_register.on_scan_arrived)
+    igtl: IgtlPublisher | None = None
+    if settings.igtl.enabled:
+        igtl = IgtlPublisher(
+            settings.igtl, orchestrator, capture, inputs.robot_link, inputs.robot_model, publish
+        )
+        await igtl.start()
+        stack.push_async_callback(igtl.stop)
+        subs.listen(RegistrationDone, igtl.on_registration_done)
+        subs.listen(RegistrationRefused, igtl.on_registration_refused)
+    pacs: PacsExporter | None = None
+    if settings.pacs.enabled:
+        pacs = PacsExporter(db, settings.pacs, settings.data_dir, publish)
+        await asyncio.to_thread(pacs.start)
+        stack.push_async_callback(asyncio.to_thread, pacs.stop)
+        subs.listen(RegistrationDone, pacs.on_registration_done)
+
+    watcher: SeriesWatcher | None = None
     if start_watcher:
         w = settings.watcher
-        ctx.watcher = SeriesWatcher(
+        watcher = SeriesWatcher(
             settings.watch_dir,
-            on_series=or_int.folder_intake(
-                Intake(
-                    ctx.db,
-                    ctx.capture,
-                    ctx.volumes,
-                    ctx.bus.publish,
-                    withdraw=ctx.orchestrator.withdraw_scan,
-                    lifecycle=or_int.lifecycle,
-                )
-            ),
-            is_known=ctx.db.scans.has_complete,
-            recorded_slices=ctx.db.scans.recorded_slices,
-            recorded_content=ctx.db.scans.recorded_content,
+            on_series=intake,
+            is_known=db.scans.has_complete,
+            recorded_slices=db.scans.recorded_slices,
+            recorded_content=db.scans.recorded_content,
             quiet_period_s=w.quiet_period_s,
             poll_interval_s=w.poll_interval_s,
             use_polling_only=w.use_polling_only,
         )
-        ctx.watcher.start()
-    await or_int.start()  # DICOM C-STORE SCP and OpenIGTLink server, when enabled
+        watcher.start()
+        stack.push_async_callback(asyncio.to_thread, watcher.stop)
+    cstore: CStoreIntake | None = None
+    if settings.dicom.enabled:
+        cstore = CStoreIntake(settings.dicom, intake_dir, db, intake, lifecycle, publish)
+        await cstore.start()
+        stack.push_async_callback(cstore.stop)
+    stack.callback(subs.close)  # at shutdown, before the intakes stop (see the docstring)
+    stack.callback(bus.close)  # first of all: end the SSE streams
+
+    ctx = ServiceContext(
+        settings=settings, bus=bus, phantom=inputs.phantom, robot_model=inputs.robot_model,
+        robot_link=inputs.robot_link, volumes=inputs.volumes, tickets=inputs.tickets,
+        started_at=inputs.started_at, db=db, capture=capture, orchestrator=orchestrator,
+        calibrations=calibrations, watcher=watcher, cstore=cstore, igtl=igtl, pacs=pacs,
+        auto_register=auto_register,
+    )  # fmt: skip
     if settings.api.auth == "none-loopback-only":
         log.warning(
             "authentication is OFF (api.auth = 'none-loopback-only'): any local process or user can change "
             "the current registration; set api_token and api.auth = 'token' for clinical use"
         )
-    ctx.retention_task = asyncio.create_task(_retention_loop(ctx), name="oarmreg-retention")
+    _task(stack, _retention_loop(ctx), "oarmreg-retention")
     log.info("oarmreg %s: %s", __version__, startup_line(ctx))
+    return ctx
+
+
+def _task(stack: contextlib.AsyncExitStack, coro: Coroutine[Any, Any, None], name: str) -> None:
+    """Run ``coro`` as a task until the stack unwinds (then cancelled and awaited)."""
+    task = asyncio.create_task(coro, name=name)
+
+    async def cancel() -> None:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+    stack.push_async_callback(cancel)
 
 
 def startup_line(ctx: ServiceContext) -> str:
@@ -216,7 +282,7 @@ def startup_line(ctx: ServiceContext) -> str:
     scheme = "https" if st.tls.enabled else "http"
     host = f"[{st.host}]" if ":" in st.host else st.host
     parts = [f"HTTP {scheme}://{host}:{st.port} (status page /, API docs /docs)"]
-    listeners = ctx.or_integration.status() if ctx.or_integration is not None else {}
+    listeners = ctx.listeners()
     d, g = listeners.get("dicom", {}), listeners.get("igtl", {})
     parts.append(f"DICOM C-STORE {d.get('ae_title')}@{d.get('host')}:{d.get('port')}" if d.get("enabled")
                  else "DICOM C-STORE off")  # fmt: skip
@@ -228,20 +294,18 @@ def startup_line(ctx: ServiceContext) -> str:
     return "listening: " + ", ".join(parts)
 
 
-async def _watch_database(ctx: ServiceContext) -> None:
+async def _watch_database(db: Database, interval_s: float) -> None:
     """Every ``database.integrity_check_interval_s``: is the database file still the one opened?
 
     The check also runs on every write transaction and every ``GET /health``; this loop makes a
     vanished file show up in the log (and the rescue copy be taken) even when nothing writes.
     """
-    interval_s = ctx.settings.database.integrity_check_interval_s
-    while ctx.db.health_problem() is None:
+    while db.health_problem() is None:
         await asyncio.sleep(interval_s)
 
 
 async def _retention_loop(ctx: ServiceContext) -> None:
     """Run the retention policy at start-up, then every ``retention.interval_s``; never dies."""
-    from service.or_integration import INTAKE_FOLDER
     from service.retention import quota_problem, run_retention
 
     r = ctx.settings.retention
@@ -258,29 +322,6 @@ async def _retention_loop(ctx: ServiceContext) -> None:
         except Exception:
             log.exception("retention: the policy run failed; retrying in %.0f s", r.interval_s)
         await asyncio.sleep(r.interval_s)  # a period, not synchronisation
-
-
-async def _stop(ctx: ServiceContext) -> None:
-    if ctx.retention_task is not None:
-        ctx.retention_task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await ctx.retention_task
-    ctx.bus.close()
-    if ctx.or_integration is not None:
-        await ctx.or_integration.stop()
-    if ctx.db_watch_task is not None:
-        ctx.db_watch_task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await ctx.db_watch_task
-    if ctx.watcher is not None:
-        await asyncio.to_thread(ctx.watcher.stop)
-    await ctx.capture.stop()
-    await asyncio.to_thread(ctx.calibrations.stop)
-    # a registration still running on a worker thread finishes before the database closes
-    await asyncio.to_thread(ctx.orchestrator.wait_idle)
-    ctx.db.close()
-    if ctx.serve_lock is not None:
-        ctx.serve_lock.close()
 
 
 class CurrentRegistrationFastPath:

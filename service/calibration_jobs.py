@@ -22,7 +22,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -48,6 +48,15 @@ from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
 from registration.model.phantom import Phantom
 from service.error_map import http_status_of, title_of
 from service.errors import InternalError, NotFoundError
+from service.events import (
+    CalibrationActivated,
+    CalibrationDone,
+    CalibrationProgress,
+    CalibrationRefused,
+    CalibrationStarted,
+    Publish,
+    RegistrationRetired,
+)
 from service.orchestrator import Orchestrator
 from service.records import ScanRecord
 from service.scan_checks import check_capture
@@ -59,7 +68,6 @@ from service.volume_cache import VolumeCache
 
 log = logging.getLogger(__name__)
 
-Publish = Callable[[str, dict[str, Any]], None]
 URDF_FILE = "robot.urdf"
 
 
@@ -195,7 +203,7 @@ class CalibrationJobs:
                 target=self._work, args=(cal_id, scans, req.params()), name=f"calibration-{cal_id}"
             )
             self._thread.start()
-        self.publish("calibration_started", {"calibration_id": cal_id, "scan_ids": list(draft.scan_ids)})
+        self.publish(CalibrationStarted(calibration_id=cal_id, scan_ids=draft.scan_ids))
         stored = self.db.calibrations.get(cal_id)
         assert stored is not None
         return stored
@@ -246,13 +254,9 @@ class CalibrationJobs:
         cal_id = self.db.calibrations.insert(rec)
         log.warning("calibration %d refused (%s): %s", cal_id, rec.problem_title, err)
         self.publish(
-            "calibration_refused",
-            {
-                "calibration_id": cal_id,
-                "title": rec.problem_title,
-                "reason": str(err),
-                "status": http_status_of(err),
-            },
+            CalibrationRefused(
+                calibration_id=cal_id, title=rec.problem_title, reason=str(err), status=http_status_of(err)
+            )
         )
         return CalibrationRefusal(cal_id, err)
 
@@ -280,10 +284,20 @@ class CalibrationJobs:
             err = InternalError(f"calibration {cal_id} failed unexpectedly: {type(e).__name__}: {e}")
             self._finish_refused(cal_id, err, time.perf_counter() - t0)
 
-    def _progress(self, cal_id: int, stage: str, i: int, k: int, **extra: Any) -> None:
+    def _progress(
+        self,
+        cal_id: int,
+        stage: str,
+        i: int,
+        k: int,
+        *,
+        scan_id: int | None = None,
+        n_matched: int | None = None,
+    ) -> None:
         self.publish(
-            "calibration_progress",
-            {"calibration_id": cal_id, "stage": stage, "pose": i, "n_poses": k, **extra},
+            CalibrationProgress(
+                calibration_id=cal_id, stage=stage, pose=i, n_poses=k, scan_id=scan_id, n_matched=n_matched
+            )
         )
 
     def _match_all(self, cal_id: int, scans: list[ScanRecord]) -> tuple[list[MatchedPose], Any]:
@@ -366,14 +380,13 @@ class CalibrationJobs:
             cal_id, int(result.used.sum()), result.lopo_mean_mm, result.predicted_held_out_rms_mm, duration_s,
         )  # fmt: skip
         self.publish(
-            "calibration_done",
-            {
-                "calibration_id": cal_id,
-                "calibration_hash": chash,
-                "n_poses_used": int(result.used.sum()),
-                "leave_one_pose_out_mean_mm": doc["leave_one_pose_out_mean_mm"],
-                "predicted_held_out_rms_mm": doc["predicted_held_out_rms_mm"],
-            },
+            CalibrationDone(
+                calibration_id=cal_id,
+                calibration_hash=chash,
+                n_poses_used=int(result.used.sum()),
+                leave_one_pose_out_mean_mm=doc["leave_one_pose_out_mean_mm"],
+                predicted_held_out_rms_mm=doc["predicted_held_out_rms_mm"],
+            )
         )
 
     def _finish_refused(self, cal_id: int, e: Exception, duration_s: float) -> None:
@@ -382,7 +395,7 @@ class CalibrationJobs:
             cal_id, status="refused", duration_s=duration_s, reason=str(e), problem_title=title
         )
         log.warning("calibration %d refused (%s): %s", cal_id, title, e)
-        self.publish("calibration_refused", {"calibration_id": cal_id, "title": title, "reason": str(e)})
+        self.publish(CalibrationRefused(calibration_id=cal_id, title=title, reason=str(e)))
 
     # ---- activation ----------------------------------------------------------------------
 
@@ -434,19 +447,19 @@ class CalibrationJobs:
             cal_id, rec.calibration_hash[:12], list(act.retired_registration_ids),
         )  # fmt: skip
         self.publish(
-            "calibration_activated",
-            {"calibration_id": cal_id, "calibration_hash": rec.calibration_hash,
-             "previous_calibration_id": act.previous_calibration_id},
-        )  # fmt: skip
+            CalibrationActivated(
+                calibration_id=cal_id,
+                calibration_hash=rec.calibration_hash,
+                previous_calibration_id=act.previous_calibration_id,
+            )
+        )
         self.publish(
-            "registration_retired",
-            {
-                "registration_ids": list(act.retired_registration_ids),
-                "previous_current_registration_id": act.previous_current_registration_id,
-                "calibration_id": cal_id,
-                "current": None,
-                "reason": f"calibration {cal_id} was activated; POST /register with a new scan",
-            },
+            RegistrationRetired(
+                registration_ids=act.retired_registration_ids,
+                previous_current_registration_id=act.previous_current_registration_id,
+                calibration_id=cal_id,
+                reason=f"calibration {cal_id} was activated; POST /register with a new scan",
+            )
         )
         out = self.db.calibrations.get(cal_id)
         assert out is not None

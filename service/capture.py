@@ -17,12 +17,12 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
+from service.events import LinkState, Publish
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -58,10 +58,10 @@ class Capture:
         ``robot.connect_timeout_s``: after this long without a joint frame a warning is logged
         (the link keeps trying).
     publish : callable
-        ``publish(event_name, data)``; thread-safe (``EventBus.publish``).
+        ``publish(event)``; thread-safe (``EventBus.publish``).
     """
 
-    def __init__(self, link: Any, settings: Settings, publish: Callable[[str, dict[str, Any]], None]) -> None:
+    def __init__(self, link: Any, settings: Settings, publish: Publish) -> None:
         self.link = link
         self.settings = settings
         self.publish = publish
@@ -119,7 +119,7 @@ class Capture:
             self._last_state = key
             if h["state"] == "connected" and prev != "connected":
                 self._connected_since_t_s = time.monotonic()
-            self.publish("link_state", {"url": self.url, "state": h["state"], "reason": h["reason"]})
+            self.publish(LinkState(url=self.url, state=str(h["state"]), reason=str(h["reason"])))
 
     # ---- queries (any thread) -------------------------------------------------------------
 

@@ -1,20 +1,29 @@
-"""What the routes need (``request.app.state.ctx``), built by :func:`service.app.create_app`."""
+"""What the routes need (``request.app.state.ctx``).
+
+:class:`ServiceInputs` is what :func:`service.app.create_app` validates and loads before start-up
+(``app.state.inputs``); the app's lifespan starts the parts in order and only then builds the
+:class:`ServiceContext`, complete: every part that always runs is a plain field, and only the parts
+the settings can switch off (the folder watcher, the C-STORE intake, the OpenIGTLink publisher, the
+PACS export, auto-register) are ``Optional``.
+"""
 
 from __future__ import annotations
 
-import asyncio
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import IO
+from typing import Any
 
 from drivers.base import RobotLink
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
+from service.auto_register import AutoRegister
 from service.calibration_jobs import CalibrationJobs
 from service.capture import Capture
 from service.event_bus import EventBus
-from service.or_integration import OrIntegration
+from service.igtl.publisher import IgtlPublisher
+from service.intake_scp import CStoreIntake
 from service.orchestrator import Orchestrator
+from service.pacs.exporter import PacsExporter
 from service.records import RegistrationRecord
 from service.settings import Settings
 from service.store import Database
@@ -23,9 +32,10 @@ from service.volume_cache import VolumeCache
 from service.watcher import SeriesWatcher
 
 
-@dataclass
-class ServiceContext:
-    """The service's parts; ``db``, ``capture`` and ``orchestrator`` exist once the app has started."""
+@dataclass(frozen=True)
+class ServiceInputs:
+    """What exists before start-up: validated settings, the loaded phantom and robot model, the
+    robot link (not connected yet), the bus, and the state kept across restarts of the app."""
 
     settings: Settings
     bus: EventBus
@@ -33,22 +43,39 @@ class ServiceContext:
     robot_model: RobotModel
     robot_link: RobotLink
     volumes: VolumeCache = field(default_factory=VolumeCache)
-    db: Database = field(init=False)
-    capture: Capture = field(init=False)
-    orchestrator: Orchestrator = field(init=False)
-    calibrations: CalibrationJobs = field(init=False)
-    watcher: SeriesWatcher | None = None
-    or_integration: OrIntegration | None = None
-    """DICOM SCP, OpenIGTLink server, auto-register (:mod:`service.or_integration`)."""
-    db_watch_task: asyncio.Task[None] | None = None
     tickets: TicketBook = field(default_factory=TicketBook)
     """Single-use tickets for GET /events?ticket= (service.security)."""
-    retention_task: asyncio.Task[None] | None = None
+    started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
+
+
+@dataclass
+class ServiceContext:
+    """The running service's parts, built once by the lifespan after each has started."""
+
+    settings: Settings
+    bus: EventBus
+    phantom: Phantom
+    robot_model: RobotModel
+    robot_link: RobotLink
+    volumes: VolumeCache
+    tickets: TicketBook
+    started_at: datetime
+    db: Database
+    capture: Capture
+    orchestrator: Orchestrator
+    calibrations: CalibrationJobs
+    watcher: SeriesWatcher | None
+    """None when started without the folder watcher."""
+    cstore: CStoreIntake | None
+    """The DICOM C-STORE intake (``[dicom] enabled``)."""
+    igtl: IgtlPublisher | None
+    """The OpenIGTLink publisher (``[igtl] enabled``)."""
+    pacs: PacsExporter | None
+    """The PACS archive of each accepted registration (``[pacs] enabled``)."""
+    auto_register: AutoRegister | None
+    """``service.auto_register``."""
     retention_problem: str | None = None
     """Set by the retention loop: why the scan folders exceed ``retention.max_disk_mb`` (``/status``)."""
-    serve_lock: IO[bytes] | None = None
-    """``<data>/serve.lock``, held exclusively while the service runs (service.data_dir)."""
-    started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""
 
@@ -64,3 +91,28 @@ class ServiceContext:
             cached = (cur, registration_out(cur).model_dump_json().encode())
             self.current_json = cached
         return cached[1]
+
+    def listeners(self) -> dict[str, Any]:
+        """For ``GET /status`` (``listeners``): each operating-room interface's state."""
+        s = self.settings
+        d, g, p = s.dicom, s.igtl, s.pacs
+        dicom = (
+            self.cstore.status()
+            if self.cstore is not None
+            else {"enabled": d.enabled, "host": d.host, "ae_title": d.ae_title, "port": None}
+        )
+        igtl = (
+            self.igtl.status()
+            if self.igtl is not None
+            else {"enabled": g.enabled, "host": g.host, "port": None}
+        )
+        pacs: dict[str, Any] = {"enabled": p.enabled}
+        if self.pacs is not None:
+            pacs.update(destination=self.pacs.destination, calling_ae_title=p.calling_ae_title)
+        return {
+            "dicom": dicom,
+            "igtl": igtl,
+            "pacs": pacs,
+            "tls": s.tls.enabled,
+            "auto_register": s.service.auto_register,
+        }

@@ -1,7 +1,8 @@
 """The in-process event bus behind ``GET /events`` (:mod:`service.api.events`).
 
-Event names: :data:`EVENT_NAMES` (an unknown name is a ``ValueError``).  :meth:`EventBus.publish`
-is callable from any thread.
+Events are the typed classes of :mod:`service.events`; :meth:`EventBus.publish` takes one, is
+callable from any thread, serialises it once (:meth:`service.events.Event.payload`) and hands it to
+the SSE subscribers and to the in-process listeners bound to its class (:meth:`EventBus.listen`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,12 @@ import logging
 import threading
 from collections import deque
 from collections.abc import AsyncIterator, Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from service.events import EVENT_NAMES, EVENT_TYPES, Event
+
+__all__ = ["EVENT_NAMES", "EventBus", "Published", "Subscriptions"]
 
 log = logging.getLogger(__name__)
 
@@ -24,42 +30,17 @@ QUEUE_MAX = 256
 """Events buffered per subscriber; a client that falls further behind loses the oldest."""
 RECENT_MAX = 100
 
-EVENT_NAMES: tuple[str, ...] = (
-    # scans (service.intake, service.scan_lifecycle, service.retention)
-    "scan_arrived",
-    "scan_invalid",
-    "scan_reopened",  # late slices of a recorded series
-    "scan_replaced",  # an instance of a judged series replaced with different bytes, or removed
-    "scan_files_deleted",  # the retention policy deleted a scan's folder
-    # registrations and verifications (service.orchestrator)
-    "registration_done",
-    "registration_refused",
-    "registration_withdrawn",  # its scan was reopened: incomplete when registered (design §9)
-    "derived_withdrawn",  # verifications / calibrations made from a scan whose content changed
-    "verification_done",
-    # the robot link (service.capture)
-    "link_state",
-    # operating-room interfaces (service.or_integration)
-    "dicom_association_released",
-    "dicom_association_aborted",
-    "dicom_refused",
-    "igtl_client_connected",
-    "igtl_client_disconnected",
-    "igtl_client_header_version",  # it sent header version 2: answered in version 2 from now on
-    # calibration sessions (service.calibration_jobs); registration_retired says none is current
-    # any more (push channels INVALID until the next /register)
-    "calibration_started",
-    "calibration_progress",
-    "calibration_done",
-    "calibration_refused",
-    "calibration_activated",
-    "calibration_deactivated",  # the active calibration was withdrawn: the nominal model again
-    "registration_retired",
-    # archiving a registration's SRO to the PACS (service.pacs)
-    "pacs_export_sent",
-    "pacs_export_failed",
-)
-"""Every event :meth:`EventBus.publish` accepts (one tuple; a new event is added here)."""
+E = TypeVar("E", bound=Event)
+_KNOWN: frozenset[type[Event]] = frozenset(EVENT_TYPES)
+
+
+@dataclass(frozen=True)
+class Published:
+    """One published event: its sequence number (the SSE ``id:``), the event, its JSON ``data``."""
+
+    seq: int
+    event: Event
+    data_json: str
 
 
 class EventBus:
@@ -67,24 +48,24 @@ class EventBus:
 
     def __init__(self) -> None:
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._subs: set[asyncio.Queue[tuple[int, str, dict[str, Any]] | None]] = set()
+        self._subs: set[asyncio.Queue[Published | None]] = set()
         self._seq = itertools.count(1)
         self._lock = threading.Lock()
-        self._recent: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=RECENT_MAX)
+        self._recent: deque[Published] = deque(maxlen=RECENT_MAX)
         self._closed = False
-        self._listeners: dict[str, list[Callable[[dict[str, Any]], None]]] = {}
+        self._listeners: dict[type[Event], list[Callable[[Any], None]]] = {}
+        """Per event class; each callable takes that class (``listen`` keeps the pairing typed)."""
 
-    def listen(self, event: str, fn: Callable[[dict[str, Any]], None]) -> None:
-        """Call ``fn(data)`` on the publishing thread after each ``event`` has gone to the subscribers
-        (the in-process reactions: IGTL push, PACS export, auto-register)."""
-        if event not in EVENT_NAMES:
-            raise ValueError(f"unknown event {event!r}; known: {EVENT_NAMES}")
+    def listen(self, kind: type[E], fn: Callable[[E], None]) -> None:
+        """Call ``fn(event)`` on the publishing thread after each ``kind`` event has gone to the
+        subscribers (the in-process reactions: IGTL push, PACS export, auto-register)."""
+        _check_kind(kind)
         with self._lock:
-            self._listeners.setdefault(event, []).append(fn)
+            self._listeners.setdefault(kind, []).append(fn)
 
-    def unlisten(self, event: str, fn: Callable[[dict[str, Any]], None]) -> None:
+    def unlisten(self, kind: type[E], fn: Callable[[E], None]) -> None:
         with self._lock:
-            fns = self._listeners.get(event, [])
+            fns = self._listeners.get(kind, [])
             if fn in fns:
                 fns.remove(fn)
 
@@ -92,23 +73,25 @@ class EventBus:
         self._loop = loop
         self._closed = False
 
-    def recent(self) -> list[tuple[int, str, dict[str, Any]]]:
+    def recent(self) -> list[Published]:
+        """The last :data:`RECENT_MAX` events, oldest first."""
         with self._lock:
             return list(self._recent)
 
-    def publish(self, event: str, data: dict[str, Any]) -> None:
-        if event not in EVENT_NAMES:
-            raise ValueError(f"unknown event {event!r}; known: {EVENT_NAMES}")
+    def publish(self, event: Event) -> None:
+        kind = type(event)
+        _check_kind(kind)
+        data_json = json.dumps(event.payload())
         with self._lock:
-            item = (next(self._seq), event, data)
+            item = Published(next(self._seq), event, data_json)
             self._recent.append(item)
-            listeners = list(self._listeners.get(event, ()))
-        log.info("event %s %s", event, json.dumps(data)[:300])
+            listeners = list(self._listeners.get(kind, ()))
+        log.info("event %s %s", event.name, data_json[:300])
         self._deliver_on_loop(item)
         for fn in listeners:
-            fn(data)
+            fn(event)
 
-    def _deliver(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
+    def _deliver(self, item: Published | None) -> None:
         for q in list(self._subs):
             if q.full():
                 with contextlib.suppress(asyncio.QueueEmpty):
@@ -120,7 +103,7 @@ class EventBus:
         self._closed = True
         self._deliver_on_loop(None)
 
-    def _deliver_on_loop(self, item: tuple[int, str, dict[str, Any]] | None) -> None:
+    def _deliver_on_loop(self, item: Published | None) -> None:
         """Deliver ``item`` on the server's loop, from that loop or from any other thread."""
         loop = self._loop
         if loop is None or loop.is_closed():
@@ -135,9 +118,9 @@ class EventBus:
             with contextlib.suppress(RuntimeError):  # loop closing
                 loop.call_soon_threadsafe(self._deliver, item)
 
-    async def subscribe(self) -> AsyncIterator[tuple[int, str, dict[str, Any]] | None]:
+    async def subscribe(self) -> AsyncIterator[Published | None]:
         """Yield events as they come; ``None`` every :data:`KEEPALIVE_S` of silence; ends on :meth:`close`."""
-        q: asyncio.Queue[tuple[int, str, dict[str, Any]] | None] = asyncio.Queue(maxsize=QUEUE_MAX)
+        q: asyncio.Queue[Published | None] = asyncio.Queue(maxsize=QUEUE_MAX)
         self._subs.add(q)
         try:
             while not self._closed:
@@ -155,3 +138,28 @@ class EventBus:
     @property
     def n_subscribers(self) -> int:
         return len(self._subs)
+
+
+def _check_kind(kind: type[Event]) -> None:
+    if kind not in _KNOWN:
+        raise TypeError(
+            f"{kind.__name__} is not a service event; the events are the classes of service.events "
+            f"({', '.join(EVENT_NAMES)})"
+        )
+
+
+class Subscriptions:
+    """Listeners bound together and removed together (:meth:`close` is idempotent)."""
+
+    def __init__(self, bus: EventBus) -> None:
+        self.bus = bus
+        self._bound: list[tuple[type[Event], Callable[[Any], None]]] = []
+
+    def listen(self, kind: type[E], fn: Callable[[E], None]) -> None:
+        self.bus.listen(kind, fn)
+        self._bound.append((kind, fn))
+
+    def close(self) -> None:
+        while self._bound:
+            kind, fn = self._bound.pop()
+            self.bus.unlisten(kind, fn)

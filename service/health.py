@@ -62,13 +62,20 @@ def watcher_problems(ctx: ServiceContext) -> list[HealthProblem]:
 def listener_problems(ctx: ServiceContext) -> list[HealthProblem]:
     """An enabled DICOM SCP or OpenIGTLink server that is not listening."""
     out: list[HealthProblem] = []
-    oi = ctx.or_integration
-    if oi is None:
-        return out
     s = ctx.settings
     for name, enabled, server, what in (
-        ("dicom", s.dicom.enabled, oi.scp, "the O-arm cannot send scans by C-STORE"),
-        ("igtl", s.igtl.enabled, oi.igtl, "navigation receives no OpenIGTLink transforms"),
+        (
+            "dicom",
+            s.dicom.enabled,
+            ctx.cstore.scp if ctx.cstore else None,
+            "the O-arm cannot send scans by C-STORE",
+        ),
+        (
+            "igtl",
+            s.igtl.enabled,
+            ctx.igtl.server if ctx.igtl else None,
+            "navigation receives no OpenIGTLink transforms",
+        ),
     ):
         if not enabled:
             continue
@@ -116,8 +123,7 @@ def data_dir_problems(ctx: ServiceContext) -> list[HealthProblem]:
 def intake_write_problems(ctx: ServiceContext) -> list[HealthProblem]:
     """The C-STORE intake could not write the last instance it received (its folder may be a mount
     of its own, so the data-folder probe does not see it); cleared by the next instance stored."""
-    oi = ctx.or_integration
-    why = None if oi is None or oi.scp is None else oi.scp.write_failure
+    why = None if ctx.cstore is None else ctx.cstore.scp.write_failure
     if why is None:
         return []
     return [

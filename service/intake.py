@@ -1,20 +1,26 @@
 """Both intakes' verdict: a series arrived → snapshot the joints, record the scan (its state, its
-instances' hashes), cache its volume, publish the event (:mod:`service.scan_lifecycle`)."""
+instances' hashes), cache its volume, publish the event (:mod:`service.scan_lifecycle`), store the
+instance UIDs its Spatial Registration object will reference."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
+from service.events import Publish, Reopening, ScanArrived, ScanInvalid
 from service.records import JointSnapshot, NewScan, ScanGeometry, matrix4
 from service.scan_lifecycle import ContentChange, ScanLifecycle, diff, hash_files
+from service.sro_export import scan_instances_from_files
 from service.store import Database
 from service.volume_cache import VolumeCache
 from service.watcher import SeriesArrival
+
+log = logging.getLogger(__name__)
 
 
 class SnapshotSource(Protocol):
@@ -67,7 +73,7 @@ class Intake:
         db: Database,
         capture: SnapshotSource,
         volumes: VolumeCache,
-        publish: Callable[[str, dict[str, Any]], None],
+        publish: Publish,
         withdraw: Callable[[int, str], object] | None = None,
         lifecycle: ScanLifecycle | None = None,
     ) -> None:
@@ -80,6 +86,15 @@ class Intake:
         self.lifecycle = lifecycle or ScanLifecycle(db, volumes, publish, withdraw)
 
     def __call__(self, arrival: SeriesArrival) -> None:
+        """Record the arrival; a readable, valid series also has its instance UIDs stored (what its
+        Spatial Registration object references, :func:`store_instances`)."""
+        self._record(arrival)
+        if arrival.volume is not None and not arrival.error and not arrival.duplicate:
+            meta = arrival.volume.meta
+            files = [Path(f) for f in meta.get("files", ())]
+            store_instances(self.db, arrival.series_uid, files, sop_uids=meta.get("sop_uids"))
+
+    def _record(self, arrival: SeriesArrival) -> None:
         uid = arrival.series_uid
         if arrival.duplicate:
             self.db.scans.upsert(NewScan(series_uid=uid, folder=str(arrival.folder), status="complete"))
@@ -117,17 +132,27 @@ class Intake:
         self.volumes.discard(uid)
         if arrival.volume is not None and not arrival.error:
             self.volumes.put(uid, arrival.volume)
-        data: dict[str, Any] = {
-            "scan_id": scan_id,
-            "series_uid": uid,
-            "folder": str(arrival.folder),
-            "still": snap.still,
-            "link_state": snap.link_state,
-            "source": source,
-        }
-        if before in ("reopened", "replaced"):
-            data.update(reopened=True, previous_status=before, previous_slices=previous_slices)
+        reopening = Reopening(before, previous_slices) if before in ("reopened", "replaced") else None
+        folder = str(arrival.folder)
         if arrival.error:
-            self.publish("scan_invalid", {**data, "reason": arrival.error})
+            self.publish(ScanInvalid(scan_id=scan_id, series_uid=uid, folder=folder, still=snap.still,
+                                     link_state=snap.link_state, source=source, reopening=reopening,
+                                     reason=arrival.error))  # fmt: skip
         else:
-            self.publish("scan_arrived", {**data, "n_slices": scan.n_slices})
+            self.publish(ScanArrived(scan_id=scan_id, series_uid=uid, folder=folder, still=snap.still,
+                                     link_state=snap.link_state, source=source, reopening=reopening,
+                                     n_slices=scan.n_slices))  # fmt: skip
+
+
+def store_instances(
+    db: Database, series_uid: str, files: list[Path], *, sop_uids: Sequence[tuple[str, str]] | None = None
+) -> None:
+    """Record what an SRO references of the series (logged, never raised: the scan is stored).
+
+    ``sop_uids``: (SOP Instance UID, SOP Class UID) per slice when the C-STORE header pass read them
+    (:mod:`service.series_accumulator`), so only one file is read again.
+    """
+    try:
+        db.scan_instances.put(scan_instances_from_files(series_uid, files, sop_uids=sop_uids))
+    except Exception:
+        log.exception("series %s: could not store its instance UIDs; its SRO will be unavailable", series_uid)

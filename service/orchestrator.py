@@ -44,6 +44,16 @@ from service.errors import (
     NotFoundError,
     VerificationRefusedError,
 )
+from service.events import (
+    CalibrationDeactivated,
+    DerivedWithdrawn,
+    Publish,
+    RegistrationDone,
+    RegistrationRefused,
+    RegistrationRetired,
+    RegistrationWithdrawn,
+    VerificationDone,
+)
 from service.figures import provenance, registration_figures, verification_figures
 from service.records import (
     RegistrationRecord,
@@ -61,9 +71,6 @@ from service.store.registrations import DerivedWithdrawal
 from service.volume_cache import VolumeCache
 
 log = logging.getLogger(__name__)
-
-Publish = Callable[[str, dict[str, Any]], None]
-"""``publish(event, data)``, thread-safe (``EventBus.publish``)."""
 
 
 def pipeline_params(settings: Settings, phantom: Phantom) -> PipelineParams:
@@ -179,8 +186,9 @@ class Orchestrator:
                 "scan %d: verification(s) %s and calibration(s) %s withdrawn: %s", scan_id, vers, cals, reason
             )
             self.publish(
-                "derived_withdrawn",
-                {"scan_id": scan_id, "verification_ids": vers, "calibration_ids": cals, "reason": reason},
+                DerivedWithdrawn(
+                    scan_id=scan_id, verification_ids=tuple(vers), calibration_ids=tuple(cals), reason=reason
+                )
             )
         if ids:
             log.warning(
@@ -189,8 +197,9 @@ class Orchestrator:
                 reason,
             )  # fmt: skip
             self.publish(
-                "registration_withdrawn",
-                {"registration_ids": ids, "scan_id": scan_id, "was_current": was_current, "reason": reason},
+                RegistrationWithdrawn(
+                    registration_ids=tuple(ids), scan_id=scan_id, was_current=was_current, reason=reason
+                )
             )
         if derived.deactivated_calibration_id is not None:
             self._publish_deactivation(derived, reason)
@@ -198,21 +207,20 @@ class Orchestrator:
 
     def _publish_deactivation(self, derived: DerivedWithdrawal, reason: str) -> None:
         cal_id = derived.deactivated_calibration_id
+        assert cal_id is not None  # the caller checked
         why = (
             f"the active calibration {cal_id} was withdrawn ({reason}); the nominal robot model is used "
             "again: recalibrate, or activate another calibration, then POST /register with a new scan"
         )
         log.warning("%s; registrations %s retired", why, list(derived.retired_registration_ids))
-        self.publish("calibration_deactivated", {"calibration_id": cal_id, "reason": why})
+        self.publish(CalibrationDeactivated(calibration_id=cal_id, reason=why))
         self.publish(
-            "registration_retired",
-            {
-                "registration_ids": list(derived.retired_registration_ids),
-                "previous_current_registration_id": None,
-                "calibration_id": cal_id,
-                "current": None,
-                "reason": why,
-            },
+            RegistrationRetired(
+                registration_ids=derived.retired_registration_ids,
+                previous_current_registration_id=None,
+                calibration_id=cal_id,
+                reason=why,
+            )
         )
 
     def wait_idle(self) -> None:
@@ -303,14 +311,13 @@ class Orchestrator:
             stored.figures.n_expected, stored.duration_s,
         )  # fmt: skip
         self.publish(
-            "registration_done",
-            {
-                "registration_id": reg_id,
-                "scan_id": scan.id,
-                "series_uid": scan.series_uid,
-                "fre_mm": stored.fre_mm,
-                "n_matched": stored.figures.n_matched,
-            },
+            RegistrationDone(
+                registration_id=reg_id,
+                scan_id=scan.id,
+                series_uid=scan.series_uid,
+                fre_mm=stored.fre_mm,
+                n_matched=stored.figures.n_matched,
+            )
         )
         return stored
 
@@ -386,14 +393,13 @@ class Orchestrator:
             return RegistrationRefusal(None, e)
         log.warning("registration %d refused (%s): %s", reg_id, title, e)
         self.publish(
-            "registration_refused",
-            {
-                "registration_id": reg_id,
-                "scan_id": record.scan_id,
-                "series_uid": record.series_uid,
-                "title": title,
-                "reason": str(e),
-            },
+            RegistrationRefused(
+                registration_id=reg_id,
+                scan_id=record.scan_id,
+                series_uid=record.series_uid,
+                title=title,
+                reason=str(e),
+            )
         )
         return RegistrationRefusal(reg_id, e)
 
@@ -456,15 +462,14 @@ class Orchestrator:
         stored = self.db.verifications.get(ver_id)
         assert stored is not None
         self.publish(
-            "verification_done",
-            {
-                "verification_id": ver_id,
-                "registration_id": current.id,
-                "scan_id": scan.id,
-                "mean_mm": record.mean_mm,
-                "max_mm": record.max_mm,
-                "passed": record.passed,
-            },
+            VerificationDone(
+                verification_id=ver_id,
+                registration_id=current.id,
+                scan_id=scan.id,
+                mean_mm=record.mean_mm,
+                max_mm=record.max_mm,
+                passed=record.passed,
+            )
         )
         return stored
 

@@ -20,9 +20,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
 
 from registration.dicom.files import is_inside
+from service.events import Publish, ScanFilesDeleted
 from service.store import Database
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,7 @@ def quota_problem(
 def run_retention(
     db: Database,
     watch_dir: Path,
-    publish: Callable[[str, dict[str, Any]], None],
+    publish: Publish,
     *,
     max_age_days: float | None,
     max_disk_mb: float | None,
@@ -189,9 +189,6 @@ def run_retention(
         log.warning(
             "retention: deleted %s (%d bytes, scans %s): %s", d.folder, d.n_bytes, list(d.scan_ids), d.reason
         )
-        publish(
-            "scan_files_deleted",
-            {"scan_ids": list(d.scan_ids), "folder": str(d.folder), "bytes": d.n_bytes, "reason": d.reason},
-        )
+        publish(ScanFilesDeleted(scan_ids=d.scan_ids, folder=str(d.folder), bytes=d.n_bytes, reason=d.reason))
         done.append(d)
     return done

@@ -31,8 +31,8 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
+from service.events import Publish, ScanReopened, ScanReplaced
 from service.records import ScanRecord, ScanStatus
 from service.store import Database
 from service.volume_cache import VolumeCache
@@ -158,7 +158,6 @@ class OfferTally:
 
 
 Withdraw = Callable[[int, str], object]
-Publish = Callable[[str, dict[str, Any]], None]
 
 
 class ScanLifecycle:
@@ -205,21 +204,15 @@ class ScanLifecycle:
         self.volumes.discard(scan.series_uid)
         if scan.status != "receiving":
             log.warning("%s", reason)
-            data: dict[str, Any] = {
-                "scan_id": scan.id,
-                "series_uid": scan.series_uid,
-                "folder": scan.folder,
-                "source": source,
-                "previous_status": scan.status,
-                "previous_slices": scan.n_slices,
-                "added": list(change.added),
-                "replaced": list(change.replaced),
-                "removed": list(change.removed),
-                "reason": reason,
-            }
-            if n_slices is not None:
-                data["n_slices"] = n_slices
-            self.publish(f"scan_{to}", data)
+            kind = ScanReopened if to == "reopened" else ScanReplaced
+            self.publish(
+                kind(
+                    scan_id=scan.id, series_uid=scan.series_uid, folder=scan.folder, source=source,
+                    previous_status=scan.status, previous_slices=scan.n_slices, added=tuple(change.added),
+                    replaced=tuple(change.replaced), removed=tuple(change.removed), reason=reason,
+                    n_slices=n_slices,
+                )
+            )  # fmt: skip
         if scan.status in ("complete", "invalid") and self.withdraw is not None:
             self.withdraw(scan.id, reason)
         return to

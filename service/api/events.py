@@ -1,7 +1,8 @@
 """Server-sent events: ``GET /events`` (the bus: :class:`service.event_bus.EventBus`).
 
 Event names: ``scan_arrived``, ``scan_invalid``, ``registration_done``, ``registration_refused``,
-``verification_done``, ``link_state``.  Each SSE message is::
+``verification_done``, ``link_state``, ... (every class of :mod:`service.events`, with its
+fields).  Each SSE message is::
 
     id: <sequence number>
     event: <name>
@@ -12,9 +13,7 @@ A comment line (``: keep-alive``) is sent every :data:`service.event_bus.KEEPALI
 
 from __future__ import annotations
 
-import json
 from collections.abc import AsyncIterator
-from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, StreamingResponse
@@ -22,15 +21,16 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from service.api.deps import CtxDep, PrincipalDep
 from service.api.models import EventTicketOut
 from service.api.problems import problem_response, problem_responses
+from service.event_bus import Published
 from service.security import EVENTS_PATH
 from service.tickets import MAX_OUTSTANDING_TICKETS
 
 
-def format_sse(item: tuple[int, str, dict[str, Any]] | None) -> str:
+def format_sse(item: Published | None) -> str:
+    """One SSE message (``None``: the keep-alive comment)."""
     if item is None:
         return ": keep-alive\n\n"
-    seq, event, data = item
-    return f"id: {seq}\nevent: {event}\ndata: {json.dumps(data)}\n\n"
+    return f"id: {item.seq}\nevent: {item.event.name}\ndata: {item.data_json}\n\n"
 
 
 router = APIRouter(tags=["events"])

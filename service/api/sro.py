@@ -69,7 +69,7 @@ def retry_pacs_export(ctx: CtxDep, principal: PrincipalDep, registration_id: Rec
             raise NotFoundError(
                 f"registration {registration_id} does not exist; GET /registrations lists them"
             )
-        exporter = ctx.or_integration.pacs if ctx.or_integration is not None else None
+        exporter = ctx.pacs
         if exporter is None:
             raise PacsExportError(
                 "no PACS is configured: set [pacs] host, port and ae_title (env OARMREG_PACS__HOST)"

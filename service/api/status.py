@@ -51,7 +51,7 @@ def status(ctx: CtxDep) -> StatusOut:
         busy=ctx.orchestrator.busy,
         counts=ctx.db.counts(),
         config_hash=ctx.orchestrator.config_hash,
-        listeners=ctx.or_integration.status() if ctx.or_integration is not None else {},
+        listeners=ctx.listeners(),
         active_calibration=_active_calibration(ctx),
         disk=_disk(ctx),
     )

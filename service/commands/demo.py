@@ -40,7 +40,7 @@ if TYPE_CHECKING:
 
     from registration.model.kinematics import RobotModel
     from registration.model.phantom import Phantom
-    from service.context import ServiceContext
+    from service.context import ServiceInputs
     from service.settings import Settings
 
 HELP = "run the whole registration loop on a mock robot and a simulated O-arm (≈ 1–2 min)"
@@ -266,10 +266,10 @@ def run(args: argparse.Namespace) -> int:
             _err(f"  mock Stäubli controller (simple_message) on {mock.url}")
             settings = _demo_settings(out, token, mock.url, pacs)
             app = create_app(settings)
-            ctx: ServiceContext = app.state.ctx
+            inputs: ServiceInputs = app.state.inputs
             t0p = settings.robot.tool0_from_phantom.matrix()
             image_from_phantom_1 = demo_pose()
-            cell = TrueCell.sample(TRUE_CELL_SEED, ctx.robot_model, t0p)
+            cell = TrueCell.sample(TRUE_CELL_SEED, inputs.robot_model, t0p)
             hidden = image_from_phantom_1 @ invert(
                 cell.robot_from_tool0_true(Q1_RAD) @ cell.tool0_from_phantom
             )
@@ -288,8 +288,8 @@ def run(args: argparse.Namespace) -> int:
                 demo = _Demo(
                     client=client,
                     robot=robot,
-                    phantom=ctx.phantom,
-                    model=ctx.robot_model,
+                    phantom=inputs.phantom,
+                    model=inputs.robot_model,
                     tool0_from_phantom=t0p,
                     image_from_phantom_1=image_from_phantom_1,
                     hidden_image_from_robot=hidden,

@@ -327,9 +327,8 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     from registration.dicom import list_series
     from registration.errors import PointsFileError
     from registration.io.sro import build_spatial_registration
-    from service.or_integration import scan_instances_from_files
     from service.robot_frame import _UID_RE, RobotFrameUidError, robot_frame_uid
-    from service.sro_export import ct_headers
+    from service.sro_export import ct_headers, scan_instances_from_files
 
     if args.dicom_dir is None:
         raise PointsFileError("--sro needs DICOM_DIR: the Spatial Registration object references the scan")

@@ -1,7 +1,8 @@
 """The PACS archive queue's worker: each accepted registration's Spatial Registration object, by
 C-STORE, retried with back-off across link failures and restarts.
 
-* :meth:`PacsExporter.enqueue` (any thread; called on ``registration_done``) inserts a ``pending``
+* :meth:`PacsExporter.enqueue` (any thread; :meth:`PacsExporter.on_registration_done` calls it on
+  each ``registration_done``) inserts a ``pending``
   row (:mod:`service.store.pacs_exports`) and wakes the worker.  At start the worker also queues
   accepted registrations newer than the newest queued one (the service stopped between accepting
   and queueing) and resumes every ``pending`` row, including one whose send was cut by a crash.
@@ -26,9 +27,9 @@ from collections.abc import Callable
 from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
-from typing import Any
 
 from registration.errors import OarmRegError
+from service.events import PacsExportFailed, PacsExportSent, Publish, RegistrationDone
 from service.pacs.scu import StoreOutcome, c_store, destination
 from service.settings import PacsSettings
 from service.store import Database
@@ -48,7 +49,7 @@ class PacsExporter:
         db: Database,
         cfg: PacsSettings,
         data_dir: Path,
-        publish: Callable[[str, dict[str, Any]], None],
+        publish: Publish,
         *,
         send: Callable[[bytes, PacsSettings], StoreOutcome] = c_store,
     ) -> None:
@@ -84,6 +85,13 @@ class PacsExporter:
         if self.db.pacs_exports.enqueue(registration_id, self.destination, time.time()):
             log.info("PACS export: registration %d queued for %s", registration_id, self.destination)
         self._wake.set()
+
+    def on_registration_done(self, event: RegistrationDone) -> None:
+        """Bus listener (bound by :mod:`service.app`): queue the new registration's SRO."""
+        try:
+            self.enqueue(event.registration_id)
+        except Exception:  # the registration stands; the worker's start-up sweep queues it later
+            log.exception("PACS export: could not queue registration %d", event.registration_id)
 
     def retry(self, registration_id: int) -> None:
         """Queue again now (the row exists)."""
@@ -190,14 +198,8 @@ class PacsExporter:
             self.db.audit.record(PRINCIPAL, "pacs_export", "registration", rid, state, f"{detail}: {reason}")
         except Exception:
             log.exception("PACS export: could not write the audit entry of registration %d", rid)
+        kind = PacsExportSent if state == "sent" else PacsExportFailed
         self.publish(
-            f"pacs_export_{state}",
-            {
-                "registration_id": rid,
-                "destination": row.destination,
-                "dimse_status": status,
-                "reason": reason,
-                "sop_instance_uid": sop,
-                "attempts": attempts,
-            },
-        )
+            kind(registration_id=rid, destination=row.destination, dimse_status=status, reason=reason,
+                 sop_instance_uid=sop, attempts=attempts)
+        )  # fmt: skip

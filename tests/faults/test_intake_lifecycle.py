@@ -26,7 +26,7 @@ import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import numpy as np
@@ -37,6 +37,7 @@ from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 from pynetdicom import AE
 
 from registration.model.frames import transform_from_xyz_rpy
+from service.events import Event, RegistrationWithdrawn, ScanReopened, ScanReplaced
 from tests.faults._service import (
     DEADLINE_S,
     TOKEN,
@@ -49,6 +50,8 @@ from tests.faults._service import (
     write_config,
 )
 from tests.faults.conftest import closed_by_peer
+
+E = TypeVar("E", bound=Event)
 
 AE_TITLE = "OARMREG"
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
@@ -153,8 +156,9 @@ class Lc:
             f"series {uid} recorded {status or ''}",
         )
 
-    def events(self, name: str) -> list[dict[str, Any]]:
-        return [d for _, e, d in self.svc.ctx.bus.recent() if e == name]
+    def events(self, kind: type[E]) -> list[E]:
+        """The recent events of one class (:meth:`service.event_bus.EventBus.recent`)."""
+        return [p.event for p in self.svc.ctx.bus.recent() if isinstance(p.event, kind)]
 
     def export(self, name: str) -> tuple[str, list[Path]]:
         """The module's simulated O-arm scan written as a new series (own Series Instance UID)."""
@@ -241,10 +245,9 @@ def test_item1_content_replaced_with_the_same_uids_withdraws_its_registration(lc
         "the replaced series judged again",
     )  # fmt: skip
     assert after["image_from_voxel"][2][3] == pytest.approx(before[2][3] + 10.0, abs=1e-6)
-    assert any(e["scan_id"] == scan_id for e in lc.events("scan_replaced"))
+    assert any(e.scan_id == scan_id for e in lc.events(ScanReplaced))
     assert any(
-        scan_id == e["scan_id"] and reg_id in e["registration_ids"]
-        for e in lc.events("registration_withdrawn")
+        scan_id == e.scan_id and reg_id in e.registration_ids for e in lc.events(RegistrationWithdrawn)
     )
     changes = lc.svc.ctx.db.scans.changes(scan_id)
     assert [c[2] for c in changes][-2:] == ["replaced", "complete"], changes
@@ -257,7 +260,7 @@ def test_item2_instances_added_in_a_later_association_withdraw_its_registration(
     assert "added" in detail, detail
     done = lc.scan_of(lc.svc.ctx.db.scans.get(scan_id).series_uid, "complete")
     assert done["id"] == scan_id and done["n_slices"] == len(datasets) + 4
-    assert any(e["scan_id"] == scan_id for e in lc.events("scan_reopened"))
+    assert any(e.scan_id == scan_id for e in lc.events(ScanReopened))
     # registering the completed scan again is what the reason says to do, and works
     r = lc.client.post("/register", json={"scan_id": scan_id})
     assert r.status_code == 200, r.text
@@ -381,7 +384,7 @@ def test_item5_retention_covers_the_cstore_intake_folder_and_withdraws_nothing(
         # a deletion is not a change of content: the record stays complete, nothing is withdrawn
         after = svc.scan_where(lambda s: s["id"] == scan["id"], "the scan")
         assert after["status"] == "complete", after
-        names = [e for _, e, _ in svc.ctx.bus.recent()]
+        names = [p.event.name for p in svc.ctx.bus.recent()]
         assert "scan_files_deleted" in names and "scan_replaced" not in names and "scan_invalid" not in names
 
 

@@ -9,7 +9,7 @@ import contextlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import numpy as np
@@ -18,7 +18,10 @@ from pydicom.uid import CTImageStorage
 from pynetdicom import AE
 
 from registration.model.frames import transform_from_xyz_rpy
+from service.events import Event
 from tests.integration.polling import poll_until
+
+E = TypeVar("E", bound=Event)
 
 TOKEN = "peer-suite-test-token-0123456789"
 WINDOW_S = 0.6
@@ -42,8 +45,9 @@ class PeerService:
     dicom_port: int
     igtl_port: int
 
-    def events(self, name: str) -> list[dict[str, Any]]:
-        return [d for _, e, d in self.ctx.bus.recent() if e == name]
+    def events(self, kind: type[E]) -> list[E]:
+        """The recent events of one class (:meth:`service.event_bus.EventBus.recent`)."""
+        return [p.event for p in self.ctx.bus.recent() if isinstance(p.event, kind)]
 
     def scan(self, uid: str) -> dict[str, Any] | None:
         r = self.client.get("/scans", params={"limit": 1000})

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from service.events import IgtlClientHeaderVersion
 from tests.integration.peer_service import PeerService, running_service, send_files, simulated_series
 
 REPO = Path(__file__).resolve().parents[2]
@@ -136,5 +137,5 @@ def test_reference_library_reads_v1_then_v2_after_a_v2_status(
     assert float(next(ln for ln in v2 if ln.device == "RobotToImage").metadata["FRE_mm"]) == pytest.approx(
         reg["fre_mm"], rel=1e-5
     )
-    switched = service.events("igtl_client_header_version")
-    assert switched and switched[-1]["header_version"] == 2
+    switched = service.events(IgtlClientHeaderVersion)
+    assert switched and switched[-1].header_version == 2

@@ -18,6 +18,7 @@ from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 from service.capture import Capture
+from service.events import Event, LinkState
 
 Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
 
@@ -29,16 +30,16 @@ def _settings(tmp_path: Path) -> Any:
 
 
 def test_capture_relies_on_the_links_reconnect_and_leaves_nothing(tmp_path: Path) -> None:
-    events: list[tuple[str, str]] = []
+    events: list[Event] = []
     lock = threading.Lock()
 
-    def publish(name: str, data: dict[str, Any]) -> None:
+    def publish(event: Event) -> None:
         with lock:
-            events.append((name, data["state"]))
+            events.append(event)
 
     def states() -> list[str]:
         with lock:
-            return [s for n, s in events if n == "link_state"]
+            return [e.state for e in events if isinstance(e, LinkState)]
 
     def after_first(state: str, then: str) -> bool:
         seq = states()

@@ -16,7 +16,7 @@ import subprocess
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import numpy as np
@@ -26,7 +26,17 @@ from pydicom.uid import CTImageStorage, MRImageStorage, generate_uid
 from pynetdicom import AE
 
 from registration.model.frames import invert, transform_from_xyz_rpy
+from service.events import (
+    DicomAssociationAborted,
+    DicomAssociationReleased,
+    DicomRefused,
+    Event,
+    IgtlClientConnected,
+    IgtlClientHeaderVersion,
+)
 from tests.integration.polling import poll_until
+
+E = TypeVar("E", bound=Event)
 
 pyigtl = pytest.importorskip("pyigtl")
 
@@ -78,8 +88,9 @@ class Service:
     root: Path
     scan1: Any
 
-    def events(self, name: str) -> list[dict[str, Any]]:
-        return [d for _, e, d in self.ctx.bus.recent() if e == name]
+    def events(self, kind: type[E]) -> list[E]:
+        """The recent events of one class (:meth:`service.event_bus.EventBus.recent`)."""
+        return [p.event for p in self.ctx.bus.recent() if isinstance(p.event, kind)]
 
     def scan(self, uid: str) -> dict[str, Any] | None:
         r = self.client.get("/scans", params={"limit": 1000})
@@ -93,9 +104,9 @@ class Service:
 
         return wait_for(ok, f"series {uid} recorded {status or ''}")  # type: ignore[no-any-return]
 
-    def wait_released(self, uid: str, n_before: int = 0) -> dict[str, Any]:
-        def ok() -> dict[str, Any] | None:
-            evs = [e for e in self.events("dicom_association_released") if e["series_uid"] == uid]
+    def wait_released(self, uid: str, n_before: int = 0) -> DicomAssociationReleased:
+        def ok() -> DicomAssociationReleased | None:
+            evs = [e for e in self.events(DicomAssociationReleased) if e.series_uid == uid]
             return evs[-1] if len(evs) > n_before else None
 
         return wait_for(ok, f"the association release of {uid} to be processed")  # type: ignore[no-any-return]
@@ -224,7 +235,7 @@ def test_dcmtk_echoscu_and_storescu_512_series_is_recorded(svc: Service) -> None
     scan = svc.wait_scan(uid, "complete")
     assert (scan["n_slices"], scan["rows"], scan["columns"]) == (24, 512, 512)
     ev = svc.wait_released(uid)
-    assert ev["outcome"] == "complete" and ev["calling_ae"] == "STORESCU" and ev["scan_id"] == scan["id"]
+    assert ev.outcome == "complete" and ev.calling_ae == "STORESCU" and ev.scan_id == scan["id"]
     # the volume decoded on arrival equals the loader's, voxel for voxel
     from registration.dicom import load_series
 
@@ -244,12 +255,12 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
     assert set(send_files(svc.dicom_port, good_files)) == {0}
     before = svc.wait_scan(good_uid, "complete")
     # the scan is recorded before its release event is published: wait for that event, then count
-    assert svc.wait_released(good_uid)["outcome"] == "complete"
-    n_released = len([e for e in svc.events("dicom_association_released") if e["series_uid"] == good_uid])
+    assert svc.wait_released(good_uid).outcome == "complete"
+    n_released = len([e for e in svc.events(DicomAssociationReleased) if e.series_uid == good_uid])
 
     # an identical re-send changes nothing
     assert set(send_files(svc.dicom_port, good_files)) == {0}
-    assert svc.wait_released(good_uid, n_released)["outcome"] == "unchanged"
+    assert svc.wait_released(good_uid, n_released).outcome == "unchanged"
     assert svc.scan(good_uid) == before
 
     # junk: a CT dataset without pixel data or geometry → 0xA900, nothing recorded
@@ -271,10 +282,10 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
         assoc.send_c_store(mr)
     assoc.release()
     wait_for(
-        lambda: any("MR Image Storage" in e["reason"] for e in svc.events("dicom_refused")),
+        lambda: any("MR Image Storage" in e.reason for e in svc.events(DicomRefused)),
         "the MR refusal event",
     )
-    assert any(e["kind"] == "dataset" and e["status"] == 0xA900 for e in svc.events("dicom_refused"))
+    assert any(e.kind == "dataset" and e.status == 0xA900 for e in svc.events(DicomRefused))
     assert svc.scan(junk_uid) is None
 
     # a slice missing → recorded invalid with the loader's reason
@@ -293,18 +304,14 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
     send_files(svc.dicom_port, ab_files, abort_after=4)
     ab = svc.wait_scan(ab_uid, "invalid")
     assert "aborted" in ab["reason"]
-    wait_for(
-        lambda: any(e["series_uid"] == ab_uid for e in svc.events("dicom_association_aborted")), "abort event"
-    )
+    wait_for(lambda: any(e.series_uid == ab_uid for e in svc.events(DicomAssociationAborted)), "abort event")
 
     # a calling AE title not on the allow-list → association rejected
     ae = AE(ae_title="INTRUDER")
     ae.add_requested_context(CTImageStorage)
     assoc = ae.associate("127.0.0.1", svc.dicom_port, ae_title=AE_TITLE)
     assert assoc.is_rejected
-    wait_for(
-        lambda: any(e["kind"] == "calling_ae" for e in svc.events("dicom_refused")), "calling-AE refusal"
-    )
+    wait_for(lambda: any(e.kind == "calling_ae" for e in svc.events(DicomRefused)), "calling-AE refusal")
 
     # the service keeps serving; what was stored is still there
     assert svc.client.get("/status").status_code == 200
@@ -386,8 +393,8 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
         stalled_peer = "{}:{}".format(*stalled.getsockname())
         assert versions[stalled_peer] == 1  # it never wrote: version 1 (issue #23)
         assert sorted(versions.values()).count(2) >= 2  # the two pyigtl clients announced version 2
-        assert {e["header_version"] for e in svc.events("igtl_client_header_version")} == {2}
-        assert {e["peer"].split(":")[0] for e in svc.events("igtl_client_connected")} == {"127.0.0.1"}
+        assert {e.header_version for e in svc.events(IgtlClientHeaderVersion)} == {2}
+        assert {e.peer.split(":")[0] for e in svc.events(IgtlClientConnected)} == {"127.0.0.1"}
     finally:
         for c in clients:
             c.stop()

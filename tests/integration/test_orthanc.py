@@ -16,6 +16,7 @@ import numpy as np
 import pydicom
 import pytest
 
+from service.events import DicomAssociationReleased, PacsExportFailed
 from tests.integration.orthanc import AE_TITLE as ORTHANC_AET
 from tests.integration.orthanc import ORTHANC, Orthanc, running_orthanc
 from tests.integration.peer_service import (
@@ -78,10 +79,8 @@ def test_orthanc_forwarded_series_is_recorded_complete_and_registers(setup: Setu
     scan, reg = setup.scan, setup.registration
     n_orthanc = len(setup.orthanc.get(f"/series/{setup.orthanc_series}")["Instances"])
     assert scan["status"] == "complete" and scan["n_slices"] == n_orthanc
-    released = [
-        e for e in setup.svc.events("dicom_association_released") if e["series_uid"] == setup.series_uid
-    ]
-    assert released and released[0]["calling_ae"] == ORTHANC_AET and released[0]["outcome"] == "complete"
+    released = [e for e in setup.svc.events(DicomAssociationReleased) if e.series_uid == setup.series_uid]
+    assert released and released[0].calling_ae == ORTHANC_AET and released[0].outcome == "complete"
     assert reg["status"] == "accepted" and reg["n_matched"] == reg["n_expected"]
 
 
@@ -132,8 +131,8 @@ def test_pacs_refusal_leaves_the_registration_accepted_and_a_retry_archives_it(s
     after = svc.client.get(f"/registrations/{reg['id']}").json()
     assert after["status"] == "accepted" and after["is_current"]
     assert svc.client.get("/registration/current").json()["id"] == reg["id"]
-    events = [e for e in svc.events("pacs_export_failed") if e["registration_id"] == reg["id"]]
-    assert events and events[0]["dimse_status"] == failed["dimse_status"]
+    events = [e for e in svc.events(PacsExportFailed) if e.registration_id == reg["id"]]
+    assert events and events[0].dimse_status == failed["dimse_status"]
 
     r = svc.client.post(f"/registrations/{reg['id']}/pacs-export", json={})
     assert r.status_code == 200, r.text

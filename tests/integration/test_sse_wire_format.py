@@ -52,27 +52,25 @@ def served_bus() -> Iterator[tuple[httpx.Client, object]]:
 def publish_sequence(bus: object) -> None:
     """The four events, as their producers publish them."""
     from service.event_bus import EventBus
+    from service.events import RegistrationDone, RegistrationRefused, RegistrationWithdrawn, VerificationDone
 
     assert isinstance(bus, EventBus)
     bus.publish(
-        "registration_done",
-        {"registration_id": 3, "scan_id": 2, "series_uid": "1.2.826.0.1.3680043.8.498.1",
-         "fre_mm": 0.0812345678901, "n_matched": 8},
+        RegistrationDone(registration_id=3, scan_id=2, series_uid="1.2.826.0.1.3680043.8.498.1",
+                         fre_mm=0.0812345678901, n_matched=8)
     )  # fmt: skip
     bus.publish(
-        "registration_refused",
-        {"registration_id": 4, "scan_id": 5, "series_uid": "1.2.826.0.1.3680043.8.498.2",
-         "title": "Robot moving during scan", "reason": "joint 6 moved 0.31° during the scan (\"J6\")"},
+        RegistrationRefused(registration_id=4, scan_id=5, series_uid="1.2.826.0.1.3680043.8.498.2",
+                            title="Robot moving during scan",
+                            reason="joint 6 moved 0.31° during the scan (\"J6\")")
     )  # fmt: skip
     bus.publish(
-        "registration_withdrawn",
-        {"registration_ids": [3], "scan_id": 2, "was_current": True,
-         "reason": "scan 2 reopened: 1 instance added (ünïcode)"},
+        RegistrationWithdrawn(registration_ids=(3,), scan_id=2, was_current=True,
+                              reason="scan 2 reopened: 1 instance added (ünïcode)")
     )  # fmt: skip
     bus.publish(
-        "verification_done",
-        {"verification_id": 1, "registration_id": 6, "scan_id": 7, "mean_mm": 0.21,
-         "max_mm": 0.4000000000000001, "passed": False},
+        VerificationDone(verification_id=1, registration_id=6, scan_id=7, mean_mm=0.21,
+                         max_mm=0.4000000000000001, passed=False)
     )  # fmt: skip
 
 

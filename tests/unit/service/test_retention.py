@@ -6,10 +6,10 @@ from __future__ import annotations
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any
 
 import pytest
 
+from service.events import Event, ScanFilesDeleted
 from service.records import NewScan, RegistrationRecord
 from service.retention import PROTECTORS, protected_scan_ids, run_retention
 from service.store import Database
@@ -52,17 +52,12 @@ def test_old_scans_deleted_oldest_first_except_the_current_registrations(
     old = _scan(db, watch, "b", age_days=35)
     young = _scan(db, watch, "c", age_days=2)
     _make_current(db, old_current)
-    events: list[tuple[str, dict[str, Any]]] = []
-    done = run_retention(
-        db, watch, lambda e, d: events.append((e, d)), max_age_days=30, max_disk_mb=None, now=NOW
-    )
+    events: list[Event] = []
+    done = run_retention(db, watch, events.append, max_age_days=30, max_disk_mb=None, now=NOW)
     assert [d.scan_ids for d in done] == [(old,)]
     assert not (watch / "b").exists() and (watch / "a").exists() and (watch / "c").exists()
     assert events == [
-        (
-            "scan_files_deleted",
-            {"scan_ids": [old], "folder": str(watch / "b"), "bytes": 1000, "reason": done[0].reason},
-        )
+        ScanFilesDeleted(scan_ids=(old,), folder=str(watch / "b"), bytes=1000, reason=done[0].reason)
     ]
     assert "max_age_days" in done[0].reason
     assert {s for s, _, _ in db.scans.with_files()} == {old_current, young}
@@ -72,9 +67,9 @@ def test_old_scans_deleted_oldest_first_except_the_current_registrations(
 def test_quota_deletes_oldest_until_under_it(db: Database, tmp_path: Path) -> None:
     watch = tmp_path / "watch"
     ids = [_scan(db, watch, n, age_days=10 - k, n_bytes=400_000) for k, n in enumerate("defg")]
-    done = run_retention(db, watch, lambda e, d: None, max_age_days=None, max_disk_mb=0.9, now=NOW)
+    done = run_retention(db, watch, lambda event: None, max_age_days=None, max_disk_mb=0.9, now=NOW)
     assert [d.scan_ids[0] for d in done] == ids[:2]  # 1.6 MB → 0.8 MB: the two oldest
-    assert run_retention(db, watch, lambda e, d: None, max_age_days=None, max_disk_mb=None, now=NOW) == []
+    assert run_retention(db, watch, lambda event: None, max_age_days=None, max_disk_mb=None, now=NOW) == []
 
 
 def test_protection_is_extensible(db: Database, tmp_path: Path) -> None:
@@ -83,6 +78,6 @@ def test_protection_is_extensible(db: Database, tmp_path: Path) -> None:
     PROTECTORS.append(lambda d: {kept})  # what the calibration engineer adds for the active calibration
     try:
         assert kept in protected_scan_ids(db)
-        assert run_retention(db, watch, lambda e, d: None, max_age_days=1, max_disk_mb=None, now=NOW) == []
+        assert run_retention(db, watch, lambda event: None, max_age_days=1, max_disk_mb=None, now=NOW) == []
     finally:
         PROTECTORS.pop()

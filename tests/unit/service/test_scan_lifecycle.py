@@ -117,7 +117,7 @@ def test_retention_covers_the_cstore_intake_and_says_when_the_quota_cannot_be_ke
                                software_version="0", image_from_robot=IDENTITY, scan_id=kept),
             make_current=True,
         )  # fmt: skip
-        done = run_retention(db, watch, lambda e, d: None, max_age_days=None, max_disk_mb=0.5, now=now,
+        done = run_retention(db, watch, lambda event: None, max_age_days=None, max_disk_mb=0.5, now=now,
                              extra_roots=(intake,))  # fmt: skip
         assert [d.scan_ids for d in done] == [(old,)]  # the current registration's scan is protected
         assert not (intake / "1.9" / "1.9.1").exists() and (intake / "1.9" / "1.9.2").exists()

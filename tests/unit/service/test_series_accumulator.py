@@ -17,8 +17,8 @@ import pytest
 import service.series_accumulator as acc_mod
 from registration.dicom import InconsistentImageSizeError, load_series
 from registration.imaging.volume import Volume
-from service.or_integration import scan_instances_from_files
 from service.series_accumulator import SeriesAccumulator
+from service.sro_export import scan_instances_from_files
 from tests.helpers.dicom_factory import ramp_volume, write_series
 
 

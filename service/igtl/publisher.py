@@ -1,0 +1,140 @@
+"""The OpenIGTLink publisher: the service's registration and live tool pose to navigation (``[igtl]``).
+
+:class:`service.igtl.server.IgtlServer` on the service loop, fed from the current registration (plus
+the last refusal), the live joints and link health, the robot model's forward kinematics and
+``igtl.tool0_from_tcp``.  It listens to :class:`~service.events.RegistrationDone` and
+:class:`~service.events.RegistrationRefused` (bound by :mod:`service.app`) and pushes at once;
+otherwise every ``igtl.period_s``.  It publishes ``igtl_client_connected`` /
+``igtl_client_disconnected`` / ``igtl_client_header_version`` (the client sent a version-2 message:
+answered in version 2 from then on).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from service.events import (
+    IgtlClientConnected,
+    IgtlClientDisconnected,
+    IgtlClientHeaderVersion,
+    Publish,
+    RegistrationDone,
+    RegistrationRefused,
+)
+from service.igtl.server import (
+    IgtlServer,
+    IgtlServerConfig,
+    IgtlStateSource,
+    JointView,
+    Refusal,
+    RegistrationState,
+    RegistrationView,
+)
+from service.records import RegistrationRecord
+
+if TYPE_CHECKING:
+    from drivers.base import RobotLink
+    from registration.model.kinematics import RobotModel
+    from service.capture import Capture
+    from service.orchestrator import Orchestrator
+    from service.settings import IgtlSettings
+
+_CLIENT_EVENTS = {
+    "connected": IgtlClientConnected,
+    "disconnected": IgtlClientDisconnected,
+    "header_version": IgtlClientHeaderVersion,
+}
+
+
+class IgtlPublisher:
+    """The OpenIGTLink server and its state source (see the module docstring)."""
+
+    def __init__(
+        self,
+        settings: IgtlSettings,
+        orchestrator: Orchestrator,
+        capture: Capture,
+        robot_link: RobotLink,
+        robot_model: RobotModel,
+        publish: Publish,
+    ) -> None:
+        self.settings = settings
+        self.orchestrator = orchestrator
+        self.capture = capture
+        self.robot_link = robot_link
+        self.publish = publish
+        self._last_refusal: Refusal | None = None
+        self._view: tuple[RegistrationRecord, RegistrationView] | None = None
+        source = IgtlStateSource(
+            registration=self._registration_state,
+            joints=self._joints,
+            robot_from_tool0=robot_model.robot_from_tool0,
+            tool0_from_tcp=settings.tool0_from_tcp.matrix(),
+        )
+        cfg = IgtlServerConfig(
+            host=settings.host,
+            port=settings.port,
+            allowed_peer_addresses=settings.allowed_peer_addresses,
+            period_s=settings.period_s,
+        )
+        self.server = IgtlServer(cfg, source, on_client=self._on_client)
+
+    async def start(self) -> None:
+        await self.server.start()
+
+    async def stop(self) -> None:
+        await self.server.stop()
+
+    def status(self) -> dict[str, Any]:
+        """For ``GET /status`` (``listeners.igtl``)."""
+        g, s = self.settings, self.server
+        return {
+            "enabled": g.enabled, "host": g.host, "port": s.port, "clients": s.client_count,
+            "counters": dict(s.counters),
+            "peers": s.client_info(),  # per client: peer and header version
+        }  # fmt: skip
+
+    # ---- bus listeners (the publishing thread) --------------------------------------------
+
+    def on_registration_done(self, event: RegistrationDone) -> None:
+        """Push the new current registration."""
+        self._last_refusal = None
+        self.server.notify()
+
+    def on_registration_refused(self, event: RegistrationRefused) -> None:
+        """Push the refusal (the current registration, if any, stays)."""
+        self._last_refusal = Refusal(str(event.registration_id), event.reason)
+        self.server.notify()
+
+    def _on_client(self, event: str, peer: str, n_clients: int, header_version: int) -> None:
+        self.publish(_CLIENT_EVENTS[event](peer=peer, clients=n_clients, header_version=header_version))
+
+    # ---- state source (service loop) ------------------------------------------------------
+
+    def _registration_state(self) -> RegistrationState:
+        cur = self.orchestrator.current
+        if cur is None or cur.image_from_robot is None:
+            return RegistrationState(None, self._last_refusal)
+        cached = self._view
+        if cached is None or cached[0] is not cur:
+            tre = cur.figures.predicted_tre_mm if cur.figures is not None else ()
+            view = RegistrationView(
+                image_from_robot=np.asarray(cur.image_from_robot, dtype=np.float64),
+                registration_id=str(cur.id),
+                fre_mm=float(cur.fre_mm or 0.0),
+                tre_pred_mm=max(tre) if tre else None,
+                chain_error_mm=None if cur.figures is None else cur.figures.predicted_chain_error_mm,
+            )
+            cached = self._view = (cur, view)
+        return RegistrationState(cached[1], self._last_refusal)
+
+    def _joints(self) -> JointView | None:
+        latest = self.capture.latest()
+        if latest is None:
+            return None
+        h = self.robot_link.health()
+        return JointView(
+            tuple(float(v) for v in latest.joints_rad), float(latest.t_s), str(h.state), str(h.reason)
+        )
