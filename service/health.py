@@ -63,19 +63,11 @@ def listener_problems(ctx: ServiceContext) -> list[HealthProblem]:
     """An enabled DICOM SCP or OpenIGTLink server that is not listening."""
     out: list[HealthProblem] = []
     s = ctx.settings
+    scp = ctx.cstore.scp if ctx.cstore is not None else None
+    igtl = ctx.igtl.server if ctx.igtl is not None else None
     for name, enabled, server, what in (
-        (
-            "dicom",
-            s.dicom.enabled,
-            ctx.cstore.scp if ctx.cstore else None,
-            "the O-arm cannot send scans by C-STORE",
-        ),
-        (
-            "igtl",
-            s.igtl.enabled,
-            ctx.igtl.server if ctx.igtl else None,
-            "navigation receives no OpenIGTLink transforms",
-        ),
+        ("dicom", s.dicom.enabled, scp, "the O-arm cannot send scans by C-STORE"),
+        ("igtl", s.igtl.enabled, igtl, "navigation receives no OpenIGTLink transforms"),
     ):
         if not enabled:
             continue
