@@ -33,6 +33,7 @@ from service.events import (
     Event,
     IgtlClientConnected,
     IgtlClientHeaderVersion,
+    RegistrationRefused,
 )
 from tests.integration.polling import poll_until
 
@@ -440,20 +441,36 @@ def test_sro_from_the_api_has_no_dciodvfy_errors(svc: Service, current: Current,
     assert svc.client.get("/registrations/0/dicom").status_code == 422
 
 
-def test_refused_registration_has_no_sro(svc: Service) -> None:
+def test_refused_registration_has_no_sro_and_is_pushed_as_last_refusal(svc: Service) -> None:
+    """Auto-register refuses a scan without spheres: the refusal is stored (no SRO) and reaches an
+    OpenIGTLink client as ``LastRefusal`` (the bus's ``registration_refused`` → the IGTL publisher)."""
     from tests.helpers.dicom_factory import ramp_volume, write_series
 
-    files = sorted(Path(p) for p in write_series(svc.root / "outbox" / "nospheres", ramp_volume(6, 32, 32)))
-    uid = str(pydicom.dcmread(files[0]).SeriesInstanceUID)
-    send_files(svc.dicom_port, files)
-    scan = svc.wait_scan(uid, "complete")
-    refused = wait_for(
-        lambda: next(
-            (r for r in svc.client.get("/registrations").json() if r["scan_id"] == scan["id"]), None
-        ),
-        "the auto-registration attempt",
-    )
-    assert refused["status"] == "refused"
+    client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=svc.igtl_port)
+    hello = pyigtl.StringMessage("reads header version 2", device_name="Hello")
+    hello.header_version = 2  # the metadata needs version 2
+    client.send_message(hello, wait=False)
+    try:
+        files = sorted(
+            Path(p) for p in write_series(svc.root / "outbox" / "nospheres", ramp_volume(6, 32, 32))
+        )
+        uid = str(pydicom.dcmread(files[0]).SeriesInstanceUID)
+        send_files(svc.dicom_port, files)
+        scan = svc.wait_scan(uid, "complete")
+        refused = wait_for(
+            lambda: next(
+                (r for r in svc.client.get("/registrations").json() if r["scan_id"] == scan["id"]), None
+            ),
+            "the auto-registration attempt",
+        )
+        assert refused["status"] == "refused"
+        assert any(e.registration_id == refused["id"] for e in svc.events(RegistrationRefused))
+        rx = receive(client, "RobotToImage",
+                     lambda m: m.metadata.get("LastRefusal", "").startswith(f"{refused['id']}: "),
+                     "RobotToImage naming the refusal")  # fmt: skip
+        assert refused["reason"][:100] in rx.metadata["LastRefusal"]
+    finally:
+        client.stop()
     r = svc.client.get(f"/registrations/{refused['id']}/dicom")
     assert r.status_code == 409 and r.headers["content-type"].startswith("application/problem+json")
 
