@@ -229,9 +229,7 @@ def main(argv: list[str] | None = None) -> int:
                 warm_s, _ = median_time_s(post, repeats=args.repeats, warmup=1)
 
                 def post_cold() -> None:
-                    orchestrator = app.state.ctx.orchestrator
-                    with orchestrator._volumes_lock:
-                        orchestrator._volumes.clear()
+                    app.state.ctx.orchestrator.volumes.discard(scan_row["series_uid"])
                     post()
 
                 cold_s, _ = median_time_s(post_cold, repeats=args.repeats, warmup=0)
