@@ -554,6 +554,11 @@ def exhaustive_runner_ups(
     transforms, positions = transforms[distinct], positions[distinct]
     if len(transforms) == 0:
         return []
+    # count every pose before binning: two poses of one bin can differ by a sphere at the gate,
+    # and the bin must keep the one that explains the most (else the runner-up is understated)
+    n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
+    order = np.lexsort((rms, -n_in))
+    transforms, positions, n_in, rms = transforms[order], positions[order], n_in[order], rms[order]
     keys = np.concatenate(
         [
             np.round(transforms[:, :3, :3].reshape(-1, 9) / EXHAUSTIVE_ROTATION_BIN),
@@ -562,9 +567,7 @@ def exhaustive_runner_ups(
         axis=1,
     )
     _, first = np.unique(keys, axis=0, return_index=True)
-    transforms = transforms[np.sort(first)]
-    n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
-    rank = np.lexsort((rms, -n_in))
+    rank = np.sort(first)  # the best of each bin, most inliers first then lowest RMS
     rank = rank[n_in[rank] >= MIN_HYPOTHESIS_INLIERS]
     clusters = PoseClusters(centroid, distinct_rotation_deg, distinct_translation_mm)
     for k in rank:
