@@ -4,11 +4,11 @@ Against the real service as the OR PC runs it (``oarmreg serve``, a subprocess; 
 its child process, the default), the robot still and streaming (``oarmreg mock robot``, 50 Hz
 simple_message, a process of its own), at the default ``stillness.max_gap_s`` (0.25 s):
 
-1. two big CT instances (``SIZE_PX`` x ``SIZE_PX`` int16, 512 MB each: within
-   ``dicom.max_instance_mb``) arrive by C-STORE at once, each over its own association (dcmtk
-   ``storescu``), and the service receives, checks, hashes and decodes them;
+1. a big CT instance (``SIZE_PX`` x ``SIZE_PX`` int16, 763 MiB: within ``dicom.max_instance_mb``,
+   about a 1500-frame 512 x 512 Enhanced CT) arrives by C-STORE (dcmtk ``storescu``), and the
+   service receives, checks, hashes and decodes it;
 2. then an ordinary simulated O-arm scan arrives (96 slices); its stillness window (``WINDOW_S``
-   before its first slice until its last) covers the big instances' reception and decoding;
+   before its first slice until its last) covers the big instance's reception and decoding;
 3. the scan must be ``complete`` and judged still, ``POST /register`` must register it, and every
    ``/status`` sampled meanwhile must show the link ``connected`` and the service healthy.
 
@@ -18,8 +18,10 @@ received instance whole while holding the GIL (the dataset parsed from its ``Byt
 ``max_gap_s`` and the still robot's scan was refused as "Robot moved during the scan", while the
 link's 0.06 s stale threshold flapped ``stale`` / ``connected``.  On the 2-core reference machine one
 such copy of a 288 MB instance (the issue's 12000 x 12000) held the GIL for 0.16-0.18 s, so a
-refusal needed two copies back to back and came in most runs, not all (2 of 3 here); at 512 MB
-this test failed on that code in each of 6 runs (gaps of 0.29-0.60 s, or the link seen ``stale``).
+refusal needed two copies back to back: two 288 MB instances at once failed this test in 2 of 3
+runs, two 512 MB instances at once in 9 of 9 (5 refused, 4 only seen ``stale``), one 512 MB
+instance in 12 of 12 (11 refused, gaps of 0.27-0.58 s, most under 0.31 s), one instance of
+``SIZE_PX`` in 7 of 7, refused with gaps of 0.38-0.44 s: the margin over 0.25 s chosen here.
 
 Every wait polls with a deadline; nothing sleeps.  The big files are sparse (their pixel data is a
 hole of zeros), written in milliseconds.
@@ -52,10 +54,11 @@ STORESCU = shutil.which("storescu")
 pytestmark = pytest.mark.skipif(STORESCU is None, reason="dcmtk storescu not installed (.ci/run installs it)")
 
 AE_TITLE = "OARMREG"
-SIZE_PX = 16384
-"""Rows = Columns of each big instance (int16: 512 MB of pixel data)."""
-N_BIG = 2
-WINDOW_S = 5.0
+SIZE_PX = 20000
+"""Rows = Columns of the big instance (int16: 800 MB of pixel data)."""
+N_BIG = 1
+"""Big instances, each its own series over its own association, sent at once."""
+WINDOW_S = 6.0
 """``stillness.window_s`` here (60 s by default): the scan's window reaches back over the big
 instances' reception and decoding, which end just before the scan is sent (their copies ran 1-4 s
 before its first slice)."""
@@ -64,7 +67,7 @@ before its first slice)."""
 @dataclass(frozen=True)
 class Outbox:
     big: list[Path]
-    """One folder per big instance (each its own series, sent over its own association)."""
+    """One folder per big instance."""
     scan: Path
     scan_uid: str
 
@@ -73,7 +76,7 @@ def _big_instance(folder: Path, size_px: int) -> Path:
     """A CT Image Storage Part-10 file of ``size_px`` x ``size_px`` int16 zeros, its own series.
 
     The header is pydicom's; the pixel data element is appended by hand with its length and the file
-    extended to it (a hole reads as zeros), so 512 MB cost no time or memory to write."""
+    extended to it (a hole reads as zeros), so its 800 MB cost no time or memory to write."""
     import numpy as np
     from pydicom.uid import generate_uid
 
@@ -175,7 +178,7 @@ def service(tmp_path: Path) -> Iterator[tuple[httpx.Client, int]]:
             serve.stop()
 
 
-def test_a_still_robot_is_still_while_two_big_instances_are_decoded(
+def test_a_still_robot_is_still_while_a_big_instance_is_decoded(
     service: tuple[httpx.Client, int], phantom: Any, tmp_path: Path
 ) -> None:
     c, dicom_port = service
@@ -185,10 +188,10 @@ def test_a_still_robot_is_still_while_two_big_instances_are_decoded(
     watch = LinkWatch(c)
     watch.until_done(
         [_storescu(folder, dicom_port, f"BIG{k}") for k, folder in enumerate(outbox.big)],
-        "the big instances stored",
+        "the big instance(s) stored",
     )
 
-    def watched() -> bool:  # as a rule it is by now: the link connected before the big instances came
+    def watched() -> bool:  # as a rule it is by now: the link connected before the big instance came
         link = c.get("/status").json()["link"]
         return bool(link["state"] == "connected" and link["history_s"] > WINDOW_S + 0.5)
 
@@ -201,7 +204,7 @@ def test_a_still_robot_is_still_while_two_big_instances_are_decoded(
 
     scan = wait_for(recorded, "the scan recorded")
     counters = c.get("/status").json()["listeners"]["dicom"]["counters"]
-    # the load happened: both big instances were received whole, not refused
+    # the load happened: the big instance(s) received whole, not refused
     assert counters["bytes"] - before["bytes"] >= N_BIG * SIZE_PX * SIZE_PX * 2, (before, counters)
     assert scan["status"] == "complete", scan
     j = scan["joints"]
