@@ -40,6 +40,7 @@ from typing import Any
 import httpx
 import pytest
 
+from service.or_integration import INTAKE_FOLDER
 from tests.faults._service import (
     DEADLINE_S,
     TOKEN,
@@ -181,6 +182,8 @@ def service(tmp_path: Path) -> Iterator[tuple[httpx.Client, int]]:
                 yield client, dicom_port
         finally:
             serve.stop()
+            # the received copy of the big instance is 800 MB of real disk (pytest keeps 3 runs' tmp)
+            shutil.rmtree(tmp_path / "data" / INTAKE_FOLDER, ignore_errors=True)
 
 
 def test_a_still_robot_is_still_while_a_big_instance_is_decoded(
