@@ -21,7 +21,7 @@ such copy of a 288 MB instance (the issue's 12000 x 12000) held the GIL for 0.16
 refusal needed two copies back to back: two 288 MB instances at once failed this test in 2 of 3
 runs, two 512 MB instances at once in 9 of 9 (5 refused, 4 only seen ``stale``), one 512 MB
 instance in 12 of 12 (11 refused, gaps of 0.27-0.58 s, most under 0.31 s), one instance of
-``SIZE_PX`` in 9 of 9, refused with gaps of 0.38-0.44 s: the margin over 0.25 s chosen here.
+``SIZE_PX`` in 10 of 10, refused with gaps of 0.38-0.44 s: the margin over 0.25 s chosen here.
 
 Every wait polls with a deadline; nothing sleeps.  The big files are sparse (their pixel data is a
 hole of zeros), written in milliseconds.
