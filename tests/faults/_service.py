@@ -300,3 +300,24 @@ def write_config(path: Path, settings: dict[str, Any]) -> None:
     for name, kv in tables.items():
         lines += ["", f"[{name}]", *(f"{k} = {fmt(v)}" for k, v in kv.items())]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+@contextlib.contextmanager
+def mock_controller_process(link: str = "simple-message://127.0.0.1:0") -> Iterator[str]:
+    """``oarmreg mock robot --link LINK`` (robot still) in a process of its own; yields its URL."""
+    mock = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "mock", "robot", "--link", link],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert mock.stdout is not None
+        url = mock.stdout.readline().strip()
+        assert url.startswith(link.split("://", 1)[0] + "://"), url
+        yield url
+    finally:
+        mock.terminate()
+        mock.wait(30)
+        if mock.stdout is not None:
+            mock.stdout.close()

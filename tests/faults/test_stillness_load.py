@@ -15,15 +15,21 @@ import contextlib
 import shutil
 import socket
 import subprocess
-import sys
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 
-from tests.faults._service import DEADLINE_S, TOKEN, ServeProcess, free_port, wait_for, write_config
+from tests.faults._service import (
+    DEADLINE_S,
+    TOKEN,
+    ServeProcess,
+    free_port,
+    mock_controller_process,
+    wait_for,
+    write_config,
+)
 
 N_ASSOCIATIONS = 12
 N_IGTL_CLIENTS = 200
@@ -33,25 +39,6 @@ SIZE_PX = 384
 WINDOW_S = 1.0
 AE_TITLE = "OARMREG"
 STORESCU = shutil.which("storescu")
-
-
-@contextlib.contextmanager
-def _mock_controller() -> Iterator[str]:
-    mock = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert mock.stdout is not None
-        url = mock.stdout.readline().strip()
-        assert url.startswith("simple-message://"), url
-        yield url
-    finally:
-        mock.terminate()
-        mock.wait(30)
-        if mock.stdout is not None:
-            mock.stdout.close()
 
 
 def _send_pynetdicom(folder: Path, port: int, out: list[list[int]]) -> None:
@@ -103,7 +90,7 @@ def test_still_robot_12_associations_and_200_silent_igtl_clients_every_verdict_s
         f = tmp_path / "outbox" / f"series{i:02d}"
         _write(f)
         folders.append(f)
-    with _mock_controller() as url:
+    with mock_controller_process() as url:
         cfg, port, dicom_port, igtl_port = tmp_path / "oarmreg.toml", free_port(), free_port(), free_port()
         write_config(cfg, {
             "watch_dir": str(tmp_path / "watch"), "data_dir": str(tmp_path / "data"), "api_token": TOKEN,
