@@ -1,6 +1,6 @@
 """A robot link read in a child process of its own, so nothing the service does can starve it.
 
-Issue 19 item 7: while C-STORE instances were decoded, the in-process reader thread could not get
+While C-STORE instances were decoded, the in-process reader thread could not get
 the GIL for 0.26-0.35 s and the joint history showed receive gaps the robot never had.
 :class:`ProcessLink` runs the ordinary link (:func:`drivers.factory.open_link`) in a child Python
 process (``python -m drivers.link_process URL``) that does nothing else: it stamps every frame with

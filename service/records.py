@@ -201,7 +201,7 @@ class RegistrationFigures:
     provenance: JSONDict = field(default_factory=dict)
     timings_s: Mapping[str, float] = field(default_factory=dict)
     predicted_chain_error_mm: float | None = None
-    """Issue #20: the robot chain's predicted error over the working volume (mm RMS) — the active
+    """The robot chain's predicted error over the working volume (mm RMS) — the active
     calibration's posterior figure, or the nominal model's prior when none; None before this version."""
     chain_error_source: str = ""
     series_geometry: JSONDict | None = None

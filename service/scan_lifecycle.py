@@ -255,7 +255,7 @@ class ScanLifecycle:
             return done
         recorded = self.db.scans.files(scan.id)
         if not recorded:
-            log.warning("scan %d has no recorded instance hashes (recorded before issue 19); not re-hashed",
+            log.warning("scan %d has no recorded instance hashes (an older version); not re-hashed",
                         scan.id)  # fmt: skip
             return done
         change = rehash(Path(scan.folder), recorded)

@@ -1,6 +1,6 @@
 """The HTTP gate: pure ASGI middleware that admits or refuses a request before the app reads it.
 
-Issue #13.  Checked from the request line and headers alone, in this order, before a single body
+Checked from the request line and headers alone, in this order, before a single body
 byte is read (so a 10 MB body without a token costs nothing):
 
 1. ``Host`` must be in the allow-list (``api.allowed_hosts``; default: the bind host, ``localhost``,

@@ -20,7 +20,7 @@ with no readable series at all, under the key ``folder:<path>``).  Series
 already present when the watcher starts are flagged ``preexisting``: the joints
 at their acquisition are unknown.
 
-Issue #13: a quiet period alone does not make a series complete.  The loader
+A quiet period alone does not make a series complete.  The loader
 refuses a stack with fewer slices than its ImagesInAcquisition announces, and
 late slices of a series already recorded *reopen* it (delivered ``reopened``;
 the intake replaces the record and withdraws the registrations made from the

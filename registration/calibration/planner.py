@@ -74,12 +74,12 @@ class PlanningError(RegistrationError):
 class PlannerParams:
     n_poses: int = 10
     margin_mm: float = 5.0
-    """Issue #10: every sphere ≥ 5 mm inside the scan volume and FOV."""
+    """Every sphere ≥ 5 mm inside the scan volume and FOV (a sphere cut by the FOV edge is refused)."""
     model_error_mm: float = 2.0
     """Added to ``margin_mm``: how far a sphere may really be from where the planning model puts it
-    (relative to the registration pose).  Issue #20's unseen cell: nominal held-out error 1.03 mm
-    mean, 1.84 mm max; 2 mm covers the max.  Plan with a calibration (``--calibration``) to use a
-    smaller value (its ``predicted_chain_error_mm``)."""
+    (relative to the registration pose).  An unseen TX60 cell (docs/calibration.md): nominal
+    held-out error 1.03 mm mean, 1.84 mm max; 2 mm covers the max.  Plan with a calibration
+    (``--calibration``) to use a smaller value (its ``predicted_chain_error_mm``)."""
     max_predicted_error_mm: float = 0.5
     """The calibration's refusal limit (``CalibrationParams.max_predicted_error_mm``): the plan says
     what it would need when its predicted error exceeds it."""

@@ -88,7 +88,7 @@ class RegistrationView:
     tre_pred_mm: float | None = None
     sro_sop_instance_uid: str | None = None
     chain_error_mm: float | None = None
-    """Issue #20: the registration's ``predicted_chain_error_mm`` (metadata ``ChainError_pred_mm``)."""
+    """The registration's ``predicted_chain_error_mm`` (metadata ``ChainError_pred_mm``)."""
 
 
 @dataclass(frozen=True)

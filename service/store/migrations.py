@@ -181,7 +181,7 @@ CALIBRATIONS_MIGRATION = """
     ALTER TABLE registrations ADD COLUMN retired_at TEXT;
     ALTER TABLE registrations ADD COLUMN retired_by_calibration INTEGER REFERENCES calibrations(id);
 """
-"""Issue #10 item 6: calibration sessions (:mod:`service.store.calibrations`), the active one, and
+"""Calibration sessions (:mod:`service.store.calibrations`), the active one, and
 registrations retired by activating a calibration (design.md §9).  SQLite cannot widen the CHECK on
 ``registrations.status`` in place, so "retired" is an accepted row with ``retired_at`` set; the store
 reports its status as ``retired``.  Appended after the tuple so branches adding their own migrations
@@ -203,7 +203,7 @@ WITHDRAWN_AND_RETENTION_MIGRATION = """
         reason TEXT NOT NULL
     );
 """
-"""Issue #13: a registration can be withdrawn (its scan turned out incomplete, design §9), a scan
+"""A registration can be withdrawn (its scan turned out incomplete, design §9), a scan
 reopened (late slices) and its files deleted by the retention policy (the row stays).  SQLite cannot
 widen the CHECK on ``registrations.status`` in place (the table would have to be rebuilt under
 foreign keys), so "withdrawn" is an accepted row with ``withdrawn_at`` set; the store reports its
@@ -261,7 +261,7 @@ SCAN_LIFECYCLE_MIGRATION = """
     ALTER TABLE calibrations ADD COLUMN withdrawn_at TEXT;
     ALTER TABLE calibrations ADD COLUMN withdrawn_reason TEXT NOT NULL DEFAULT ''
 """
-"""Issue 19: one scan lifecycle for both intakes (:mod:`service.scan_lifecycle`).  ``scans.status``
+"""One scan lifecycle for both intakes (:mod:`service.scan_lifecycle`).  ``scans.status``
 takes ``receiving`` / ``reopened`` / ``replaced``: SQLite cannot widen a CHECK in place, so the table
 is rebuilt (foreign keys off for this migration only, checked with ``PRAGMA foreign_key_check``
 before the commit).  ``scan_files``: the SHA-256 of every stored instance of a scan;
@@ -289,7 +289,7 @@ PACS_EXPORTS_MIGRATION = """
     );
     CREATE INDEX pacs_exports_due ON pacs_exports (state, next_attempt_unix_s);
 """
-"""Issue #23: the PACS archive queue, one row per accepted registration (service.pacs).  A row stays
+"""The PACS archive queue, one row per accepted registration (service.pacs).  A row stays
 ``pending`` while it is being sent, so a service killed mid-send sends it again after restart."""
 MIGRATIONS = (*MIGRATIONS, PACS_EXPORTS_MIGRATION)
 
@@ -308,7 +308,7 @@ QA_PROTOCOLS_MIGRATION = """
     );
     CREATE INDEX qa_checks_protocol ON qa_checks (protocol_id)
 """
-"""Issue #21: QA protocols (a named set of verification poses, :mod:`service.store.qa`) and which
+"""QA protocols (a named set of verification poses, :mod:`service.store.qa`) and which
 verification was taken at which pose of which protocol."""
 MIGRATIONS = (*MIGRATIONS, QA_PROTOCOLS_MIGRATION)
 
