@@ -194,12 +194,15 @@ def _true_error_mm(s: Session, reg: dict[str, Any], model: Any, rod: np.ndarray,
 
 
 def test_calibrate_activate_retire_and_register_with_it(session: Session, phantom: Any) -> None:
+    from registration.calibration.records import NOMINAL_CHAIN_ERROR_MM
     from registration.model.kinematics import RobotModel
 
     c = session.client
     before = c.post("/register", json={"scan_id": session.scan_ids[-1]})
     assert before.status_code == 200, before.text
     assert before.json()["provenance"]["calibration"] is None
+    # no calibration: the chain figure is the nominal model's prior, never the one-scan TRE alone
+    assert before.json()["predicted_chain_error_mm"] == NOMINAL_CHAIN_ERROR_MM
     body = {"scan_ids": session.scan_ids, "drop_weak": True}
     r, events = _stream_until(
         c, lambda: c.post("/calibrations", json=body), {"calibration_done", "calibration_refused"}
@@ -238,6 +241,9 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     assert prov["calibration"]["calibration_id"] == cal_id
     assert prov["calibration"]["calibration_hash"] == cal["calibration_hash"]
     assert np.allclose(prov["tool0_from_phantom"], cal["tool0_from_phantom"])
+    chain_mm = after.json()["predicted_chain_error_mm"]
+    assert chain_mm == prov["calibration"]["predicted_chain_error_mm"]
+    assert 0.0 < chain_mm < NOMINAL_CHAIN_ERROR_MM
     pts = phantom.centres_phantom_mm
     cal_model = RobotModel.load(Path(prov["calibration"]["robot_urdf"]))
     nominal_mm = _true_error_mm(session, before.json(), session.model, session.rod, pts)
