@@ -272,8 +272,10 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
             margin_mm=5.0,
         )
     poses = []
+    cal_truth = []
     for i, q in enumerate(cal_q):
         truth = frames.apply(cell.image_from_phantom_true(y, q, rng), pts)
+        cal_truth.append(truth)
         det = _render(render_cache, truth, phantom, rng) if render_cache else _detect(rng, truth)
         idx = np.flatnonzero(np.isfinite(det[:, 0]))
         poses.append(MatchedPose(f"pose-{i:02d}", cell.reported_joints(q, rng), idx, det[idx]))
@@ -283,7 +285,7 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
     if not len(reg_q):
         reg_q = q0[None]
     reg_truth = frames.apply(cell.image_from_phantom_true(y2, reg_q[0], rng), pts)
-    reg_det = _detect(rng, reg_truth)
+    reg_det = _render(render_cache, reg_truth, phantom, rng) if render_cache else _detect(rng, reg_truth)
     reg_rep = cell.reported_joints(reg_q[0], rng)
     # held-out poses: spread over the working volume, ≥ 20° from every calibration pose
     work = grown(SCAN_VOLUME, WORKING_MARGIN_MM)
@@ -315,8 +317,22 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
         held,
         truth_h,
         rep_h,
-        {"n_held_out_candidates": len(cand)},
+        {"n_held_out_candidates": len(cand), "cal_truth_mm": cal_truth, "reg_truth_mm": reg_truth},
     )
+
+
+def redraw_detections(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FLE_RMS_MM) -> Bed:
+    """The same case (cell, poses, placements, held-out truth) with fresh synthetic detection noise
+    on every calibration scan and on the registration scan: what varies from one session to the
+    next that no predictor can know in advance."""
+    s = fle_rms_mm / math.sqrt(3.0)
+    poses = []
+    for p, truth in zip(bed.poses, bed.info["cal_truth_mm"], strict=True):
+        idx = np.asarray(p.sphere_indices)
+        det = truth[idx] + rng.normal(0.0, s, (len(idx), 3))
+        poses.append(MatchedPose(p.name, p.joints_rad, idx, det))
+    reg = bed.info["reg_truth_mm"] + rng.normal(0.0, s, bed.info["reg_truth_mm"].shape)
+    return replace(bed, poses=poses, reg_detections_mm=reg)
 
 
 def _render(cache: Path, truth_mm: F64, phantom: Phantom, rng: np.random.Generator) -> F64:
@@ -360,7 +376,10 @@ Predictor = Callable[[F64], F64]
 def score(bed: Bed, robot_from_phantom: Predictor) -> F64:
     """Per-sphere held-out errors (mm) of a model: register the moved scan with it, predict."""
     pts = bed.phantom.centres_phantom_mm
-    y2 = fit_rigid(frames.apply(robot_from_phantom(bed.reg_joints_reported_rad), pts), bed.reg_detections_mm)
+    seen = np.isfinite(bed.reg_detections_mm[:, 0])  # a rendered scan may miss a sphere
+    y2 = fit_rigid(
+        frames.apply(robot_from_phantom(bed.reg_joints_reported_rad), pts[seen]), bed.reg_detections_mm[seen]
+    )
     errs = [
         np.linalg.norm(frames.apply(y2 @ robot_from_phantom(q), pts) - t, axis=1)
         for q, t in zip(bed.held_out_reported_rad, bed.held_out_truth_mm, strict=True)

@@ -39,26 +39,57 @@ WORKING_POSES: Final = 40
 """Poses sampled over the working volume for the predicted error (and the refusal)."""
 
 
+LS_PRIOR_WEIGHT: Final = 1e-6
+"""The least-squares estimator fits without a prior, so its covariance must not borrow one (it made
+weakly seen directions look known): only this vanishing fraction of the prior stays, to keep the
+normal matrix invertible where the poses see nothing (then the prediction shows it)."""
+
+
 WORKING_SEED: Final = 20201202
 """Fixed: the working-volume sample is a property of the session, not a random draw per call."""
 
 
-def _posterior_cov(model: _Model, data: _Data, values: F64, params: CalibrationParams, scale: float) -> F64:
-    """(JᵀJ / σ̂² + Σ_prior⁻¹)⁻¹: the Gauss–Newton posterior covariance of the estimate.
+def _posterior_cov(
+    model: _Model,
+    data: _Data,
+    values: F64,
+    params: CalibrationParams,
+    scale: float,
+    pose_shared_rms_mm: float = 0.0,
+) -> F64:
+    """(JᵀJ / σ̂² + Σ_prior⁻¹)⁻¹: the Gauss–Newton posterior covariance of the estimate, widened
+    for the error every sphere of a scan shares.
 
     σ̂² = Σr² / (m − P) from the sphere residuals (at least (1 µm)²).  The prior (robot parameters:
-    :data:`PRIORS` × the cross-validated scale for ``"map"``, × 1 for ``"ls"``; rod and placement:
-    :meth:`Priors.sigma_posterior`) bounds what the poses cannot see, so a direction they miss
-    shows in the predicted error instead of vanishing in a pseudo-inverse."""
+    :data:`PRIORS` × the cross-validated scale for ``"map"``, × :data:`LS_PRIOR_WEIGHT` for
+    ``"ls"``; rod and placement: :meth:`Priors.sigma_posterior`) bounds what the poses cannot see,
+    so a direction they miss shows in the predicted error instead of vanishing in a pseudo-inverse.
+
+    The Gauss–Newton form assumes independent residuals.  A pose's unmodelled error (the arm's
+    repeatability, sag) moves all its spheres together, and 28 spheres sharing one error carry
+    one observation of it, not 28: the covariance is the sandwich H⁻¹ (H + E) H⁻¹ with
+    E = (u² / 3) Σ_poses SᵢᵀSᵢ / σ̂⁴, Sᵢ the (3, P) sum of pose i's sphere Jacobians and u the
+    3-D RMS shared per-pose translation (``pose_shared_rms_mm``, what the residuals show:
+    :func:`_unmodelled_rms_mm`).  Without it the chain part of the prediction was ⅓–½ of the
+    measured chain error on random pose sets of the test bed (docs/calibration.md)."""
     jac = _jacobian(model, data, values)
     r = _residuals(model, data, values)
     s2 = max(float(r @ r) / max(len(r) - len(values), 1), 1e-6)
     sig = np.array([PRIORS.sigma_posterior(p) for p in model.params])
     robot = np.array([p.group not in ("image_from_robot", "tool0_from_phantom") for p in model.params])
     sig = np.where(robot, sig * (scale if math.isfinite(scale) else 1.0), sig)
-    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(1.0 / sig**2)
+    prior = 1.0 / sig**2
+    if params.estimator == "ls":
+        prior = prior * LS_PRIOR_WEIGHT
+    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(prior)
     d = np.sqrt(np.diag(a))
-    return np.asarray(np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d), dtype=np.float64)
+    h_inv = np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d)
+    if pose_shared_rms_mm > 0.0:
+        per_pose = jac.reshape(-1, 3, len(values))
+        sums = np.stack([per_pose[data.pose_of == i].sum(axis=0) for i in np.unique(data.pose_of)])
+        e = (pose_shared_rms_mm**2 / 3.0) * np.einsum("kip,kiq->pq", sums, sums) / s2**2
+        h_inv = h_inv + h_inv @ e @ h_inv
+    return np.asarray((h_inv + h_inv.T) / 2.0, dtype=np.float64)
 
 
 def _skew_rows(p: F64) -> F64:

@@ -327,8 +327,9 @@ def calibrate(
         )
     fle = _fle_rms_mm(r, len(model.params))
     reg_tre = _registration_tre_rms_mm(fle, pts)
-    cov = _posterior_cov(model, fit_data, values, params, scale)
-    unmod = max(_unmodelled_rms_mm(model, fit_data, values, fle), params.unmodelled_floor_mm)
+    shared = _unmodelled_rms_mm(model, fit_data, values, fle)
+    cov = _posterior_cov(model, fit_data, values, params, scale, pose_shared_rms_mm=shared)
+    unmod = max(shared, params.unmodelled_floor_mm)
     t_p = time.perf_counter()
     inflation, split = (
         _farthest_split_inflation(model, fit_data, values, params, fle, unmod)
