@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import asyncio.tasks
 import gc
+import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -96,6 +97,22 @@ def no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
     threads_before, tasks_before = set(threading.enumerate()), _pending_tasks()
     yield
     _assert_nothing_left(threads_before, tasks_before, f"test {request.node.name}", THIRD_PARTY_THREADS)
+
+
+@pytest.fixture(autouse=True)
+def no_stale_log_handlers() -> Iterator[None]:
+    """``service.cli.main`` (called in-process by many tests) puts a ``StreamHandler`` on the root
+    logger bound to the ``sys.stderr`` of that moment, pytest's capture, which is closed after the
+    test: a later log line from a thread of a longer-lived fixture then prints "Logging error".
+    Remove the plain stream handlers a test added and put the root level back."""
+    root = logging.getLogger()
+    before, level = set(root.handlers), root.level
+    yield
+    added = [h for h in root.handlers if h not in before and type(h) is logging.StreamHandler]
+    for h in added:
+        root.removeHandler(h)
+    if added:
+        root.setLevel(level)
 
 
 @pytest.fixture(scope="session")
