@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 
 FRAME_PERIOD_S = 0.02
 """VAL3 driver feedback task period (``start.pgx``: ``l_nFbkPeriod = 0.02``)."""
+CATCH_UP_MAX_S = 2.0
+"""Frames missed while this mock process was starved are sent late, up to this much backlog."""
 STATUS_EVERY = 5
 """STATUS goes out every 5th cycle (``dataStreamer.pgx``: ``l_nThrottle == 5``) → 10 Hz."""
 SPLIT_WRITE_PAUSE_S = 0.0005
@@ -210,7 +212,11 @@ class SimpleMessageServer:
                 cycle += 1
             next_t += self.period_s
             delay = next_t - loop.time()
-            if delay < -self.period_s:  # fell far behind (stall, busy machine): re-anchor
+            # A real controller's feedback task runs on its own real-time clock: our host's load
+            # must not cost frames.  Late (this process starved), send the missed frames at once,
+            # as TCP would deliver them from a controller that kept sending; only a backlog over
+            # CATCH_UP_MAX_S (a suspended process, not load) re-anchors the schedule.
+            if delay < -CATCH_UP_MAX_S:
                 next_t = loop.time()
                 delay = 0.0
             await asyncio.sleep(max(0.0, delay))
