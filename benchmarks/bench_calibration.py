@@ -647,30 +647,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--fle", type=float, default=0.07, help="detection noise (mm 3-D RMS) of --band")
     args = ap.parse_args(argv)
+    seeds: tuple[int, ...] = TUNING_SEEDS if args.tuning else FINAL_SEEDS
+    scales: tuple[float, ...] = TUNING_SCALES if args.tuning else FINAL_SCALES
+    if args.seeds:
+        seeds = tuple(int(v) for v in args.seeds.split(","))
+    if args.scales:
+        scales = tuple(float(v) for v in args.scales.split(","))
     if args.band:
-        return band(
-            TUNING_SEEDS
-            if args.tuning
-            else FINAL_SEEDS
-            if not args.seeds
-            else tuple(int(v) for v in args.seeds.split(",")),
-            TUNING_SCALES
-            if args.tuning
-            else FINAL_SCALES
-            if not args.scales
-            else tuple(float(v) for v in args.scales.split(",")),
-            args.poses,
-            args.band,
-            args.fle,
-            args.zip_scales,
-        )
+        return band(seeds, scales, args.poses, args.band, args.fle, args.zip_scales)
     if not args.solve_only and not args.dicom_session:
-        seeds: tuple[int, ...] = TUNING_SEEDS if args.tuning else FINAL_SEEDS
-        scales: tuple[float, ...] = TUNING_SCALES if args.tuning else FINAL_SCALES
-        if args.seeds:
-            seeds = tuple(int(v) for v in args.seeds.split(","))
-        if args.scales:
-            scales = tuple(float(v) for v in args.scales.split(","))
         return matrix(seeds, scales, args.poses, args.render_cache, args.zip_scales)
     if args.solve_only:
         return solve_only(args.seed, args.poses, args.held_out, args.repeats, args.old_ref)
