@@ -69,22 +69,6 @@ def svc(
         yield s, h.build_history(s, world)
 
 
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    with h.browser() as b:
-        yield b
-
-
-@pytest.fixture
-def context(browser: Any) -> Iterator[Any]:
-    ctx = browser.new_context(viewport={"width": 1400, "height": 1000})
-    ctx.set_default_timeout(h.DEADLINE_S * 1000)
-    try:
-        yield ctx
-    finally:
-        ctx.close()
-
-
 def _current(svc: h.Service) -> dict[str, Any]:
     """Make sure a registration of a complete scan at Q1 is current; return /registration/current."""
     r = svc.client.get("/registration/current")

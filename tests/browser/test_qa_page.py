@@ -8,7 +8,6 @@ not.  Waits are on selectors and page conditions, never on time.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,22 +29,6 @@ def world(phantom: Any) -> h.World:
     from registration.model.kinematics import RobotModel
 
     return h.World(phantom, RobotModel.load("tx60"), None, None)  # no scans: the QA series is seeded
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    with h.browser() as b:
-        yield b
-
-
-@pytest.fixture
-def context(browser: Any) -> Iterator[Any]:
-    ctx = browser.new_context(viewport={"width": 1400, "height": 1000})
-    ctx.set_default_timeout(h.DEADLINE_S * 1000)
-    try:
-        yield ctx
-    finally:
-        ctx.close()
 
 
 def _open(context: Any, svc: h.Service) -> h.PageWatch:
