@@ -22,6 +22,7 @@ from registration.model import frames
 from registration.model.phantom import Phantom
 from service.cli import main
 from service.error_map import EXIT_REFUSED
+from tests.helpers.documents import REGISTRATION_DOC_KEYS
 
 PTS = [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 20.0, 0.0], [0.0, 0.0, 30.0]]
 
@@ -168,19 +169,7 @@ def test_cli_register_and_verify(
     text = capsys.readouterr().out
     assert "26 matched" in text and "FRE" in text and "predicted TRE" in text and "symmetry margin" in text
     d = json.loads(out.read_text())
-    for key in (
-        "image_from_robot",
-        "fre_mm",
-        "fle_mm",
-        "n_expected",
-        "n_detected",
-        "n_matched",
-        "spheres",
-        "predicted_tre_mm",
-        "symmetry_margin",
-        "timings_s",
-        "provenance",
-    ):
+    for key in REGISTRATION_DOC_KEYS:
         assert key in d
     assert d["n_expected"] == 28 and d["n_detected"] == 26 and d["n_matched"] == 26
     assert d["provenance"]["robot_points_sha256"] and d["provenance"]["phantom"] == "bai2018_cube"
