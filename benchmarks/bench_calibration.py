@@ -533,6 +533,7 @@ def band(
     draws: int,
     fle_rms_mm: float,
     zip_scales: bool = False,
+    redraw: str = "detections",
 ) -> int:
     """How wide "predicted / measured" is even for a predictor that knew the expected error.
 
@@ -556,7 +557,7 @@ def band(
         rng = np.random.default_rng(seed * 1000 + int(scale * 10) + (pose_set == "planned"))
         meas, pred = [], []
         for _ in range(draws):
-            b = tb.redraw_detections(bed, rng, fle_rms_mm)
+            b = (tb.redraw_session if redraw == "session" else tb.redraw_detections)(bed, rng, fle_rms_mm)
             r = tb.run_calibrate(b, prm)
             e = tb.score(b, tb.result_predictor(r))
             meas.append(math.sqrt(float(np.mean(e**2))))
@@ -643,6 +644,13 @@ def main(argv: list[str] | None = None) -> int:
         "session's measured error around what an ideal predictor would say",
     )
     ap.add_argument(
+        "--band-redraw",
+        choices=("detections", "session"),
+        default="detections",
+        help="what --band draws anew per session: the detection noise only, or also every move's "
+        "repeatability and encoder noise (the cell and the poses stay)",
+    )
+    ap.add_argument(
         "--zip-scales", action="store_true", help="seed i at scale i instead of every seed × every scale"
     )
     ap.add_argument("--fle", type=float, default=0.07, help="detection noise (mm 3-D RMS) of --band")
@@ -654,7 +662,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.scales:
         scales = tuple(float(v) for v in args.scales.split(","))
     if args.band:
-        return band(seeds, scales, args.poses, args.band, args.fle, args.zip_scales)
+        return band(seeds, scales, args.poses, args.band, args.fle, args.zip_scales, args.band_redraw)
     if not args.solve_only and not args.dicom_session:
         return matrix(seeds, scales, args.poses, args.render_cache, args.zip_scales)
     if args.solve_only:

@@ -317,7 +317,12 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
         held,
         truth_h,
         rep_h,
-        {"n_held_out_candidates": len(cand), "cal_truth_mm": cal_truth, "reg_truth_mm": reg_truth},
+        {
+            "n_held_out_candidates": len(cand),
+            "cal_truth_mm": cal_truth,
+            "reg_truth_mm": reg_truth,
+            "reg_joints_rad": reg_q[0],
+        },
     )
 
 
@@ -333,6 +338,34 @@ def redraw_detections(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FL
         poses.append(MatchedPose(p.name, p.joints_rad, idx, det))
     reg = bed.info["reg_truth_mm"] + rng.normal(0.0, s, bed.info["reg_truth_mm"].shape)
     return replace(bed, poses=poses, reg_detections_mm=reg)
+
+
+def redraw_session(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FLE_RMS_MM) -> Bed:
+    """The same cell, pose set, placements and held-out poses with everything a session draws anew:
+    each move's repeatability scatter and encoder noise (calibration, registration and held-out
+    poses) and the detection noise of every scan.  Only the cell (its geometry and sag) and the
+    poses stay: what a predictor that knew the cell could know, and no more."""
+    s = fle_rms_mm / math.sqrt(3.0)
+    pts = bed.phantom.centres_phantom_mm
+    cell = bed.cell
+    poses = []
+    for p, q in zip(bed.poses, bed.cal_joints_rad, strict=True):
+        truth = frames.apply(cell.image_from_phantom_true(bed.image_from_robot, q, rng), pts)
+        idx = np.asarray(p.sphere_indices)
+        det = truth[idx] + rng.normal(0.0, s, (len(idx), 3))
+        poses.append(MatchedPose(p.name, cell.reported_joints(q, rng), idx, det))
+    q_reg = bed.info["reg_joints_rad"]
+    reg_truth = frames.apply(cell.image_from_phantom_true(bed.image_from_robot_moved, q_reg, rng), pts)
+    y2 = bed.image_from_robot_moved
+    truth_h = np.stack([frames.apply(cell.image_from_phantom_true(y2, q, rng), pts) for q in bed.held_out_rad])
+    return replace(
+        bed,
+        poses=poses,
+        reg_joints_reported_rad=cell.reported_joints(q_reg, rng),
+        reg_detections_mm=reg_truth + rng.normal(0.0, s, reg_truth.shape),
+        held_out_truth_mm=truth_h,
+        held_out_reported_rad=np.stack([cell.reported_joints(q, rng) for q in bed.held_out_rad]),
+    )
 
 
 def _render(cache: Path, truth_mm: F64, phantom: Phantom, rng: np.random.Generator) -> F64:
