@@ -357,7 +357,9 @@ def redraw_session(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FLE_R
     q_reg = bed.info["reg_joints_rad"]
     reg_truth = frames.apply(cell.image_from_phantom_true(bed.image_from_robot_moved, q_reg, rng), pts)
     y2 = bed.image_from_robot_moved
-    truth_h = np.stack([frames.apply(cell.image_from_phantom_true(y2, q, rng), pts) for q in bed.held_out_rad])
+    truth_h = np.stack(
+        [frames.apply(cell.image_from_phantom_true(y2, q, rng), pts) for q in bed.held_out_rad]
+    )
     return replace(
         bed,
         poses=poses,
