@@ -581,8 +581,9 @@ def band(
         )
         sys.stderr.write(f"{bed.case.label}: done ({time.perf_counter() - t0:.0f} s)\n")
     print_table(
-        f"Spread of one session's held-out RMS: {draws} sessions per case, detection noise "
-        f"{fle_rms_mm:g} mm 3-D RMS, defaults",
+        f"Spread of one session's held-out RMS: {draws} sessions per case, redrawn: "
+        f"{'repeatability, encoder and detection noise' if redraw == 'session' else 'detection noise'}"
+        f" ({fle_rms_mm:g} mm 3-D RMS), defaults",
         [
             "case",
             "measured RMS median (5–95 %) (mm)",

@@ -227,9 +227,10 @@ def grown(volume: ScanVolume, margin_mm: float) -> ScanVolume:
     )
 
 
-def _detect(rng: np.random.Generator, truth_mm: F64) -> F64:
+def _detect(rng: np.random.Generator, truth_mm: F64, fle_rms_mm: float = FLE_RMS_MM) -> F64:
+    """A synthetic detection: the true centres + isotropic Gaussian noise of ``fle_rms_mm`` 3-D RMS."""
     return np.asarray(
-        truth_mm + rng.normal(0.0, FLE_RMS_MM / math.sqrt(3.0), truth_mm.shape), dtype=np.float64
+        truth_mm + rng.normal(0.0, fle_rms_mm / math.sqrt(3.0), truth_mm.shape), dtype=np.float64
     )
 
 
@@ -330,14 +331,11 @@ def redraw_detections(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FL
     """The same case (cell, poses, placements, held-out truth) with fresh synthetic detection noise
     on every calibration scan and on the registration scan: what varies from one session to the
     next that no predictor can know in advance."""
-    s = fle_rms_mm / math.sqrt(3.0)
     poses = []
     for p, truth in zip(bed.poses, bed.info["cal_truth_mm"], strict=True):
         idx = np.asarray(p.sphere_indices)
-        det = truth[idx] + rng.normal(0.0, s, (len(idx), 3))
-        poses.append(MatchedPose(p.name, p.joints_rad, idx, det))
-    reg = bed.info["reg_truth_mm"] + rng.normal(0.0, s, bed.info["reg_truth_mm"].shape)
-    return replace(bed, poses=poses, reg_detections_mm=reg)
+        poses.append(MatchedPose(p.name, p.joints_rad, idx, _detect(rng, truth[idx], fle_rms_mm)))
+    return replace(bed, poses=poses, reg_detections_mm=_detect(rng, bed.info["reg_truth_mm"], fle_rms_mm))
 
 
 def redraw_session(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FLE_RMS_MM) -> Bed:
@@ -345,18 +343,17 @@ def redraw_session(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FLE_R
     each move's repeatability scatter and encoder noise (calibration, registration and held-out
     poses) and the detection noise of every scan.  Only the cell (its geometry and sag) and the
     poses stay: what a predictor that knew the cell could know, and no more."""
-    s = fle_rms_mm / math.sqrt(3.0)
     pts = bed.phantom.centres_phantom_mm
     cell = bed.cell
     poses = []
     for p, q in zip(bed.poses, bed.cal_joints_rad, strict=True):
         truth = frames.apply(cell.image_from_phantom_true(bed.image_from_robot, q, rng), pts)
         idx = np.asarray(p.sphere_indices)
-        det = truth[idx] + rng.normal(0.0, s, (len(idx), 3))
+        det = _detect(rng, truth[idx], fle_rms_mm)
         poses.append(MatchedPose(p.name, cell.reported_joints(q, rng), idx, det))
     q_reg = bed.info["reg_joints_rad"]
-    reg_truth = frames.apply(cell.image_from_phantom_true(bed.image_from_robot_moved, q_reg, rng), pts)
     y2 = bed.image_from_robot_moved
+    reg_truth = frames.apply(cell.image_from_phantom_true(y2, q_reg, rng), pts)
     truth_h = np.stack(
         [frames.apply(cell.image_from_phantom_true(y2, q, rng), pts) for q in bed.held_out_rad]
     )
@@ -364,7 +361,7 @@ def redraw_session(bed: Bed, rng: np.random.Generator, fle_rms_mm: float = FLE_R
         bed,
         poses=poses,
         reg_joints_reported_rad=cell.reported_joints(q_reg, rng),
-        reg_detections_mm=reg_truth + rng.normal(0.0, s, reg_truth.shape),
+        reg_detections_mm=_detect(rng, reg_truth, fle_rms_mm),
         held_out_truth_mm=truth_h,
         held_out_reported_rad=np.stack([cell.reported_joints(q, rng) for q in bed.held_out_rad]),
     )
