@@ -241,7 +241,12 @@ def _prediction_refusal(
     )
     return (
         f"predicted error over the working volume (scan volume + {params.working_margin_mm:g} mm) up to "
-        f"{pred.max_mm:.3f} mm RMS at the worst pose (mean {pred.rms_mm:.3f} mm) > the limit "
+        + (
+            f"{pred.max_mm:.3f} mm RMS at the worst pose (mean {pred.rms_mm:.3f} mm)"
+            if math.isfinite(pred.max_mm)
+            else "an unbounded figure at the worst pose (the poses leave a direction unconstrained)"
+        )
+        + " > the limit "
         f"{params.max_predicted_error_mm:g} mm; weak direction: {weak}. "
         + (f"Poses inside the scan volume that would excite it (joints in deg): {poses}. " if poses else "")
         + _motion_advice([], joints_rad, names)
@@ -349,7 +354,9 @@ def calibrate(
     )
     volume_doc["farthest_split"] = {"poses": [int(i) for i in split], "variance_inflation": inflation}
     timings["prediction_s"] = time.perf_counter() - t_p
-    if prediction.max_mm > params.max_predicted_error_mm:
+    if (
+        not prediction.max_mm <= params.max_predicted_error_mm
+    ):  # NaN (a covariance the poses cannot bound) refuses too
         raise NotIdentifiableError(
             _prediction_refusal(prediction, params, fit_data.joints_rad, chain.joint_names)
         )
