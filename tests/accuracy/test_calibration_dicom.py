@@ -178,13 +178,6 @@ def test_held_out_error_after_calibration_meets_the_issue_targets(outcome: Outco
     assert float(nom.mean()) >= MIN_IMPROVEMENT * float(cal.mean()), (float(cal.mean()), float(nom.mean()))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known regression, open in issue 20: since the calibration rework (MAP option, refusal on the "
-    "predicted working-volume error) the LOPO prediction on this session is 2x pessimistic (0.063 mm "
-    "predicted, 0.032 mm measured held-out RMS; the working-volume posterior 0.059 mm); the band is "
-    "0.67-1.5. strict: the test fails the run once the prediction is honest again, so this mark goes",
-)
 def test_leave_one_pose_out_predicts_the_held_out_error(outcome: Outcome) -> None:
     # LOPO without FLE, + re-registration; the held-out poses here are like the calibration's
     # (predicted_held_out_rms_mm is now the posterior over the larger working volume).
