@@ -52,11 +52,13 @@ def send_series(
     )
     from pynetdicom import AE
 
+    from drivers.dicom_scu import associate
+
     ae = AE(ae_title=calling_ae)
     for sop in (CTImageStorage, EnhancedCTImageStorage):
         ae.add_requested_context(sop, [ExplicitVRLittleEndian, ImplicitVRLittleEndian])
     t0 = time.perf_counter()
-    assoc = ae.associate(host, port, ae_title=called_ae)
+    assoc = associate(ae, host, port, ae_title=called_ae)
     if not assoc.is_established:
         raise DicomSeriesError(
             f"C-STORE to {called_ae}@{host}:{port} as {calling_ae}: association "

@@ -64,6 +64,8 @@ def c_store(sro_bytes: bytes, cfg: PacsSettings) -> StoreOutcome:
     """Send one Part-10 SRO to ``cfg``'s PACS in its own association (see the module docstring)."""
     from pynetdicom import AE, evt
 
+    from drivers.dicom_scu import associate
+
     ds = dcmread(BytesIO(sro_bytes))
     ae = AE(ae_title=cfg.calling_ae_title)
     ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = ae.connection_timeout = cfg.timeout_s
@@ -77,8 +79,8 @@ def c_store(sro_bytes: bytes, cfg: PacsSettings) -> StoreOutcome:
         return StoreOutcome("unreachable", None, f"TLS setup for {where} failed: {e}")
     tls_args = (ctx, cfg.host) if ctx is not None else None
     try:
-        assoc = ae.associate(
-            cfg.host, cfg.port, ae_title=cfg.ae_title, tls_args=tls_args, evt_handlers=handlers
+        assoc = associate(
+            ae, cfg.host, cfg.port, ae_title=cfg.ae_title, tls_args=tls_args, evt_handlers=handlers
         )
     except (OSError, ssl.SSLError) as e:
         return StoreOutcome("unreachable", None, f"cannot reach {where}: {e}")
