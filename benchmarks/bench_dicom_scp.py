@@ -59,9 +59,11 @@ def send(folder: Path, port: int) -> None:
         return
     from pynetdicom import AE
 
+    from drivers.dicom_scu import associate
+
     ae = AE(ae_title="BENCH")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])
-    assoc = ae.associate("127.0.0.1", port, ae_title="OARMREG")
+    assoc = associate(ae, "127.0.0.1", port, ae_title="OARMREG")
     try:
         for p in sorted(folder.glob("*.dcm")):
             assert assoc.send_c_store(p).Status == 0

@@ -123,9 +123,11 @@ def send_series(folder: Path, port: int, errors: list[str], sent: list[Path]) ->
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian
     from pynetdicom import AE
 
+    from drivers.dicom_scu import associate
+
     ae = AE(ae_title="BENCH")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])
-    assoc = ae.associate("127.0.0.1", port, ae_title="OARMREG")
+    assoc = associate(ae, "127.0.0.1", port, ae_title="OARMREG")
     if not assoc.is_established:
         errors.append(f"association for {folder.name} not established")
         return

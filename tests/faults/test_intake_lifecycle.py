@@ -36,6 +36,7 @@ from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 from pynetdicom import AE
 
+from drivers.dicom_scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event, RegistrationWithdrawn, ScanReopened, ScanReplaced
 from tests.faults._service import (
@@ -89,7 +90,7 @@ def send(
     there (aborted, not released: the peer died or the service was killed)."""
     ae = AE(ae_title="OARM_TEST")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])
-    assoc = ae.associate("127.0.0.1", port, ae_title=AE_TITLE)
+    assoc = associate(ae, "127.0.0.1", port, ae_title=AE_TITLE)
     assert assoc.is_established, "the SCP did not accept the association"
     raw = getattr(getattr(assoc.dul, "socket", None), "socket", None)
     if raw is not None:  # see mocks.oarm.cstore: without it each C-STORE waits for a delayed ACK

@@ -45,9 +45,11 @@ def _send_pynetdicom(folder: Path, port: int, out: list[list[int]]) -> None:
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian
     from pynetdicom import AE
 
+    from drivers.dicom_scu import associate
+
     ae = AE(ae_title="OARM_LOAD")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])
-    assoc = ae.associate("127.0.0.1", port, ae_title=AE_TITLE)
+    assoc = associate(ae, "127.0.0.1", port, ae_title=AE_TITLE)
     statuses: list[int] = []
     if assoc.is_established:
         try:

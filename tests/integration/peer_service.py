@@ -17,6 +17,7 @@ import pydicom
 from pydicom.uid import CTImageStorage
 from pynetdicom import AE
 
+from drivers.dicom_scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event
 from tests.integration.polling import poll_until
@@ -118,7 +119,7 @@ def send_files(port: int, files: list[Path], *, calling_ae: str = "OARM_TEST") -
     """C-STORE ``files`` with pynetdicom's SCU; return the statuses."""
     ae = AE(ae_title=calling_ae)
     ae.add_requested_context(CTImageStorage)
-    assoc = ae.associate("127.0.0.1", port, ae_title=AE_TITLE)
+    assoc = associate(ae, "127.0.0.1", port, ae_title=AE_TITLE)
     assert assoc.is_established, f"association from {calling_ae} not established"
     try:
         return [int(assoc.send_c_store(pydicom.dcmread(f)).Status) for f in files]

@@ -27,6 +27,7 @@ from pydicom.uid import (
 )
 from pynetdicom import AE
 
+from drivers.dicom_scu import associate
 from service.dicom_scp import (
     STATUS_DATASET_MISMATCH,
     STATUS_OUT_OF_RESOURCES,
@@ -135,7 +136,7 @@ def scu(
 
 
 def store(port: int, datasets: list[Dataset], **kw: Any) -> list[int]:
-    assoc = scu(**kw).associate("127.0.0.1", port, ae_title="OARMREG")
+    assoc = associate(scu(**kw), "127.0.0.1", port, ae_title="OARMREG")
     assert assoc.is_established
     try:
         return [int(assoc.send_c_store(ds).Status) for ds in datasets]
@@ -231,10 +232,10 @@ def test_dataset_not_matching_its_sop_class_is_a900(
 
 def test_mr_series_refused_at_negotiation(scp: tuple[StorageScp, Recorder]) -> None:
     server, rec = scp
-    assoc = scu(contexts=(MRImageStorage,)).associate("127.0.0.1", server.port, ae_title="OARMREG")
+    assoc = associate(scu(contexts=(MRImageStorage,)), "127.0.0.1", server.port, ae_title="OARMREG")
     assert not assoc.is_established  # no context accepted: the requestor gives up
-    mixed = scu(contexts=(MRImageStorage, CTImageStorage)).associate(
-        "127.0.0.1", server.port, ae_title="OARMREG"
+    mixed = associate(
+        scu(contexts=(MRImageStorage, CTImageStorage)), "127.0.0.1", server.port, ae_title="OARMREG"
     )
     try:
         with pytest.raises(ValueError, match="presentation context"):
@@ -248,7 +249,7 @@ def test_mr_series_refused_at_negotiation(scp: tuple[StorageScp, Recorder]) -> N
 
 def test_aborted_association_reports_its_series(scp: tuple[StorageScp, Recorder]) -> None:
     server, rec = scp
-    assoc = scu().associate("127.0.0.1", server.port, ae_title="OARMREG")
+    assoc = associate(scu(), "127.0.0.1", server.port, ae_title="OARMREG")
     statuses = [int(assoc.send_c_store(ct()).Status) for _ in range(3)]
     assoc.abort()
     rec.wait("the abort callback", lambda: len(rec.aborted) == 1)
@@ -283,7 +284,7 @@ def test_calling_ae_not_on_the_list_rejected_with_reason(tmp_path: Path) -> None
     with StorageScp(
         DicomScpConfig(port=0, allowed_calling_ae_titles=("OARM",)), tmp_path, rec.callbacks()
     ) as s:
-        bad = scu("INTRUDER").associate("127.0.0.1", s.port, ae_title="OARMREG")
+        bad = associate(scu("INTRUDER"), "127.0.0.1", s.port, ae_title="OARMREG")
         assert bad.is_rejected
         assert store(s.port, [ct()], ae_title="OARM") == [0]
     assert [r.kind for r in rec.refused] == ["calling_ae"]
@@ -294,9 +295,9 @@ def test_peer_address_not_on_the_list_rejected(tmp_path: Path) -> None:
     with StorageScp(
         DicomScpConfig(port=0, allowed_peer_addresses=("127.0.0.2",)), tmp_path, rec.callbacks()
     ) as s:
-        bad = scu().associate("127.0.0.1", s.port, ae_title="OARMREG")
+        bad = associate(scu(), "127.0.0.1", s.port, ae_title="OARMREG")
         assert bad.is_rejected
-        good = scu().associate("127.0.0.1", s.port, ae_title="OARMREG", bind_address=("127.0.0.2", 0))
+        good = associate(scu(), "127.0.0.1", s.port, ae_title="OARMREG", bind_address=("127.0.0.2", 0))
         assert good.is_established
         good.release()
     assert [r.kind for r in rec.refused] == ["peer"] and "127.0.0.1" in rec.refused[0].reason

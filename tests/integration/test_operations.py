@@ -203,6 +203,7 @@ def test_refused_standard_contexts_are_debug_and_still_counted(
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, MRImageStorage, UltrasoundImageStorage
     from pynetdicom import AE
 
+    from drivers.dicom_scu import associate
     from service.dicom_scp import DicomScpConfig, ScpCallbacks, StorageScp
 
     caplog.set_level(logging.DEBUG, logger="service.dicom_scp")
@@ -211,7 +212,7 @@ def test_refused_standard_contexts_are_debug_and_still_counted(
             ae = AE(ae_title="OARM")
             for c in contexts:
                 ae.add_requested_context(c, [ExplicitVRLittleEndian])
-            assoc = ae.associate("127.0.0.1", scp.port, ae_title="OARMREG")
+            assoc = associate(ae, "127.0.0.1", scp.port, ae_title="OARMREG")
             if assoc.is_established:
                 assoc.release()
         refused = [r for r in caplog.records if "refused (context)" in r.getMessage()]

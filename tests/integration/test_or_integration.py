@@ -25,6 +25,7 @@ import pytest
 from pydicom.uid import CTImageStorage, MRImageStorage, generate_uid
 from pynetdicom import AE
 
+from drivers.dicom_scu import associate
 from registration.model.frames import invert, transform_from_xyz_rpy
 from service.events import (
     DicomAssociationAborted,
@@ -164,7 +165,7 @@ def send_files(
     """C-STORE ``files`` with pynetdicom's SCU (as the O-arm would); return the statuses."""
     ae = AE(ae_title=calling_ae)
     ae.add_requested_context(CTImageStorage)
-    assoc = ae.associate("127.0.0.1", port, ae_title=AE_TITLE)
+    assoc = associate(ae, "127.0.0.1", port, ae_title=AE_TITLE)
     assert assoc.is_established, f"association from {calling_ae} not established"
     statuses = []
     try:
@@ -173,6 +174,7 @@ def send_files(
                 assoc.abort()
                 return statuses
             st = assoc.send_c_store(pydicom.dcmread(f))
+            assert "Status" in st, f"no C-STORE response for {f.name} (association aborted or timed out)"
             statuses.append(int(st.Status))
     finally:
         if assoc.is_established:
@@ -272,7 +274,7 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
     ae = AE(ae_title="OARM_TEST")
     ae.add_requested_context(CTImageStorage)
     ae.add_requested_context(MRImageStorage)
-    assoc = ae.associate("127.0.0.1", svc.dicom_port, ae_title=AE_TITLE)
+    assoc = associate(ae, "127.0.0.1", svc.dicom_port, ae_title=AE_TITLE)
     assert assoc.is_established
     assert int(assoc.send_c_store(junk).Status) == 0xA900
     # an MR series: its presentation context is refused at negotiation
@@ -310,7 +312,7 @@ def test_bad_input_over_cstore_is_refused_or_recorded_and_nothing_is_lost(svc: S
     # a calling AE title not on the allow-list → association rejected
     ae = AE(ae_title="INTRUDER")
     ae.add_requested_context(CTImageStorage)
-    assoc = ae.associate("127.0.0.1", svc.dicom_port, ae_title=AE_TITLE)
+    assoc = associate(ae, "127.0.0.1", svc.dicom_port, ae_title=AE_TITLE)
     assert assoc.is_rejected
     wait_for(lambda: any(e.kind == "calling_ae" for e in svc.events(DicomRefused)), "calling-AE refusal")
 
