@@ -152,7 +152,11 @@ def predict_working_error(
     jeff = _effective_jacobians(model, values, working_joints_rad, registration_joints_rad, pts)
     n = len(pts)
     chain_ms = np.einsum("wip,pq,wiq->w", jeff, cov, jeff) / n
-    chain_rms = np.sqrt(np.clip(chain_ms, 0.0, None))
+    # A covariance is PSD, so a quadratic form below rounding of its diagonal terms means the
+    # inversion lost its meaning (poses that leave a direction unseen): unbounded, not 0.
+    rounding_ms = 1e-9 * np.einsum("wip,p,wip->w", jeff, np.abs(np.diag(cov)), jeff) / n
+    chain_ms = np.where(chain_ms < -rounding_ms, np.inf, np.clip(chain_ms, 0.0, None))
+    chain_rms = np.sqrt(chain_ms)
     per = np.sqrt(chain_ms + 2.0 * unmodelled_rms_mm**2 + registration_tre_rms_mm**2)
     worst = int(np.argmax(per))
     lam, vec = np.linalg.eigh((cov + cov.T) / 2.0)
