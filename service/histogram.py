@@ -51,6 +51,7 @@ def write_error_histogram(
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     e = np.asarray(errors_mm, dtype=np.float64).reshape(-1)
     out = Path(path)
@@ -66,7 +67,8 @@ def write_error_histogram(
         passed = max_mm <= gate_mm
         ax.axvline(gate_mm, color="#1e8449" if passed else "#c0392b", linewidth=2.0,
                    label=f"gate {gate_mm:.3f} mm")  # fmt: skip
-        title = f"{title}: {'PASS' if passed else 'FAIL'} (max {max_mm:.3f} mm, gate {gate_mm:.3f} mm)"
+        # the verdict on its own line: on one line a long title ran off the figure's right edge
+        title = f"{title}\n{'PASS' if passed else 'FAIL'} (max {max_mm:.3f} mm, gate {gate_mm:.3f} mm)"
     bins = [float(b) for b in np.arange(0.0, top + bin_width_mm, bin_width_mm)]
     ax.hist(e, bins=bins, color="#4a7ab5", edgecolor="black", linewidth=0.6)
     if len(e):
@@ -76,6 +78,7 @@ def write_error_histogram(
         ax.legend(title=f"n = {len(e)}, RMS {rms:.3f} mm, max {float(e.max()):.3f} mm", fontsize=8)
     ax.set_xlabel("Position error (mm)")
     ax.set_ylabel("Number of spheres")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # counts: no 7.5-sphere ticks
     ax.set_title(title)
     ax.set_xlim(left=0.0)
     fig.tight_layout()
