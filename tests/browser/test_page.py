@@ -264,6 +264,8 @@ def test_verifications_show_the_gate_line_and_the_verdict(
     p.wait_for_selector(f"#ver-title[data-verdict='FAIL']:has-text('Verification {failed['id']}')")
     assert float(p.locator("#ver-chart line.gate").get_attribute("data-gate")) == failed["gate_mm"]
     assert "FAIL" in p.text_content("#ver-chart")
+    ticks = p.locator("#ver-chart text.ytick").all_text_contents()
+    assert len(ticks) >= 2 and all(t.isdigit() for t in ticks), ticks  # sphere counts
     assert p.locator("#ver-errors span.bad").count() == sum(
         e["error_mm"] > failed["gate_mm"] for e in failed["errors"]
     )

@@ -467,12 +467,14 @@ function niceStep(maxValue, target = 10) {
   return 10 ** (exp + 1);
 }
 
-function axisY(g, x0, y0, h, yMax, unit) {
-  const step = niceStep(yMax, 4);
+// counts (whole = true) tick in whole numbers: a histogram of 20 spheres once read "15.0"
+function axisY(g, x0, y0, h, yMax, unit, whole = false) {
+  const step = whole ? Math.max(1, Math.round(niceStep(yMax, 4))) : niceStep(yMax, 4);
   for (let v = 0; v <= yMax + 1e-12; v += step) {
     const y = y0 - (v / yMax) * h;
     g.append(svg("line", { x1: x0 - 3, x2: x0, y1: y, y2: y, stroke: "#888" }));
-    g.append(svg("text", { x: x0 - 5, y: y + 3, "text-anchor": "end" }, v.toFixed(step < 0.01 ? 3 : step < 0.1 ? 2 : 1)));
+    g.append(svg("text", { x: x0 - 5, y: y + 3, "text-anchor": "end", class: "ytick" },
+      v.toFixed(whole ? 0 : step < 0.01 ? 3 : step < 0.1 ? 2 : 1)));
   }
   g.append(svg("line", { x1: x0, x2: x0, y1: y0, y2: y0 - h, stroke: "#888" }));
 }
@@ -518,7 +520,7 @@ function histogram(errors, gate, passed) {
   const yMax = Math.max(...counts, 1);
   const w = W - L - 10, h = H - B - T;
   const X = (v) => L + (v / xMax) * w;
-  axisY(root, L, H - B, h, yMax, "");
+  axisY(root, L, H - B, h, yMax, "", true);
   counts.forEach((c, i) => {
     const y = H - B - (c / yMax) * h;
     const r = svg("rect", { x: X(i * width), y, width: Math.max(X((i + 1) * width) - X(i * width) - 1, 1), height: H - B - y,
