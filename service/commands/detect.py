@@ -1,7 +1,8 @@
 """``oarmreg detect``: find the phantom's metal spheres in a DICOM series.
 
 Prints a table (index, centre LPS mm, radius, slices, score) and the rejected
-candidates with their reasons; ``--json OUT`` writes::
+candidates with their reasons; ``--overlay PNG`` draws both on the scan
+(:mod:`service.overlay`); ``--json OUT`` writes::
 
     {"series_uid": ..., "frame": "image", "method": ...,
      "spheres": [{"center_mm": [x, y, z], "radius_mm": r, "n_slices": k, "score": s}, ...],
@@ -54,6 +55,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "dicom_dir", metavar="DICOM_DIR", type=Path, help="folder (or DICOMDIR) holding the series"
     )
     parser.add_argument("--json", dest="json_out", metavar="OUT", type=Path, help="write the result as JSON")
+    parser.add_argument(
+        "--overlay",
+        metavar="PNG",
+        type=Path,
+        help="draw the detected centres and the rejected candidates (with their reasons) on a "
+        "maximum-intensity projection of the scan",
+    )
     parser.add_argument(
         "--phantom",
         type=Path,
@@ -116,6 +124,10 @@ def run(args: argparse.Namespace) -> int:
         tmp = args.json_out.with_name(f".{args.json_out.name}.part")
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
         tmp.replace(args.json_out)
+    if args.overlay is not None:
+        from service.overlay import write_detection_overlay
+
+        write_detection_overlay(volume, result, args.overlay)
     out = sys.stdout
     out.write(
         f"series {volume.series_uid}: {len(result.spheres)} sphere(s), method {result.method}, "
@@ -138,4 +150,6 @@ def run(args: argparse.Namespace) -> int:
             out.write(f"  ({x:.1f}, {y:.1f}, {z:.1f}) mm: {r.reason}\n")
     if args.json_out is not None:
         out.write(f"wrote {args.json_out}\n")
+    if args.overlay is not None:
+        out.write(f"wrote {args.overlay}\n")
     return 0

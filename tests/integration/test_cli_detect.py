@@ -141,3 +141,46 @@ def test_detect_and_register_find_the_same_spheres(  # type: ignore[no-untyped-d
     assert reg["n_detected"] == len(detected) == reg["n_matched"] == len(phantom.centres_phantom_mm)
     order = np.lexsort(detected.T)
     assert np.array_equal(detected[order], used[np.lexsort(used.T)])
+
+
+def test_detect_overlay_marks_every_sphere_and_every_refusal_inside_the_figure(  # type: ignore[no-untyped-def]
+    export, tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """``--overlay PNG``: a red + on each detected centre (at its voxel column / row), one legend
+    entry per rejection reason without its numbers, nothing drawn outside the figure."""
+    from dataclasses import replace
+
+    from matplotlib.figure import Figure
+
+    from registration.detection import detect_spheres
+    from registration.detection.records import Rejection
+    from registration.dicom import load_series
+    from service.commands.detect import detection_params_for_phantom
+    from service.overlay import write_detection_overlay
+
+    folder, _ = export
+    png = tmp_path / "overlay.png"
+    assert main(["detect", str(folder), "--overlay", str(png)]) == 0
+    assert f"wrote {png}" in capsys.readouterr().out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    volume = load_series(folder, unique=True)
+    found = detect_spheres(volume, detection_params_for_phantom(None))
+    rod = Rejection(tuple(found.centres_image_mm[0] + 20.0), "elongated or oversized metal (12.0 × 40.0 mm)")
+    result = replace(found, rejections=(*found.rejections, rod))
+    drawn: list[Figure] = []
+    savefig = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: (drawn.append(self), savefig(self, *a, **k)))
+    write_detection_overlay(volume, result, tmp_path / "o2.png")
+    fig = drawn[0]
+    ax = fig.axes[0]
+    plus = next(line for line in ax.get_lines() if line.get_marker() == "+")
+    ijk = volume.image_to_voxel(found.centres_image_mm)
+    assert np.allclose(np.c_[plus.get_xdata(), plus.get_ydata()], ijk[:, :2])
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert f"detected ({len(found.spheres)}, {found.method})" in labels
+    assert "rejected: elongated or oversized metal (1)" in labels
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    for artist in (ax.title, fig.legends[0]):
+        box = artist.get_window_extent(renderer)
+        assert box.x0 >= 0 and box.y0 >= 0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height
