@@ -161,6 +161,15 @@ class CalibrationParams:
     Origin: Stäubli TX60 repeatability ± 0.02 mm [unverified datasheet value] and non-geometric
     errors ≈ 10 % of the position error (Klimchik et al., research/calibration.md §1) of the
     TX60's 0.31 mm nominal error: √(0.02² + 0.031²) ≈ 0.04 mm."""
+    repeatability_rms_mm: float = 0.0096
+    """Least 3-D RMS of the error every sphere of one scan shares (the arm's repeatability: each
+    move lands slightly elsewhere), used in the covariance's sandwich when the residuals show less.
+    They cannot show it with ~10 poses: the fit absorbs ~¾ of it at its own poses and the detection
+    noise's leak into a pose's rigid residual is larger than the rest (docs/calibration.md,
+    "Which side it misses on").  Origin: Stäubli TX60 repeatability ± 0.02 mm (unconfirmed
+    datasheet figure, research/staubli-link.md §5), read as ISO 9283 RP = l̄ + 3 S_l of the
+    distances to the barycentre.  For an isotropic Gaussian scatter of σ per axis that is 3.62 σ,
+    so the 3-D RMS √3 σ = 0.479 RP = 0.0096 mm."""
     farthest_split: bool = False
     """Scale the posterior by how optimistic it was on the poses farthest from the rest (≥ 1).
     Off by default: with 10 poses the ⌈K/4⌉ held-out poses make a noisy factor (1–15 on the

@@ -333,7 +333,9 @@ def calibrate(
     fle = _fle_rms_mm(r, len(model.params))
     reg_tre = _registration_tre_rms_mm(fle, pts)
     shared = _unmodelled_rms_mm(model, fit_data, values, fle)
-    cov = _posterior_cov(model, fit_data, values, params, scale, pose_shared_rms_mm=shared)
+    cov = _posterior_cov(
+        model, fit_data, values, params, scale, pose_shared_rms_mm=max(shared, params.repeatability_rms_mm)
+    )
     unmod = max(shared, params.unmodelled_floor_mm)
     t_p = time.perf_counter()
     inflation, split = (

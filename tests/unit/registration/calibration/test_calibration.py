@@ -276,6 +276,37 @@ def test_noise_gives_honest_standard_errors_and_lopo(nominal: SerialChain, truth
     assert result.lopo_mean_mm >= sigma_mm  # LOPO includes the held-out scan's own noise
 
 
+def test_the_arms_repeatability_widens_the_chain_prediction_the_residuals_cannot(
+    nominal: SerialChain, truth: Any, pts: F64
+) -> None:
+    """Each scan gets a shared shift of 0.02 mm 3-D RMS (repeatability) and 0.07 mm detection
+    noise: the residuals cannot see the shift (the fit absorbs most of it, the noise hides the
+    rest), so only ``repeatability_rms_mm`` widens the chain part for it."""
+    true, rod = truth
+    gen = np.random.default_rng(5)
+    poses = [
+        MatchedPose(
+            p.name,
+            p.joints_rad,
+            p.sphere_indices,
+            p.centres_image_mm
+            + gen.normal(0.0, 0.02 / math.sqrt(3), 3)
+            + gen.normal(0.0, 0.07 / math.sqrt(3), p.centres_image_mm.shape),
+        )
+        for p in session(true, rod, pts)
+    ]
+    chain_mm = {}
+    for rep in (0.0, CalibrationParams().repeatability_rms_mm):
+        r = calibrate(
+            poses, nominal, rod, pts, CalibrationParams(leave_one_out=False, repeatability_rms_mm=rep)
+        )
+        assert r.prediction is not None
+        chain_mm[rep] = float(np.sqrt(np.mean(r.prediction.chain_rms_mm**2)))
+    assert CalibrationParams().repeatability_rms_mm > 0.0
+    widened, bare = chain_mm[CalibrationParams().repeatability_rms_mm], chain_mm[0.0]
+    assert widened > 1.05 * bare, chain_mm
+
+
 def test_matching_from_the_nominal_model(nominal: SerialChain, truth: Any, pts: F64, phantom: Any) -> None:
     true, rod = truth
     q = BASE_JOINTS_RAD + POSE_OFFSETS_RAD[1]
