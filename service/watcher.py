@@ -47,6 +47,21 @@ from registration.imaging.volume import Volume
 
 log = logging.getLogger(__name__)
 
+WATCHDOG_STOP_RACE = "InotifyEmitter.queue_events() called when the thread is inactive"
+"""What watchdog (≥ 3, watchdog PR #963) logs at ERROR when its emitter reads once more after
+``Observer.stop()`` closed it: a shutdown race inside watchdog that loses nothing (no event can
+arrive on a stopped watch).  An ERROR line at every clean stop would teach operators to ignore
+ERROR lines, so it is logged at DEBUG instead (:func:`demote_watchdog_stop_race`)."""
+
+
+def demote_watchdog_stop_race(record: logging.LogRecord) -> bool:
+    """Logger filter: :data:`WATCHDOG_STOP_RACE` becomes a DEBUG record; everything else passes."""
+    if record.levelno >= logging.ERROR and record.getMessage() == WATCHDOG_STOP_RACE:
+        record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
+    return True
+
+
 EVENT_DEBOUNCE_S = 0.05
 """After a file-system event, wait this long for more before rescanning (a 192-file export fires
 hundreds of events)."""
@@ -250,6 +265,9 @@ class SeriesWatcher:
                     def on_any_event(self, event: FileSystemEvent) -> None:
                         wake.set()
 
+                inotify_log = logging.getLogger("watchdog.observers.inotify")
+                if demote_watchdog_stop_race not in inotify_log.filters:
+                    inotify_log.addFilter(demote_watchdog_stop_race)
                 obs = Observer()
                 obs.daemon = True
                 obs.schedule(_Handler(), str(self.watch_dir), recursive=True)

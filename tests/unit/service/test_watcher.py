@@ -231,3 +231,31 @@ def test_thread_picks_up_a_series(tmp_path: Path, polling_only: bool) -> None:
     finally:
         w.stop()
     assert not w.state()["running"]
+
+
+def test_watchdogs_stop_race_is_debug_and_other_watchdog_errors_stay_errors(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The watcher installs the filter when it starts OS events; then watchdog's own shutdown-race
+    line (logged at ERROR by the same code path it takes after Observer.stop()) is not an ERROR,
+    while any other ERROR of that logger still is."""
+    import logging
+
+    from service.watcher import WATCHDOG_STOP_RACE
+
+    w, _, _ = make(tmp_path)
+    w.start()
+    try:
+        assert w.mode == "events+polling"
+    finally:
+        w.stop()
+    inotify_log = logging.getLogger("watchdog.observers.inotify")
+    with caplog.at_level(logging.INFO):
+        inotify_log.error(WATCHDOG_STOP_RACE)
+        inotify_log.error("inotify watch limit reached")
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert errors == ["inotify watch limit reached"]
+    with caplog.at_level(logging.DEBUG):
+        caplog.clear()
+        inotify_log.error(WATCHDOG_STOP_RACE)
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [("DEBUG", WATCHDOG_STOP_RACE)]
