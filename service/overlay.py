@@ -8,6 +8,7 @@ Matplotlib's Agg canvas directly (no pyplot, no global backend), as :mod:`servic
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,10 +26,11 @@ REJECTION_MARKERS = ("x", "^", "s", "D", "v", "P", "*")
 
 
 def short_reason(reason: str) -> str:
-    """A rejection reason without its numbers: the text before the first " (" or ":"."""
+    """A rejection reason without its numbers, so blobs refused for the same cause share one
+    legend entry: the text before the first " (" or ":", each number in it shown as "…"."""
     for sep in (" (", ":"):
         reason = reason.split(sep, 1)[0]
-    return reason.strip()
+    return re.sub(r"\d+(?:\.\d+)?", "…", reason).strip()
 
 
 def write_detection_overlay(

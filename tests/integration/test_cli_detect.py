@@ -150,13 +150,12 @@ def test_detect_overlay_marks_every_sphere_and_every_refusal_inside_the_figure( 
     entry per rejection reason without its numbers, nothing drawn outside the figure."""
     from dataclasses import replace
 
-    from matplotlib.figure import Figure
-
     from registration.detection import detect_spheres
     from registration.detection.records import Rejection
     from registration.dicom import load_series
     from service.commands.detect import detection_params_for_phantom
     from service.overlay import write_detection_overlay
+    from tests.helpers.figures import assert_inside, capture_figures
 
     folder, _ = export
     png = tmp_path / "overlay.png"
@@ -166,11 +165,18 @@ def test_detect_overlay_marks_every_sphere_and_every_refusal_inside_the_figure( 
 
     volume = load_series(folder, unique=True)
     found = detect_spheres(volume, detection_params_for_phantom(None))
-    rod = Rejection(tuple(found.centres_image_mm[0] + 20.0), "elongated or oversized metal (12.0 × 40.0 mm)")
-    result = replace(found, rejections=(*found.rejections, rod))
-    drawn: list[Figure] = []
-    savefig = Figure.savefig
-    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: (drawn.append(self), savefig(self, *a, **k)))
+    c = found.centres_image_mm[0]
+    extra = (
+        Rejection(tuple(c + 20.0), "elongated or oversized metal (12.0 × 40.0 mm)"),
+        Rejection(
+            tuple(c + 30.0), "blob volume 41.2 mm³ > 20.1 mm³ (Ø2.5 mm sphere with blooming): wrong size"
+        ),
+        Rejection(
+            tuple(c + 40.0), "blob volume 33.0 mm³ > 20.1 mm³ (Ø2.5 mm sphere with blooming): wrong size"
+        ),
+    )
+    result = replace(found, rejections=(*found.rejections, *extra))
+    drawn = capture_figures(monkeypatch)
     write_detection_overlay(volume, result, tmp_path / "o2.png")
     fig = drawn[0]
     ax = fig.axes[0]
@@ -180,7 +186,5 @@ def test_detect_overlay_marks_every_sphere_and_every_refusal_inside_the_figure( 
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
     assert f"detected ({len(found.spheres)}, {found.method})" in labels
     assert "rejected: elongated or oversized metal (1)" in labels
-    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
-    for artist in (ax.title, fig.legends[0]):
-        box = artist.get_window_extent(renderer)
-        assert box.x0 >= 0 and box.y0 >= 0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height
+    assert "rejected: blob volume … mm³ > … mm³ (2)" in labels  # two volumes, one cause
+    assert_inside(fig, ax.title, fig.legends[0])

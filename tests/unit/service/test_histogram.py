@@ -6,22 +6,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 import service.histogram as histogram
+from tests.helpers.figures import assert_inside, capture_figures
 
 
 def _drawn_figure(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, **kwargs: object) -> Figure:
-    """Write a histogram and return the figure it drew (captured at savefig)."""
-    figures: list[Figure] = []
-    savefig = Figure.savefig
-
-    def keep(self: Figure, *args: object, **kw: object) -> None:
-        figures.append(self)
-        savefig(self, *args, **kw)
-
-    monkeypatch.setattr(Figure, "savefig", keep)
+    """Write a histogram and return the figure it drew."""
+    figures = capture_figures(monkeypatch)
     # the demo's verification: 8 spheres in one bin, 20 in the next (matplotlib ticked 0, 2.5, … 20)
     errors = np.r_[np.full(8, 0.22), np.full(20, 0.27)]
     out = histogram.write_error_histogram(errors, tmp_path / "h.png", **kwargs)
@@ -31,13 +24,9 @@ def _drawn_figure(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, **kwargs: obj
 
 def test_the_verdict_title_stays_inside_the_figure(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     fig = _drawn_figure(monkeypatch, tmp_path, title="Verification 1: scan 2 vs registration 1", gate_mm=1.0)
-    canvas = fig.canvas
-    assert isinstance(canvas, FigureCanvasAgg)
-    renderer = canvas.get_renderer()
     title = fig.axes[0].title
     assert "PASS" in title.get_text() and "gate 1.000 mm" in title.get_text()
-    box = title.get_window_extent(renderer)
-    assert box.x0 >= 0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height, box
+    assert_inside(fig, title)
 
 
 def test_sphere_counts_are_ticked_in_whole_numbers(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
