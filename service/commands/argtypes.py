@@ -1,4 +1,5 @@
-"""argparse ``type=`` functions that refuse bad numbers at parse time (exit 2, naming the flag).
+"""argparse ``type=`` functions that refuse bad numbers and output paths at parse time (exit 2,
+naming the flag).
 
 argparse turns the :class:`argparse.ArgumentTypeError` message into
 ``oarmreg CMD: error: argument --max-fre-mm: must be > 0, got -1``.
@@ -9,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from pathlib import Path
 
 
 def _number(text: str, kind: type[float] | type[int]) -> float:
@@ -55,3 +57,15 @@ def float_below(limit: float) -> Callable[[str], float]:
 
     parse.__name__ = f"float_below_{limit:g}"
     return parse
+
+
+def output_file(text: str) -> Path:
+    """A file path to write (JSON, PNG): refused at parse time when something that is not a regular
+    file is already there, so a directory given by mistake is named before any work is done,
+    instead of a traceback after it."""
+    path = Path(text)
+    if path.exists() and not path.is_file():
+        raise argparse.ArgumentTypeError(
+            f"{text} exists and is not a regular file (a folder?): give a file path"
+        )
+    return path

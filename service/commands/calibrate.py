@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
+from service.commands.argtypes import output_file
 from service.commands.detect import add_method_argument
 
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
@@ -81,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
     plan_p.add_argument("--n", type=int, default=10, help="number of poses (default %(default)s, at least 6)")
-    plan_p.add_argument("--json", type=Path, required=True, metavar="OUT.json")
+    plan_p.add_argument("--json", type=output_file, required=True, metavar="OUT.json")
     plan_p.add_argument(
         "--joints",
         type=Path,

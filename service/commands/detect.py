@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import positive_float
+from service.commands.argtypes import output_file, positive_float
 
 if TYPE_CHECKING:
     from registration.detection import DetectionParams
@@ -54,11 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "dicom_dir", metavar="DICOM_DIR", type=Path, help="folder (or DICOMDIR) holding the series"
     )
-    parser.add_argument("--json", dest="json_out", metavar="OUT", type=Path, help="write the result as JSON")
+    parser.add_argument(
+        "--json", dest="json_out", metavar="OUT", type=output_file, help="write the result as JSON"
+    )
     parser.add_argument(
         "--overlay",
         metavar="PNG",
-        type=Path,
+        type=output_file,
         help="draw the detected centres and the rejected candidates (with their reasons) on a "
         "maximum-intensity projection of the scan",
     )

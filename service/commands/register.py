@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import float_below, positive_float, positive_int
+from service.commands.argtypes import float_below, output_file, positive_float, positive_int
 from service.commands.detect import add_method_argument
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
@@ -45,7 +45,7 @@ def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
         help='sphere centres in the robot frame in phantom sphere order, {"spheres_mm": [[x, y, z], ...]}',
     )
     parser.add_argument(
-        "--json", type=Path, metavar="OUT.json", help="write the result (or the refusal) here"
+        "--json", type=output_file, metavar="OUT.json", help="write the result (or the refusal) here"
     )
 
 

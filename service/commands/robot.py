@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import positive_float
+from service.commands.argtypes import output_file, positive_float
 
 HELP = "read joint angles from the robot controller, or the sphere centres in the robot frame"
 
@@ -78,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--max-deviation-rad", type=positive_float, help="stillness threshold (default 0.0005 rad)"
     )
-    p.add_argument("--out", type=Path, help="also write the JSON to this file")
+    p.add_argument("--out", type=output_file, help="also write the JSON to this file")
     p.add_argument(
         "--timeout-s", type=positive_float, default=5.0, help="connect timeout in seconds (default 5)"
     )

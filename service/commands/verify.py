@@ -8,7 +8,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from service.commands.argtypes import positive_float
+from service.commands.argtypes import output_file, positive_float
 from service.commands.register import add_common_image_arguments, load_image_points, sha256_of, write_refusal
 
 HELP = "verify a registration on a second scan: predicted vs. detected sphere centres, errors and histogram"
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the `oarmreg register --json` output to verify",
     )
     parser.add_argument(
-        "--histogram", type=Path, metavar="PNG", help="write the error histogram (Figure 7) here"
+        "--histogram", type=output_file, metavar="PNG", help="write the error histogram (Figure 7) here"
     )
     parser.add_argument(
         "--gate-mm", type=positive_float, help="pairing gate around each predicted sphere (mm)"
