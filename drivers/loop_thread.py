@@ -102,13 +102,6 @@ class LoopThread:
         thread.join(timeout_s)  # it has left _target: returns at once
         return not thread.is_alive()
 
-    def join_blocking(self, timeout_s: float) -> bool:
-        """Like :meth:`join` for a caller without an event loop."""
-        if self._thread is None:
-            return True
-        self._thread.join(timeout_s)
-        return not self._thread.is_alive()
-
     def _target(self, loop: asyncio.AbstractEventLoop, main: Coroutine[Any, Any, None]) -> None:
         asyncio.set_event_loop(loop)
         try:

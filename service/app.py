@@ -215,8 +215,9 @@ async def _start(
         )
         await igtl.start()
         stack.push_async_callback(igtl.stop)
-        subs.listen(RegistrationDone, igtl.on_registration_done)
-        subs.listen(RegistrationRefused, igtl.on_registration_refused)
+        # safety: navigation must learn at once of a new or refused registration
+        subs.listen(RegistrationDone, igtl.on_registration_done, safety=True)
+        subs.listen(RegistrationRefused, igtl.on_registration_refused, safety=True)
     pacs: PacsExporter | None = None
     if settings.pacs.enabled:
         pacs = PacsExporter(db, settings.pacs, settings.data_dir, publish)

@@ -9,7 +9,7 @@ PACS export, auto-register) are ``Optional``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
@@ -115,4 +115,5 @@ class ServiceContext:
             "pacs": pacs,
             "tls": s.tls.enabled,
             "auto_register": s.service.auto_register,
+            "event_bus_failures": [asdict(f) for f in self.bus.listener_failures()],
         }

@@ -3,6 +3,13 @@
 Events are the typed classes of :mod:`service.events`; :meth:`EventBus.publish` takes one, is
 callable from any thread, serialises it once (:meth:`service.events.Event.payload`) and hands it to
 the SSE subscribers and to the in-process listeners bound to its class (:meth:`EventBus.listen`).
+
+No listener can break the bus: one that raises is logged with the event and counted
+(:meth:`EventBus.listener_failures`, on ``GET /status``), the listeners after it still run and the
+publisher never sees the exception.  A listener bound with ``safety=True`` carries a safety duty
+(telling navigation about a new or refused registration): while its last call failed,
+:meth:`EventBus.failing_safety_listeners` names it and ``GET /ready`` answers 503
+(:mod:`service.health`); its next successful call clears that.
 """
 
 from __future__ import annotations
@@ -15,12 +22,12 @@ import logging
 import threading
 from collections import deque
 from collections.abc import AsyncIterator, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 from service.events import EVENT_NAMES, EVENT_TYPES, Event
 
-__all__ = ["EVENT_NAMES", "EventBus", "Published", "Subscriptions"]
+__all__ = ["EVENT_NAMES", "EventBus", "ListenerFailures", "Published", "Subscriptions"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +50,37 @@ class Published:
     data_json: str
 
 
+@dataclass(frozen=True)
+class ListenerFailures:
+    """How often one listener raised on one event class (since the service started)."""
+
+    listener: str
+    """The listener's qualified name, e.g. ``IgtlPublisher.on_registration_done``."""
+    event: str
+    """The event's wire name."""
+    safety: bool
+    """Bound with ``safety=True``: while ``failing``, the service is not ready."""
+    failures: int
+    failing: bool
+    """Its last call raised (cleared by its next successful call)."""
+    last_error: str
+    """``Type: message`` of the last exception."""
+
+    def describe(self) -> str:
+        state = "its last call failed" if self.failing else "its last call succeeded"
+        return (
+            f"listener {self.listener} failed {self.failures} time(s) on {self.event} ({state}; last: "
+            f"{self.last_error})"
+        )
+
+
+@dataclass(frozen=True)
+class _Listener:
+    fn: Callable[[Any], None]
+    safety: bool
+    name: str
+
+
 class EventBus:
     """Fan-out of service events to SSE subscribers.  :meth:`publish` is callable from any thread."""
 
@@ -53,21 +91,38 @@ class EventBus:
         self._lock = threading.Lock()
         self._recent: deque[Published] = deque(maxlen=RECENT_MAX)
         self._closed = False
-        self._listeners: dict[type[Event], list[Callable[[Any], None]]] = {}
+        self._listeners: dict[type[Event], list[_Listener]] = {}
         """Per event class; each callable takes that class (``listen`` keeps the pairing typed)."""
+        self._failures: dict[tuple[str, str], ListenerFailures] = {}
+        """Per (listener name, event name) that has raised at least once."""
 
-    def listen(self, kind: type[E], fn: Callable[[E], None]) -> None:
+    def listen(self, kind: type[E], fn: Callable[[E], None], *, safety: bool = False) -> None:
         """Call ``fn(event)`` on the publishing thread after each ``kind`` event has gone to the
-        subscribers (the in-process reactions: IGTL push, PACS export, auto-register)."""
+        subscribers (the in-process reactions: IGTL push, PACS export, auto-register).
+
+        ``safety``: ``fn`` carries a safety duty; while its last call failed the service is not
+        ready (see the module docstring)."""
         _check_kind(kind)
+        name = getattr(fn, "__qualname__", None) or repr(fn)
         with self._lock:
-            self._listeners.setdefault(kind, []).append(fn)
+            self._listeners.setdefault(kind, []).append(_Listener(fn, safety, name))
 
     def unlisten(self, kind: type[E], fn: Callable[[E], None]) -> None:
         with self._lock:
-            fns = self._listeners.get(kind, [])
-            if fn in fns:
-                fns.remove(fn)
+            bound = self._listeners.get(kind, [])
+            for i, one in enumerate(bound):
+                if one.fn == fn:
+                    del bound[i]
+                    return
+
+    def listener_failures(self) -> list[ListenerFailures]:
+        """Every listener that has raised, with its count (for ``GET /status``)."""
+        with self._lock:
+            return list(self._failures.values())
+
+    def failing_safety_listeners(self) -> list[ListenerFailures]:
+        """The safety listeners whose last call raised (for ``GET /ready``)."""
+        return [f for f in self.listener_failures() if f.safety and f.failing]
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -88,8 +143,33 @@ class EventBus:
             listeners = list(self._listeners.get(kind, ()))
         log.info("event %s %s", event.name, data_json[:300])
         self._deliver_on_loop(item)
-        for fn in listeners:
-            fn(event)
+        for one in listeners:
+            self._call(one, item)
+
+    def _call(self, one: _Listener, item: Published) -> None:
+        """Run one listener; what it raises is logged and counted, never passed to the publisher."""
+        key = (one.name, item.event.name)
+        try:
+            one.fn(item.event)
+        except Exception as e:
+            with self._lock:
+                was = self._failures.get(key) or ListenerFailures(*key, one.safety, 0, False, "")
+                self._failures[key] = replace(
+                    was, failures=was.failures + 1, failing=True, last_error=f"{type(e).__name__}: {e}"[:500]
+                )
+            log.exception(
+                "event bus: listener %s failed on event %s #%d %s (%s; the other listeners still run)",
+                one.name, item.event.name, item.seq, item.data_json[:300],
+                "a SAFETY listener: the service is not ready until it next succeeds"
+                if one.safety else "counted on GET /status",
+            )  # fmt: skip
+            return
+        if key in self._failures:  # it failed before: this success ends that
+            with self._lock:
+                was = self._failures[key]
+                self._failures[key] = replace(was, failing=False)
+            if was.failing:
+                log.warning("event bus: listener %s succeeded again on %s", one.name, item.event.name)
 
     def _deliver(self, item: Published | None) -> None:
         for q in list(self._subs):
@@ -155,8 +235,8 @@ class Subscriptions:
         self.bus = bus
         self._bound: list[tuple[type[Event], Callable[[Any], None]]] = []
 
-    def listen(self, kind: type[E], fn: Callable[[E], None]) -> None:
-        self.bus.listen(kind, fn)
+    def listen(self, kind: type[E], fn: Callable[[E], None], *, safety: bool = False) -> None:
+        self.bus.listen(kind, fn, safety=safety)
         self._bound.append((kind, fn))
 
     def close(self) -> None:

@@ -156,6 +156,20 @@ def qa_drift_problems(ctx: ServiceContext) -> list[HealthProblem]:
     ]
 
 
+def bus_listener_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """A safety listener of the event bus (:mod:`service.event_bus`) whose last call raised."""
+    return [
+        HealthProblem(
+            "safety-listener-failing",
+            "Safety listener failing",
+            f"{f.describe()}: its safety duty (telling navigation of a registration change) may be "
+            "undone; compare what navigation shows with GET /registration/current, see the log for the "
+            "traceback; cleared by the listener's next successful call (e.g. the next registration)",
+        )
+        for f in ctx.bus.failing_safety_listeners()
+    ]
+
+
 PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     database_problems,
     robot_link_problems,
@@ -165,6 +179,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     intake_write_problems,
     retention_problems,
     qa_drift_problems,
+    bus_listener_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""
 

@@ -116,121 +116,40 @@ def write_dicom_series(
     ConfigError
         Bad ``bits_stored`` / signedness combination.
     """
-    import pydicom
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+    from pydicom.uid import generate_uid
 
-    if bits_stored not in (12, 16):
-        raise ConfigError(f"bits_stored must be 12 or 16, got {bits_stored}")
-    if bits_stored == 12 and not unsigned:
-        raise ConfigError(
-            "bits_stored=12 holds −2048…2047 signed, which cannot store 3071 HU; use unsigned=True "
-            "(RescaleIntercept −1024) or bits_stored=16"
-        )
+    _check_pixel_format(bits_stored, unsigned)
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    s = scan.settings
     series_uid = str(series_uid or generate_uid())
     study_uid = str(study_uid or generate_uid())
     for_uid = str(generate_uid())
     when = acquisition_time or dt.datetime.now()
-    date, tm = when.strftime("%Y%m%d"), when.strftime("%H%M%S.%f")
-
-    a = scan.image_from_voxel
-    row_dir = a[:3, 0] / s.pixel_mm
-    col_dir = a[:3, 1] / s.pixel_mm
-    iop = [_ds(v) for v in (*row_dir, *col_dir)]
-    intercept = HU_MIN if unsigned else 0.0
-    hu = scan.hu
-    n = hu.shape[0]
+    n = scan.hu.shape[0]
+    series = _Series(
+        scan=scan,
+        series_uid=series_uid,
+        study_uid=study_uid,
+        frame_of_reference_uid=for_uid,
+        date=when.strftime("%Y%m%d"),
+        time=when.strftime("%H%M%S.%f"),
+        patient_id=patient_id,
+        patient_name=patient_name,
+        series_number=series_number,
+        images_in_acquisition=_announced_count(images_in_acquisition, n),
+        unsigned=unsigned,
+        bits_stored=bits_stored,
+    )
     order = list(range(n))[::-1] if reverse_order else list(range(n))
     paths: list[Path] = []
     for inst, k in enumerate(order, start=1):
-        ipp = a[:3, :3] @ np.array([0.0, 0.0, float(k)]) + a[:3, 3]
-        stored = _stored_pixels(hu[k], unsigned, bits_stored)
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID = pydicom.uid.UID(CT_IMAGE_STORAGE)
-        sop_uid = generate_uid()
-        meta.MediaStorageSOPInstanceUID = sop_uid
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds = Dataset()
-        ds.file_meta = meta
-        ds.SpecificCharacterSet = "ISO_IR 100"
-        ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"]
-        ds.SOPClassUID = CT_IMAGE_STORAGE
-        ds.SOPInstanceUID = sop_uid
-        ds.StudyDate = ds.SeriesDate = ds.AcquisitionDate = ds.ContentDate = date
-        ds.StudyTime = ds.SeriesTime = ds.AcquisitionTime = ds.ContentTime = tm
-        ds.AccessionNumber = ""
-        ds.Modality = "CT"
-        # Mimics a Medtronic O-arm export (tags as commonly seen on CT exports; the real O-arm
-        # conformance statement was not available, research note image-side.md §1.1).
-        ds.Manufacturer = MANUFACTURER
-        ds.ManufacturerModelName = "O-arm simulator"
-        ds.InstitutionName = "oarmreg"
-        ds.ReferringPhysicianName = ""
-        ds.StudyDescription = "Robot registration phantom"
-        ds.SeriesDescription = f"Simulated O-arm 3D ({s.preset_name})"
-        ds.PatientName = patient_name
-        ds.PatientID = patient_id
-        ds.PatientBirthDate = ""
-        ds.PatientSex = "O"
-        ds.BodyPartExamined = "SPINE"
-        ds.SliceThickness = _ds(s.slice_spacing_mm)
-        ds.SpacingBetweenSlices = _ds(s.slice_spacing_mm)
-        ds.KVP = _ds(s.kvp)
-        ds.PatientPosition = "HFS"
-        ds.StudyInstanceUID = study_uid
-        ds.SeriesInstanceUID = series_uid
-        ds.StudyID = "1"
-        ds.SeriesNumber = series_number
-        ds.AcquisitionNumber = 1
-        ds.InstanceNumber = inst
-        if images_in_acquisition is not False:
-            ds.ImagesInAcquisition = n if images_in_acquisition is True else int(images_in_acquisition)
-        ds.ImagePositionPatient = [_ds(v) for v in ipp]
-        ds.ImageOrientationPatient = iop
-        ds.FrameOfReferenceUID = for_uid
-        ds.PositionReferenceIndicator = ""
-        ds.SliceLocation = _ds(float(ipp @ np.cross(row_dir, col_dir)))
-        ds.SamplesPerPixel = 1
-        ds.PhotometricInterpretation = "MONOCHROME2"
-        ds.Rows, ds.Columns = int(hu.shape[1]), int(hu.shape[2])
-        ds.PixelSpacing = [_ds(s.pixel_mm), _ds(s.pixel_mm)]
-        ds.BitsAllocated = 16
-        ds.BitsStored = bits_stored
-        ds.HighBit = bits_stored - 1
-        ds.PixelRepresentation = 0 if unsigned else 1
-        ds.RescaleIntercept = _ds(intercept)
-        ds.RescaleSlope = "1"
-        ds.RescaleType = "HU"
-        ds.WindowCenter = "500"
-        ds.WindowWidth = "3000"
-        ds.PixelData = stored.tobytes()
-        name = f"CT_{series_number:03d}_{inst:04d}.dcm"
-        path = out / name
-        import io
-
-        buf = io.BytesIO()
-        pydicom.dcmwrite(buf, ds, enforce_file_format=True)
-        _write_atomic(path, buf.getvalue(), fsync)
+        path = out / f"CT_{series_number:03d}_{inst:04d}.dcm"
+        _write_atomic(path, _encoded(_slice_dataset(series, inst, k)), fsync)
         paths.append(path)
         if file_interval_s > 0 and inst < n:
             time.sleep(file_interval_s)  # paces a simulated slow export (not test synchronisation)
-    truth_path = None
-    if write_truth:
-        truth = scan.truth_dict()
-        truth.update(
-            series_uid=series_uid,
-            study_uid=study_uid,
-            frame_of_reference_uid=for_uid,
-            reverse_order=reverse_order,
-            unsigned=unsigned,
-            bits_stored=bits_stored,
-        )
-        truth_path = out / "truth.json"
-        _write_atomic(truth_path, json.dumps(truth, indent=1).encode("utf-8"), fsync)
+    truth_path = _write_truth(series, out, reverse_order, fsync) if write_truth else None
     elapsed = time.perf_counter() - t_start
     log.info("wrote %d CT files of series %s to %s in %.2f s", len(paths), series_uid, out, elapsed)
     return ExportResult(
@@ -241,6 +160,165 @@ def write_dicom_series(
         study_uid=study_uid,
         elapsed_s=elapsed,
     )
+
+
+def _announced_count(images_in_acquisition: int | bool, n_written: int) -> int | None:
+    """ImagesInAcquisition to write: ``False`` none, ``True`` the slices written, an int that."""
+    if images_in_acquisition is False:
+        return None
+    return n_written if images_in_acquisition is True else int(images_in_acquisition)
+
+
+def _check_pixel_format(bits_stored: int, unsigned: bool) -> None:
+    if bits_stored not in (12, 16):
+        raise ConfigError(f"bits_stored must be 12 or 16, got {bits_stored}")
+    if bits_stored == 12 and not unsigned:
+        raise ConfigError(
+            "bits_stored=12 holds −2048…2047 signed, which cannot store 3071 HU; use unsigned=True "
+            "(RescaleIntercept −1024) or bits_stored=16"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Series:
+    """What every slice file of one :func:`write_dicom_series` call shares."""
+
+    scan: SimulatedScan
+    series_uid: str
+    study_uid: str
+    frame_of_reference_uid: str
+    date: str
+    time: str
+    patient_id: str
+    patient_name: str
+    series_number: int
+    images_in_acquisition: int | None
+    """ImagesInAcquisition (0020,1002) in every slice; ``None`` leaves it out."""
+    unsigned: bool
+    bits_stored: int
+
+    @property
+    def row_dir(self) -> NDArray[np.float64]:
+        return np.asarray(self.scan.image_from_voxel[:3, 0] / self.scan.settings.pixel_mm)
+
+    @property
+    def col_dir(self) -> NDArray[np.float64]:
+        return np.asarray(self.scan.image_from_voxel[:3, 1] / self.scan.settings.pixel_mm)
+
+
+def _slice_dataset(series: _Series, inst: int, k: int) -> Any:
+    """The CT Image Storage dataset of slice ``k``, written as instance ``inst``."""
+    import pydicom
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = pydicom.uid.UID(CT_IMAGE_STORAGE)
+    sop_uid = generate_uid()
+    meta.MediaStorageSOPInstanceUID = sop_uid
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPInstanceUID = sop_uid
+    ds.InstanceNumber = inst
+    _set_study_and_series(ds, series)
+    _set_geometry(ds, series, k)
+    _set_pixels(ds, series, k)
+    return ds
+
+
+def _set_study_and_series(ds: Any, series: _Series) -> None:
+    """The tags every slice of the series carries alike (patient, study, series, equipment)."""
+    s = series.scan.settings
+    ds.SpecificCharacterSet = "ISO_IR 100"
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"]
+    ds.SOPClassUID = CT_IMAGE_STORAGE
+    ds.StudyDate = ds.SeriesDate = ds.AcquisitionDate = ds.ContentDate = series.date
+    ds.StudyTime = ds.SeriesTime = ds.AcquisitionTime = ds.ContentTime = series.time
+    ds.AccessionNumber = ""
+    ds.Modality = "CT"
+    # Mimics a Medtronic O-arm export (tags as commonly seen on CT exports; the real O-arm
+    # conformance statement was not available, research note image-side.md §1.1).
+    ds.Manufacturer = MANUFACTURER
+    ds.ManufacturerModelName = "O-arm simulator"
+    ds.InstitutionName = "oarmreg"
+    ds.ReferringPhysicianName = ""
+    ds.StudyDescription = "Robot registration phantom"
+    ds.SeriesDescription = f"Simulated O-arm 3D ({s.preset_name})"
+    ds.PatientName = series.patient_name
+    ds.PatientID = series.patient_id
+    ds.PatientBirthDate = ""
+    ds.PatientSex = "O"
+    ds.BodyPartExamined = "SPINE"
+    ds.SliceThickness = _ds(s.slice_spacing_mm)
+    ds.SpacingBetweenSlices = _ds(s.slice_spacing_mm)
+    ds.KVP = _ds(s.kvp)
+    ds.PatientPosition = "HFS"
+    ds.StudyInstanceUID = series.study_uid
+    ds.SeriesInstanceUID = series.series_uid
+    ds.StudyID = "1"
+    ds.SeriesNumber = series.series_number
+    ds.AcquisitionNumber = 1
+    if series.images_in_acquisition is not None:
+        ds.ImagesInAcquisition = series.images_in_acquisition
+    ds.FrameOfReferenceUID = series.frame_of_reference_uid
+    ds.PositionReferenceIndicator = ""
+
+
+def _set_geometry(ds: Any, series: _Series, k: int) -> None:
+    """Where slice ``k`` lies (PS3.3 C.7.6.2: the first pixel's centre, the direction cosines)."""
+    a = series.scan.image_from_voxel
+    row_dir, col_dir = series.row_dir, series.col_dir
+    ipp = a[:3, :3] @ np.array([0.0, 0.0, float(k)]) + a[:3, 3]
+    ds.ImagePositionPatient = [_ds(v) for v in ipp]
+    ds.ImageOrientationPatient = [_ds(v) for v in (*row_dir, *col_dir)]
+    ds.SliceLocation = _ds(float(ipp @ np.cross(row_dir, col_dir)))
+    ds.PixelSpacing = [_ds(series.scan.settings.pixel_mm), _ds(series.scan.settings.pixel_mm)]
+
+
+def _set_pixels(ds: Any, series: _Series, k: int) -> None:
+    """Slice ``k``'s pixels and how to read them (stored value → HU)."""
+    hu = series.scan.hu
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows, ds.Columns = int(hu.shape[1]), int(hu.shape[2])
+    ds.BitsAllocated = 16
+    ds.BitsStored = series.bits_stored
+    ds.HighBit = series.bits_stored - 1
+    ds.PixelRepresentation = 0 if series.unsigned else 1
+    ds.RescaleIntercept = _ds(HU_MIN if series.unsigned else 0.0)
+    ds.RescaleSlope = "1"
+    ds.RescaleType = "HU"
+    ds.WindowCenter = "500"
+    ds.WindowWidth = "3000"
+    ds.PixelData = _stored_pixels(hu[k], series.unsigned, series.bits_stored).tobytes()
+
+
+def _encoded(ds: Any) -> bytes:
+    """``ds`` as a DICOM file (preamble, file meta) in memory."""
+    import io
+
+    import pydicom
+
+    buf = io.BytesIO()
+    pydicom.dcmwrite(buf, ds, enforce_file_format=True)
+    return buf.getvalue()
+
+
+def _write_truth(series: _Series, out: Path, reverse_order: bool, fsync: bool) -> Path:
+    """``truth.json`` beside the series: the scan's truth and how the series was written."""
+    truth = series.scan.truth_dict()
+    truth.update(
+        series_uid=series.series_uid,
+        study_uid=series.study_uid,
+        frame_of_reference_uid=series.frame_of_reference_uid,
+        reverse_order=reverse_order,
+        unsigned=series.unsigned,
+        bits_stored=series.bits_stored,
+    )
+    truth_path = out / "truth.json"
+    _write_atomic(truth_path, json.dumps(truth, indent=1).encode("utf-8"), fsync)
+    return truth_path
 
 
 def _stored_pixels(hu: NDArray[Any], unsigned: bool, bits_stored: int) -> NDArray[Any]:

@@ -856,89 +856,30 @@ def simulate_scan(
     s = settings
     image_from_phantom = frames.as_transform(image_from_phantom, "image_from_phantom")
     image_from_voxel = s.image_from_voxel()
-    image_from_scan = image_from_scanner(s.orientation)
-    scanner_from_image = frames.invert(image_from_scan)
+    scanner_from_image = frames.invert(image_from_scanner(s.orientation))
     scanner_from_phantom = scanner_from_image @ image_from_phantom
 
     def report(f: float) -> None:
         if progress is not None:
             progress(min(1.0, max(0.0, f)))
 
-    # Scene and detector.
     objs = _build_scene(phantom, scanner_from_phantom, extras, scanner_from_image, image_from_phantom)
-    fov_r = s.fov_radius_mm
-    scene_r = max(_bounding_radius_xy(o) for o in objs)
-    det_half = min(max(fov_r, scene_r) + 4 * s.pixel_mm, 3.0 * fov_r)
-    n_det = 2 * math.ceil(det_half / s.pixel_mm) + 1
-    # Rays are traced at detector_subsamples positions across each bin; their intensities are
-    # averaged (the bin's aperture: in-plane non-linear partial volume at metal edges).
-    ns = s.detector_subsamples
-    fine = _Projector(s.n_views, n_det * ns, s.pixel_mm / ns)
-    spectrum = physics.kramers_spectrum(s.kvp, s.filter_al_mm, s.energy_bin_edges_kev)
     material = extras.material_for(phantom)
-    mu = physics.attenuation_matrix_per_mm(
-        spectrum, extras.plastic, "steel" if material == "plastic" else material
-    )  # (slots, E)
-    wcorr = physics.water_correction(spectrum)
-    rng = np.random.default_rng(s.seed)
-
-    z_slices = (np.arange(s.n_slices) - (s.n_slices - 1) / 2.0) * s.slice_spacing_mm
-    sub_off = ((np.arange(s.sub_slices) + 0.5) / s.sub_slices - 0.5) * s.slice_spacing_mm
-    n_slots = len(physics.SCENE_MATERIALS)
-    body_chords = next((fine.ellipse_chords(o) for o in objs if isinstance(o, _Ellipse)), None)
-    z_ranges = [_z_range(o) for o in objs]
-
-    sino = np.empty((s.n_slices, s.n_views, n_det), dtype=np.float32)
-    chunk = max(1, int(6_000_000 // (s.sub_slices * s.n_views * n_det * ns)))
+    beam = _Beam.of(s, objs, extras.plastic, material)
     t0 = time.perf_counter()
-    for k0 in range(0, s.n_slices, chunk):
-        k1 = min(s.n_slices, k0 + chunk)
-        planes = (z_slices[k0:k1, None] + sub_off[None, :]).ravel()
-        paths = np.zeros((n_slots, len(planes), s.n_views, n_det * ns), dtype=np.float32)
-        for pi, z in enumerate(planes):
-            plane = paths[:, pi]
-            for o, (zlo, zhi) in zip(objs, z_ranges, strict=True):
-                if not (zlo <= z <= zhi):
-                    continue
-                if isinstance(o, _Sphere):
-                    fine.add_sphere(plane, o, float(z))
-                elif isinstance(o, _Box):
-                    fine.add_box(plane, o, float(z))
-                elif isinstance(o, _Cylinder):
-                    fine.add_cylinder(plane, o, float(z))
-        if body_chords is not None:
-            paths[_SLOT["water"]] += body_chords[None]
-        trans = polychromatic_transmission(paths, mu, spectrum.weights)
-        del paths
-        # Detector-row integration: mean transmitted intensity of the sub-slices.
-        trans = trans.reshape(k1 - k0, s.sub_slices, s.n_views, n_det, ns).mean(axis=(1, 4))
-        # Kernel scatter needs every row of a view: keep the primary, detect after the loop.
-        sino[k0:k1] = trans if s.scatter_spr > 0 else _detect(trans, s, rng, wcorr)
-        report(0.45 * k1 / s.n_slices)
-    if s.scatter_spr > 0:
-        _detect_with_kernel_scatter(sino, s, rng, wcorr)
+    sino = _project(objs, s, beam, report)
     timings["project_s"] = time.perf_counter() - t0
 
-    # Filter (all slices and views at once) and back-project inside the FOV circle.
     t0 = time.perf_counter()
-    jj, ii = np.mgrid[0 : s.rows, 0 : s.columns]
-    x = (ii - (s.columns - 1) / 2.0) * s.pixel_mm
-    y = (jj - (s.rows - 1) / 2.0) * s.pixel_mm
-    inside = np.hypot(x, y) <= fov_r
-    pix = np.stack([x[inside], y[inside]], axis=1)
-    mu_px = fbp(sino, s.pixel_mm, pix, s.filter_window, progress=lambda f: report(0.45 + 0.5 * f))
+    inside = _fov_mask(s)
+    mu_px = fbp(sino, s.pixel_mm, _pixel_centres_mm(s, inside), s.filter_window,
+                progress=lambda f: report(0.45 + 0.5 * f))  # fmt: skip
     del sino
     timings["fbp_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    mu_air = np.float32(wcorr.mu_ref_per_mm * (1.0 + HU_MIN / 1000.0))
-    vol = np.full((s.n_slices, s.rows, s.columns), mu_air, dtype=np.float32)
-    vol[:, inside] = mu_px.T
+    hu_i = _to_hu(mu_px, inside, s, beam.wcorr)
     del mu_px
-    vol = _apply_psf(vol, s, inside, mu_air)
-    hu = (vol / np.float32(wcorr.mu_ref_per_mm) - 1.0) * 1000.0
-    np.clip(hu, HU_MIN, HU_MAX, out=hu)
-    hu_i = np.rint(hu).astype(np.int16)
     timings["post_s"] = time.perf_counter() - t0
 
     # Truth: spheres fully inside the grid and the FOV circle, at their machined positions.
@@ -974,6 +915,117 @@ def simulate_scan(
         sphere_material=material,
         n_phantom_spheres=phantom.n_spheres,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class _Beam:
+    """The detector and the X-ray beam of one simulated scan: what projection needs besides the
+    scene."""
+
+    n_det: int
+    """Detector bins per view."""
+    fine: _Projector
+    """Traces rays at ``detector_subsamples`` positions across each bin; their intensities are
+    averaged (the bin's aperture: in-plane non-linear partial volume at metal edges)."""
+    spectrum: physics.Spectrum
+    mu: F32
+    """(material slots, energies) attenuation per mm."""
+    wcorr: physics.WaterCorrection
+
+    @classmethod
+    def of(cls, s: AcquisitionSettings, objs: list[Any], plastic: str, material: str) -> _Beam:
+        fov_r = s.fov_radius_mm
+        scene_r = max(_bounding_radius_xy(o) for o in objs)
+        det_half = min(max(fov_r, scene_r) + 4 * s.pixel_mm, 3.0 * fov_r)
+        n_det = 2 * math.ceil(det_half / s.pixel_mm) + 1
+        ns = s.detector_subsamples
+        fine = _Projector(s.n_views, n_det * ns, s.pixel_mm / ns)
+        spectrum = physics.kramers_spectrum(s.kvp, s.filter_al_mm, s.energy_bin_edges_kev)
+        mu = physics.attenuation_matrix_per_mm(
+            spectrum, plastic, "steel" if material == "plastic" else material
+        )  # (slots, E)
+        return cls(n_det, fine, spectrum, mu, physics.water_correction(spectrum))
+
+
+def _project(objs: list[Any], s: AcquisitionSettings, beam: _Beam, report: Callable[[float], None]) -> F32:
+    """The detected sinogram (slices, views, bins): the scene's paths per material, sub-slice by
+    sub-slice in chunks, through the polychromatic beam, averaged over each detector row and bin,
+    then noise, scatter and the water linearisation (:func:`_detect`)."""
+    rng = np.random.default_rng(s.seed)
+    n_det, ns, fine = beam.n_det, s.detector_subsamples, beam.fine
+    z_slices = (np.arange(s.n_slices) - (s.n_slices - 1) / 2.0) * s.slice_spacing_mm
+    sub_off = ((np.arange(s.sub_slices) + 0.5) / s.sub_slices - 0.5) * s.slice_spacing_mm
+    n_slots = len(physics.SCENE_MATERIALS)
+    body_chords = next((fine.ellipse_chords(o) for o in objs if isinstance(o, _Ellipse)), None)
+    z_ranges = [_z_range(o) for o in objs]
+
+    sino = np.empty((s.n_slices, s.n_views, n_det), dtype=np.float32)
+    chunk = max(1, int(6_000_000 // (s.sub_slices * s.n_views * n_det * ns)))
+    for k0 in range(0, s.n_slices, chunk):
+        k1 = min(s.n_slices, k0 + chunk)
+        planes = (z_slices[k0:k1, None] + sub_off[None, :]).ravel()
+        paths = np.zeros((n_slots, len(planes), s.n_views, n_det * ns), dtype=np.float32)
+        for pi, z in enumerate(planes):
+            _trace_plane(paths[:, pi], objs, z_ranges, fine, float(z))
+        if body_chords is not None:
+            paths[_SLOT["water"]] += body_chords[None]
+        trans = polychromatic_transmission(paths, beam.mu, beam.spectrum.weights)
+        del paths
+        # Detector-row integration: mean transmitted intensity of the sub-slices.
+        trans = trans.reshape(k1 - k0, s.sub_slices, s.n_views, n_det, ns).mean(axis=(1, 4))
+        # Kernel scatter needs every row of a view: keep the primary, detect after the loop.
+        sino[k0:k1] = trans if s.scatter_spr > 0 else _detect(trans, s, rng, beam.wcorr)
+        report(0.45 * k1 / s.n_slices)
+    if s.scatter_spr > 0:
+        _detect_with_kernel_scatter(sino, s, rng, beam.wcorr)
+    return sino
+
+
+def _trace_plane(
+    plane: F32, objs: list[Any], z_ranges: list[tuple[float, float]], fine: _Projector, z: float
+) -> None:
+    """Add the path length through each solid object that crosses the plane at height ``z``."""
+    for o, (zlo, zhi) in zip(objs, z_ranges, strict=True):
+        if not (zlo <= z <= zhi):
+            continue
+        if isinstance(o, _Sphere):
+            fine.add_sphere(plane, o, z)
+        elif isinstance(o, _Box):
+            fine.add_box(plane, o, z)
+        elif isinstance(o, _Cylinder):
+            fine.add_cylinder(plane, o, z)
+
+
+def _fov_mask(s: AcquisitionSettings) -> NDArray[np.bool_]:
+    """(rows, columns) the pixels inside the reconstructed field-of-view circle."""
+    x, y = _pixel_xy_mm(s)
+    return np.asarray(np.hypot(x, y) <= s.fov_radius_mm)
+
+
+def _pixel_xy_mm(s: AcquisitionSettings) -> tuple[F64, F64]:
+    jj, ii = np.mgrid[0 : s.rows, 0 : s.columns]
+    return (ii - (s.columns - 1) / 2.0) * s.pixel_mm, (jj - (s.rows - 1) / 2.0) * s.pixel_mm
+
+
+def _pixel_centres_mm(s: AcquisitionSettings, inside: NDArray[np.bool_]) -> F64:
+    """(n, 2) x, y of the pixels ``inside``, in the order :func:`fbp` returns them."""
+    x, y = _pixel_xy_mm(s)
+    return np.stack([x[inside], y[inside]], axis=1)
+
+
+def _to_hu(
+    mu_px: F32, inside: NDArray[np.bool_], s: AcquisitionSettings, wcorr: physics.WaterCorrection
+) -> NDArray[np.int16]:
+    """The reconstructed μ (pixels inside the FOV, per slice) → the HU volume: air outside the
+    FOV, the scanner's PSF, clipped to the stored range and rounded."""
+    mu_air = np.float32(wcorr.mu_ref_per_mm * (1.0 + HU_MIN / 1000.0))
+    vol = np.full((s.n_slices, s.rows, s.columns), mu_air, dtype=np.float32)
+    vol[:, inside] = mu_px.T
+    vol = _apply_psf(vol, s, inside, mu_air)
+    hu = (vol / np.float32(wcorr.mu_ref_per_mm) - 1.0) * 1000.0
+    np.clip(hu, HU_MIN, HU_MAX, out=hu)
+    hu_i: NDArray[np.int16] = np.rint(hu).astype(np.int16)
+    return hu_i
 
 
 def imaged_spheres(

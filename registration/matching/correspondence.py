@@ -519,6 +519,49 @@ def exhaustive_runner_ups(
         return []
     if tree is None:
         tree = cKDTree(image_mm)
+    robot_triples, image_triples = _congruent_triple_pairs(robot_mm, image_mm, pair_tol_mm)
+    if len(robot_triples) == 0:
+        return []
+    transforms = fit_rigid_batch(robot_mm[robot_triples], image_mm[image_triples])
+    centroid = robot_mm.mean(axis=0)
+    transforms, positions = _distinct_from_best(
+        transforms, centroid, best_image_from_robot, distinct_rotation_deg, distinct_translation_mm
+    )
+    if len(transforms) == 0:
+        return []
+    # count every pose before binning: two poses of one bin can differ by a sphere at the gate,
+    # and the bin must keep the one that explains the most (else the runner-up is understated)
+    n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
+    order = np.lexsort((rms, -n_in))
+    transforms, positions, n_in, rms = transforms[order], positions[order], n_in[order], rms[order]
+    rank = _best_of_each_bin(transforms, positions)
+    rank = rank[n_in[rank] >= MIN_HYPOTHESIS_INLIERS]
+    clusters = PoseClusters(centroid, distinct_rotation_deg, distinct_translation_mm)
+    for k in rank:
+        clusters.add(transforms[k], int(n_in[k]), float(rms[k]), 0)
+        if len(clusters.n_inliers) >= max_hypotheses:
+            break
+    log.debug(
+        "correspondence: exhaustive runner-up search, %d image × robot triple pairs, %d distinct poses",
+        len(robot_triples),
+        len(clusters.n_inliers),
+    )
+    return [
+        Hypothesis(
+            image_from_robot=clusters.transforms[i].copy(),
+            n_inliers=clusters.n_inliers[i],
+            rms_mm=clusters.rms_mm[i],
+            support=len(clusters.triples[i]),
+        )
+        for i in clusters.ranked()
+    ]
+
+
+def _congruent_triple_pairs(robot_mm: F64, image_mm: F64, pair_tol_mm: float) -> tuple[I64, I64]:
+    """Every (ordered robot triple, unordered image triple) whose three sides agree within
+    ``pair_tol_mm``: two ``(k, 3)`` index arrays, row for row (|ab|↔|ij| by ``searchsorted`` on the
+    sorted robot |ab|, then |ac|↔|ik| and |bc|↔|jk| as boolean masks)."""
+    n, m = len(robot_mm), len(image_mm)
     d_r = pairwise_distances(robot_mm)
     d_i = pairwise_distances(image_mm)
     abc = _ordered_triples(n)
@@ -532,33 +575,39 @@ def exhaustive_runner_ups(
     counts = hi - lo
     total = int(counts.sum())
     if total == 0:
-        return []
+        return np.empty((0, 3), dtype=np.int64), np.empty((0, 3), dtype=np.int64)
     img_rep = np.repeat(np.arange(len(ijk)), counts)
     starts = np.repeat(lo - (np.cumsum(counts) - counts), counts)
     rob = by_ab[np.arange(total) + starts]
     ok = (np.abs(d_r[abc[rob, 0], abc[rob, 2]] - d_i[ijk[img_rep, 0], ijk[img_rep, 2]]) < pair_tol_mm) & (
         np.abs(d_r[abc[rob, 1], abc[rob, 2]] - d_i[ijk[img_rep, 1], ijk[img_rep, 2]]) < pair_tol_mm
     )
-    rob, img_rep = rob[ok], img_rep[ok]
-    if len(rob) == 0:
-        return []
-    transforms = fit_rigid_batch(robot_mm[abc[rob]], image_mm[ijk[img_rep]])
-    centroid = robot_mm.mean(axis=0)
+    return abc[rob[ok]], ijk[img_rep[ok]]
+
+
+def _distinct_from_best(
+    transforms: F64,
+    centroid: F64,
+    best_image_from_robot: F64,
+    distinct_rotation_deg: float,
+    distinct_translation_mm: float,
+) -> tuple[F64, F64]:
+    """The poses not the same as the best (:func:`same_pose`, vectorised: the cosine of the rotation
+    angle between them, and the distance the robot centroid lands apart), with where each puts the
+    centroid."""
     positions = np.einsum("hij,j->hi", transforms[:, :3, :3], centroid) + transforms[:, :3, 3]
-    # not the best pose (same_pose, vectorised): cos of the rotation angle and centroid distance
     best_pos = best_image_from_robot[:3, :3] @ centroid + best_image_from_robot[:3, 3]
     cos = (np.einsum("kij,ij->k", transforms[:, :3, :3], best_image_from_robot[:3, :3]) - 1.0) / 2.0
     distinct = (cos < float(np.cos(np.radians(distinct_rotation_deg)))) | (
         np.linalg.norm(positions - best_pos, axis=1) > distinct_translation_mm
     )
-    transforms, positions = transforms[distinct], positions[distinct]
-    if len(transforms) == 0:
-        return []
-    # count every pose before binning: two poses of one bin can differ by a sphere at the gate,
-    # and the bin must keep the one that explains the most (else the runner-up is understated)
-    n_in, rms = _count_inliers(transforms, robot_mm, tree, gate_mm)
-    order = np.lexsort((rms, -n_in))
-    transforms, positions, n_in, rms = transforms[order], positions[order], n_in[order], rms[order]
+    return transforms[distinct], positions[distinct]
+
+
+def _best_of_each_bin(transforms: F64, positions: F64) -> I64:
+    """Indices of the first pose of each bin (:data:`EXHAUSTIVE_ROTATION_BIN`,
+    :data:`EXHAUSTIVE_POSITION_BIN_MM`), in input order: on poses sorted most inliers first then
+    lowest RMS, the best of each bin in that order."""
     keys = np.concatenate(
         [
             np.round(transforms[:, :3, :3].reshape(-1, 9) / EXHAUSTIVE_ROTATION_BIN),
@@ -567,24 +616,4 @@ def exhaustive_runner_ups(
         axis=1,
     )
     _, first = np.unique(keys, axis=0, return_index=True)
-    rank = np.sort(first)  # the best of each bin, most inliers first then lowest RMS
-    rank = rank[n_in[rank] >= MIN_HYPOTHESIS_INLIERS]
-    clusters = PoseClusters(centroid, distinct_rotation_deg, distinct_translation_mm)
-    for k in rank:
-        clusters.add(transforms[k], int(n_in[k]), float(rms[k]), 0)
-        if len(clusters.n_inliers) >= max_hypotheses:
-            break
-    log.debug(
-        "correspondence: exhaustive runner-up search, %d image × robot triple pairs, %d distinct poses",
-        len(rob),
-        len(clusters.n_inliers),
-    )
-    return [
-        Hypothesis(
-            image_from_robot=clusters.transforms[i].copy(),
-            n_inliers=clusters.n_inliers[i],
-            rms_mm=clusters.rms_mm[i],
-            support=len(clusters.triples[i]),
-        )
-        for i in clusters.ranked()
-    ]
+    return np.sort(first).astype(np.int64)

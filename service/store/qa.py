@@ -74,13 +74,6 @@ class QaStore:
                 (check.verification_id, check.protocol_id, check.pose),
             )
 
-    def check_of(self, verification_id: int) -> QaCheck | None:
-        rows = self._db.query("SELECT * FROM qa_checks WHERE verification_id = ?", (verification_id,))
-        if not rows:
-            return None
-        r = rows[0]
-        return QaCheck(int(r["verification_id"]), int(r["protocol_id"]), str(r["pose"]))
-
 
 def _protocol(r: sqlite3.Row) -> QaProtocol:
     poses = tuple(

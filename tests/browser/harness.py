@@ -13,7 +13,7 @@ import contextlib
 import os
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +22,7 @@ import httpx
 import numpy as np
 
 from tests.integration.fast_service import fast_overrides
-from tests.integration.polling import poll_until, wait_robot_still
+from tests.integration.polling import wait_for, wait_robot_still
 
 REPO = Path(__file__).resolve().parents[2]
 TOKEN = "browser-test-token-0123456789abcdef"
@@ -89,9 +89,6 @@ class Service:
     n_exports: int = 0
     scans: dict[str, int] = field(default_factory=dict)
 
-    def wait_for(self, pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-        return poll_until(pred, what, timeout_s, interval_s=0.05)
-
     def hold_at(self, q: tuple[float, ...]) -> None:
         if not np.allclose(self.robot.joints_rad_at(), q, atol=1e-9):
             self.robot.move_to(q, duration_s=0.01)
@@ -117,7 +114,7 @@ class Service:
         def find() -> dict[str, Any] | None:
             return next((s for s in self.client.get("/scans").json() if s["series_uid"] == uid), None)
 
-        return self.wait_for(find, f"scan {uid} to be recorded")  # type: ignore[no-any-return]
+        return wait_for(find, f"scan {uid} to be recorded")  # type: ignore[no-any-return]
 
     def register(self, scan_id: int) -> httpx.Response:
         return self.client.post("/register", json={"scan_id": scan_id})
@@ -165,7 +162,7 @@ def build_history(svc: Service, world: World) -> dict[str, Any]:
     j6_start = svc.robot.joints_rad_at()[5]
     svc.robot.move_to(Q2, duration_s=6.0)  # still moving while the series is exported and settles
     # the minimum-jerk profile starts slowly: export once J6 has clearly left (20 × the stillness gate)
-    svc.wait_for(lambda: abs(svc.robot.joints_rad_at()[5] - j6_start) > 0.01, "the robot to start moving")
+    wait_for(lambda: abs(svc.robot.joints_rad_at()[5] - j6_start) > 0.01, "the robot to start moving")
     uid, _ = svc.export(world.scan1, "moving")
     moving = svc.scan(uid)
     assert not moving["joints"]["still"], moving

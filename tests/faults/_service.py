@@ -22,18 +22,13 @@ import numpy as np
 import pytest
 
 from tests.integration.fast_service import fast_overrides
-from tests.integration.polling import poll_until, wait_robot_still
+from tests.integration.polling import wait_for, wait_robot_still
 
 REPO = Path(__file__).resolve().parents[2]
 TOKEN = "fault-suite-token-0123456789abcdef"
 WINDOW_S = 0.6
 DEADLINE_S = 60.0
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
-
-
-def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
-    return poll_until(pred, what, timeout_s, interval_s=0.05)
 
 
 def overrides(watch: Path, data: Path, link_url: str, **kw: Any) -> dict[str, Any]:

@@ -19,7 +19,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -37,6 +37,7 @@ from tests.faults.conftest import (
     read_response,
     serve,
 )
+from tests.integration.polling import wait_for
 
 N_POLLERS = 50
 POLLS_EACH = 20
@@ -45,16 +46,6 @@ WINDOW_S = 0.6
 DEADLINE_S = 60.0
 PATIENT = {"PatientName": "Doe^Jane^Q", "PatientID": "PID-778899", "PatientBirthDate": "19610417"}
 IDENTIFIERS = ("Doe^Jane", "Doe", "PID-778899", "19610417")
-
-
-def wait_for(pred: Callable[[], Any], what: str) -> Any:
-    deadline = time.monotonic() + DEADLINE_S
-    ev = threading.Event()
-    while (v := pred()) is None or v is False:
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {DEADLINE_S} s waiting for {what}")
-        ev.wait(0.05)
-    return v
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from pynetdicom import AE
 from drivers.dicom_scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event
-from tests.integration.polling import poll_until
+from tests.integration.polling import wait_for
 
 E = TypeVar("E", bound=Event)
 
@@ -30,11 +30,6 @@ DEADLINE_S = 60.0
 AE_TITLE = "OARMREG"
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 IMAGE_FROM_PHANTOM_1 = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-
-
-def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
-    return poll_until(pred, what, timeout_s, interval_s=0.02)
 
 
 @dataclass

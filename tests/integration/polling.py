@@ -9,6 +9,8 @@ from collections.abc import Callable
 from typing import Any
 
 DEADLINE_S = 5.0
+SERVICE_DEADLINE_S = 60.0
+"""How long the service tests wait for a state change (a loaded 2-core CI machine)."""
 
 
 async def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
@@ -33,6 +35,13 @@ def poll_until(pred: Callable[[], Any], what: str, timeout_s: float, interval_s:
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         tick.wait(interval_s)
+
+
+def wait_for(
+    pred: Callable[[], Any], what: str, timeout_s: float = SERVICE_DEADLINE_S, interval_s: float = 0.05
+) -> Any:
+    """:func:`poll_until` with the service tests' deadline: the truthy value ``pred`` returned."""
+    return poll_until(pred, what, timeout_s, interval_s)
 
 
 def wait_robot_still(client: Any, robot: Any, window_s: float, timeout_s: float) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from registration.model import frames
-from tests.integration.polling import poll_until
+from tests.integration.polling import wait_for
 
 TOKEN = "calibration-test-token-0123456789"
 WINDOW_S = 0.6
@@ -36,11 +36,6 @@ N_POSES = 8
 START_JOINTS_RAD = (0.2, -0.15, 1.75, 0.3, 0.6, -0.9)
 FOR_UID = "1.2.826.0.1.3680043.8.498.77"
 OTHER_FOR_UID = "1.2.826.0.1.3680043.8.498.78"
-
-
-def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
-    return poll_until(pred, what, timeout_s, interval_s=0.05)
 
 
 @dataclass
@@ -86,13 +81,13 @@ def _scan_at(
         st = client.get("/status").json()["link"]
         return st["state"] == "connected" and st["history_s"] > WINDOW_S and time.monotonic() > end
 
-    wait_for(still, "the robot to be still")
+    wait_for(still, "the robot to be still", DEADLINE_S)
     series = _export(make_scan(q), watch, name, uid)
 
     def recorded() -> Any:
         return next((s for s in client.get("/scans").json() if s["series_uid"] == series), None)
 
-    s = wait_for(recorded, f"scan {name} to be recorded")
+    s = wait_for(recorded, f"scan {name} to be recorded", DEADLINE_S)
     assert s["status"] == "complete" and s["joints"]["still"], s
     return int(s["id"])
 
@@ -273,6 +268,7 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
             c.get(f"/scans/{victim_scan['id']}").json()
         ),
         "the changed scan to be judged again",
+        DEADLINE_S,
     )
     nominal_again = c.post("/register", json={"scan_id": rejudged["id"]})
     assert nominal_again.status_code == 200, nominal_again.text

@@ -36,7 +36,7 @@ from service.events import (
     IgtlClientHeaderVersion,
     RegistrationRefused,
 )
-from tests.integration.polling import poll_until
+from tests.integration.polling import wait_for
 
 E = TypeVar("E", bound=Event)
 
@@ -53,11 +53,6 @@ RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 STORESCU, ECHOSCU, DCIODVFY, CURL, OPENSSL = (
     shutil.which(n) for n in ("storescu", "echoscu", "dciodvfy", "curl", "openssl")
 )
-
-
-def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
-    return poll_until(pred, what, timeout_s, interval_s=0.02)
 
 
 def make_tls(folder: Path) -> tuple[Path, Path, Path]:

@@ -20,7 +20,7 @@ import shutil
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,7 @@ import pytest
 
 from registration.model.frames import apply, invert, transform_from_xyz_rpy
 from tests.integration.fast_service import fast_overrides
-from tests.integration.polling import poll_until, wait_robot_still
+from tests.integration.polling import wait_for, wait_robot_still
 
 TOKEN = "integration-test-token-0123456789"
 WINDOW_S = 0.6
@@ -42,11 +42,6 @@ TRE_LIMIT_MM = 0.15
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 Q2 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.3)  # J6 +0.3 rad: the phantom turns about its own axis
 IMAGE_FROM_PHANTOM_1 = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-
-
-def wait_for(pred: Callable[[], Any], what: str, timeout_s: float = DEADLINE_S) -> Any:
-    """Poll ``pred`` until truthy (:func:`tests.integration.polling.poll_until`)."""
-    return poll_until(pred, what, timeout_s, interval_s=0.05)
 
 
 @dataclass
@@ -88,6 +83,8 @@ class Service:
     data: Path
     n_exports: int = 0
     baseline_scan_id: int | None = None
+    ctx: Any = None
+    """The app's :class:`service.context.ServiceContext` (its event bus)."""
 
     def export(
         self, scan: Any, name: str, *, series_uid: str | None = None, drop_slice: int | None = None
@@ -161,7 +158,7 @@ def svc(tmp_path_factory: pytest.TempPathFactory, world: World) -> Iterator[Serv
                 base_url=server.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60.0
             ) as client,
         ):
-            s = Service(server.base_url, client, robot, mock, settings, watch, data)
+            s = Service(server.base_url, client, robot, mock, settings, watch, data, ctx=app.state.ctx)
             s.wait_still()
             yield s
 
@@ -284,6 +281,59 @@ def test_current_registration_fast_path_matches_the_route(svc: Service, baseline
         assert_problem(anon.get("/registration/current", headers={"Authorization": f"Basic {TOKEN}"}), 401)
         prefix = {"Authorization": f"Bearer {TOKEN[:-1]}"}
         assert_problem(anon.get("/registration/current", headers=prefix), 401)
+
+
+def test_a_raising_listener_breaks_nothing_and_a_failing_safety_one_holds_readiness(
+    svc: Service, baseline: Baseline
+) -> None:
+    """Issue #35: listeners that raise on ``registration_done`` leave POST /register a 200 with the
+    registration current, the listener after them still runs, the failures are counted on
+    /status; a failing safety listener makes /ready 503 until its next call succeeds."""
+    from service.events import RegistrationDone
+
+    bus = svc.ctx.bus
+    duty_fails = True
+    seen_after: list[int] = []
+
+    def buggy(event: RegistrationDone) -> None:
+        raise RuntimeError("a listener bug (test)")
+
+    def duty(event: RegistrationDone) -> None:
+        if duty_fails:
+            raise OSError("the safety duty could not be done (test)")
+
+    def after(event: RegistrationDone) -> None:
+        seen_after.append(event.registration_id)
+
+    bus.listen(RegistrationDone, buggy)
+    bus.listen(RegistrationDone, duty, safety=True)
+    bus.listen(RegistrationDone, after)
+    try:
+        r = svc.client.post("/register", json={"scan_id": baseline.scan_id})
+        assert r.status_code == 200, r.text
+        reg_id = r.json()["id"]
+        assert svc.client.get("/registration/current").json()["id"] == reg_id
+        assert seen_after == [reg_id]
+        counted = {
+            f["listener"].rsplit(".", 1)[-1]: f
+            for f in svc.client.get("/status").json()["listeners"]["event_bus_failures"]
+        }
+        assert counted["buggy"]["failures"] == 1 and not counted["buggy"]["safety"]
+        assert counted["buggy"]["last_error"] == "RuntimeError: a listener bug (test)"
+        assert counted["duty"]["safety"] and counted["duty"]["failing"]
+        ready = svc.client.get("/ready")
+        assert ready.status_code == 503, ready.text
+        assert "safety-listener-failing" in [p["type"] for p in ready.json()["problems"]]
+
+        duty_fails = False
+        again = svc.client.post("/register", json={"scan_id": baseline.scan_id})
+        assert again.status_code == 200, again.text
+        ready = svc.client.get("/ready")
+        assert "safety-listener-failing" not in [p["type"] for p in ready.json()["problems"]], ready.text
+        assert seen_after == [reg_id, again.json()["id"]]
+    finally:
+        for fn in (buggy, duty, after):
+            bus.unlisten(RegistrationDone, fn)
 
 
 def test_concurrent_register_calls_give_consistent_records(svc: Service, baseline: Baseline) -> None:

@@ -1,4 +1,4 @@
-"""registration.edge_profile: padding never leaks into a profile, crossings are where they are."""
+"""registration.detection.fov: padding never leaks into a profile, crossings are where they are."""
 
 from __future__ import annotations
 
