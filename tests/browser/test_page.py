@@ -253,6 +253,9 @@ def test_verifications_show_the_gate_line_and_the_verdict(
     assert v.status_code == 200, v.text
     failed = v.json()
     assert not failed["passed"] and failed["max_mm"] > failed["gate_mm"]
+    # a failed verification withdraws the registration it verified (issue #31): nothing is current
+    gone = s.client.get("/registration/current")
+    assert gone.status_code == 409 and gone.json()["verification_id"] == failed["id"], gone.text
     listed = s.client.get("/verifications", params={"limit": 100}).json()
     assert [x["id"] for x in listed] == sorted((x["id"] for x in listed), reverse=True)
 
@@ -274,6 +277,7 @@ def test_verifications_show_the_gate_line_and_the_verdict(
         p.click(f"#verifications-body tr[data-verification='{passed['id']}']")
         p.wait_for_selector(f"#ver-title[data-verdict='PASS']:has-text('Verification {passed['id']}')")
         assert "PASS" in p.text_content("#ver-chart")
+    _current(s)  # leave a current registration for the other tests
     assert_clean(w)
 
 
