@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from registration.errors import OarmRegError, RegistrationError
+from registration.errors import AccuracyGateError, OarmRegError, RegistrationError
 
 
 class NotFoundError(OarmRegError):
@@ -25,6 +25,27 @@ class NoCurrentRegistrationError(RegistrationError):
 
 class VerificationRefusedError(RegistrationError):
     title = "Verification refused"
+
+
+class SupersededScanError(RegistrationError):
+    """``POST /register`` of a scan the service already has newer evidence against: a newer scan at the
+    same placement has an accepted registration or a failed verification, or a verification withdrew
+    this scan's own registration (docs/safety.md, "Which registration may be current")."""
+
+    title = "Superseded by a newer scan"
+
+    def __init__(self, message: str, *, newer_scan_id: int, rule: str) -> None:
+        super().__init__(message)
+        self.newer_scan_id = newer_scan_id
+        self.rule = rule
+
+
+class VerificationUncomputableError(AccuracyGateError):
+    """The verification scan's spheres lie further from the registration's predictions than matching
+    can bridge: the error is beyond the gate by more than can be measured; the registration is
+    withdrawn (docs/safety.md)."""
+
+    title = "Verification failed: error beyond matching"
 
 
 class InternalError(OarmRegError):

@@ -183,13 +183,23 @@ class RegistrationRefused(Event):
 
 @dataclass(frozen=True, kw_only=True)
 class RegistrationWithdrawn(Event):
-    """Registrations made from a scan that was reopened (incomplete when registered) or changed."""
+    """Registrations withdrawn: made from a scan that was reopened (incomplete when registered) or
+    changed, or (``verification_scan_id`` set) the current one, whose verification failed its gate
+    or could not be computed (docs/safety.md).  With ``was_current`` nothing is current any more:
+    every push channel says INVALID (:attr:`service.orchestrator.Orchestrator.current` is None)."""
 
     name: ClassVar[str] = "registration_withdrawn"
     registration_ids: tuple[int, ...]
     scan_id: int
+    """The scan the registrations were made from."""
     was_current: bool
     reason: str
+    verification_scan_id: int | None = None
+    """The verification scan that withdrew it (absent: a scan withdrawal)."""
+    verification_id: int | None = None
+    """The stored failed verification (absent: a scan withdrawal, or a verification that could not be
+    computed)."""
+    omitted_when_none: ClassVar[frozenset[str]] = frozenset({"verification_scan_id", "verification_id"})
 
 
 @dataclass(frozen=True, kw_only=True)

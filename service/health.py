@@ -170,6 +170,21 @@ def bus_listener_problems(ctx: ServiceContext) -> list[HealthProblem]:
     ]
 
 
+def registration_withdrawn_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """A verification withdrew the registration and nothing has been made current since: navigation
+    has no registration it may use (docs/safety.md, "Which registration may be current")."""
+    w = ctx.orchestrator.withdrawal
+    if w is None:
+        return []
+    return [
+        HealthProblem(
+            "registration-withdrawn",
+            "Registration withdrawn by a failed verification",
+            f"{w.describe()}; {w.action}",
+        )
+    ]
+
+
 PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     database_problems,
     robot_link_problems,
@@ -180,6 +195,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     retention_problems,
     qa_drift_problems,
     bus_listener_problems,
+    registration_withdrawn_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""
 

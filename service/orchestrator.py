@@ -7,6 +7,12 @@ Every outcome is stored: a refusal (robot moved, robot link down, too few sphere
 ambiguous, FRE over the gate, bad scan) becomes a ``refused`` registration with the
 reason, the exception is re-raised (the API answers problem details) and the previous
 current registration stays current.
+
+Which registration may be current is a rule (docs/safety.md, "Which registration may be current"):
+a verification that fails its gate, or cannot be computed because the error is beyond what matching
+can bridge, withdraws the registration it verified (never a calibration); a scan the service already
+has newer evidence against (:meth:`service.store.registrations.RegistrationStore.supersession`) is
+refused unless the request overrides it explicitly (audited by the API).
 """
 
 from __future__ import annotations
@@ -15,9 +21,9 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,21 +34,24 @@ from registration.calibration.records import (
     chain_error_figure,
 )
 from registration.detection import params_for_spheres
-from registration.errors import DicomSeriesError, OarmRegError
+from registration.errors import DicomSeriesError, OarmRegError, TooFewSpheresError
 from registration.imaging.scan_geometry import series_geometry
 from registration.matching.records import (
     RegistrationParams,
 )
+from registration.matching.verification import verify_registration
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
-from registration.pipeline import PipelineParams, register_scan, verify_scan
+from registration.pipeline import PipelineParams, locate_spheres, register_scan
 from service.error_map import http_status_of, title_of
 from service.errors import (
     InternalError,
     NoCurrentRegistrationError,
     NoScanError,
     NotFoundError,
+    SupersededScanError,
     VerificationRefusedError,
+    VerificationUncomputableError,
 )
 from service.events import (
     CalibrationDeactivated,
@@ -67,7 +76,7 @@ from service.scan_checks import check_capture
 from service.settings import Settings
 from service.store import Database
 from service.store.base import utc_now
-from service.store.registrations import DerivedWithdrawal
+from service.store.registrations import DerivedWithdrawal, Supersession
 from service.volume_cache import VolumeCache
 
 log = logging.getLogger(__name__)
@@ -90,6 +99,93 @@ def pipeline_params(settings: Settings, phantom: Phantom) -> PipelineParams:
         ),
         default_target_distance_mm=q.default_target_distance_mm,
     )
+
+
+LikelyCause = Literal["cell-not-calibrated", "phantom-or-oarm-moved"]
+
+
+@dataclass(frozen=True)
+class VerificationWithdrawal:
+    """Why nothing is current: a verification withdrew the registration (docs/safety.md).  What
+    ``/registration/current`` (409), ``/ready`` and the page say, with the likely cause and the action."""
+
+    registration_id: int
+    verification_scan_id: int
+    verification_id: int | None
+    """None: the verification could not be computed (the error is beyond what matching can bridge)."""
+    reason: str
+    withdrawn_at: str
+    predicted_chain_error_mm: float | None
+    """The withdrawn registration's expected error at the robot's other poses."""
+    calibrated: bool
+    """Whether an active calibration backed that figure (else the nominal model's prior)."""
+    gate_mm: float
+    likely_cause: LikelyCause
+    cause: str
+    action: str
+
+    def describe(self) -> str:
+        return f"registration {self.registration_id} was withdrawn: {self.reason}. Likely cause: {self.cause}"
+
+
+def verification_withdrawal(rec: RegistrationRecord, gate_mm: float) -> VerificationWithdrawal:
+    """The likely cause of ``rec``'s withdrawal by a verification and what to do.
+
+    Cell not calibrated when the registration's own expected error at other poses
+    (``predicted_chain_error_mm``) is at or above the gate: a verification at another pose is then
+    expected to fail whatever else happened.  Otherwise the chain should have held: the phantom was
+    knocked on its rod or the O-arm moved since the registration scan."""
+    assert rec.withdrawn_by_scan is not None
+    fig = rec.figures
+    chain = None if fig is None else fig.predicted_chain_error_mm
+    cal = None if fig is None else fig.provenance.get("calibration")
+    calibrated = isinstance(cal, dict) and cal.get("calibration_id") is not None
+    if chain is not None and chain >= gate_mm:
+        backed = (
+            f"calibration {cal['calibration_id']}'s posterior figure" if calibrated and isinstance(cal, dict)
+            else "the nominal model's prior: the cell is not calibrated"
+        )  # fmt: skip
+        cause: LikelyCause = "cell-not-calibrated"
+        why = (
+            f"cell not calibrated: the registration's expected error at the robot's other poses is "
+            f"{chain:.2f} mm ({backed}), at or above the {gate_mm:g} mm gate, so a verification at "
+            "another pose is expected to fail"
+        )
+        action = (
+            "calibrate the cell (docs/calibration.md: POST /calibrations with a calibration session's "
+            "scans), activate the calibration, then scan the phantom and register again"
+        )
+    else:
+        cause = "phantom-or-oarm-moved"
+        why = (
+            "phantom knocked or O-arm moved since the registration scan (the registration's expected "
+            f"error at other poses, {'unknown' if chain is None else f'{chain:.2f} mm'}, is below the "
+            f"{gate_mm:g} mm gate)"
+        )
+        action = (
+            "check the phantom's mount on the rod and the O-arm's placement, scan the phantom again "
+            "and register the new scan"
+        )
+    return VerificationWithdrawal(
+        registration_id=rec.id,
+        verification_scan_id=rec.withdrawn_by_scan,
+        verification_id=rec.withdrawn_by_verification,
+        reason=rec.reason,
+        withdrawn_at=rec.withdrawn_at or "",
+        predicted_chain_error_mm=chain,
+        calibrated=calibrated,
+        gate_mm=gate_mm,
+        likely_cause=cause,
+        cause=why,
+        action=action,
+    )
+
+
+@dataclass(frozen=True)
+class SupersededOverride:
+    """``POST /register`` with ``allow_superseded``: the reason the request gave (audited)."""
+
+    reason: str
 
 
 class Orchestrator:
@@ -124,6 +220,10 @@ class Orchestrator:
         the nominal model and rod of the settings); named in every registration's provenance."""
         self._lock = threading.Lock()
         self._current: RegistrationRecord | None = db.registrations.current()
+        self._withdrawn_by_verification: RegistrationRecord | None = (
+            db.registrations.standing_verification_withdrawal()
+        )
+        """The registration a failed verification withdrew, while that is why nothing is current."""
         self.busy = False
         if self._current is not None:
             log.info(
@@ -137,6 +237,14 @@ class Orchestrator:
     def current(self) -> RegistrationRecord | None:
         """The current (accepted) registration record, or None (atomic reference read)."""
         return self._current
+
+    @property
+    def withdrawal(self) -> VerificationWithdrawal | None:
+        """Why nothing is current when a verification withdrew the registration (None otherwise)."""
+        w = self._withdrawn_by_verification
+        if w is None or self._current is not None:
+            return None
+        return verification_withdrawal(w, self.settings.quality.max_verification_error_mm)
 
     def use_calibration(
         self,
@@ -158,6 +266,7 @@ class Orchestrator:
             )  # fmt: skip
             if activate is not None:
                 self._current = None
+                self._withdrawn_by_verification = None  # the action it asked for may be this one
             return out
 
     @property
@@ -165,6 +274,9 @@ class Orchestrator:
         """Why nothing is current: the newest withdrawal's reason if that is why, else ``""``."""
         if self._current is not None:
             return ""
+        v = self.withdrawal
+        if v is not None:
+            return v.describe()
         w = self.db.registrations.latest_withdrawn()
         return "" if w is None else f"registration {w.id} was withdrawn: {w.reason}"
 
@@ -176,6 +288,7 @@ class Orchestrator:
             ids, was_current = self.db.registrations.withdraw_for_scan(scan_id, reason)
             if was_current or (self._current is not None and self._current.id in ids):
                 self._current = None
+                self._withdrawn_by_verification = None  # this withdrawal is the newer reason
             derived = self.db.registrations.withdraw_derived(scan_id, reason)
             if derived.deactivated_calibration_id is not None:  # back to the nominal model and rod
                 self.robot_model, self.tool0_from_phantom, self.calibration = self._nominal
@@ -245,11 +358,19 @@ class Orchestrator:
     # ---- register -------------------------------------------------------------------------
 
     def register(
-        self, scan_id: int | None = None, targets_image_mm: Sequence[Sequence[float]] | None = None
+        self,
+        scan_id: int | None = None,
+        targets_image_mm: Sequence[Sequence[float]] | None = None,
+        *,
+        override: SupersededOverride | None = None,
     ) -> RegistrationRecord | RegistrationRefusal:
         """Run the pipeline; return the stored accepted record, or the refusal (stored too, as
         ``refused``, its record id in :attr:`RegistrationRefusal.registration_id`; a bug is an
         :class:`~service.errors.InternalError` refusal, answered 500).
+
+        A scan the service has newer evidence against is refused (:class:`SupersededScanError`)
+        unless ``override`` is given; then the accepted record's provenance names what was overridden
+        and why (``superseded_override``).
 
         Raises
         ------
@@ -259,14 +380,18 @@ class Orchestrator:
         with self._lock:
             self.busy = True
             try:
-                return self._register_locked(scan_id, targets_image_mm)
+                return self._register_locked(scan_id, targets_image_mm, override)
             finally:
                 self.busy = False
 
     def _register_locked(
-        self, scan_id: int | None, targets_image_mm: Sequence[Sequence[float]] | None
+        self,
+        scan_id: int | None,
+        targets_image_mm: Sequence[Sequence[float]] | None,
+        override: SupersededOverride | None,
     ) -> RegistrationRecord | RegistrationRefusal:
         scan = self._resolve_scan(scan_id)
+        superseded = self.db.registrations.supersession(scan.id, scan.frame_of_reference_uid)
         t0 = time.perf_counter()
         snap = scan.snapshot
         draft = RegistrationRecord(
@@ -280,8 +405,12 @@ class Orchestrator:
             joints_rad=None if snap is None else snap.joints_rad,
             joints_received_at=None if snap is None else snap.joints_received_at,
         )
+        if superseded is not None and override is None:
+            return self._store_refusal(draft, superseded_error(scan, superseded), t0)
         try:
             accepted = self._compute(scan, draft, targets_image_mm)
+            if superseded is not None and override is not None:
+                accepted = _overridden(accepted, superseded, override)
         except (OarmRegError, RobotLinkError) as e:
             return self._store_refusal(draft, e, t0)
         except Exception as e:  # a bug: store it as refused, answer 500
@@ -305,6 +434,7 @@ class Orchestrator:
         stored = self.db.registrations.get(reg_id)
         assert stored is not None and stored.figures is not None
         self._current = stored
+        self._withdrawn_by_verification = None
         log.info(
             "registration %d accepted: scan %d (series %s), FRE %.3f mm, %d/%d spheres matched, %.2f s",
             reg_id, scan.id, scan.series_uid, stored.fre_mm, stored.figures.n_matched,
@@ -432,15 +562,19 @@ class Orchestrator:
                 f"{current.id}; move the robot, scan again and verify against that scan"
             )
         snap, joints_rad = check_capture(scan, self.settings.stillness.window_s)
-        spheres, res = verify_scan(
-            self.volumes.load(scan),
-            joints_rad,
-            self.robot_model,
-            self.tool0_from_phantom,
-            self.phantom,
-            np.asarray(current.image_from_robot, dtype=np.float64),
-            self.params,
-        )
+        spheres = locate_spheres(
+            self.volumes.load(scan), joints_rad, self.robot_model, self.tool0_from_phantom, self.phantom,
+            self.params.detection,
+        )  # fmt: skip
+        image_from_robot = np.asarray(current.image_from_robot, dtype=np.float64)
+        try:
+            res = verify_registration(
+                image_from_robot, spheres.robot_mm, spheres.image_mm, params=self.params.registration
+            )
+        except TooFewSpheresError as e:
+            if len(spheres.image_mm) < self.params.registration.min_matched:
+                raise  # the scan shows too few spheres: evidence about the scan, not the registration
+            raise self._withdraw_uncomputable(current, scan, e) from e
         gate = self.settings.quality.max_verification_error_mm
         record = VerificationRecord(
             created_at=utc_now(),
@@ -455,7 +589,16 @@ class Orchestrator:
             config_hash=self.config_hash,
             software_version=__version__,
         )
-        ver_id = self.db.verifications.insert(record)
+
+        def withdraw_reason(ver_id: int) -> str:
+            return (
+                f"verification {ver_id} (scan {scan.id}) failed its gate: max {record.max_mm:.3f} mm > "
+                f"{gate:g} mm (quality.max_verification_error_mm)"
+            )
+
+        ver_id = self.db.verifications.insert(record, withdraw_reason=withdraw_reason)
+        if not record.passed:
+            self._current = None
         self._write_histogram(
             ver_id, scan.id, current.id, np.asarray(res.errors_mm, dtype=np.float64), gate_mm=gate
         )
@@ -471,7 +614,44 @@ class Orchestrator:
                 passed=record.passed,
             )
         )
+        if not record.passed:
+            self._published_withdrawal(current.id, withdraw_reason(ver_id))
         return stored
+
+    def _withdraw_uncomputable(
+        self, current: RegistrationRecord, scan: ScanRecord, e: TooFewSpheresError
+    ) -> VerificationUncomputableError:
+        """Withdraw ``current``: its verification on ``scan`` could not be computed (the spheres lie
+        beyond what matching can bridge); the error to raise."""
+        reason = f"the verification of scan {scan.id} could not be computed ({e})"
+        self.db.registrations.withdraw_for_verification(
+            current.id, reason, scan_id=scan.id, verification_id=None
+        )
+        self._current = None
+        w = self._published_withdrawal(current.id, reason)
+        return VerificationUncomputableError(
+            f"{reason}; registration {current.id} is withdrawn: likely cause: {w.cause}; {w.action}"
+        )
+
+    def _published_withdrawal(self, reg_id: int, reason: str) -> VerificationWithdrawal:
+        """After the store withdrew ``reg_id`` (the current one) by a verification: remember why, log,
+        publish ``registration_withdrawn`` (the push channels read :attr:`current`, now None)."""
+        rec = self.db.registrations.get(reg_id)
+        assert rec is not None and rec.withdrawn_by_scan is not None and rec.scan_id is not None
+        self._withdrawn_by_verification = rec
+        w = verification_withdrawal(rec, self.settings.quality.max_verification_error_mm)
+        log.warning("%s; nothing is current; %s", w.describe(), w.action)
+        self.publish(
+            RegistrationWithdrawn(
+                registration_ids=(reg_id,),
+                scan_id=rec.scan_id,
+                was_current=True,
+                reason=reason,
+                verification_scan_id=w.verification_scan_id,
+                verification_id=w.verification_id,
+            )
+        )
+        return w
 
     def _write_histogram(
         self, ver_id: int, scan_id: int, reg_id: int, errors_mm: NDArray[np.float64], *, gate_mm: float
@@ -484,6 +664,44 @@ class Orchestrator:
             self.db.verifications.set_histogram(ver_id, str(png))
         except Exception:
             log.exception("verification %d: writing the histogram %s failed", ver_id, png)
+
+
+def superseded_error(scan: ScanRecord, why: Supersession) -> SupersededScanError:
+    """The refusal of registering ``scan`` (docs/safety.md, "Which registration may be current")."""
+    if why.rule == "withdrawn":
+        msg = (
+            f"scan {scan.id} may not be registered again: {why.detail}, so its matrix is known to be "
+            f"wrong; check the phantom's mount and the O-arm, scan again and register the new scan"
+        )
+    else:
+        msg = (
+            f"scan {scan.id} is superseded: {why.detail} (FrameOfReferenceUID "
+            f"{scan.frame_of_reference_uid}); register scan {why.scan_id} or a new scan instead"
+        )
+    return SupersededScanError(
+        f"{msg} (to make scan {scan.id}'s registration current anyway, send allow_superseded: true with "
+        "a reason; it is audited)",
+        newer_scan_id=why.scan_id,
+        rule=why.rule,
+    )
+
+
+def _overridden(
+    accepted: RegistrationRecord, why: Supersession, override: SupersededOverride
+) -> RegistrationRecord:
+    """``accepted`` with the override named in its provenance (stored with the record)."""
+    assert accepted.figures is not None
+    prov = {
+        **accepted.figures.provenance,
+        "superseded_override": {
+            "rule": why.rule, "newer_scan_id": why.scan_id, "detail": why.detail, "reason": override.reason,
+        },
+    }  # fmt: skip
+    log.warning(
+        "scan %s registered although superseded (%s), by request: %s", accepted.scan_id, why.detail,
+        override.reason,
+    )  # fmt: skip
+    return replace(accepted, figures=replace(accepted.figures, provenance=prov))
 
 
 def write_histogram(

@@ -288,6 +288,10 @@ class RegistrationRecord:
     retired_by_calibration: int | None = None
     withdrawn_at: str | None = None
     """When it stopped being usable (status ``withdrawn``; ``reason`` says why)."""
+    withdrawn_by_scan: int | None = None
+    """The verification scan whose failed verification withdrew it (None: not withdrawn by one)."""
+    withdrawn_by_verification: int | None = None
+    """That stored verification (None: its error was beyond what matching can bridge, nothing stored)."""
 
 
 # ---- verifications -------------------------------------------------------------------------

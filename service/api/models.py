@@ -20,6 +20,7 @@ from pydantic import (
     StrictInt,
     computed_field,
     field_validator,
+    model_validator,
 )
 
 from service.records import RegistrationRecord, ScanRecord, VerificationRecord
@@ -76,6 +77,29 @@ class RegisterRequest(BaseModel):
         ),
         max_length=1000,
     )
+
+    allow_superseded: bool = Field(
+        default=False,
+        description="Register and make current even though the service has newer evidence against this "
+        "scan (a newer scan at the same FrameOfReferenceUID has an accepted registration or a failed "
+        "verification, or a verification withdrew this scan's registration: docs/safety.md, \"Which "
+        'registration may be current").  Needs `reason`; audited.',
+    )
+    reason: str | None = Field(
+        default=None,
+        min_length=3,
+        max_length=500,
+        description="Why `allow_superseded` is used (stored in the audit log and the registration's "
+        "provenance).",
+    )
+
+    @model_validator(mode="after")
+    def _override_needs_a_reason(self) -> RegisterRequest:
+        if self.allow_superseded and not (self.reason or "").strip():
+            raise ValueError("allow_superseded: true needs a reason (why the newer evidence does not apply)")
+        if self.reason is not None and not self.allow_superseded:
+            raise ValueError("reason is only taken with allow_superseded: true")
+        return self
 
     @field_validator("targets_mm")
     @classmethod
@@ -227,6 +251,53 @@ class SphereResidual(_Out):
     residual_mm: float
 
 
+ONE_SCAN_TRE_LABEL = "one-scan TRE, this pose only"
+"""What Fitzpatrick's predicted TRE of one scan is: the error at the scan's own pose, not elsewhere."""
+
+
+class ExpectedErrorOut(_Out):
+    """The honest figure first: what the registration is expected to deliver where the robot works."""
+
+    predicted_chain_error_mm: float | None = Field(
+        description="Expected error at the robot's working poses (mm RMS): the active calibration's "
+        "posterior figure, or the nominal model's prior when the cell is not calibrated."
+    )
+    calibrated: bool = Field(description="Whether an active calibration backs that figure.")
+    calibration_id: int | None = None
+    basis: str = Field(description="Where the figure comes from, in words.")
+    one_scan_tre_max_mm: float | None = Field(
+        default=None,
+        description="Fitzpatrick's predicted TRE of this one scan, max over the targets: valid at this "
+        "pose only (the chain's error at other poses is not in it).",
+    )
+    one_scan_tre_label: str = ONE_SCAN_TRE_LABEL
+
+
+def expected_error_of(rec: RegistrationRecord) -> ExpectedErrorOut | None:
+    """The honest figures of an accepted (or once accepted) registration; None without figures."""
+    fig = rec.figures
+    if fig is None:
+        return None
+    cal = fig.provenance.get("calibration")
+    cal_id = cal.get("calibration_id") if isinstance(cal, dict) else None
+    calibrated = cal_id is not None
+    chain = fig.predicted_chain_error_mm
+    source = fig.chain_error_source or ("calibration posterior" if calibrated else "nominal model prior")
+    basis = (
+        f"calibration {cal_id} backs it ({source})"
+        if calibrated
+        else f"the cell is not calibrated: {source}; expect about this error at poses other than the "
+        "registration scan's"
+    )
+    return ExpectedErrorOut(
+        predicted_chain_error_mm=chain,
+        calibrated=calibrated,
+        calibration_id=None if cal_id is None else int(cal_id),
+        basis=basis,
+        one_scan_tre_max_mm=max(fig.predicted_tre_mm) if fig.predicted_tre_mm else None,
+    )
+
+
 class RegistrationOut(_Out):
     model_config = ConfigDict(
         json_schema_extra={
@@ -254,9 +325,22 @@ class RegistrationOut(_Out):
         }
     )
 
+    expected_error: ExpectedErrorOut | None = Field(
+        default=None,
+        description="First, the honest figure: the expected error at the robot's working poses and "
+        "whether a calibration backs it; then the one-scan TRE, labelled as valid at this pose only "
+        "(null for a refused registration).",
+    )
     id: int
     status: str = Field(description="accepted | refused | retired | withdrawn")
     reason: str = Field(description="Why it was refused or withdrawn (empty when accepted).")
+    withdrawn_by_scan: int | None = Field(
+        default=None, description="The verification scan whose failed verification withdrew it."
+    )
+    withdrawn_by_verification: int | None = Field(
+        default=None,
+        description="That verification (null with withdrawn_by_scan set: it could not be computed).",
+    )
     problem_title: str = ""
     is_current: bool
     scan_id: int | None
@@ -279,7 +363,8 @@ class RegistrationOut(_Out):
     spheres: list[SphereResidual] = Field([], validation_alias=_from("figures", "spheres"))
     predicted_tre_mm: list[float] = Field(
         [],
-        description="Fitzpatrick's predicted TRE at targets_image_mm.",
+        description="Fitzpatrick's predicted TRE at targets_image_mm: one-scan TRE, this pose only "
+        "(expected_error.predicted_chain_error_mm is the figure at other poses).",
         validation_alias=_from("figures", "predicted_tre_mm"),
     )
     predicted_chain_error_mm: float | None = Field(
@@ -364,6 +449,25 @@ class VerificationOut(_Out):
         return f"/verifications/{self.id}/histogram.png" if self.histogram_path else None
 
 
+class WithdrawalOut(_Out):
+    """Why nothing is current: a verification withdrew the registration (docs/safety.md)."""
+
+    registration_id: int
+    verification_scan_id: int
+    verification_id: int | None = Field(
+        description="The failed verification (null: it could not be computed, the error being beyond "
+        "what matching can bridge)."
+    )
+    reason: str
+    withdrawn_at: str
+    predicted_chain_error_mm: float | None
+    calibrated: bool
+    gate_mm: float = Field(description="quality.max_verification_error_mm")
+    likely_cause: Literal["cell-not-calibrated", "phantom-or-oarm-moved"]
+    cause: str = Field(description="The likely cause in words.")
+    action: str = Field(description="What to do.")
+
+
 class HealthProblemOut(_Out):
     type: str = Field(
         description="Stable problem type, e.g. robot-link-down (docs/safety.md, Stillness and health)."
@@ -386,6 +490,9 @@ class StatusOut(_Out):
     watcher: dict[str, Any]
     latest_scan: ScanOut | None
     current_registration: RegistrationOut | None
+    registration_withdrawal: WithdrawalOut | None = Field(
+        None, description="Why nothing is current, when a verification withdrew the registration."
+    )
     busy: bool = Field(description="A registration or verification is running.")
     counts: dict[str, int]
     config_hash: str
@@ -416,7 +523,9 @@ def scan_out(scan: ScanRecord) -> ScanOut:
 
 
 def registration_out(rec: RegistrationRecord) -> RegistrationOut:
-    return RegistrationOut.model_validate(rec, from_attributes=True)
+    out = RegistrationOut.model_validate(rec, from_attributes=True)
+    out.expected_error = expected_error_of(rec)
+    return out
 
 
 def verification_out(rec: VerificationRecord) -> VerificationOut:

@@ -17,6 +17,7 @@ from service.api.models import (
     LinkOut,
     ReadyOut,
     StatusOut,
+    WithdrawalOut,
     registration_out,
     scan_out,
 )
@@ -36,6 +37,7 @@ def status(ctx: CtxDep) -> StatusOut:
     latest = ctx.db.scans.latest_complete()
     cur = ctx.orchestrator.current
     problems = collect_problems(ctx)
+    w = ctx.orchestrator.withdrawal
     return StatusOut(
         healthy=not problems,
         problems=[p.detail for p in problems],
@@ -48,6 +50,7 @@ def status(ctx: CtxDep) -> StatusOut:
         watcher=ctx.watcher.state() if ctx.watcher is not None else {"mode": "disabled", "running": False},
         latest_scan=scan_out(latest) if latest else None,
         current_registration=registration_out(cur) if cur else None,
+        registration_withdrawal=None if w is None else WithdrawalOut.model_validate(w, from_attributes=True),
         busy=ctx.orchestrator.busy,
         counts=ctx.db.counts(),
         config_hash=ctx.orchestrator.config_hash,

@@ -16,7 +16,8 @@
 The robot and the O-arm simulator pose the phantom through the TRUE cell (:mod:`mocks.cell`:
 joint origins, zero offsets, rod and sag differ from the nominal ones) while the service believes
 the nominal robot and rod, so the verification at the second pose shows the real error of an
-uncalibrated cell (it may FAIL its gate; the demo still exits 0).  ``--calibrate`` adds a
+uncalibrated cell (it may FAIL its gate, which withdraws the registration: the demo prints that,
+with the service's likely cause and action, and still exits 0).  ``--calibrate`` adds a
 calibration session through the service and a before / after comparison
 (:mod:`service.commands.demo_calibrate`).
 
@@ -33,6 +34,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from service.commands.demo_report import expected_error_lines, report_withdrawal
 
 if TYPE_CHECKING:
     import numpy as np
@@ -429,6 +432,8 @@ def _move_scan_verify(d: _Demo) -> None:
     png.raise_for_status()
     png_path.write_bytes(png.content)
     _report_verification(ver, png_path)
+    if not ver["passed"]:  # on an uncalibrated cell that is the truth, not an error of the demo
+        report_withdrawal(d.client, ver)
 
 
 def _report_registration(
@@ -437,6 +442,7 @@ def _report_registration(
     import numpy as np
 
     _out(f"\n== Registration {reg['id']} ({reg['status']}, {dt:.1f} s) of scan {reg['scan_id']}")
+    _out(expected_error_lines(reg))
     _out("image_from_robot (mm; p_image[LPS] = M @ p_robot):")
     _out(_fmt_matrix(m))
     _out("quality figures:")
@@ -447,7 +453,10 @@ def _report_registration(
     _out(f"  FRE (RMS residual)                    : {reg['fre_mm']:.4f} mm")
     _out(f"  FLE implied by FRE                    : {reg['fle_mm']:.4f} mm")
     tre = reg["predicted_tre_mm"]
-    _out(f"  predicted TRE at {len(tre)} targets {TARGET_DISTANCE_MM:g} mm away : max {max(tre):.4f} mm")
+    _out(
+        f"  one-scan TRE, this pose only, {len(tre)} targets {TARGET_DISTANCE_MM:g} mm away : max "
+        f"{max(tre):.4f} mm"
+    )
     _out(f"  symmetry margin                       : {reg['symmetry_margin']} spheres")
     _out(f"  det(R)                                : {reg['rotation_det']:.9f}")
     _out(f"  joints_rad                            : {np.round(reg['joints_rad'], 5).tolist()}")

@@ -120,6 +120,8 @@ def _plan(d: Any) -> tuple[Any, Any]:
         fov_radius_mm=acq.fov_radius_mm, half_length_mm=acq.n_slices * acq.slice_spacing_mm / 2
     )
     cur = d.client.get("/registration/current").json()
+    if "registration_id" in cur and "image_from_robot" not in cur:  # withdrawn: still the best estimate
+        cur = d.client.get(f"/registrations/{cur['registration_id']}").json()
     chain, pts, q0 = read_chain(d.model.urdf_path), d.phantom.centres_phantom_mm, cur["joints_rad"]
     plan = plan_poses(
         np.asarray(cur["image_from_robot"]), chain, d.tool0_from_phantom, pts, q0, volume=volume,
@@ -188,8 +190,17 @@ def _report_calibration(cal: dict[str, Any]) -> None:
 def _register_and_verify(
     d: Any, h: DemoHooks, scan_id: int, ver_scan_id: int
 ) -> tuple[dict[str, Any], dict[str, Any]]:
+    from service.commands.demo_report import expected_error_lines, report_withdrawal
+
     reg = h.check(d.client.post("/register", json={"scan_id": scan_id}))
+    _out(f"\n== Registration {reg['id']} of scan {scan_id}: {expected_error_lines(reg)}")
     ver = h.check(d.client.post("/verify", json={"scan_id": ver_scan_id}))
+    _out(
+        f"  verification {ver['id']} of scan {ver_scan_id}: max {ver['max_mm']:.3f} mm → "
+        f"{'PASS' if ver['passed'] else 'FAIL'}"
+    )
+    if not ver["passed"]:
+        report_withdrawal(d.client, ver)
     return reg, ver
 
 

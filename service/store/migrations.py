@@ -34,6 +34,9 @@
     ``withdrawn_reason``.
 ``qa_protocols``, ``qa_checks``
     named sets of verification poses; which verification was taken at which pose of which protocol.
+``registrations.withdrawn_by_scan`` / ``withdrawn_by_verification`` (9)
+    a registration withdrawn by a verification (issue #31): the verification scan, and the stored
+    verification when it could be computed (NULL: the error was beyond what matching can bridge).
 """
 
 from __future__ import annotations
@@ -311,6 +314,16 @@ QA_PROTOCOLS_MIGRATION = """
 """QA protocols (a named set of verification poses, :mod:`service.store.qa`) and which
 verification was taken at which pose of which protocol."""
 MIGRATIONS = (*MIGRATIONS, QA_PROTOCOLS_MIGRATION)
+
+VERIFICATION_WITHDRAWAL_MIGRATION = """
+    ALTER TABLE registrations ADD COLUMN withdrawn_by_scan INTEGER REFERENCES scans(id);
+    ALTER TABLE registrations ADD COLUMN withdrawn_by_verification INTEGER REFERENCES verifications(id)
+"""
+"""A failed verification withdraws the registration it verified (issue #31, docs/safety.md "Which
+registration may be current"): ``withdrawn_at`` / ``withdrawn_reason`` as for a scan withdrawal, plus
+the verification scan and, when the error could be computed, the stored verification.  A row with
+``withdrawn_by_scan`` set was withdrawn by a verification; without it, by its own scan's change."""
+MIGRATIONS = (*MIGRATIONS, VERIFICATION_WITHDRAWAL_MIGRATION)
 
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""

@@ -31,6 +31,38 @@ def retire_accepted(c: sqlite3.Connection, now: str, cal_id: int, *, also_withdr
     return ids
 
 
+def withdraw_by_verification(
+    c: sqlite3.Connection, now: str, reg_id: int, reason: str, *, scan_id: int, verification_id: int | None
+) -> bool:
+    """Withdraw registration ``reg_id`` because the verification of scan ``scan_id`` failed (inside
+    the caller's transaction); removes the current pointer if it pointed there.  Returns whether it
+    was current.  An already withdrawn registration is left as it is."""
+    c.execute(
+        "UPDATE registrations SET withdrawn_at = ?, withdrawn_reason = ?, withdrawn_by_scan = ?, "
+        "withdrawn_by_verification = ? WHERE id = ? AND withdrawn_at IS NULL",
+        (now, reason, scan_id, verification_id, reg_id),
+    )
+    row = c.execute("SELECT registration_id FROM current_registration WHERE singleton = 1").fetchone()
+    was_current = row is not None and int(row[0]) == reg_id
+    if was_current:
+        c.execute("DELETE FROM current_registration WHERE singleton = 1")
+    return was_current
+
+
+@dataclass(frozen=True)
+class Supersession:
+    """Why a scan may not be registered and made current (docs/safety.md, "Which registration may be
+    current"); :meth:`RegistrationStore.supersession`."""
+
+    rule: str
+    """``withdrawn`` (a verification withdrew this scan's registration), ``newer-registration`` or
+    ``newer-failed-verification`` (a newer scan at the same placement has one)."""
+    scan_id: int
+    """The newer scan (``withdrawn``: the verification scan that withdrew it)."""
+    detail: str
+    """What happened, naming the records."""
+
+
 @dataclass(frozen=True)
 class DerivedWithdrawal:
     """What :meth:`RegistrationStore.withdraw_derived` withdrew."""
@@ -135,6 +167,59 @@ class RegistrationStore:
             c.execute("DELETE FROM active_calibration WHERE singleton = 1")
             return DerivedWithdrawal(tuple(vers), tuple(cals), cal_id, tuple(retired))
 
+    def withdraw_for_verification(
+        self, reg_id: int, reason: str, *, scan_id: int, verification_id: int | None
+    ) -> bool:
+        """Withdraw ``reg_id``: its verification against scan ``scan_id`` failed (one transaction);
+        whether it was current (the pointer is then removed)."""
+        with self._db.transaction() as c:
+            return withdraw_by_verification(
+                c, utc_now(), reg_id, reason, scan_id=scan_id, verification_id=verification_id
+            )
+
+    def standing_verification_withdrawal(self) -> RegistrationRecord | None:
+        """The registration a failed verification withdrew, while that is still why nothing is current:
+        nothing is current, it is the newest withdrawal, and no calibration activation retired it since."""
+        if self.current_id() is not None:
+            return None
+        w = self.latest_withdrawn()
+        return w if w is not None and w.withdrawn_by_scan is not None and w.retired_at is None else None
+
+    def supersession(self, scan_id: int, frame_of_reference_uid: str) -> Supersession | None:
+        """Whether registering scan ``scan_id`` now would serve a matrix the service already has newer
+        evidence against (docs/safety.md, "Which registration may be current"); None: it may.
+
+        Evidence counts while the registration it concerns is not retired: activating a calibration
+        retires every registration, and what failed under the old model says nothing of the new one.
+        An empty FrameOfReferenceUID names no placement: only the scan's own withdrawal applies."""
+        rows = self._db.query(
+            "SELECT id, withdrawn_by_scan, withdrawn_by_verification FROM registrations WHERE scan_id = ? "
+            "AND withdrawn_by_scan IS NOT NULL AND retired_at IS NULL ORDER BY id DESC LIMIT 1",
+            (scan_id,),
+        )
+        if rows:
+            reg_id, by_scan, by_ver = int(rows[0][0]), int(rows[0][1]), rows[0][2]
+            what = f"verification {by_ver}" if by_ver is not None else "the verification"
+            return Supersession(
+                "withdrawn",
+                by_scan,
+                f"registration {reg_id} of scan {scan_id} was withdrawn by {what} of scan {by_scan}",
+            )
+        if not frame_of_reference_uid:
+            return None
+        newer = self._db.query(_Supersede.NEWER, (frame_of_reference_uid, scan_id) * 3)
+        if not newer:
+            return None
+        newer_scan, kind, record_id = int(newer[0][0]), str(newer[0][1]), int(newer[0][2])
+        if kind == "registration":
+            detail = f"newer scan {newer_scan} at the same placement has accepted registration {record_id}"
+            return Supersession("newer-registration", newer_scan, detail)
+        what = f"failed verification {record_id}" if kind == "verification" else (
+            f"a verification that could not be computed (it withdrew registration {record_id})"
+        )  # fmt: skip
+        detail = f"newer scan {newer_scan} at the same placement has {what}"
+        return Supersession("newer-failed-verification", newer_scan, detail)
+
     def latest_withdrawn(self) -> RegistrationRecord | None:
         rows = self._db.query(
             "SELECT * FROM registrations WHERE withdrawn_at IS NOT NULL ORDER BY withdrawn_at DESC, id DESC "
@@ -161,6 +246,27 @@ class RegistrationStore:
             "SELECT * FROM registrations ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset)
         )
         return [_record(r, cur) for r in rows]
+
+
+class _Supersede:
+    """SQL of :meth:`RegistrationStore.supersession`: the newest scan newer than ``?`` at FoR ``?`` with
+    an accepted registration (not withdrawn by its own scan's change) or a failed verification of a
+    registration not retired since; (scan id, kind, record id), newest scan first."""
+
+    NEWER = (
+        "SELECT s.id, 'registration', r.id FROM scans s JOIN registrations r ON r.scan_id = s.id "
+        "WHERE s.frame_of_reference_uid = ? AND s.id > ? AND r.status = 'accepted' "
+        "AND (r.withdrawn_at IS NULL OR r.withdrawn_by_scan IS NOT NULL) "
+        "UNION ALL SELECT s.id, 'verification', v.id FROM scans s JOIN verifications v ON v.scan_id = s.id "
+        "JOIN registrations r ON r.id = v.registration_id "
+        "WHERE s.frame_of_reference_uid = ? AND s.id > ? AND v.passed = 0 AND v.withdrawn_at IS NULL "
+        "AND r.retired_at IS NULL "
+        "UNION ALL SELECT s.id, 'uncomputed', r.id FROM scans s "
+        "JOIN registrations r ON r.withdrawn_by_scan = s.id "
+        "WHERE s.frame_of_reference_uid = ? AND s.id > ? AND r.withdrawn_by_verification IS NULL "
+        "AND r.retired_at IS NULL "
+        "ORDER BY 1 DESC LIMIT 1"
+    )
 
 
 class _Withdraw:
@@ -224,4 +330,6 @@ def _record(r: sqlite3.Row, current_id: int | None) -> RegistrationRecord:
         is_current=current_id is not None and int(r["id"]) == current_id,
         retired_at=r["retired_at"],
         retired_by_calibration=r["retired_by_calibration"],
+        withdrawn_by_scan=r["withdrawn_by_scan"] if withdrawn else None,
+        withdrawn_by_verification=r["withdrawn_by_verification"] if withdrawn else None,
     )

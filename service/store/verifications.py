@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import sqlite3
+from collections.abc import Callable
 
 from service.records import VerificationFigures, VerificationRecord
-from service.store.base import Connection, dumps, loads
+from service.store.base import Connection, dumps, loads, utc_now
+from service.store.registrations import withdraw_by_verification
 
 
 class VerificationStore:
@@ -14,8 +16,12 @@ class VerificationStore:
     def __init__(self, db: Connection) -> None:
         self._db = db
 
-    def insert(self, record: VerificationRecord) -> int:
-        """Store a verification (its ``id`` is ignored); returns the new id."""
+    def insert(
+        self, record: VerificationRecord, *, withdraw_reason: Callable[[int], str] | None = None
+    ) -> int:
+        """Store a verification (its ``id`` is ignored); returns the new id.  With ``withdraw_reason``
+        (the reason, given the new id) a failed one withdraws the registration it verified, and removes
+        the current pointer if it pointed there, in the same transaction (docs/safety.md)."""
         with self._db.transaction() as c:
             cur = c.execute(
                 "INSERT INTO verifications (created_at, registration_id, scan_id, series_uid, passed, "
@@ -37,7 +43,13 @@ class VerificationStore:
                     record.software_version,
                 ),
             )
-            return int(cur.lastrowid or 0)
+            ver_id = int(cur.lastrowid or 0)
+            if withdraw_reason is not None and not record.passed:
+                withdraw_by_verification(
+                    c, utc_now(), record.registration_id, withdraw_reason(ver_id),
+                    scan_id=record.scan_id, verification_id=ver_id,
+                )  # fmt: skip
+            return ver_id
 
     def set_histogram(self, ver_id: int, path: str) -> None:
         with self._db.transaction() as c:

@@ -75,7 +75,8 @@ def _current(svc: h.Service) -> dict[str, Any]:
     if r.status_code == 200:
         return r.json()  # type: ignore[no-any-return]
     svc.hold_at(h.Q1)
-    scan_id = next(s["id"] for s in svc.client.get("/scans").json() if s["joints"]["still"])
+    scans = svc.client.get("/scans").json()
+    scan_id = next(s["id"] for s in scans if s["status"] == "complete" and s["joints"]["still"])
     reg = svc.register(scan_id)
     assert reg.status_code == 200, reg.text
     return svc.client.get("/registration/current").json()  # type: ignore[no-any-return]
@@ -252,6 +253,9 @@ def test_verifications_show_the_gate_line_and_the_verdict(
     assert v.status_code == 200, v.text
     failed = v.json()
     assert not failed["passed"] and failed["max_mm"] > failed["gate_mm"]
+    # a failed verification withdraws the registration it verified (issue #31): nothing is current
+    gone = s.client.get("/registration/current")
+    assert gone.status_code == 409 and gone.json()["verification_id"] == failed["id"], gone.text
     listed = s.client.get("/verifications", params={"limit": 100}).json()
     assert [x["id"] for x in listed] == sorted((x["id"] for x in listed), reverse=True)
 
@@ -273,6 +277,50 @@ def test_verifications_show_the_gate_line_and_the_verdict(
         p.click(f"#verifications-body tr[data-verification='{passed['id']}']")
         p.wait_for_selector(f"#ver-title[data-verdict='PASS']:has-text('Verification {passed['id']}')")
         assert "PASS" in p.text_content("#ver-chart")
+    _current(s)  # leave a current registration for the other tests
+    assert_clean(w)
+
+
+def test_a_failed_verification_withdraws_with_a_banner_and_the_chain_figure_comes_first(
+    context: Any, svc: tuple[h.Service, dict[str, Any]], world: h.World
+) -> None:
+    """Issue #31 items 1 and 6: the card leads with the expected error at the working poses and says
+    the cell is not calibrated; a failed verification withdraws the registration and the banner names
+    the verification, the likely cause (the nominal model's 1.0 mm chain figure is at the 1.0 mm gate:
+    the cell is not calibrated) and the action."""
+    s, _ = svc
+    cur = _current(s)
+    w = _signed_in(context, s)
+    p = w.page
+    p.wait_for_function(
+        "id => document.getElementById('current-id').dataset.value === String(id)", arg=cur["id"]
+    )
+    assert p.evaluate("document.getElementById('current-body').firstElementChild.id") == "current-expected"
+    chain = cur["expected_error"]["predicted_chain_error_mm"]
+    assert float(p.get_attribute("#current-chain", "data-value")) == chain == cur["predicted_chain_error_mm"]
+    assert p.is_visible("#current-uncalibrated")
+    warning = p.text_content("#current-uncalibrated")
+    assert "This cell is not calibrated" in warning and f"about {chain:.1f} mm" in warning
+    assert "One-scan TRE, this pose only" in p.text_content("#current-body dl.figures")
+    # the phantom knocked 2 mm: the registration's pose again, its image shifted by 2 mm
+    from dataclasses import replace
+
+    s.hold_at(tuple(cur["joints_rad"]))
+    image_from_voxel = world.scan1.image_from_voxel.copy()
+    image_from_voxel[0, 3] += 2.0
+    uid, _ = s.export(replace(world.scan1, image_from_voxel=image_from_voxel), "knocked")
+    v = s.client.post("/verify", json={"scan_id": s.scan(uid)["id"]})
+    s.hold_at(h.Q1)
+    assert v.status_code == 200 and not v.json()["passed"], v.text
+    b = p.locator("#withdrawn-banner")
+    b.wait_for()
+    text = b.text_content()
+    assert f"Registration {cur['id']} was withdrawn: verification {v.json()['id']}" in text, text
+    assert "Likely cause: cell not calibrated" in text and "What to do: Calibrate the cell" in text, text
+    assert b.get_attribute("data-cause") == "cell-not-calibrated"
+    assert p.is_visible("#current-none") and p.text_content("#current-badge") == "none"
+    assert s.client.get("/registration/current").status_code == 409
+    _current(s)  # leave a current registration for the other tests
     assert_clean(w)
 
 

@@ -22,7 +22,7 @@ const QA_SHOWN = 40;
 const state = {
   token: null, es: null, statusTimer: null, refreshTimer: null, reconnectTimer: null,
   verOffset: 0, verSelected: null, calSelected: null, calArmed: false,
-  current: null, registrations: [], calibrations: [],
+  current: null, withdrawal: null, registrations: [], calibrations: [],
 };
 
 const $ = (id) => document.getElementById(id);
@@ -160,6 +160,7 @@ async function refreshAll() {
     current = cur.ok ? cur.body : null;
   }
   state.current = current;
+  state.withdrawal = st.body.registration_withdrawal || null;
   renderStatus(st.body);
   await renderJoints(st.body);
   renderCurrent(current);
@@ -200,6 +201,8 @@ function banner(cls, text, what) {
 }
 
 function noCurrentReason(regs) {
+  const v = state.withdrawal;
+  if (v) return `Registration ${v.registration_id} was withdrawn: ${v.reason}.`;
   const w = regs.find((r) => r.status === "withdrawn" || r.status === "retired");
   if (w) {
     return `Registration ${w.id} was ${w.status}: ${w.reason || "retired by a calibration"}`;
@@ -209,7 +212,9 @@ function noCurrentReason(regs) {
 
 function renderBanners(st, current, regs) {
   const out = [];
+  const withdrawal = st.registration_withdrawal;
   for (const p of st.problem_details || []) {
+    if (p.type === "registration-withdrawn") continue;  // its own banner below, with cause and action
     if (p.type === "qa-drift") {
       const b = banner("warn", `${p.title}: ${p.detail}`,
         "Run a calibration session, activate it, then repeat the QA protocol (QA trend below).");
@@ -219,7 +224,17 @@ function renderBanners(st, current, regs) {
       out.push(banner("bad", "Service problem: " + p.detail, null));
     }
   }
-  if (!current) {
+  if (!current && withdrawal) {
+    const v = withdrawal;
+    const what = v.verification_id == null
+      ? `the verification of scan ${v.verification_scan_id} could not be computed (the error is beyond what matching can bridge)`
+      : `verification ${v.verification_id} (scan ${v.verification_scan_id}) failed the ${fmt(v.gate_mm, 2)} mm gate`;
+    const b = banner("bad", `No current registration: navigation must not use an old matrix. Registration ` +
+      `${v.registration_id} was withdrawn: ${what}. Likely cause: ${v.cause}.`, v.action.charAt(0).toUpperCase() + v.action.slice(1) + ".");
+    b.id = "withdrawn-banner";
+    b.dataset.cause = v.likely_cause;
+    out.push(b);
+  } else if (!current) {
     const reason = noCurrentReason(regs);
     out.push(banner("bad", "No current registration: navigation must not use an old matrix. " + reason,
       /accepted yet/.test(reason) ? "Scan the phantom and register (POST /register)." : advice(reason)));
@@ -297,7 +312,7 @@ function renderStatus(st) {
   const ac = st.active_calibration;
   setText("active-calibration", ac ? `calibration ${ac.calibration_id} (${String(ac.calibration_hash).slice(0, 12)}), ` +
     `predicted held-out RMS ${fmt(ac.predicted_held_out_rms_mm, 3)} mm, since ${when(ac.activated_at)}`
-    : "none: the nominal robot model and rod");
+    : "none: the nominal robot model and rod (the cell is not calibrated)");
   setText("counts", Object.entries(st.counts || {}).map(([k, v]) => `${k} ${v}`).join(", "));
   setText("service", `oarmreg ${st.version}, up ${Math.round(st.uptime_s)} s, auth ${st.auth_enabled ? "on" : "OFF"}` +
     (st.busy ? ", busy" : ""));
@@ -325,6 +340,7 @@ function renderCurrent(cur) {
   }
   badge.className = "pill ok";
   badge.textContent = "current";
+  renderExpected(cur);
   setText("current-id", String(cur.id), cur.id);
   setText("current-scan", String(cur.scan_id), cur.scan_id);
   setText("current-fre", fmt(cur.fre_mm), cur.fre_mm);
@@ -340,6 +356,23 @@ function renderCurrent(cur) {
   const bars = (cur.spheres || []).map((s) => ({ label: s.sphere, value: s.residual_mm }));
   $("current-chart").replaceChildren(barChart(bars, { unit: "mm", title: "residual (mm)" }));
   $("current-provenance").textContent = JSON.stringify(cur.provenance, null, 2);
+}
+
+// The honest figure first: the expected error where the robot works, and whether a calibration backs it.
+function renderExpected(cur) {
+  const e = cur.expected_error || {};
+  const chain = e.predicted_chain_error_mm ?? cur.predicted_chain_error_mm;
+  setText("current-chain", fmt(chain, 2), chain);
+  $("current-chain").dataset.calibrated = e.calibrated ? "true" : "false";
+  $("current-chain-basis").textContent = e.calibrated
+    ? `Backed by calibration ${e.calibration_id}: ${e.basis}.`
+    : `Nominal robot model: ${e.basis || "the cell is not calibrated"}.`;
+  const warn = $("current-uncalibrated");
+  warn.hidden = !!e.calibrated;
+  warn.textContent = e.calibrated ? "" :
+    `This cell is not calibrated. That costs about ${fmt(chain, 1)} mm at the robot's working poses ` +
+    `(the one-scan TRE below holds at the registration scan's pose only). Calibrate the cell ` +
+    `(docs/calibration.md) and activate the calibration to bring it down.`;
 }
 
 // ---- lists ------------------------------------------------------------------------------------
