@@ -20,6 +20,7 @@ from pydantic import (
     StrictInt,
     computed_field,
     field_validator,
+    model_validator,
 )
 
 from service.records import RegistrationRecord, ScanRecord, VerificationRecord
@@ -61,13 +62,13 @@ class RegisterRequest(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
-        json_schema_extra={"examples": [{}, {"scan_id": 3, "targets_mm": [[10.0, -25.5, 140.0]]}]},
+        json_schema_extra={"examples": [{}, {"scan_id": 3, "targets_image_mm": [[10.0, -25.5, 140.0]]}]},
     )
 
     scan_id: DbId | None = Field(
         default=None, description="Scan to register (GET /scans); default: the latest complete scan."
     )
-    targets_mm: list[StrictPoint3] | None = Field(
+    targets_image_mm: list[StrictPoint3] | None = Field(
         default=None,
         description=(
             "Target points in the IMAGE frame (DICOM LPS mm, the navigation UI's space) at which to report "
@@ -77,16 +78,26 @@ class RegisterRequest(BaseModel):
         max_length=1000,
     )
 
-    @field_validator("targets_mm")
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "targets_mm" in data:  # one frame per name (issue 31)
+            raise ValueError(
+                "targets_mm was renamed targets_image_mm (image frame, DICOM LPS mm); the CLI's robot-frame "
+                "targets are targets_robot_mm"
+            )
+        return data
+
+    @field_validator("targets_image_mm")
     @classmethod
     def _three(cls, v: list[StrictPoint3] | None) -> list[StrictPoint3] | None:
         if v is None:
             return v
         for i, p in enumerate(v):
             if len(p) != 3:
-                raise ValueError(f"targets_mm[{i}] must be [x, y, z] in mm, got {len(p)} values")
+                raise ValueError(f"targets_image_mm[{i}] must be [x, y, z] in mm, got {len(p)} values")
             if any(abs(c) > 1e5 or c != c for c in p):
-                raise ValueError(f"targets_mm[{i}] = {p} is not a finite position in mm")
+                raise ValueError(f"targets_image_mm[{i}] = {p} is not a finite position in mm")
         return v
 
 

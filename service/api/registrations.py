@@ -27,7 +27,7 @@ router = APIRouter(tags=["registration"])
         "stores the result and makes it current if every quality gate passes.  A refusal (robot moved, "
         "robot link down, too few spheres, ambiguous correspondence, FRE over the gate) answers 409, an "
         "unusable scan 422, both as problem details carrying `registration_id` of the stored refusal; the "
-        "previous current registration stays current.  `targets_mm` are in the IMAGE frame (LPS mm)."
+        "previous current registration stays current.  `targets_image_mm` are in the IMAGE frame (LPS mm)."
     ),
     responses=problem_responses(401, 404, 409, 422),
 )
@@ -39,7 +39,7 @@ async def register(
 ) -> RegistrationOut | JSONResponse:
     req = body or RegisterRequest()
     with audited(ctx, principal, "register", "registration") as note:
-        rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_mm)
+        rec = await anyio.to_thread.run_sync(ctx.orchestrator.register, req.scan_id, req.targets_image_mm)
         if isinstance(rec, RegistrationRefusal):
             note(rec.registration_id, *audit_refusal(rec.error))
             return problem_for(request, rec.error, registration_id=rec.registration_id)

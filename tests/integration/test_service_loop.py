@@ -259,12 +259,12 @@ def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
 
     # targets given in the IMAGE frame: predicted TRE reported at exactly those points
     targets = [[0.0, 0.0, 150.0], [100.0, 50.0, -20.0]]
-    r2 = svc.client.post("/register", json={"targets_mm": targets})
+    r2 = svc.client.post("/register", json={"targets_image_mm": targets})
     assert r2.status_code == 200, r2.text
     assert r2.json()["targets_image_mm"] == targets and len(r2.json()["predicted_tre_mm"]) == 2
     # the default targets (robot frame), sent back in the image frame, give the same predicted TRE:
     # the image → robot mapping of the UI's targets is right
-    r3 = svc.client.post("/register", json={"targets_mm": reg["targets_image_mm"]})
+    r3 = svc.client.post("/register", json={"targets_image_mm": reg["targets_image_mm"]})
     assert r3.status_code == 200, r3.text
     np.testing.assert_allclose(r3.json()["predicted_tre_mm"], reg["predicted_tre_mm"], rtol=1e-9)
 
@@ -333,7 +333,7 @@ def test_bad_scan_folder_is_422_and_service_keeps_serving(
     assert stored["status"] == "refused" and stored["reason"] == body["detail"]
     assert svc.client.get("/registration/current").json()["id"] == cur_before
     assert_problem(svc.client.post("/register", json={"scan_id": 99999}), 404)
-    assert_problem(svc.client.post("/register", json={"targets_mm": [[1, 2]]}), 422)
+    assert_problem(svc.client.post("/register", json={"targets_image_mm": [[1, 2]]}), 422)
     status = svc.client.get("/status").json()
     assert status["watcher"]["running"] and status["link"]["state"] == "connected"
     # issue #13 item 8: a folder with no readable series is recorded as invalid, with the reason

@@ -159,7 +159,7 @@ def test_cli_register_and_verify(
             str(image_p),
             "--robot-points",
             str(robot_p),
-            "--targets",
+            "--targets-robot",
             str(targets),
             "--json",
             str(out),
