@@ -157,6 +157,11 @@ class LinkOut(_Out):
     max_receive_gap_s: float | None = Field(
         None, description="Largest time between two received joint frames over the last 60 s, s."
     )
+    in_motion: bool | None = Field(
+        None,
+        description="The controller's last STATUS in_motion: true, false, or null (unknown or no STATUS). "
+        "TRUE inside a scan's stillness window refuses the scan as moved.",
+    )
 
 
 class JointsOut(_Out):

@@ -365,6 +365,34 @@ def test_robot_moving_during_scan_is_refused(svc: Service, world: World, baselin
     assert cur["id"] == cur_before["id"] and cur["image_from_robot"] == cur_before["image_from_robot"]
 
 
+def test_controller_in_motion_with_constant_joints_is_refused_as_moved(
+    svc: Service, world: World, baseline: Baseline
+) -> None:
+    """Issue 31 item 8: the mock controller reports STATUS in_motion = TRUE while its joints stand
+    still at Q1: the scan is refused as moved, with the controller's own reason, and /status shows the
+    flag (before, the scan registered: the joints alone looked still)."""
+    from dataclasses import replace
+
+    svc.hold_at(Q1)
+    normal = svc.robot.controller_status
+    svc.robot.controller_status = replace(normal, in_motion=1)
+    try:
+        wait_for(
+            lambda: svc.client.get("/status").json()["link"].get("in_motion") is True, "/status in_motion"
+        )
+        svc.wait_still()  # the joints: still, and watched, for the whole window
+        uid = svc.export(world.scan1, "in-motion", series_uid="1.2.826.0.1.3680043.8.498.999003")
+        scan = svc.wait_scan(uid)
+        joints = scan["joints"]
+        assert joints["still"] is False and joints["max_deviation_rad"] <= 5e-4, joints
+        assert "controller reported in_motion at t=" in str(joints), joints
+        body = assert_problem(svc.client.post("/register", json={"scan_id": scan["id"]}), 409)
+        assert body["title"] == "Robot moved during the scan" and "in_motion" in body["detail"], body
+    finally:
+        svc.robot.controller_status = normal
+    wait_for(lambda: svc.client.get("/status").json()["link"].get("in_motion") is False, "in_motion false")
+
+
 def test_verify_after_moving_the_robot(svc: Service, world: World, baseline: Baseline) -> None:
     """The current registration (scan at Q1) predicts the spheres of a newer scan at Q2."""
     svc.hold_at(Q2)
