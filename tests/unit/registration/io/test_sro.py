@@ -145,7 +145,7 @@ rotations = st.tuples(*[st.floats(-180.0, 180.0, allow_nan=False)] * 3)
 translations = st.tuples(*[st.floats(-1500.0, 1500.0, allow_nan=False)] * 3)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(rpy=rotations, xyz=translations, p_robot=translations)
 def test_slicerrt_reads_the_same_transform_as_igtl_robot_to_image(
     rpy: tuple[float, float, float], xyz: tuple[float, float, float], p_robot: tuple[float, float, float]

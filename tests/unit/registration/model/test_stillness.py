@@ -86,7 +86,7 @@ def test_default_threshold_is_sub_millimetre_at_reach() -> None:
     assert DEFAULT_MAX_DEVIATION_RAD * 670.0 < 0.5  # mm at the TX60's 670 mm reach
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=25, deadline=None)
 @given(
     window_s=st.floats(0.2, 5.0),
     frac=st.floats(0.0, 1.0),
