@@ -154,13 +154,14 @@ def test_slicerrt_reads_the_same_transform_as_igtl_robot_to_image(
     object places a robot point where OpenIGTLink's ``RobotToImage`` does; the old REG (the matrix
     ``image_from_robot`` as is) put it up to 2·|(x, y)| away (825 mm in the report)."""
     from registration.model.frames import transform_from_xyz_rpy
-    from service.igtl.server import RegistrationState, RegistrationView, registration_message
+    from service.igtl.server import RAS_FROM_LPS
     from tests.helpers.slicerrt_sro import slicerrt_transform_to_parent
 
     image_from_robot = transform_from_xyz_rpy(list(xyz), list(rpy))
     ds = build(m=image_from_robot)
-    state = RegistrationState(RegistrationView(image_from_robot, "reg-7", 0.41))
-    robot_to_image = registration_message(state, "RobotToImage").matrix
+    # the server's RobotToImage conversion (docs/slicer.md §2); the matrix it sends is read with pyigtl
+    # in tests/integration/test_or_integration.py::test_reg_read_as_slicerrt_equals_robot_to_image
+    robot_to_image = RAS_FROM_LPS @ image_from_robot
     slicer = slicerrt_transform_to_parent(ds)
     p = np.array([*p_robot, 1.0])
     np.testing.assert_allclose(slicer @ p, robot_to_image @ p, rtol=0, atol=1e-6)
