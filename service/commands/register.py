@@ -433,8 +433,8 @@ def summary(d: dict[str, Any]) -> str:
     if tres:
         where = (d.get("provenance") or {}).get("targets_source", "")
         lines.append(
-            f"one-scan predicted TRE (Fitzpatrick, this scan's sphere localisation only, not the chain's "
-            f"error): max {max(tres):.3f} mm at {len(tres)} targets ({where})"
+            f"one-scan TRE, this pose only (Fitzpatrick: this scan's sphere localisation, not the chain's "
+            f"error at other poses): max {max(tres):.3f} mm at {len(tres)} targets ({where})"
         )
     for t, tre in zip(d["targets_robot_mm"], tres, strict=True):
         lines.append(f"  one-scan TRE at robot ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm: {tre:.3f} mm")

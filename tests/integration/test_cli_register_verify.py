@@ -108,7 +108,7 @@ def test_register_summary_shows_the_chain_figure_first_and_the_services_default_
         "expected error at the robot's working poses: 1.000 mm (predicted_chain_error_mm"
     )
     assert "NOT calibrated" in lines[0]
-    one_scan = next(ln for ln in lines if ln.startswith("one-scan predicted TRE"))
+    one_scan = next(ln for ln in lines if ln.startswith("one-scan TRE, this pose only"))
     assert "not the chain's error" in one_scan and "6 targets" in one_scan and "150 mm" in one_scan
     doc = json.loads(out.read_text())
     assert doc["predicted_chain_error_mm"] == 1.0 and "nominal" in doc["chain_error_source"]
