@@ -165,6 +165,10 @@ class LinkSession:
     ended_t_s: float | None
 
 
+STATUS_MIN_PERIOD_S = 0.02
+"""Shortest STATUS period the status history is sized for (the VAL3 driver and the serial link send it
+at 10 Hz; 50 Hz leaves room): ``history_s / STATUS_MIN_PERIOD_S`` statuses are kept."""
+
 SESSIONS_KEPT = 64
 """Sessions remembered by :meth:`BaseLink.sessions` (far more than reconnects in the 120 s history)."""
 
@@ -418,6 +422,8 @@ class BaseLink:
         self._backoff = Backoff(backoff_initial_s, backoff_max_s)
         self._lock = threading.Lock()
         self._status: RobotStatus | None = None
+        self._statuses: deque[RobotStatus] = deque(maxlen=max(1, math.ceil(history_s / STATUS_MIN_PERIOD_S)))
+        self._statuses_total = 0
         self._transport_up = False
         self._down_reason = "not connected yet (call connect())"
         self._counters: dict[str, int] = {
@@ -522,6 +528,19 @@ class BaseLink:
     def history(self, since_t_s: float) -> list[JointState]:
         """Samples received at or after ``since_t_s`` (``time.monotonic()`` seconds), oldest first."""
         return self._ring.since(since_t_s)
+
+    def status_history(self, since_t_s: float) -> list[RobotStatus]:
+        """Controller statuses received at or after ``since_t_s`` (monotonic s), oldest first: the
+        stillness check reads ``in_motion`` over a scan's window from them."""
+        with self._lock:
+            return [s for s in self._statuses if s.t_s >= since_t_s]
+
+    def statuses_since(self, cursor: int) -> tuple[list[RobotStatus], int]:
+        """Statuses published after ``cursor`` (0 = from the start; those still kept) and the new
+        cursor; for :mod:`drivers.link_process`."""
+        with self._lock:
+            n = min(self._statuses_total - cursor, len(self._statuses))
+            return (list(self._statuses)[len(self._statuses) - n :] if n > 0 else []), self._statuses_total
 
     def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
         """Samples published after ``cursor`` (0 = from the start) and the new cursor
@@ -644,6 +663,8 @@ class BaseLink:
     def _publish_status(self, status: RobotStatus) -> None:
         with self._lock:
             self._status = status
+            self._statuses.append(status)
+            self._statuses_total += 1
             self._counters["status_frames"] += 1
 
     def _silence_exceeded(self, since_t_s: float) -> bool:

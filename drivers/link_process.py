@@ -19,7 +19,9 @@ that time (tests/faults/test_stillness_health.py).  A child that dies on its own
 
 Wire (child → parent, stdout): 4-byte big-endian length + pickle of one tuple; the parent trusts
 only its own child.  ``("states", [(joints, t_s, received_at_posix, session), ...])``,
-``("meta", health_state, reason, status_or_None, counters, sessions)``, ``("log", level, name, msg)``.
+``("statuses", [status_tuple, ...])`` (every controller STATUS, sent before the states read with
+it, for the stillness check's ``in_motion``), ``("meta", health_state, reason, status_or_None,
+counters, sessions)``, ``("log", level, name, msg)``.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import astuple
 from datetime import UTC, datetime
@@ -44,6 +47,7 @@ from typing import IO, Any, Self
 from drivers.base import (
     CONNECT_TIMEOUT_S,
     HISTORY_S,
+    STATUS_MIN_PERIOD_S,
     JointRing,
     JointState,
     LinkHealth,
@@ -112,11 +116,14 @@ def child_main(url: str, options: dict[str, Any]) -> int:
     threading.Thread(target=watch_stdin, name="link-process stdin", daemon=True).start()
     link = open_link(url, **options)
     link.start()
-    sent = 0
+    sent = sent_statuses = 0
     next_meta = next_parent = 0.0
     try:
         while not stop.is_set():
             link.wait_appended(sent, META_PERIOD_S)
+            statuses, sent_statuses = link.statuses_since(sent_statuses)  # before the states: see above
+            if statuses:
+                send(("statuses", [astuple(st) for st in statuses]))
             states, sent = link.appended_since(sent)
             if states:
                 send(
@@ -168,6 +175,7 @@ class ProcessLink:
         self._transport_up = False
         self._reason = "not connected yet (call connect())"
         self._status: RobotStatus | None = None
+        self._statuses: deque[RobotStatus] = deque(maxlen=max(1, math.ceil(HISTORY_S / STATUS_MIN_PERIOD_S)))
         self._counters: dict[str, int] = {}
         self._sessions: list[LinkSession] = []
         self._proc: subprocess.Popen[bytes] | None = None
@@ -247,6 +255,11 @@ class ProcessLink:
     def status(self) -> RobotStatus | None:
         with self._lock:
             return self._status
+
+    def status_history(self, since_t_s: float) -> list[RobotStatus]:
+        """As :meth:`drivers.base.BaseLink.status_history` (the child's receive stamps)."""
+        with self._lock:
+            return [s for s in self._statuses if s.t_s >= since_t_s]
 
     def counters(self) -> dict[str, int]:
         with self._lock:
@@ -343,6 +356,9 @@ class ProcessLink:
                     JointState(tuple(joints), t_s, datetime.fromtimestamp(posix, UTC), self.url, session)
                 )
             self._first.set()
+        elif kind == "statuses":
+            with self._lock:
+                self._statuses.extend(RobotStatus(*st) for st in msg[1])
         elif kind == "meta":
             _, state, reason, status, counters, sessions = msg
             with self._lock:

@@ -150,6 +150,7 @@ class Capture:
                     f"no valid joint frame for {age:.3f} s (> robot.stale_after_s = {limit_s:g} s)",
                 )
             )
+        status = self.link.status()
         return {
             "url": self.url,
             "state": state,
@@ -157,6 +158,9 @@ class Capture:
             "last_frame_age_s": age if latest is not None else None,
             "history_s": float(span),
             "max_receive_gap_s": gap_s,
+            # the controller's last STATUS in_motion (TriState 1 / 0 / −1): true, false, or None (unknown,
+            # or no STATUS yet); a TRUE inside a scan's window refuses it as moved
+            "in_motion": None if status is None or status.in_motion not in (0, 1) else status.in_motion == 1,
         }
 
     def problem(self) -> str | None:
@@ -244,6 +248,7 @@ class Capture:
             watched_from_t_s=first_session.connected_t_s if first_session is not None else None,
             sessions=np.array([getattr(s, "session", 0) for s in samples], dtype=np.int64),
             period_s=period_s,
+            in_motion_t_s=self._in_motion_t_s(start_t, last_change_t_s),
         )
         base.update(
             joints_rad=[float(v) for v in at.joints_rad],
@@ -258,6 +263,14 @@ class Capture:
             stream_period_s=period_s,
         )
         return base
+
+    def _in_motion_t_s(self, start_t_s: float, end_t_s: float) -> list[float]:
+        """Receive times of the controller statuses in ``[start_t_s, end_t_s]`` reporting ``in_motion``
+        = TRUE (a link without a status history gives none)."""
+        history = getattr(self.link, "status_history", None)
+        if history is None:
+            return []
+        return [s.t_s for s in history(start_t_s) if s.t_s <= end_t_s and s.in_motion == 1]
 
     def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
         """The measured frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""

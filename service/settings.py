@@ -25,7 +25,7 @@ import ipaddress
 import json
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,15 +70,50 @@ _NESTED_PATH_KEYS = (
 )  # fmt: skip
 
 
+MAX_SETTING_MAGNITUDE = 1e9
+"""Largest |value| of any float setting.  No setting of this service means anything beyond 1e9 of its
+unit (1e9 s = 31 years, 1e9 mm = 1000 km, 1e9 MB = 1 PB); a larger value is a typo or an overflow
+(``1e300`` in ``robot.tool0_from_phantom`` gave a 500 at ``/register``, issue 31)."""
+MAX_TRANSFORM_TRANSLATION_MM = 2000.0
+"""Largest |component| of a transform setting's ``translation_mm``: the TX60's reach is 670 mm
+(Stäubli TX60 data sheet); a flange-to-phantom rod or a tool centre point 2 m away is not this cell."""
+MAX_TRANSFORM_RPY_DEG = 360.0
+"""Largest |component| of a transform setting's ``rpy_deg``: one full turn."""
+
+_TranslationMm = Annotated[float, Field(ge=-MAX_TRANSFORM_TRANSLATION_MM, le=MAX_TRANSFORM_TRANSLATION_MM)]
+_RpyDeg = Annotated[float, Field(ge=-MAX_TRANSFORM_RPY_DEG, le=MAX_TRANSFORM_RPY_DEG)]
+
+
+def _floats_of(v: Any) -> list[float]:
+    if isinstance(v, float):
+        return [v]
+    if isinstance(v, tuple | list):
+        return [x for x in v if isinstance(x, float)]
+    return []
+
+
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Every settings section: unknown keys refused; NaN / infinity refused in every float
+    (``allow_inf_nan``; NaN in ``[igtl] tool0_from_tcp`` silently cut every OpenIGTLink client off,
+    issue 31), and every float's magnitude at most :data:`MAX_SETTING_MAGNITUDE`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _no_absurd_float(cls, v: Any) -> Any:
+        for x in _floats_of(v):
+            if not abs(x) <= MAX_SETTING_MAGNITUDE:
+                limit = f"{MAX_SETTING_MAGNITUDE:g}"
+                raise ValueError(f"{x!r} is not a usable value (|value| must be <= {limit})")
+        return v
 
 
 class Tool0FromPhantom(_Section):
     """The connecting rod: phantom frame expressed in the flange (tool0) frame."""
 
-    translation_mm: tuple[float, float, float] = (0.0, 0.0, 200.0)
-    rpy_deg: tuple[float, float, float] = (180.0, 0.0, 0.0)
+    translation_mm: tuple[_TranslationMm, _TranslationMm, _TranslationMm] = (0.0, 0.0, 200.0)
+    rpy_deg: tuple[_RpyDeg, _RpyDeg, _RpyDeg] = (180.0, 0.0, 0.0)
 
     def matrix(self) -> NDArray[np.float64]:
         """4 × 4 ``tool0_from_phantom`` (mm), URDF rpy convention."""
@@ -199,8 +234,8 @@ class DatabaseSettings(_Section):
 class Tool0FromTcp(_Section):
     """The tool centre point in the flange (tool0) frame, for OpenIGTLink ``ToolToImage``."""
 
-    translation_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    translation_mm: tuple[_TranslationMm, _TranslationMm, _TranslationMm] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[_RpyDeg, _RpyDeg, _RpyDeg] = (0.0, 0.0, 0.0)
 
     def matrix(self) -> NDArray[np.float64]:
         """4 × 4 ``tool0_from_tcp`` (mm), URDF rpy convention (identity by default)."""

@@ -68,6 +68,9 @@ class ControllerStatus:
     in_error: int = 0
     mode: int = 2
     motion_possible: int = 1
+    in_motion: int | None = None
+    """None: reported from the timeline (1 while a move runs, else 0); −1 / 0 / 1: reported as is,
+    whatever the joints do (a controller that says it moves while its joints stand still)."""
 
 
 class ScriptedRobot:
@@ -166,6 +169,11 @@ class ScriptedRobot:
         t = time.monotonic() if t_s is None else t_s
         with self._lock:
             return any(s.moving and s.t0_s <= t < s.t1_s for s in self._segments)
+
+    def reported_in_motion(self, t_s: float | None = None) -> int:
+        """STATUS ``in_motion`` (TriState): :attr:`ControllerStatus.in_motion` if set, else the timeline's."""
+        forced = self.controller_status.in_motion
+        return int(self.in_motion_at(t_s)) if forced is None else int(forced)
 
     def motion_end_t_s(self) -> float:
         """When the last queued step ends (``time.monotonic()`` seconds; now if idle)."""

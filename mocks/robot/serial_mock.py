@@ -151,7 +151,7 @@ class SerialMock:
                     from drivers.serial_link import StatusLine
 
                     s = StatusLine(cycle // self.status_every, st.drives_powered, st.e_stopped,
-                                   st.error_code, st.in_error, int(self.robot.in_motion_at()), st.mode,
+                                   st.error_code, st.in_error, self.robot.reported_in_motion(), st.mode,
                                    st.motion_possible)  # fmt: skip
                     await self._write(encode_status_line(s.seq, s))
                 cycle += 1

@@ -205,7 +205,7 @@ class SimpleMessageServer:
                     st = self.robot.controller_status
                     msg = Status(
                         st.drives_powered, st.e_stopped, st.error_code, st.in_error,
-                        int(self.robot.in_motion_at()), st.mode, st.motion_possible,
+                        self.robot.reported_in_motion(), st.mode, st.motion_possible,
                     )  # fmt: skip
                     await self._write_frame(writer, encode_status(msg))
                     self.status_frames_sent += 1

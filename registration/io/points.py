@@ -2,7 +2,8 @@
 
 * points file: ``{"spheres_mm": [[x, y, z], ...]}`` (robot frame in phantom sphere
   order, or image frame for ``--image-points``);
-* targets file: ``{"targets_mm": [[x, y, z], ...]}`` (robot frame);
+* targets file: ``{"targets_robot_mm": [[x, y, z], ...]}`` (robot frame; the API's
+  ``targets_image_mm`` are image-frame LPS points: one frame per name);
 * registration file: the ``oarmreg register --json`` output (``"image_from_robot"``
   4 × 4 nested list, …) or a refusal ``{"refused": true, "reason": …, "error": …}``.
 
@@ -105,13 +106,24 @@ def write_points(path: str | Path, points_mm: ArrayLike, **extra: Any) -> Path:
 
 
 def read_targets(path: str | Path) -> F64:
-    """Read ``{"targets_mm": [[x, y, z], ...]}``; returns (T, 3) float64 mm (robot frame)."""
+    """Read ``{"targets_robot_mm": [[x, y, z], ...]}``; returns (T, 3) float64 mm (robot frame).
+
+    A file with the old key ``targets_mm`` (the same name meant image-frame points in
+    ``POST /register``) is refused, naming the new key.
+    """
     p = Path(path)
-    return _points_from(_load_json(p), "targets_mm", p, min_points=1)
+    obj = _load_json(p)
+    if isinstance(obj, dict) and "targets_mm" in obj and "targets_robot_mm" not in obj:
+        raise PointsFileError(
+            f'{p}: "targets_mm" was renamed "targets_robot_mm" (robot frame, mm); rename the key '
+            '(image-frame LPS targets go to POST /register as "targets_image_mm")'
+        )
+    return _points_from(obj, "targets_robot_mm", p, min_points=1)
 
 
-def write_targets(path: str | Path, targets_mm: ArrayLike) -> Path:
-    return write_json(path, {"targets_mm": np.asarray(targets_mm, dtype=np.float64).reshape(-1, 3).tolist()})
+def write_targets(path: str | Path, targets_robot_mm: ArrayLike) -> Path:
+    pts = np.asarray(targets_robot_mm, dtype=np.float64).reshape(-1, 3)
+    return write_json(path, {"targets_robot_mm": pts.tolist()})
 
 
 def read_registration(path: str | Path) -> F64:

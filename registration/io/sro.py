@@ -13,9 +13,23 @@ Frame of Reference UID.  Here the Registered RCS is the scan's, so
 
 * item 1: the scan's Frame of Reference with the identity (and its images referenced);
 * item 2: the robot base frame's Frame of Reference UID (minted once per installation,
-  :func:`service.robot_frame.robot_frame_uid`) with ``image_from_robot`` (robot mm → image
-  DICOM patient LPS mm), i.e. exactly the project's ``image_from_robot``; no LPS/RAS
-  conversion (DICOM patient coordinates are LPS).
+  :func:`service.robot_frame.robot_frame_uid`) with ``image_from_robot @ ROBOT_NATIVE_FROM_DICOM``.
+
+The robot frame's DICOM coordinates (one convention, docs/slicer.md "The registration in
+Slicer: one convention").  The robot base frame is not a patient frame, so the REG object
+must say which coordinates of it the matrix takes.  A DICOM reader that shows the scene in
+RAS (3D Slicer with SlicerRT, ``vtkSlicerDicomSroReader::LoadSpatialRegistration``) treats
+*both* sides of the matrix as LPS and flips both: it shows ``F @ M @ F`` with
+``F = diag(-1, -1, 1, 1)``.  The OpenIGTLink ``RobotToImage`` (robot-native points, image
+RAS) is ``F @ image_from_robot``.  So the REG declares the robot frame's DICOM coordinates as
+the controller's ``(-x, -y, z)`` ("LPS" whose RAS reading is the controller's own axes) and
+writes ``M = image_from_robot @ F``: then ``F @ M @ F = F @ image_from_robot``, the same
+transform as ``RobotToImage``, and a strict DICOM reader maps ``(-x, -y, z)`` to the same
+LPS point REST's ``image_from_robot`` gives for ``(x, y, z)``.
+
+REG objects written before this convention (their transformation comment starts with
+:data:`ARCHIVED_COMMENT_PREFIX`) hold ``image_from_robot`` itself; :func:`image_from_robot_of`
+reads both.
 
 The 16 values are written row-major (PS3.3: M11 M12 M13 M14 M21 … M44) as DS strings.
 """
@@ -38,6 +52,13 @@ F64 = npt.NDArray[np.float64]
 SPATIAL_REGISTRATION_STORAGE = UID("1.2.840.10008.5.1.4.1.1.66.1")
 FIDUCIAL_ALIGNMENT = ("125022", "DCM", "Fiducial Alignment")
 """CID 7100 code for a registration from fiducials (the phantom's spheres)."""
+ROBOT_NATIVE_FROM_DICOM: F64 = np.diag([-1.0, -1.0, 1.0, 1.0])
+"""The robot frame's DICOM coordinates ``(-x, -y, z)`` → the controller's ``(x, y, z)`` (its own inverse)."""
+COMMENT_PREFIX = "robot DICOM (-x,-y,z) to image LPS mm"
+"""Start of the robot item's transformation comment: the convention of the module docstring."""
+ARCHIVED_COMMENT_PREFIX = "image_from_robot LPS mm"
+"""Start of the comment of REG objects written before the convention: their matrix is
+``image_from_robot`` (controller-native robot coordinates)."""
 RIGIDITY_TOLERANCE = 1e-6
 """Max |RᵀR − I| and |det R − 1| for a matrix written as ``RIGID``."""
 _PATIENT_STUDY_KEYS = (
@@ -191,7 +212,9 @@ def build_spatial_registration(
     ds.RegistrationSequence = [
         _registration_item(str(first.FrameOfReferenceUID), np.eye(4), "scan frame (identity)", ct),
         _registration_item(
-            robot_frame_of_reference_uid, m, f"image_from_robot LPS mm; FRE {fre_mm:.3g} mm; {status}{chain}"
+            robot_frame_of_reference_uid,
+            m @ ROBOT_NATIVE_FROM_DICOM,
+            f"{COMMENT_PREFIX}; FRE {fre_mm:.3g} mm; {status}{chain}",
         ),
     ]
     ser = Dataset()  # Common Instance Reference: the scan's series and instances
@@ -207,9 +230,16 @@ def build_spatial_registration(
 
 
 def image_from_robot_of(ds: Dataset, robot_frame_of_reference_uid: str) -> F64:
-    """Read ``image_from_robot`` back from an SRO built by :func:`build_spatial_registration`."""
+    """Read ``image_from_robot`` (controller-native robot mm → image LPS mm) back from an SRO built by
+    :func:`build_spatial_registration`, in the current convention or an archived one (module docstring).
+
+    For the scan's own frame of reference the matrix is returned as written (the identity).
+    """
     for item in ds.RegistrationSequence:
         if str(item.get("FrameOfReferenceUID", "")) == robot_frame_of_reference_uid:
-            values = item.MatrixRegistrationSequence[0].MatrixSequence[0].FrameOfReferenceTransformationMatrix
-            return np.asarray([float(v) for v in values], dtype=np.float64).reshape(4, 4)
+            mreg = item.MatrixRegistrationSequence[0]
+            values = mreg.MatrixSequence[0].FrameOfReferenceTransformationMatrix
+            m = np.asarray([float(v) for v in values], dtype=np.float64).reshape(4, 4)
+            comment = str(mreg.get("FrameOfReferenceTransformationComment", ""))
+            return m @ ROBOT_NATIVE_FROM_DICOM if comment.startswith(COMMENT_PREFIX) else m
     raise SroError(f"the SRO has no registration item for frame of reference {robot_frame_of_reference_uid}")

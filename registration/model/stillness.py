@@ -7,8 +7,12 @@ therefore checks the recorded joint history over the scan window and gives one o
 three verdicts (docs/safety.md, "Stillness and health"):
 
 * ``moved``: some joint deviated more than ``max_deviation_rad`` from its value at
-  the window end (the pose used for the registration).  Proof of motion wins over
-  everything else.
+  the window end (the pose used for the registration), or the controller itself reported
+  ``in_motion`` = TRUE (its STATUS TriState; simple_message msg 13, the serial link's status
+  line) inside the window, whatever the joints showed: the controller knows of a motion the
+  joint stream may not show (a move below the deviation limit, a frame filtered out).  An
+  ``in_motion`` of UNKNOWN (−1) or FALSE is no evidence either way and never refuses.  Proof of
+  motion wins over everything else.
 * ``incomplete``: the history does not cover the window, so nobody can say the robot
   was still: no samples; the window began before the link's session connected (the
   first scan after start-up); the link reconnected inside the window; or frames are
@@ -118,6 +122,7 @@ def assess_stillness(
     watched_from_t_s: float | None = None,
     sessions: ArrayLike | None = None,
     period_s: float | None = None,
+    in_motion_t_s: ArrayLike | None = None,
 ) -> StillnessResult:
     """Decide whether the robot was still during ``[window_end_t_s − window_s, window_end_t_s]``.
 
@@ -146,6 +151,9 @@ def assess_stillness(
     period_s : float, optional
         A streamed link's measured frame period (:func:`stream_period_s`): coverage is
         judged by the frame count, not by receive gaps.  None for a polled link.
+    in_motion_t_s : array_like of float, optional
+        Receive times (same clock as ``t_s``) of the controller statuses that reported
+        ``in_motion`` = TRUE; one inside the window is ``moved``.
 
     Returns
     -------
@@ -194,6 +202,16 @@ def assess_stillness(
             False, deviation, float(np.sum(gaps[gaps <= max_gap_s])), n,
             f"robot moved: joint {j + 1} deviated {math.degrees(deviation):.4f}° "
             f"({deviation:.6f} rad > {max_deviation_rad:g} rad) during the {window_s:g} s window",
+            VERDICT_MOVED, worst_gap,
+        )  # fmt: skip
+    reported = np.asarray([] if in_motion_t_s is None else in_motion_t_s, dtype=np.float64).reshape(-1)
+    reported = reported[(reported >= start) & (reported <= window_end_t_s)]
+    if reported.size:
+        return StillnessResult(
+            False, deviation, float(np.sum(gaps[gaps <= max_gap_s])), n,
+            f"robot moved: the controller reported in_motion at t={reported[0] - start:.3f} s into the "
+            f"{window_s:g} s window ({reported.size} status report(s) in the window) while the joints "
+            f"deviated {deviation:.6f} rad at most",
             VERDICT_MOVED, worst_gap,
         )  # fmt: skip
     if watched_from_t_s is not None and watched_from_t_s > start:

@@ -62,13 +62,13 @@ class RegisterRequest(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
-        json_schema_extra={"examples": [{}, {"scan_id": 3, "targets_mm": [[10.0, -25.5, 140.0]]}]},
+        json_schema_extra={"examples": [{}, {"scan_id": 3, "targets_image_mm": [[10.0, -25.5, 140.0]]}]},
     )
 
     scan_id: DbId | None = Field(
         default=None, description="Scan to register (GET /scans); default: the latest complete scan."
     )
-    targets_mm: list[StrictPoint3] | None = Field(
+    targets_image_mm: list[StrictPoint3] | None = Field(
         default=None,
         description=(
             "Target points in the IMAGE frame (DICOM LPS mm, the navigation UI's space) at which to report "
@@ -101,16 +101,26 @@ class RegisterRequest(BaseModel):
             raise ValueError("reason is only taken with allow_superseded: true")
         return self
 
-    @field_validator("targets_mm")
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "targets_mm" in data:  # one frame per name (issue 31)
+            raise ValueError(
+                "targets_mm was renamed targets_image_mm (image frame, DICOM LPS mm); the CLI's robot-frame "
+                "targets are targets_robot_mm"
+            )
+        return data
+
+    @field_validator("targets_image_mm")
     @classmethod
     def _three(cls, v: list[StrictPoint3] | None) -> list[StrictPoint3] | None:
         if v is None:
             return v
         for i, p in enumerate(v):
             if len(p) != 3:
-                raise ValueError(f"targets_mm[{i}] must be [x, y, z] in mm, got {len(p)} values")
+                raise ValueError(f"targets_image_mm[{i}] must be [x, y, z] in mm, got {len(p)} values")
             if any(abs(c) > 1e5 or c != c for c in p):
-                raise ValueError(f"targets_mm[{i}] = {p} is not a finite position in mm")
+                raise ValueError(f"targets_image_mm[{i}] = {p} is not a finite position in mm")
         return v
 
 
@@ -169,6 +179,11 @@ class LinkOut(_Out):
     history_s: float = Field(description="Span of joint history currently buffered, s.")
     max_receive_gap_s: float | None = Field(
         None, description="Largest time between two received joint frames over the last 60 s, s."
+    )
+    in_motion: bool | None = Field(
+        None,
+        description="The controller's last STATUS in_motion: true, false, or null (unknown or no STATUS). "
+        "TRUE inside a scan's stillness window refuses the scan as moved.",
     )
 
 

@@ -35,7 +35,7 @@ router = APIRouter(tags=["registration"])
         "stores the result and makes it current if every quality gate passes.  A refusal (robot moved, "
         "robot link down, too few spheres, ambiguous correspondence, FRE over the gate) answers 409, an "
         "unusable scan 422, both as problem details carrying `registration_id` of the stored refusal; the "
-        "previous current registration stays current.  `targets_mm` are in the IMAGE frame (LPS mm).  "
+        "previous current registration stays current.  `targets_image_mm` are in the IMAGE frame (LPS mm).  "
         "A scan the service has newer evidence against (a newer scan at the same FrameOfReferenceUID "
         "with an accepted registration or a failed verification, or a verification withdrew this scan's "
         "registration) is refused 409 naming the newer scan (`newer_scan_id`), unless the body says "
@@ -54,7 +54,7 @@ async def register(
     override = SupersededOverride((req.reason or "").strip()) if req.allow_superseded else None
     with audited(ctx, principal, "register", "registration") as note:
         rec = await anyio.to_thread.run_sync(
-            lambda: ctx.orchestrator.register(req.scan_id, req.targets_mm, override=override)
+            lambda: ctx.orchestrator.register(req.scan_id, req.targets_image_mm, override=override)
         )
         if isinstance(rec, RegistrationRefusal):
             note(rec.registration_id, *audit_refusal(rec.error))

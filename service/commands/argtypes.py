@@ -69,3 +69,13 @@ def output_file(text: str) -> Path:
             f"{text} exists and is not a regular file (a folder?): give a file path"
         )
     return path
+
+
+def renamed(new_flag: str, why: str) -> Callable[[str], str]:
+    """``type=`` of a flag that was renamed: always refuses (exit 2), naming the new flag."""
+
+    def parse(text: str) -> str:
+        raise argparse.ArgumentTypeError(f"this flag was renamed: use {new_flag} ({why})")
+
+    parse.__name__ = f"renamed_to_{new_flag}"
+    return parse

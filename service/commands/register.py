@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import float_below, output_file, positive_float, positive_int
+from service.commands.argtypes import float_below, output_file, positive_float, positive_int, renamed
 from service.commands.detect import add_method_argument
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
@@ -71,10 +71,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)"
     )
     parser.add_argument(
-        "--targets",
+        "--targets-robot",
         type=Path,
         metavar="FILE.json",
-        help='targets (robot frame) for the predicted TRE, {"targets_mm": [[x, y, z], ...]}',
+        help='targets in the ROBOT frame for the predicted TRE, {"targets_robot_mm": [[x, y, z], ...]} '
+        "(default: 6 points quality.default_target_distance_mm from the phantom centre, as the service)",
+    )
+    parser.add_argument(
+        "--targets",
+        type=renamed("--targets-robot", 'robot-frame targets, file key "targets_robot_mm"'),
+        help=argparse.SUPPRESS,
     )
     parser.add_argument(
         "--prior-rotation",
@@ -93,6 +99,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--prereg",
         metavar="R:I,R:I,R:I,R:I",
         help="paper pre-registration: 4 pairs robot sphere index : image point index (non-coplanar)",
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="service TOML settings file: its [quality] gates and default_target_distance_mm, as the "
+        "service uses them (default: the built-in defaults and OARMREG_* environment)",
     )
     parser.add_argument("--max-fre-mm", type=positive_float, help="override the FRE gate (mm, > 0)")
     parser.add_argument(
@@ -239,6 +252,7 @@ def run(args: argparse.Namespace) -> int:
         register_points,
     )
     from registration.model.phantom import load_phantom
+    from service.settings import load_settings
 
     try:
         timings: dict[str, float] = {}
@@ -261,8 +275,12 @@ def run(args: argparse.Namespace) -> int:
             provenance["robot_points_file"] = str(args.robot_points)
             provenance["robot_points_sha256"] = sha256_of(args.robot_points)
         image = load_image_points(args, provenance, timings)
-        targets = read_targets(args.targets) if args.targets else None
-        overrides: dict[str, Any] = {}
+        quality = load_settings(args.config).quality
+        overrides: dict[str, Any] = {
+            "min_matched": quality.min_matched_spheres,
+            "min_runner_up_margin": quality.min_symmetry_margin,
+            "max_fre_mm": quality.max_fre_mm,
+        }  # as service.orchestrator.pipeline_params
         if args.max_fre_mm is not None:
             overrides["max_fre_mm"] = args.max_fre_mm
         if args.min_margin is not None:
@@ -272,6 +290,13 @@ def run(args: argparse.Namespace) -> int:
         if args.phantom and args.phantom.lower() != "none":
             phantom = load_phantom(args.phantom)
             provenance["phantom"] = phantom.name
+        if args.targets_robot:
+            targets = read_targets(args.targets_robot)
+            provenance["targets_source"] = f"given: {args.targets_robot}"
+        else:
+            targets, provenance["targets_source"] = default_targets(
+                robot, phantom, quality.default_target_distance_mm
+            )
         provenance["params"] = params_dict(params)
         result = register_points(
             robot,
@@ -295,13 +320,12 @@ def run(args: argparse.Namespace) -> int:
     geometry = (doc.get("provenance") or {}).pop("series_geometry", None)
     if geometry is not None:
         doc["series_geometry"] = geometry
-    if args.joints is not None:  # the chain's figure (calibration posterior or nominal prior)
-        from registration.calibration.records import (
-            chain_error_figure,
-        )
+    # the chain's figure (calibration posterior or nominal prior), as the service attaches it to every
+    # registration: the error to expect at the robot's other working poses
+    from registration.calibration.records import chain_error_figure
 
-        cal = (doc.get("provenance") or {}).get("calibration")
-        doc["predicted_chain_error_mm"], doc["chain_error_source"] = chain_error_figure(cal)
+    cal = (doc.get("provenance") or {}).get("calibration")
+    doc["predicted_chain_error_mm"], doc["chain_error_source"] = chain_error_figure(cal)
     if args.json:  # files first: the result must not depend on stdout staying open
         write_json(args.json, doc)
     if getattr(args, "sro", None) is not None:
@@ -312,6 +336,26 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "sro", None) is not None:
         sys.stdout.write(f"written: {args.sro} (DICOM Spatial Registration)\n")
     return 0
+
+
+def default_targets(robot_mm: Any, phantom: Any, distance_mm: float) -> tuple[Any, str]:
+    """The service's default targets (:func:`registration.pipeline.default_targets_robot_mm`): 6 points
+    ``distance_mm`` from the phantom centre along the robot axes, and a label saying so.  The
+    phantom centre in the robot frame is fitted from the robot points (phantom sphere order); without
+    a phantom whose sphere count matches, their centroid."""
+    import numpy as np
+
+    from registration.matching.rigid import fit_rigid_unchecked
+    from registration.pipeline import default_targets_robot_mm
+
+    robot = np.asarray(robot_mm, dtype=np.float64).reshape(-1, 3)
+    if phantom is not None and len(phantom.centres_phantom_mm) == len(robot):
+        centre = fit_rigid_unchecked(np.asarray(phantom.centres_phantom_mm, dtype=np.float64), robot)[:3, 3]
+        where = "the phantom centre"
+    else:
+        centre, where = robot.mean(axis=0), "the robot points' centroid"
+    label = f"default: 6 points {distance_mm:g} mm from {where} along the robot axes"
+    return default_targets_robot_mm(centre, distance_mm), label
 
 
 def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
@@ -358,8 +402,23 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
 
 
 def summary(d: dict[str, Any]) -> str:
-    """Human-readable summary of a registration dict."""
-    lines = ["image_from_robot (p_image = M · p_robot, mm, LPS):"]
+    """Human-readable summary of a registration dict: the honest figure first (the chain's expected
+    error at the robot's working poses, and whether a calibration backs it), then the matrix, then the
+    one-scan figures labelled as what they are."""
+    lines = []
+    chain = d.get("predicted_chain_error_mm")
+    if chain is not None:
+        source = str(d.get("chain_error_source", ""))
+        backed = (
+            ""
+            if source.startswith("calibration") and "posterior" in source
+            else "; the cell is NOT calibrated"
+        )
+        lines.append(
+            f"expected error at the robot's working poses: {chain:.3f} mm (predicted_chain_error_mm, {source}"
+            f"{backed})"
+        )
+    lines.append("image_from_robot (p_image = M · p_robot, mm, LPS):")
     for row in d["image_from_robot"]:
         lines.append("  [" + "  ".join(f"{v:12.6f}" for v in row) + "]")
     lines.append(
@@ -370,10 +429,15 @@ def summary(d: dict[str, Any]) -> str:
         f"FRE {d['fre_mm']:.3f} mm (RMS residual, not accuracy); implied FLE {d['fle_mm']:.3f} mm; "
         f"max residual {d['max_residual_mm']:.3f} mm"
     )
-    for t, tre in zip(d["targets_robot_mm"], d["predicted_tre_mm"], strict=True):
+    tres = d["predicted_tre_mm"]
+    if tres:
+        where = (d.get("provenance") or {}).get("targets_source", "")
         lines.append(
-            f"predicted TRE at robot ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm: {tre:.3f} mm (Fitzpatrick)"
+            f"one-scan TRE, this pose only (Fitzpatrick: this scan's sphere localisation, not the chain's "
+            f"error at other poses): max {max(tres):.3f} mm at {len(tres)} targets ({where})"
         )
+    for t, tre in zip(d["targets_robot_mm"], tres, strict=True):
+        lines.append(f"  one-scan TRE at robot ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm: {tre:.3f} mm")
     ru = d.get("runner_up_rotation_deg")
     ru_txt = (
         f", runner-up {d['runner_up_matched']} matched, {ru:.1f}° away ({d['runner_up_source']})"

@@ -8,6 +8,7 @@ their connection without internals, single-use event tickets, the audit log.
 from __future__ import annotations
 
 import hashlib
+import json
 import socket
 from collections.abc import Iterator
 from pathlib import Path
@@ -221,15 +222,22 @@ def test_largest_id_is_a_plain_404(svc: Running) -> None:
         {"scan_id": 3.0},
         {"scan_id": 2**63},
         {"scan_id": 0},
-        {"targets_mm": [[True, 0.0, 0.0]]},
-        {"targets_mm": [["1", 0.0, 0.0]]},
+        {"targets_image_mm": [[True, 0.0, 0.0]]},
+        {"targets_image_mm": [["1", 0.0, 0.0]]},
     ],
 )
 @pytest.mark.parametrize("route", ["/register", "/verify"])
 def test_non_strict_bodies_are_422(svc: Running, body: dict[str, Any], route: str) -> None:
-    if route == "/verify" and "targets_mm" in body:
-        body = {"scan_id": body["targets_mm"][0][0]}
+    if route == "/verify" and "targets_image_mm" in body:
+        body = {"scan_id": body["targets_image_mm"][0][0]}
     assert_problem(svc.client.post(route, json=body), 422)
+
+
+def test_old_targets_name_is_a_422_naming_the_new_one(svc: Running) -> None:
+    """Issue 31 item 7: ``targets_mm`` meant image-frame points here and robot-frame points in the CLI;
+    the API's name is now ``targets_image_mm`` and the old one is refused, naming it."""
+    body = assert_problem(svc.client.post("/register", json={"targets_mm": [[1.0, 2.0, 3.0]]}), 422)
+    assert "targets_mm was renamed targets_image_mm" in json.dumps(body), body
 
 
 def test_500_closes_the_connection_cleanly_without_internals(svc: Running) -> None:

@@ -45,3 +45,43 @@ def test_moving_vs_still(kind: str) -> None:
                 assert still.still, still.reason
 
     asyncio.run(main())
+
+
+@pytest.mark.parametrize("kind", [k for k in KINDS if getattr(k, "values", (k,))[0] != "modbus"])
+def test_controller_in_motion_reaches_the_stillness_verdict(kind: str) -> None:
+    """Issue 31 item 8, per link that carries STATUS: a controller reporting in_motion = TRUE with its
+    joints standing still gives ``moved`` with the controller's reason; UNKNOWN (−1) never refuses."""
+    from dataclasses import replace
+
+    robot = ScriptedRobot(Q)
+
+    async def main() -> None:
+        with run_mock_controller(kind, robot) as mock:
+            async with open_link(mock.url) as link:
+                for reported, verdict in ((1, "moved"), (-1, "still")):
+                    robot.controller_status = replace(robot.controller_status, in_motion=reported)
+                    t0 = time.monotonic()
+                    await wait_until(
+                        lambda t0=t0: (
+                            len([s for s in link.status_history(t0) if s.t_s > t0 + 0.1]) >= 2
+                            and link.latest().t_s > t0 + 0.5
+                        ),
+                        f"statuses reporting in_motion={reported}",
+                    )
+                    h = [s for s in link.history(t0) if s.t_s >= t0 + 0.1]
+                    t, q = np.array([s.t_s for s in h]), np.array([s.joints_rad for s in h])
+                    moving_t = [s.t_s for s in link.status_history(t0 + 0.1) if s.in_motion == 1]
+                    res = assess_stillness(
+                        t,
+                        q,
+                        window_end_t_s=t[-1],
+                        window_s=t[-1] - t[0],
+                        max_gap_s=0.2,
+                        in_motion_t_s=moving_t,
+                    )
+                    assert res.verdict == verdict, res
+                    assert res.max_deviation_rad == 0.0
+                    if verdict == "moved":
+                        assert "controller reported in_motion at t=" in res.reason
+
+    asyncio.run(main())

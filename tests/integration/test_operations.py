@@ -107,6 +107,37 @@ def test_config_check_exits_3_on_a_bad_robot_model(
     assert rc == 3 and "robot.model" in err
 
 
+NON_FINITE_CASES = [
+    ("igtl.tool0_from_tcp", "translation_mm = [0.0, nan, 0.0]", "nan"),
+    ("igtl.tool0_from_tcp", "rpy_deg = [inf, 0.0, 0.0]", "inf"),
+    ("robot.tool0_from_phantom", "translation_mm = [0.0, 0.0, 1e300]", "1e+300"),
+    ("robot.tool0_from_phantom", "rpy_deg = [0.0, -inf, 0.0]", "-inf"),
+    ("quality", "max_fre_mm = nan", "nan"),
+    ("retention", "max_disk_mb = 1e300", "1e+300"),
+]
+
+
+@pytest.mark.parametrize(("section", "line", "shown"), NON_FINITE_CASES)
+def test_config_check_and_serve_exit_3_on_a_non_finite_or_absurd_setting(
+    section: str, line: str, shown: str, tmp_path: Path, clean_env: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str], root_logging: None,
+) -> None:  # fmt: skip
+    """Issue 31 item 8: NaN, infinity or 1e300 in a transform or limit setting is refused by
+    ``config check`` and at start-up (exit 3), the message naming the setting; before, they passed
+    (NaN later cut every OpenIGTLink client off, 1e300 gave a 500 at /register)."""
+    bad = tmp_path / "oarmreg.toml"
+    bad.write_text(f"[{section}]\n{line}\n")
+    key = f"{section}.{line.split(' =')[0]}"
+    rc, out, err = _cli(["config", "check", "--config", str(bad)], capsys)
+    assert rc == 3 and out == "", (out, err)
+    assert f"setting '{key}'" in err and shown in err, err
+    clean_env.setenv("OARMREG_API_TOKEN", TOKEN)
+    argv = ["serve", "--config", str(bad), "--watch", str(tmp_path / "w"), "--data", str(tmp_path / "d"),
+            "--port", "0"]  # fmt: skip
+    rc, _, err = _cli(argv, capsys)
+    assert rc == 3 and f"setting '{key}'" in err, err
+
+
 # ---- logging options ---------------------------------------------------------------------------
 
 

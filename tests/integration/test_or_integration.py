@@ -15,6 +15,7 @@ import ssl
 import subprocess
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from io import BytesIO
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -438,6 +439,30 @@ def test_sro_from_the_api_has_no_dciodvfy_errors(svc: Service, current: Current,
     assert svc.client.get(f"/registrations/{reg['id']}/dicom").content == r.content  # stable UIDs
     assert svc.client.get("/registrations/999999/dicom").status_code == 404
     assert svc.client.get("/registrations/0/dicom").status_code == 422
+
+
+def test_reg_read_as_slicerrt_equals_robot_to_image(svc: Service, current: Current) -> None:
+    """Issue 31 item 5: the REG object from the API, read as SlicerRT reads it
+    (tests/helpers/slicerrt_sro.py), is the transform pyigtl receives as ``RobotToImage``: the same
+    robot point lands at the same RAS point (825 mm apart before, with both sides flipped)."""
+    from tests.helpers.slicerrt_sro import slicerrt_transform_to_parent
+
+    rid = str(current.registration["id"])
+    r = svc.client.get(f"/registrations/{rid}/dicom")
+    assert r.status_code == 200
+    slicer = slicerrt_transform_to_parent(pydicom.dcmread(BytesIO(r.content)))
+    client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=svc.igtl_port)
+    hello = pyigtl.StringMessage("reads header version 2", device_name="Hello")
+    hello.header_version = 2
+    client.send_message(hello, wait=False)
+    try:
+        rx = receive(client, "RobotToImage", lambda m: m.metadata.get("RegistrationId") == rid,
+                     "RobotToImage of the registration")  # fmt: skip
+    finally:
+        client.stop()
+    for p_robot in ([350.0, 120.0, 40.0], [-400.0, 300.0, 250.0], [0.0, 0.0, 0.0]):
+        p = np.array([*p_robot, 1.0])
+        assert np.abs(slicer @ p - rx.matrix @ p).max() <= 1e-3, (p_robot, slicer @ p, rx.matrix @ p)
 
 
 def test_refused_registration_has_no_sro_and_is_pushed_as_last_refusal(svc: Service) -> None:

@@ -256,12 +256,12 @@ def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
 
     # targets given in the IMAGE frame: predicted TRE reported at exactly those points
     targets = [[0.0, 0.0, 150.0], [100.0, 50.0, -20.0]]
-    r2 = svc.client.post("/register", json={"targets_mm": targets})
+    r2 = svc.client.post("/register", json={"targets_image_mm": targets})
     assert r2.status_code == 200, r2.text
     assert r2.json()["targets_image_mm"] == targets and len(r2.json()["predicted_tre_mm"]) == 2
     # the default targets (robot frame), sent back in the image frame, give the same predicted TRE:
     # the image → robot mapping of the UI's targets is right
-    r3 = svc.client.post("/register", json={"targets_mm": reg["targets_image_mm"]})
+    r3 = svc.client.post("/register", json={"targets_image_mm": reg["targets_image_mm"]})
     assert r3.status_code == 200, r3.text
     np.testing.assert_allclose(r3.json()["predicted_tre_mm"], reg["predicted_tre_mm"], rtol=1e-9)
 
@@ -383,7 +383,7 @@ def test_bad_scan_folder_is_422_and_service_keeps_serving(
     assert stored["status"] == "refused" and stored["reason"] == body["detail"]
     assert svc.client.get("/registration/current").json()["id"] == cur_before
     assert_problem(svc.client.post("/register", json={"scan_id": 99999}), 404)
-    assert_problem(svc.client.post("/register", json={"targets_mm": [[1, 2]]}), 422)
+    assert_problem(svc.client.post("/register", json={"targets_image_mm": [[1, 2]]}), 422)
     status = svc.client.get("/status").json()
     assert status["watcher"]["running"] and status["link"]["state"] == "connected"
     # issue #13 item 8: a folder with no readable series is recorded as invalid, with the reason
@@ -413,6 +413,40 @@ def test_robot_moving_during_scan_is_refused(svc: Service, world: World, baselin
     ]  # the audit row names the stored refusal
     cur = svc.client.get("/registration/current").json()
     assert cur["id"] == cur_before["id"] and cur["image_from_robot"] == cur_before["image_from_robot"]
+
+
+def test_controller_in_motion_with_constant_joints_is_refused_as_moved(
+    svc: Service, baseline: Baseline
+) -> None:
+    """Issue 31 item 8: the mock controller reports STATUS in_motion = TRUE while its joints stand
+    still at Q1: the scan is refused as moved, with the controller's own reason, and /status shows the
+    flag (before, the scan registered: the joints alone looked still)."""
+    from dataclasses import replace
+
+    svc.hold_at(Q1)
+    normal = svc.robot.controller_status
+    svc.robot.controller_status = replace(normal, in_motion=1)
+    try:
+        wait_for(
+            lambda: svc.client.get("/status").json()["link"].get("in_motion") is True, "/status in_motion"
+        )
+        svc.wait_still()  # the joints: still, and watched, for the whole window
+        # a small series (the stillness check comes before the volume is loaded; with world.scan1 the
+        # old code answered 200 and made it current, measured: 7.6 s of this test's time was its export)
+        from tests.helpers.dicom_factory import ramp_volume, write_series
+
+        staging, uid = svc.watch.parent / "staging-in-motion", "1.2.826.0.1.3680043.8.498.999003"
+        write_series(staging, ramp_volume(6, 8, 8), series_uid=uid)
+        staging.rename(svc.watch / "in-motion")
+        scan = svc.wait_scan(uid)
+        joints = scan["joints"]
+        assert joints["still"] is False and joints["max_deviation_rad"] <= 5e-4, joints
+        assert "controller reported in_motion at t=" in str(joints), joints
+        body = assert_problem(svc.client.post("/register", json={"scan_id": scan["id"]}), 409)
+        assert body["title"] == "Robot moved during the scan" and "in_motion" in body["detail"], body
+    finally:
+        svc.robot.controller_status = normal
+    wait_for(lambda: svc.client.get("/status").json()["link"].get("in_motion") is False, "in_motion false")
 
 
 def test_verify_after_moving_the_robot(svc: Service, world: World, baseline: Baseline) -> None:

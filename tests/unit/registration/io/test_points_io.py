@@ -159,7 +159,7 @@ def test_cli_register_and_verify(
             str(image_p),
             "--robot-points",
             str(robot_p),
-            "--targets",
+            "--targets-robot",
             str(targets),
             "--json",
             str(out),
@@ -167,7 +167,7 @@ def test_cli_register_and_verify(
     )
     assert rc == 0
     text = capsys.readouterr().out
-    assert "26 matched" in text and "FRE" in text and "predicted TRE" in text and "symmetry margin" in text
+    assert "26 matched" in text and "FRE" in text and "one-scan TRE" in text and "symmetry margin" in text
     d = json.loads(out.read_text())
     for key in REGISTRATION_DOC_KEYS:
         assert key in d

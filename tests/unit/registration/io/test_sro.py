@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pydicom
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, generate_uid
 
@@ -75,8 +77,10 @@ def test_matrix_round_trips_through_a_file_and_maps_robot_to_image(tmp_path: Pat
     np.testing.assert_allclose(m @ p_robot, IMAGE_FROM_ROBOT @ p_robot, atol=1e-8)
     assert back.FrameOfReferenceUID == "1.2.3.5"
     raw = back.RegistrationSequence[1].MatrixRegistrationSequence[0].MatrixSequence[0]
+    # row-major: the first four values are the first row of image_from_robot @ diag(-1, -1, 1, 1)
+    # (the robot frame's DICOM coordinates are (-x, -y, z), registration/io/sro.py)
     assert [float(v) for v in raw.FrameOfReferenceTransformationMatrix][:4] == pytest.approx(
-        list(IMAGE_FROM_ROBOT[0])  # row-major: the first four values are the first row
+        list((IMAGE_FROM_ROBOT @ np.diag([-1.0, -1, 1, 1]))[0])
     )
 
 
@@ -135,3 +139,47 @@ def test_robot_frame_uid_file_corrupt_is_an_error(tmp_path: Path) -> None:
     (tmp_path / "robot_frame_of_reference_uid.txt").write_text("not a uid")
     with pytest.raises(RobotFrameUidError, match="not a DICOM UID"):
         robot_frame_uid(tmp_path)
+
+
+rotations = st.tuples(*[st.floats(-180.0, 180.0, allow_nan=False)] * 3)
+translations = st.tuples(*[st.floats(-1500.0, 1500.0, allow_nan=False)] * 3)
+
+
+@settings(max_examples=15, deadline=None)
+@given(rpy=rotations, xyz=translations, p_robot=translations)
+def test_slicerrt_reads_the_same_transform_as_igtl_robot_to_image(
+    rpy: tuple[float, float, float], xyz: tuple[float, float, float], p_robot: tuple[float, float, float]
+) -> None:
+    """Issue 31 item 5: read as SlicerRT reads it (LPS->RAS on both sides of the matrix), the REG
+    object places a robot point where OpenIGTLink's ``RobotToImage`` does; the old REG (the matrix
+    ``image_from_robot`` as is) put it up to 2·|(x, y)| away (825 mm in the report)."""
+    from registration.model.frames import transform_from_xyz_rpy
+    from service.igtl.server import RAS_FROM_LPS
+    from tests.helpers.slicerrt_sro import slicerrt_transform_to_parent
+
+    image_from_robot = transform_from_xyz_rpy(list(xyz), list(rpy))
+    ds = build(m=image_from_robot)
+    # the server's RobotToImage conversion (docs/slicer.md §2); the matrix it sends is read with pyigtl
+    # in tests/integration/test_or_integration.py::test_reg_read_as_slicerrt_equals_robot_to_image
+    robot_to_image = RAS_FROM_LPS @ image_from_robot
+    slicer = slicerrt_transform_to_parent(ds)
+    p = np.array([*p_robot, 1.0])
+    np.testing.assert_allclose(slicer @ p, robot_to_image @ p, rtol=0, atol=1e-6)
+    # and a strict DICOM reader: the robot point in the REG's declared (-x, -y, z) coordinates lands
+    # at the LPS point REST's image_from_robot gives
+    raw = ds.RegistrationSequence[1].MatrixRegistrationSequence[0].MatrixSequence[0]
+    m = np.asarray([float(v) for v in raw.FrameOfReferenceTransformationMatrix]).reshape(4, 4)
+    np.testing.assert_allclose(m @ (np.diag([-1.0, -1, 1, 1]) @ p), image_from_robot @ p, atol=1e-6)
+    np.testing.assert_allclose(image_from_robot_of(ds, ROBOT_FOR), image_from_robot, atol=1e-9)
+
+
+def test_archived_reg_is_read_in_its_own_convention() -> None:
+    """A REG written before the convention (comment 'image_from_robot LPS mm…') holds
+    image_from_robot itself; image_from_robot_of reads it as such."""
+    ds = build()
+    mreg = ds.RegistrationSequence[1].MatrixRegistrationSequence[0]
+    mreg.MatrixSequence[0].FrameOfReferenceTransformationMatrix = [
+        f"{v:.12g}" for v in IMAGE_FROM_ROBOT.reshape(16)
+    ]
+    mreg.FrameOfReferenceTransformationComment = "image_from_robot LPS mm; FRE 0.412 mm; current"
+    np.testing.assert_allclose(image_from_robot_of(ds, ROBOT_FOR), IMAGE_FROM_ROBOT, atol=1e-9)

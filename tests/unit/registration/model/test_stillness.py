@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, assess_stillness
 
@@ -82,3 +84,26 @@ def test_bad_inputs() -> None:
 
 def test_default_threshold_is_sub_millimetre_at_reach() -> None:
     assert DEFAULT_MAX_DEVIATION_RAD * 670.0 < 0.5  # mm at the TX60's 670 mm reach
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    window_s=st.floats(0.2, 5.0),
+    frac=st.floats(0.0, 1.0),
+    outside_s=st.floats(1e-3, 10.0),
+    q=st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6),
+)
+def test_controller_in_motion_inside_the_window_is_moved_outside_it_is_not(
+    window_s: float, frac: float, outside_s: float, q: list[float]
+) -> None:
+    """Issue 31 item 8: a controller report of in_motion = TRUE inside the window refuses as moved,
+    with the controller's reason, though the joints never change; a report outside the window does not."""
+    end = 100.0
+    t = np.linspace(end - window_s, end, 60)
+    joints = np.tile(q, (t.size, 1))
+    kw = {"window_end_t_s": end, "window_s": window_s, "max_gap_s": 0.25}
+    inside = assess_stillness(t, joints, in_motion_t_s=[end - window_s + frac * window_s], **kw)
+    assert inside.verdict == "moved" and not inside.still
+    assert "controller reported in_motion at t=" in inside.reason and inside.max_deviation_rad == 0.0
+    outside = assess_stillness(t, joints, in_motion_t_s=[end - window_s - outside_s, end + outside_s], **kw)
+    assert outside.verdict == "still" and outside.still, outside.reason
