@@ -4,6 +4,7 @@ loopback (issue #12).  Every server binds port 0."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import socket
 import statistics
@@ -89,6 +90,60 @@ def status_is(s: str) -> Callable[[Any], bool]:
     return lambda m: m.metadata.get("TransformStatus") == s
 
 
+class RawClient:
+    """A client on a plain socket that records every message (pyigtl skips STATUS and
+    CAPABILITY); with ``v2`` it first announces header version 2 with a STATUS, as Slicer does."""
+
+    def __init__(self) -> None:
+        self.messages: list[wire.Message] = []
+        self.task: asyncio.Task[None] | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    @classmethod
+    async def connect(cls, port: int, *, v2: bool) -> RawClient:
+        self = cls()
+        reader, self.writer = await asyncio.open_connection("127.0.0.1", port)
+        if v2:
+            self.writer.write(wire.pack_status("Hello", timestamp_s=time.time()))
+        self.task = asyncio.create_task(self._read(reader))
+        return self
+
+    async def _read(self, reader: asyncio.StreamReader) -> None:
+        with contextlib.suppress(asyncio.IncompleteReadError, ConnectionError):
+            while True:
+                head = wire.unpack_header(await reader.readexactly(wire.HEADER_SIZE))
+                self.messages.append(wire.unpack_body(head, await reader.readexactly(head.body_size)))
+
+    def send(self, raw: bytes) -> None:
+        assert self.writer is not None
+        self.writer.write(raw)
+
+    async def wait(self, pred: Callable[[wire.Message], bool], what: str) -> wire.Message:
+        found: list[wire.Message] = []
+
+        def hit() -> bool:
+            found[:] = [m for m in self.messages if pred(m)]
+            return bool(found)
+
+        await wait_until(hit, what, RX_TIMEOUT_S)
+        return found[0]
+
+    async def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        if self.task is not None:
+            self.task.cancel()
+            await asyncio.gather(self.task, return_exceptions=True)
+
+
+def is_msg(msg_type: str, device: str, **meta: str) -> Callable[[wire.Message], bool]:
+    return lambda m: (
+        m.header.type == msg_type
+        and m.header.device_name == device
+        and all(m.metadata.get(k) == v for k, v in meta.items())
+    )
+
+
 async def started(holder: Holder, **cfg: Any) -> IgtlServer:
     server = IgtlServer(IgtlServerConfig(port=0, **cfg), holder.source())
     await server.start()
@@ -126,31 +181,61 @@ def test_registration_sent_in_ras_with_figures() -> None:
     asyncio.run(main())
 
 
-def test_invalid_until_current_then_refusal_keeps_previous_ok() -> None:
-    holder = Holder(RegistrationState(None))
+def test_invalid_device_is_a_status_never_a_matrix_then_refusal_keeps_previous_ok() -> None:
+    """Issue #31 item 2: without a registration no TRANSFORM reaches any client (an identity used to
+    go out, which a version-1 client shows as the tool at the image origin); each device is a
+    STATUS with a non-OK code and the reason instead, in both header versions."""
+    holder = Holder(RegistrationState(None, no_current_reason="registration 4 was withdrawn: scan changed"))
 
     async def main() -> None:
         server = await started(holder)
-        client = pyigtl_client(server.port)
+        v1, v2 = await RawClient.connect(server.port, v2=False), await RawClient.connect(server.port, v2=True)
         try:
-            msg = await receive(client, "RobotToImage", lambda m: True)
-            assert msg.metadata["TransformStatus"] == "INVALID"
-            assert "no current registration" in msg.metadata["Reason"]
-            tool = await receive(client, "ToolToImage", lambda m: True)
-            assert tool.metadata["TransformStatus"] == "INVALID"
+            for c in (v1, v2):
+                for dev in ("RobotToImage", "ToolToImage"):
+                    st = await c.wait(is_msg("STATUS", dev), f"{dev} STATUS")
+                    code, _, name, text = wire.unpack_status_content(st.content)
+                    assert (code, name) == (wire.STATUS_NOT_READY, "INVALID")
+                    assert "registration 4 was withdrawn" in text
+            await v2.wait(
+                lambda m: m.header.version == 2 and m.metadata.get("TransformStatus") == "INVALID", "v2"
+            )
+            await wait_until(lambda: server.counters["sent"] >= 8, "a few pushes")
+            assert not [m for c in (v1, v2) for m in c.messages if m.header.type == "TRANSFORM"]
             holder.reg = RegistrationState(REG)
             server.notify()
-            msg = await receive(client, "RobotToImage", status_is("OK"))
-            assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+            for c in (v1, v2):
+                m = await c.wait(is_msg("TRANSFORM", "RobotToImage"), "the transform once current")
+                assert_transform_close(
+                    wire.unpack_transform_content(m.content), RAS_FROM_LPS @ IMAGE_FROM_ROBOT
+                )
             holder.reg = RegistrationState(REG, Refusal("reg-0008", "ambiguous: symmetry margin 0.3 < 2"))
-            msg = await receive(client, "RobotToImage", lambda m: "LastRefusal" in m.metadata)
+            msg = await v2.wait(lambda m: "LastRefusal" in m.metadata, "the refusal")
         finally:
-            client.stop()
+            await v1.close()
+            await v2.close()
             await server.stop()
         assert msg.metadata["TransformStatus"] == "OK"
         assert msg.metadata["RegistrationId"] == "reg-0007"
         assert msg.metadata["LastRefusal"].startswith("reg-0008: ambiguous")
-        assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+
+    asyncio.run(main())
+
+
+def test_send_invalid_transforms_v2_reaches_version_2_clients_only() -> None:
+    async def main() -> None:
+        server = await started(Holder(RegistrationState(None)), send_invalid_transforms_v2=True)
+        v1, v2 = await RawClient.connect(server.port, v2=False), await RawClient.connect(server.port, v2=True)
+        try:
+            m = await v2.wait(is_msg("TRANSFORM", "RobotToImage", TransformStatus="INVALID"), "INVALID v2")
+            assert m.metadata["Reason"] == "no current registration"
+            await v1.wait(is_msg("STATUS", "RobotToImage"), "the v1 client's STATUS")
+            await wait_until(lambda: len(v1.messages) >= 6, "a few pushes to the version-1 client")
+        finally:
+            await v1.close()
+            await v2.close()
+            await server.stop()
+        assert not [m for m in v1.messages if m.header.type == "TRANSFORM"]
 
     asyncio.run(main())
 
@@ -203,7 +288,7 @@ def test_tool_to_image_follows_mock_controller_joints_and_goes_invalid_when_stal
                 src = IgtlStateSource(
                     lambda: RegistrationState(REG), joints, model.robot_from_tool0, tool0_from_tcp
                 )
-                server = IgtlServer(IgtlServerConfig(port=0), src)
+                server = IgtlServer(IgtlServerConfig(port=0, send_invalid_transforms_v2=True), src)
                 await server.start()
                 client = pyigtl_client(server.port)
                 try:
@@ -333,12 +418,12 @@ def test_failing_callbacks_give_invalid_not_a_dead_server() -> None:
         src = IgtlStateSource(boom, lambda: None, lambda q: np.eye(4))
         server = IgtlServer(IgtlServerConfig(port=0), src)
         await server.start()
-        client = pyigtl_client(server.port)
+        client = await RawClient.connect(server.port, v2=True)
         try:
-            msg = await receive(client, "RobotToImage", lambda m: True)
+            msg = await client.wait(is_msg("STATUS", "RobotToImage", TransformStatus="INVALID"), "INVALID")
         finally:
-            client.stop()
+            await client.close()
             await server.stop()
-        assert msg.metadata["TransformStatus"] == "INVALID"
+        assert "could not be read" in wire.unpack_status_content(msg.content)[3]
 
     asyncio.run(main())
