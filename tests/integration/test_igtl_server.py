@@ -11,6 +11,7 @@ import statistics
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,8 @@ from service.igtl.server import (
     Refusal,
     RegistrationState,
     RegistrationView,
+    SpherePoint,
+    registration_messages,
 )
 
 RX_TIMEOUT_S = 5.0
@@ -118,11 +121,12 @@ class RawClient:
         assert self.writer is not None
         self.writer.write(raw)
 
-    async def wait(self, pred: Callable[[wire.Message], bool], what: str) -> wire.Message:
+    async def wait(self, pred: Callable[[wire.Message], bool], what: str, *, after: int = 0) -> wire.Message:
+        """The first message from index ``after`` on that satisfies ``pred``."""
         found: list[wire.Message] = []
 
         def hit() -> bool:
-            found[:] = [m for m in self.messages if pred(m)]
+            found[:] = [m for m in self.messages[after:] if pred(m)]
             return bool(found)
 
         await wait_until(hit, what, RX_TIMEOUT_S)
@@ -427,3 +431,158 @@ def test_failing_callbacks_give_invalid_not_a_dead_server() -> None:
         assert "could not be read" in wire.unpack_status_content(msg.content)[3]
 
     asyncio.run(main())
+
+
+def query(msg_type: str, device: str = "", *, version: int = 1) -> bytes:
+    return wire.pack_message(msg_type, device, b"", timestamp_s=time.time(), header_version=version)
+
+
+def test_get_trans_in_both_spellings_answers_the_named_device_only() -> None:
+    """Issue #31 item 3: the reference library's ``GET_TRANS`` (what OpenIGTLinkIO sends) got
+    nothing; ``GET_TRANSFOR`` answered both devices whatever the name.  A 60 s period keeps the
+    periodic pushes out of the way: after the on-connect push, only answers arrive."""
+    holder = Holder(RegistrationState(REG))
+
+    async def main() -> None:
+        server = await started(holder, period_s=60.0)
+        c = await RawClient.connect(server.port, v2=False)
+        try:
+            await c.wait(is_msg("POINT", "PhantomSpheres"), "the on-connect push")
+            for spelling in ("GET_TRANS", "GET_TRANSFOR"):
+                for device, want in (
+                    ("RobotToImage", ["RobotToImage"]),
+                    ("ToolToImage", ["ToolToImage"]),
+                    ("", ["RobotToImage", "ToolToImage"]),
+                ):
+                    n = len(c.messages)
+                    c.send(query(spelling, device))
+                    c.send(query("GET_CAPABIL"))  # a fence: everything before it was answered
+                    fence = await c.wait(lambda m: m.header.type == "CAPABILITY", "the fence", after=n)
+                    got = c.messages[n : c.messages.index(fence, n)]
+                    assert [m.header.device_name for m in got] == want, (spelling, device, got)
+            n = len(c.messages)
+            c.send(query("GET_TRANS", "NoSuchTool"))
+            st = await c.wait(
+                lambda m, n=n: c.messages.index(m) >= n and m.header.type == "STATUS", "NOT_FOUND"
+            )
+        finally:
+            await c.close()
+            await server.stop()
+        code, _, name, text = wire.unpack_status_content(st.content)
+        assert (code, name, st.header.device_name) == (4, "NOT_FOUND", "NoSuchTool")
+        assert "RobotToImage" in text
+        ras = wire.unpack_transform_content(got[0].content)
+        assert_transform_close(ras, RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+
+    asyncio.run(main())
+
+
+def test_get_status_and_get_capabil_are_answered() -> None:
+    holder = Holder(RegistrationState(None))
+
+    async def main() -> None:
+        server = await started(holder, period_s=60.0)
+        c = await RawClient.connect(server.port, v2=False)
+        try:
+            c.send(query("GET_STATUS"))
+            not_ready = await c.wait(is_msg("STATUS", "oarmreg"), "STATUS without registration")
+            holder.reg = RegistrationState(REG)
+            holder.joints = JointView((0.1, 0.0), time.monotonic() + 3600, "connected")  # fresh for an hour
+            n = len(c.messages)
+            c.send(query("GET_STATUS", "Svc"))
+            ok = await c.wait(is_msg("STATUS", "Svc"), "OK", after=n)
+            c.send(query("GET_CAPABIL"))
+            cap = await c.wait(lambda m: m.header.type == "CAPABILITY", "CAPABILITY")
+        finally:
+            await c.close()
+            await server.stop()
+        code, _, _, text = wire.unpack_status_content(not_ready.content)
+        assert code == wire.STATUS_NOT_READY and "no current registration" in text
+        code, _, _, text = wire.unpack_status_content(ok.content)
+        assert code == wire.STATUS_OK and "reg-0007" in text, text
+        types = [cap.content[i : i + 12].rstrip(b"\0").decode() for i in range(0, len(cap.content), 12)]
+        assert {
+            "TRANSFORM",
+            "POINT",
+            "STATUS",
+            "GET_TRANS",
+            "GET_TRANSFOR",
+            "GET_STATUS",
+            "GET_CAPABIL",
+        } <= set(types)
+
+    asyncio.run(main())
+
+
+def test_a_client_switching_to_version_2_gets_the_metadata_at_once() -> None:
+    """Issue #31 item 4: the on-connect push goes out in version 1 before the client's version-2
+    STATUS is read; the first message with metadata used to wait for the next periodic push (20 s
+    in the report, 60 s here)."""
+
+    async def main() -> None:
+        server = await started(Holder(RegistrationState(REG)), period_s=60.0)
+        c = await RawClient.connect(server.port, v2=False)
+        try:
+            await c.wait(
+                lambda m: m.header.device_name == "RobotToImage" and m.header.version == 1, "v1 push"
+            )
+            c.send(wire.pack_status("Hello", timestamp_s=time.time()))  # what Slicer sends at connect
+            msg = await c.wait(
+                lambda m: m.header.version == 2 and m.header.device_name == "RobotToImage", "v2"
+            )
+        finally:
+            await c.close()
+            await server.stop()
+        assert msg.metadata["TransformStatus"] == "OK" and msg.metadata["RegistrationId"] == "reg-0007"
+
+    asyncio.run(main())
+
+
+def _doc_keys() -> dict[str, str]:
+    """docs/slicer.md §3: metadata key → the "in" column."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "slicer.md").read_text(encoding="utf-8")
+    section = text.split("## 3. Metadata", 1)[1].split("\n## ", 1)[0]
+    rows = [ln.split("|") for ln in section.splitlines() if ln.startswith("| `")]
+    return {r[1].strip().strip("`"): r[2].strip() for r in rows}
+
+
+def test_documented_metadata_keys_are_what_is_sent_both_ways() -> None:
+    """docs/slicer.md §3 lists every key a message carries and nothing that is never sent (it
+    listed ``SroSopInstanceUid``, never sent).  The union over the states: a current registration
+    with every figure, a refusal, no registration, the robot link down."""
+    full = RegistrationView(
+        IMAGE_FROM_ROBOT, "reg-0007", fre_mm=0.41, tre_pred_mm=0.6, chain_error_mm=1.02,
+        chain_error_source="nominal model prior (no active calibration)",
+        spheres=(SpherePoint("+x-r1c1", (1.0, 2.0, 3.0), 0.02),), sphere_diameter_mm=4.0,
+    )  # fmt: skip
+    holder = Holder(RegistrationState(full, Refusal("reg-0008", "moved")))
+    sent: set[str] = set()
+
+    async def collect(c: RawClient) -> None:
+        await wait_until(lambda: {m.header.device_name for m in c.messages if m.header.version == 2}
+                         >= {"RobotToImage", "ToolToImage", "PhantomSpheres"}, "every device")  # fmt: skip
+        sent.update(k for m in c.messages for k in m.metadata)
+
+    async def main() -> None:
+        server = await started(holder, send_invalid_transforms_v2=True)
+        try:
+            for reg, joints in (
+                (holder.reg, JointView((0.1, 0.0), time.monotonic() + 3600, "connected")),
+                (holder.reg, JointView((0.1, 0.0), time.monotonic(), "down", "cable")),
+                (RegistrationState(None), None),
+            ):
+                holder.reg, holder.joints = reg, joints
+                c = await RawClient.connect(server.port, v2=True)
+                try:
+                    await collect(c)
+                finally:
+                    await c.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+    documented = _doc_keys()
+    assert sent - set(documented) == set(), "sent but not in docs/slicer.md §3"
+    assert set(documented) - sent == set(), "in docs/slicer.md §3 but never sent"
+    first = list(registration_messages(RegistrationState(full), IgtlServerConfig())[0].metadata)
+    assert first[:2] == ["ChainError_pred_mm", "ChainErrorSource"], first  # the honest figure first
