@@ -228,7 +228,7 @@ def test_invalid_device_is_a_status_never_a_matrix_then_refusal_keeps_previous_o
 
 def test_send_invalid_transforms_v2_reaches_version_2_clients_only() -> None:
     async def main() -> None:
-        server = await started(Holder(RegistrationState(None)), send_invalid_transforms_v2=True)
+        server = await started(Holder(RegistrationState(None)), send_invalid_transforms_v2=True, period_s=0.1)
         v1, v2 = await RawClient.connect(server.port, v2=False), await RawClient.connect(server.port, v2=True)
         try:
             m = await v2.wait(is_msg("TRANSFORM", "RobotToImage", TransformStatus="INVALID"), "INVALID v2")
