@@ -344,8 +344,13 @@ def registration_messages(state: RegistrationState, cfg: IgtlServerConfig) -> li
         return invalid_messages(
             cfg.registration_device, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg
         )
+    with np.errstate(all="ignore"):
+        matrix = RAS_FROM_LPS @ cur.image_from_robot
+    if not np.all(np.isfinite(matrix)):  # never a matrix the receiver cannot trust (nor a dead push loop)
+        reason = f"registration {cur.registration_id} has a non-finite matrix"
+        return invalid_messages(cfg.registration_device, reason, wire.STATUS_UNKNOWN_ERROR, meta, cfg)
     meta = {**_figures(cur), "TransformStatus": "OK", **meta}
-    return [_transform(cfg.registration_device, RAS_FROM_LPS @ cur.image_from_robot, meta)]
+    return [_transform(cfg.registration_device, matrix, meta)]
 
 
 def points_messages(state: RegistrationState, cfg: IgtlServerConfig) -> list[_Out]:
@@ -396,8 +401,9 @@ def tool_messages(
     if not reason:
         assert joints is not None and state.current is not None
         try:
-            robot_from_tcp = source.robot_from_tool0(joints.joints_rad) @ source.tool0_from_tcp
-            m = RAS_FROM_LPS @ state.current.image_from_robot @ robot_from_tcp
+            with np.errstate(all="ignore"):  # a non-finite result is refused just below
+                robot_from_tcp = source.robot_from_tool0(joints.joints_rad) @ source.tool0_from_tcp
+                m = RAS_FROM_LPS @ state.current.image_from_robot @ robot_from_tcp
             if not np.all(np.isfinite(m)):
                 raise ValueError("the pose is not finite")
         except Exception as e:  # KinematicsError or a bug in the callback: never a matrix, keep serving

@@ -586,3 +586,30 @@ def test_documented_metadata_keys_are_what_is_sent_both_ways() -> None:
     assert set(documented) - sent == set(), "in docs/slicer.md §3 but never sent"
     first = list(registration_messages(RegistrationState(full), IgtlServerConfig())[0].metadata)
     assert first[:2] == ["ChainError_pred_mm", "ChainErrorSource"], first  # the honest figure first
+
+
+def test_a_non_finite_matrix_or_tcp_is_a_status_and_the_server_keeps_serving() -> None:
+    """Issue #31 item 8: a NaN in ``tool0_from_tcp`` (or in a stored matrix) used to cut every
+    client off; now that device is a STATUS and the others keep flowing."""
+    bad = IMAGE_FROM_ROBOT.copy()
+    bad[0, 3] = np.nan
+    holder = Holder(RegistrationState(RegistrationView(bad, "reg-nan", fre_mm=0.1)))
+
+    async def main() -> None:
+        tcp = np.eye(4)
+        tcp[2, 3] = np.inf
+        src = holder.source(tcp=tcp)
+        holder.joints = JointView((0.1, 0.0), time.monotonic() + 3600, "connected")
+        server = IgtlServer(IgtlServerConfig(port=0, period_s=0.1), src)
+        await server.start()
+        c = await RawClient.connect(server.port, v2=True)
+        try:
+            for dev in ("RobotToImage", "ToolToImage"):
+                await c.wait(is_msg("STATUS", dev, TransformStatus="INVALID"), f"{dev} STATUS")
+            holder.reg = RegistrationState(REG)
+            await c.wait(is_msg("TRANSFORM", "RobotToImage", TransformStatus="OK"), "served again")
+        finally:
+            await c.close()
+            await server.stop()
+
+    asyncio.run(main())
