@@ -613,3 +613,20 @@ def test_a_non_finite_matrix_or_tcp_is_a_status_and_the_server_keeps_serving() -
             await server.stop()
 
     asyncio.run(main())
+
+
+def test_the_server_refuses_to_start_when_crcmod_runs_without_its_c_extension(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """crcmod falls back to pure Python silently (issue #32): its own flag says so, and then the
+    server does not start (the CRC of a message would hold the event loop)."""
+    import sys
+
+    monkeypatch.setattr(sys.modules["crcmod.crcmod"], "_usingExtension", False)
+
+    async def main() -> None:
+        server = IgtlServer(IgtlServerConfig(port=0), Holder(RegistrationState(REG)).source())
+        with pytest.raises(IgtlConfigError, match="C extension"):
+            await server.start()
+
+    asyncio.run(main())
