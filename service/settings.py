@@ -51,6 +51,7 @@ from registration.matching.records import (
     RegistrationParams,
 )
 from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
+from service.igtl import server as _igtl
 from service.netaddr import is_loopback
 
 _REG_DEFAULTS = RegistrationParams()
@@ -307,6 +308,27 @@ class IgtlSettings(_Section):
     allowed_peer_addresses: tuple[str, ...] = ()
     period_s: float = Field(default=1.0, gt=0, le=60)
     tool0_from_tcp: Tool0FromTcp = Tool0FromTcp()
+    # Listener limits (docs/security.md, "OpenIGTLink listener limits"); the defaults and their
+    # origin are in service/igtl/server.py.
+    max_clients: int = Field(default=_igtl.MAX_CLIENTS, ge=1, le=1024)
+    """Connections held at once; more are closed at once and counted (``refused_full``)."""
+    status_max_body_bytes: int = Field(
+        default=_igtl.STATUS_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
+    )
+    """Largest STATUS body a client may send; a larger BODY_SIZE closes its connection unread."""
+    query_max_body_bytes: int = Field(
+        default=_igtl.QUERY_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
+    )
+    """Largest GET_/STT_/STP_/RTS_ body."""
+    other_max_body_bytes: int = Field(
+        default=_igtl.OTHER_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
+    )
+    """Largest body of any other type (read and ignored)."""
+    stall_timeout_s: float = Field(default=_igtl.STALL_TIMEOUT_S, gt=0, le=300)
+    """A message begun must be complete within this; else its connection is closed."""
+    send_invalid_transforms_v2: bool = False
+    """Send an INVALID device's TRANSFORM (identity, ``TransformStatus=INVALID``) to header-version-2
+    clients besides its STATUS; version-1 clients never get one (PLUS: SendValidTransformsOnly)."""
 
     @field_validator("allowed_peer_addresses")
     @classmethod

@@ -11,10 +11,12 @@ answered in version 2 from then on).
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from registration.model.kinematics import sphere_centres_robot_mm
 from service.events import (
     IgtlClientConnected,
     IgtlClientDisconnected,
@@ -24,6 +26,7 @@ from service.events import (
     RegistrationRefused,
 )
 from service.igtl.server import (
+    F64,
     IgtlServer,
     IgtlServerConfig,
     IgtlStateSource,
@@ -31,8 +34,11 @@ from service.igtl.server import (
     Refusal,
     RegistrationState,
     RegistrationView,
+    SpherePoint,
 )
 from service.records import RegistrationRecord
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from drivers.base import RobotLink
@@ -78,6 +84,12 @@ class IgtlPublisher:
             port=settings.port,
             allowed_peer_addresses=settings.allowed_peer_addresses,
             period_s=settings.period_s,
+            max_clients=settings.max_clients,
+            status_max_body_bytes=settings.status_max_body_bytes,
+            query_max_body_bytes=settings.query_max_body_bytes,
+            other_max_body_bytes=settings.other_max_body_bytes,
+            stall_timeout_s=settings.stall_timeout_s,
+            send_invalid_transforms_v2=settings.send_invalid_transforms_v2,
         )
         self.server = IgtlServer(cfg, source, on_client=self._on_client)
 
@@ -114,21 +126,51 @@ class IgtlPublisher:
     # ---- state source (service loop) ------------------------------------------------------
 
     def _registration_state(self) -> RegistrationState:
-        cur = self.orchestrator.current
-        if cur is None or cur.image_from_robot is None:
-            return RegistrationState(None, self._last_refusal)
+        """The orchestrator's current registration; anything not accepted-and-current (withdrawn,
+        retired, none) is INVALID with the orchestrator's reason (``no_current_reason``)."""
+        orch = self.orchestrator
+        cur = orch.current
+        if cur is None or cur.image_from_robot is None or cur.status != "accepted" or cur.withdrawn_at:
+            return RegistrationState(None, self._last_refusal, orch.no_current_reason if cur is None else (
+                f"registration {cur.id} is {cur.status}: {cur.reason}"))  # fmt: skip
         cached = self._view
         if cached is None or cached[0] is not cur:
-            tre = cur.figures.predicted_tre_mm if cur.figures is not None else ()
-            view = RegistrationView(
-                image_from_robot=np.asarray(cur.image_from_robot, dtype=np.float64),
-                registration_id=str(cur.id),
-                fre_mm=float(cur.fre_mm or 0.0),
-                tre_pred_mm=max(tre) if tre else None,
-                chain_error_mm=None if cur.figures is None else cur.figures.predicted_chain_error_mm,
-            )
-            cached = self._view = (cur, view)
+            cached = self._view = (cur, self._make_view(cur))
         return RegistrationState(cached[1], self._last_refusal)
+
+    def _make_view(self, cur: RegistrationRecord) -> RegistrationView:
+        fig = cur.figures
+        tre = fig.predicted_tre_mm if fig is not None else ()
+        image_from_robot = np.asarray(cur.image_from_robot, dtype=np.float64)
+        return RegistrationView(
+            image_from_robot=image_from_robot,
+            registration_id=str(cur.id),
+            fre_mm=float(cur.fre_mm or 0.0),
+            tre_pred_mm=max(tre) if tre else None,
+            chain_error_mm=None if fig is None else fig.predicted_chain_error_mm,
+            chain_error_source="" if fig is None else fig.chain_error_source,
+            spheres=self._spheres(cur, image_from_robot),
+            sphere_diameter_mm=float(self.orchestrator.phantom.sphere_diameter_mm),
+        )
+
+    def _spheres(self, cur: RegistrationRecord, image_from_robot: F64) -> tuple[SpherePoint, ...]:
+        """Each matched sphere's centre as the registration maps it into the image (LPS, mm):
+        ``image_from_robot`` applied to its robot-frame centre at the scan's joints."""
+        orch = self.orchestrator
+        if cur.figures is None or not cur.joints_rad or not cur.figures.spheres:
+            return ()
+        try:
+            robot_mm = sphere_centres_robot_mm(
+                orch.robot_model, cur.joints_rad, orch.tool0_from_phantom, orch.phantom.centres_phantom_mm
+            )
+        except Exception:  # the POINT list is a view: a failure here must not stop the transforms
+            log.exception("OpenIGTLink: the sphere centres of registration %d could not be computed", cur.id)
+            return ()
+        out = []
+        for s in cur.figures.spheres:
+            p = image_from_robot[:3, :3] @ robot_mm[s.robot_index] + image_from_robot[:3, 3]
+            out.append(SpherePoint(s.sphere, (float(p[0]), float(p[1]), float(p[2])), float(s.residual_mm)))
+        return tuple(out)
 
     def _joints(self) -> JointView | None:
         latest = self.capture.latest()

@@ -1,40 +1,66 @@
 """A small asyncio OpenIGTLink server: the registration and the live tool pose, to any
 number of clients (3D Slicer OpenIGTLinkIF, PLUS-style consumers).
 
-Devices (PLUS / SlicerIGT naming ``<From>To<To>``, research §3.2; one TRANSFORM each):
+Devices (PLUS / SlicerIGT naming ``<From>To<To>``, research §3.2):
 
-``RobotToImage``
+``RobotToImage`` (TRANSFORM)
     ``ras_from_robot = RAS_FROM_LPS @ image_from_robot``: maps a point in the robot base
     frame (mm) to the scan's patient coordinates **in RAS** (mm), which is what Slicer's
     scene uses; ``image_from_robot`` itself is DICOM LPS (design §3) and the TRANSFORM
     message carries no coordinate field, so the flip ``diag(-1, -1, 1, 1)`` is applied here
     on the image side only (the robot frame is not a patient frame and is not flipped).
-``ToolToImage``
+``ToolToImage`` (TRANSFORM)
     ``RAS_FROM_LPS @ image_from_robot @ robot_from_tool0(q) @ tool0_from_tcp``: the TCP pose
     in image RAS from the latest joints, sent whenever a new joint sample arrives (the link
     rate), on connect, and at least every ``period_s``.
+``PhantomSpheres`` (POINT)
+    The registration's matched spheres in image RAS (mm): each phantom sphere centre as the
+    registration maps it (``image_from_robot`` applied to its robot-frame centre), named
+    ``<hole id> <residual> mm`` (the residual: distance to its detected centre).  Sent on connect,
+    on every change of the registration and on ``GET_POINT``, not periodically (a POINT list
+    would reset a Slicer user's markup edits every second).
+
+Never an invalid transform (PLUS's ``SendValidTransformsOnly``): a device that has no valid
+value (no current registration, robot link down or stale, kinematics failed) is sent as a
+STATUS message under the device's own name instead, to every client whatever its header
+version: code ``NOT_READY`` (13, no registration), ``TIME_OUT`` (7, robot link) or
+``UNKNOWN_ERROR`` (2), error name ``INVALID``, the reason as status string.  With
+``send_invalid_transforms_v2`` a version-2 client also gets the TRANSFORM with the metadata
+``TransformStatus=INVALID`` (an identity matrix that must not be used); a version-1 client, which
+cannot see metadata, never gets a matrix for an invalid device.
+
+Queries answered: ``GET_TRANS`` (the reference library's spelling) and ``GET_TRANSFOR`` (the
+12-byte cut of ``GET_TRANSFORM``) with the named device only, or every device when the name is
+empty; ``GET_POINT`` the same for POINT devices; ``GET_STATUS`` with a STATUS of the service
+(``OK`` when a registration is current and the robot link delivers, else the reasons);
+``GET_CAPABIL`` with a CAPABILITY listing :data:`CAPABILITY_TYPES`.  An unknown device name gets
+a STATUS ``NOT_FOUND`` (4) naming the devices.
 
 Header version, per client: every client is sent header version 1 (bare content, no
 metadata: what the reference library reads by default, OpenIGTLink ticket 200) until it has sent
 a well-formed message with header version 2 (SlicerOpenIGTLink sends a dummy version-2 STATUS at
 connect for exactly this, PR #65); from then on it gets version 2 with the metadata below, the
-PLUS rule (answer in the highest version received from that client).  A client that never writes
-keeps version 1.  Client messages are read in either version; a client whose version-2 extended
-header or metadata is malformed, or who sends a header version other than 1 or 2, is closed (the
-others are not affected); a message with a bad CRC is ignored (logged, counted, no switch).
+PLUS rule (answer in the highest version received from that client), and every device is sent
+again at once with its metadata.  A client that never writes keeps version 1.
 
-Version 2 carries the metadata ``TransformStatus`` (``OK`` / ``INVALID``; the matrix
-of an INVALID transform is the identity and must not be used), ``RegistrationId``,
-``FRE_mm``, ``TRE_pred_mm``, ``ImageFrame=RAS``, ``SourceFrame`` and, when the newest
-registration was refused while an older one stays current, ``LastRefusal``; INVALID ones
-give ``Reason``.
+Version 2 carries the metadata (the honest figure first) ``ChainError_pred_mm`` and
+``ChainErrorSource`` (whether a calibration backs it), ``TransformStatus`` (``OK`` /
+``INVALID``), ``RegistrationId``, ``FRE_mm``, ``TRE_pred_mm`` (the one-scan figure),
+``ImageFrame=RAS``, ``SourceFrame`` and, when the newest registration was refused while an older
+one stays current, ``LastRefusal``; INVALID ones give ``Reason``.
 
-Pushes: on every change of the registration (id or refusal), to every client on connect,
-and periodically (``period_s``, 1 Hz by default).  Each client has a bounded queue: when it
-is full the oldest message is dropped; a client whose socket stays blocked for longer than
-``slow_client_timeout_s`` is disconnected.  Nothing here ever blocks the caller or the
-other clients.  OpenIGTLink has no authentication: binding anything but loopback requires
-an explicit ``allowed_peer_addresses`` list, and peers not on the list are closed at once.
+Listener limits (``docs/security.md``, OpenIGTLink listener limits): at most ``max_clients``
+connections (more are closed at once, counted ``refused_full``); each message type class has a
+maximum body size (STATUS, queries, anything else): a larger BODY_SIZE closes the connection
+before a byte of the body is read; once a message has started (its first byte), the rest must
+arrive within ``stall_timeout_s`` or the connection is closed (a client that only receives, as
+Slicer does, is never timed out); a malformed header closes the connection.  The body CRC is
+crcmod's C code (a 64 KiB body in about 0.2 ms); the server refuses to start without it.  Each
+client has a bounded queue: when it is full the oldest message is dropped; a client whose socket
+stays blocked for longer than ``slow_client_timeout_s`` is disconnected.  Nothing here ever
+blocks the caller or the other clients.  OpenIGTLink has no authentication: binding anything but
+loopback requires an explicit ``allowed_peer_addresses`` list, and peers not on the list are
+closed at once.
 """
 
 from __future__ import annotations
@@ -76,6 +102,16 @@ class IgtlConfigError(ConfigError):
 
 
 @dataclass(frozen=True)
+class SpherePoint:
+    """One matched sphere for the POINT device: its centre in the image (DICOM LPS, mm) as the
+    registration maps it, its phantom hole id and its residual (mm)."""
+
+    sphere: str
+    image_lps_mm: tuple[float, float, float]
+    residual_mm: float
+
+
+@dataclass(frozen=True)
 class RegistrationView:
     """The current registration as the server needs it.
 
@@ -86,9 +122,12 @@ class RegistrationView:
     registration_id: str
     fre_mm: float
     tre_pred_mm: float | None = None
-    sro_sop_instance_uid: str | None = None
     chain_error_mm: float | None = None
     """The registration's ``predicted_chain_error_mm`` (metadata ``ChainError_pred_mm``)."""
+    chain_error_source: str = ""
+    """Whether a calibration backs ``chain_error_mm`` (metadata ``ChainErrorSource``)."""
+    spheres: tuple[SpherePoint, ...] = ()
+    sphere_diameter_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -103,6 +142,8 @@ class Refusal:
 class RegistrationState:
     current: RegistrationView | None
     last_refusal: Refusal | None = None
+    no_current_reason: str = ""
+    """Why nothing is current (e.g. ``registration 4 was withdrawn: …``); "" = none accepted yet."""
 
 
 @dataclass(frozen=True)
@@ -129,6 +170,31 @@ class IgtlStateSource:
 
 # --------------------------------------------------------------------------- config
 
+STATUS_MAX_BODY_BYTES = 4096
+"""A client's STATUS: 30 bytes + its status string (+ 12 + metadata in version 2).  SlicerOpenIGTLink's
+version-2 announcement is 44 bytes; 4 KiB leaves room for a PLUS-style error text."""
+QUERY_MAX_BODY_BYTES = 1024
+"""GET_/STT_/STP_/RTS_ queries: no content in version 1, 12 + a few metadata pairs in version 2."""
+OTHER_MAX_BODY_BYTES = 64 * 1024
+"""Anything else a client may push (read and ignored): TRANSFORM 48 B, POINT 136 B a point, a
+STRING at most 64 KiB (uint16 length) — not images."""
+BODY_LIMIT_MAX_BYTES = 1024 * 1024
+"""No per-type limit may exceed 1 MiB: its CRC (crcmod's C code, ~290 MB/s) stays under ~4 ms."""
+MAX_CLIENTS = 32
+"""Navigation workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and
+bounds the descriptors the listener can hold (i32a sums the listeners' maxima against RLIMIT_NOFILE)."""
+STALL_TIMEOUT_S = 5.0
+"""A started message must be complete within this (58 + at most 64 KiB on loopback or a LAN takes
+milliseconds; 5 s forgives a congested link, and frees a slot soon)."""
+
+CAPABILITY_TYPES: tuple[str, ...] = (
+    "TRANSFORM", "POINT", "STATUS", "CAPABILITY",
+    "GET_TRANS", "GET_TRANSFOR", "GET_POINT", "GET_STATUS", "GET_CAPABIL",
+)  # fmt: skip
+"""What the server sends (TRANSFORM, POINT, STATUS, CAPABILITY) and answers (the GET_ types)."""
+
+_QUERY_PREFIXES = ("GET_", "STT_", "STP_", "RTS_")
+
 
 @dataclass(frozen=True)
 class IgtlServerConfig:
@@ -152,9 +218,20 @@ class IgtlServerConfig:
     """A client whose socket accepts nothing for this long is disconnected."""
     registration_device: str = "RobotToImage"
     tool_device: str = "ToolToImage"
+    points_device: str = "PhantomSpheres"
+    max_clients: int = MAX_CLIENTS
+    status_max_body_bytes: int = STATUS_MAX_BODY_BYTES
+    query_max_body_bytes: int = QUERY_MAX_BODY_BYTES
+    other_max_body_bytes: int = OTHER_MAX_BODY_BYTES
+    stall_timeout_s: float = STALL_TIMEOUT_S
+    send_invalid_transforms_v2: bool = False
+    """Also send an INVALID device's TRANSFORM (identity, ``TransformStatus=INVALID``) to version-2
+    clients; version-1 clients never get one."""
 
     def __post_init__(self) -> None:
-        for name in ("period_s", "poll_period_s", "joint_max_age_s", "slow_client_timeout_s"):
+        timeouts: tuple[str, ...] = ("period_s", "poll_period_s", "joint_max_age_s", "slow_client_timeout_s")
+        timeouts += ("stall_timeout_s",)
+        for name in timeouts:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise IgtlConfigError(f"igtl.{name} must be > 0 s, got {v}")
@@ -162,7 +239,16 @@ class IgtlServerConfig:
             raise IgtlConfigError(
                 "igtl.client_queue_max must be >= 1, client_buffer_bytes and socket_send_buffer_bytes >= 1024"
             )
-        for dev in (self.registration_device, self.tool_device):
+        if self.max_clients < 1:
+            raise IgtlConfigError(f"igtl.max_clients must be >= 1, got {self.max_clients}")
+        for name in ("status_max_body_bytes", "query_max_body_bytes", "other_max_body_bytes"):
+            v = getattr(self, name)
+            if not wire.EXT_HEADER_SIZE + 30 <= v <= BODY_LIMIT_MAX_BYTES:
+                raise IgtlConfigError(
+                    f"igtl.{name} must be between {wire.EXT_HEADER_SIZE + 30} and {BODY_LIMIT_MAX_BYTES} "
+                    f"bytes, got {v}"
+                )
+        for dev in (self.registration_device, self.tool_device, self.points_device):
             if not dev.isascii() or not 0 < len(dev) <= wire.DEVICE_NAME_SIZE:
                 raise IgtlConfigError(f"device name {dev!r} must be 1–20 ASCII bytes")
         self.allowed_networks()  # validates the entries
@@ -179,58 +265,131 @@ class IgtlServerConfig:
         except ValueError as e:
             raise IgtlConfigError(str(e)) from None
 
+    def max_body_bytes(self, msg_type: str) -> int:
+        """The largest body accepted for a message of ``msg_type`` (module docstring)."""
+        if msg_type == "STATUS":
+            return self.status_max_body_bytes
+        if msg_type.startswith(_QUERY_PREFIXES):
+            return self.query_max_body_bytes
+        return self.other_max_body_bytes
+
+    @property
+    def transform_devices(self) -> tuple[str, str]:
+        return (self.registration_device, self.tool_device)
+
 
 # --------------------------------------------------------------------------- messages
 
 
 @dataclass(frozen=True)
 class _Out:
-    """A message to send, packed per client (each client numbers its own MSG_IDs)."""
+    """A message to send, packed per client (each client numbers its own MSG_IDs and gets
+    metadata only in header version 2)."""
 
+    type: str
     device: str
-    matrix: F64
+    content: bytes
     metadata: dict[str, str]
     timestamp_s: float
+    v2_only: bool = False
+    """Sent to version-2 clients only (an INVALID transform: its matrix must not reach a version-1
+    client, which cannot read the metadata that says so)."""
 
 
 def _fmt(v: float) -> str:
     return f"{v:.6g}"
 
 
-def registration_message(state: RegistrationState, device: str) -> _Out:
-    """The ``RobotToImage`` message for ``state`` (see the module docstring)."""
+def _transform(device: str, matrix: F64, meta: dict[str, str]) -> _Out:
+    return _Out("TRANSFORM", device, wire.pack_transform_content(matrix), meta, time.time())
+
+
+def invalid_messages(
+    device: str, reason: str, code: int, meta: dict[str, str], cfg: IgtlServerConfig
+) -> list[_Out]:
+    """What replaces the TRANSFORM of an invalid device: a STATUS to everyone (code, ``INVALID``,
+    the reason), and with ``send_invalid_transforms_v2`` the INVALID TRANSFORM to version 2 only."""
+    meta = {**meta, "TransformStatus": "INVALID", "Reason": reason[:500]}
+    content = wire.status_content(code, error_name="INVALID", status_string=reason)
+    out = [_Out("STATUS", device, content, meta, time.time())]
+    if cfg.send_invalid_transforms_v2:
+        out.append(_Out("TRANSFORM", device, wire.pack_transform_content(np.eye(4)), meta, time.time(), True))
+    return out
+
+
+def _no_registration(state: RegistrationState) -> str:
+    return state.no_current_reason or "no current registration"
+
+
+def _figures(cur: RegistrationView) -> dict[str, str]:
+    """The registration's figures, the chain's expected error first (the honest figure)."""
+    meta: dict[str, str] = {}
+    if cur.chain_error_mm is not None:
+        meta["ChainError_pred_mm"] = _fmt(cur.chain_error_mm)
+        meta["ChainErrorSource"] = cur.chain_error_source[:200] or "unknown"
+    meta["RegistrationId"] = cur.registration_id
+    meta["FRE_mm"] = _fmt(cur.fre_mm)
+    if cur.tre_pred_mm is not None:
+        meta["TRE_pred_mm"] = _fmt(cur.tre_pred_mm)
+    return meta
+
+
+def registration_messages(state: RegistrationState, cfg: IgtlServerConfig) -> list[_Out]:
+    """The ``RobotToImage`` device for ``state`` (see the module docstring)."""
     meta: dict[str, str] = {"ImageFrame": "RAS", "SourceFrame": "robot"}
     cur = state.current
     if state.last_refusal is not None:
         meta["LastRefusal"] = f"{state.last_refusal.registration_id}: {state.last_refusal.reason}"[:500]
     if cur is None:
-        meta["TransformStatus"] = "INVALID"
-        meta["Reason"] = "no current registration"
-        return _Out(device, np.eye(4), meta, time.time())
-    meta["TransformStatus"] = "OK"
+        return invalid_messages(
+            cfg.registration_device, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg
+        )
+    with np.errstate(all="ignore"):
+        matrix = RAS_FROM_LPS @ cur.image_from_robot
+    if not np.all(np.isfinite(matrix)):  # never a matrix the receiver cannot trust (nor a dead push loop)
+        reason = f"registration {cur.registration_id} has a non-finite matrix"
+        return invalid_messages(cfg.registration_device, reason, wire.STATUS_UNKNOWN_ERROR, meta, cfg)
+    meta = {**_figures(cur), "TransformStatus": "OK", **meta}
+    return [_transform(cfg.registration_device, matrix, meta)]
+
+
+def points_messages(state: RegistrationState, cfg: IgtlServerConfig) -> list[_Out]:
+    """The ``PhantomSpheres`` POINT list (image RAS), or its STATUS without a registration."""
+    cur = state.current
+    meta: dict[str, str] = {"ImageFrame": "RAS"}
+    if cur is None:
+        return invalid_messages(cfg.points_device, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg)[
+            :1
+        ]
+    points = []
+    for sp in cur.spheres:
+        ras = (RAS_FROM_LPS[:3, :3] @ np.asarray(sp.image_lps_mm, dtype=np.float64)).tolist()
+        points.append(
+            wire.Point(
+                name=f"{sp.sphere} {sp.residual_mm:.3f} mm",
+                position_mm=(ras[0], ras[1], ras[2]),
+                diameter_mm=cur.sphere_diameter_mm,
+                owner="",
+            )
+        )
     meta["RegistrationId"] = cur.registration_id
-    meta["FRE_mm"] = _fmt(cur.fre_mm)
-    if cur.tre_pred_mm is not None:
-        meta["TRE_pred_mm"] = _fmt(cur.tre_pred_mm)
-    if cur.sro_sop_instance_uid:
-        meta["SroSopInstanceUid"] = cur.sro_sop_instance_uid
-    if cur.chain_error_mm is not None:
-        meta["ChainError_pred_mm"] = _fmt(cur.chain_error_mm)
-    return _Out(device, RAS_FROM_LPS @ cur.image_from_robot, meta, time.time())
+    meta["Spheres"] = ",".join(sp.sphere for sp in cur.spheres)[:2000]
+    meta["Residuals_mm"] = ",".join(f"{sp.residual_mm:.4f}" for sp in cur.spheres)[:2000]
+    return [_Out("POINT", cfg.points_device, wire.point_content(points), meta, time.time())]
 
 
-def tool_message(
+def tool_messages(
     state: RegistrationState,
     joints: JointView | None,
     source: IgtlStateSource,
     cfg: IgtlServerConfig,
     now_t_s: float,
-) -> _Out:
-    """The ``ToolToImage`` message (INVALID without registration, or with a down/stale link)."""
+) -> list[_Out]:
+    """The ``ToolToImage`` device (a STATUS without registration, or with a down/stale link)."""
     meta: dict[str, str] = {"ImageFrame": "RAS", "SourceFrame": "tcp"}
-    reason = ""
+    reason, code = "", wire.STATUS_TIME_OUT
     if state.current is None:
-        reason = "no current registration"
+        reason, code = _no_registration(state), wire.STATUS_NOT_READY
     elif joints is None:
         reason = "no joint sample received"
     elif joints.health != "connected":
@@ -242,19 +401,40 @@ def tool_message(
     if not reason:
         assert joints is not None and state.current is not None
         try:
-            robot_from_tcp = source.robot_from_tool0(joints.joints_rad) @ source.tool0_from_tcp
-        except Exception as e:  # KinematicsError or a bug in the callback: say INVALID, keep serving
-            reason = f"forward kinematics failed: {e}"
+            with np.errstate(all="ignore"):  # a non-finite result is refused just below
+                robot_from_tcp = source.robot_from_tool0(joints.joints_rad) @ source.tool0_from_tcp
+                m = RAS_FROM_LPS @ state.current.image_from_robot @ robot_from_tcp
+            if not np.all(np.isfinite(m)):
+                raise ValueError("the pose is not finite")
+        except Exception as e:  # KinematicsError or a bug in the callback: never a matrix, keep serving
+            reason, code = f"forward kinematics failed: {e}", wire.STATUS_UNKNOWN_ERROR
         else:
-            meta["TransformStatus"] = "OK"
-            m = RAS_FROM_LPS @ state.current.image_from_robot @ robot_from_tcp
-            return _Out(cfg.tool_device, m, meta, time.time())
-    meta["TransformStatus"] = "INVALID"
-    meta["Reason"] = reason[:500]
-    return _Out(cfg.tool_device, np.eye(4), meta, time.time())
+            return [_transform(cfg.tool_device, m, {"TransformStatus": "OK", **meta})]
+    return invalid_messages(cfg.tool_device, reason, code, meta, cfg)
+
+
+def service_status(state: RegistrationState, tool: list[_Out]) -> tuple[int, str]:
+    """``(code, text)`` of the ``GET_STATUS`` answer: OK when every device is valid."""
+    if state.current is None:
+        return wire.STATUS_NOT_READY, _no_registration(state)
+    cur = state.current
+    text = f"registration {cur.registration_id} current"
+    if cur.chain_error_mm is not None:
+        text += f"; expected error at working poses {cur.chain_error_mm:.3g} mm ({cur.chain_error_source})"
+    if tool[0].type != "TRANSFORM":
+        return wire.STATUS_TIME_OUT, f"{text}; {tool[0].device}: {tool[0].metadata.get('Reason', '')}"
+    return wire.STATUS_OK, text
 
 
 # --------------------------------------------------------------------------- clients
+
+
+class _PeerError(Exception):
+    """The peer broke a listener limit or the framing: close its connection (message = why)."""
+
+    def __init__(self, counter: str, why: str) -> None:
+        super().__init__(why)
+        self.counter = counter
 
 
 class _Client:
@@ -284,17 +464,24 @@ class _Client:
                 self.server.counters["dropped"] += 1
         self.queue.put_nowait(out)
 
+    def _pack(self, out: _Out) -> bytes | None:
+        v2 = self.header_version >= 2
+        if out.v2_only and not v2:
+            return None
+        self.seq += 1
+        return wire.pack_message(
+            out.type, out.device, out.content, timestamp_s=out.timestamp_s,
+            metadata=out.metadata if v2 else None, message_id=self.seq if v2 else 0,
+            header_version=2 if v2 else 1,
+        )  # fmt: skip
+
     async def write_loop(self) -> None:
         timeout = self.server.config.slow_client_timeout_s
         try:
             while (out := await self.queue.get()) is not None:
-                self.seq += 1
-                v2 = self.header_version >= 2
-                raw = wire.pack_transform(
-                    out.matrix, out.device, timestamp_s=out.timestamp_s,
-                    metadata=out.metadata if v2 else None, message_id=self.seq if v2 else 0,
-                    header_version=2 if v2 else 1,
-                )  # fmt: skip
+                raw = self._pack(out)
+                if raw is None:
+                    continue
                 self.writer.write(raw)
                 self.server.counters["sent"] += 1
                 try:
@@ -311,32 +498,60 @@ class _Client:
         finally:
             self.writer.transport.abort()
 
-    async def read_loop(self) -> None:
-        """Read what the client sends (header version 1 or 2), switch it to version 2 after its
-        first well-formed version-2 message, answer GET_TRANSFORM; end on EOF or a bad header."""
+    async def _read_message(self) -> tuple[wire.Header, bytes]:
+        """One message.  Waits without limit for its first byte (a client that only receives is
+        fine); from then on the rest must come within ``stall_timeout_s``; a BODY_SIZE above the
+        type's limit ends the connection before the body is read."""
+        cfg = self.server.config
+        first = await self.reader.readexactly(1)
         try:
-            while True:
-                head = wire.unpack_header(await self.reader.readexactly(wire.HEADER_SIZE))
+            async with asyncio.timeout(cfg.stall_timeout_s):
+                head = wire.unpack_header(first + await self.reader.readexactly(wire.HEADER_SIZE - 1))
                 if head.version not in (1, 2):
                     raise wire.IgtlWireError(f"header version {head.version} (this server reads 1 and 2)")
-                body = await self.reader.readexactly(head.body_size)
+                limit = cfg.max_body_bytes(head.type)
+                if head.body_size > limit:
+                    raise _PeerError(
+                        "oversize",
+                        f"announced a {head.body_size}-byte {head.type!r} body, over the {limit}-byte "
+                        "limit for that type",
+                    )
+                return head, await self.reader.readexactly(head.body_size)
+        except TimeoutError:
+            raise _PeerError(
+                "stalled", f"sent part of a message and nothing more for {cfg.stall_timeout_s:g} s"
+            ) from None
+        except wire.IgtlWireError as e:
+            raise _PeerError("bad_headers", f"sent a bad header ({e})") from None
+
+    async def read_loop(self) -> None:
+        """Read what the client sends (header version 1 or 2), switch it to version 2 after its
+        first well-formed version-2 message, answer the queries; end on EOF or a broken limit."""
+        try:
+            while True:
+                head, body = await self._read_message()
                 try:
-                    wire.unpack_body(head, body)
+                    msg = wire.unpack_body(head, body)
                 except wire.IgtlCrcError as e:
                     self.server.counters["bad_crc"] += 1
                     log.warning("OpenIGTLink client %s: %s; message ignored", self.peer, e)
                     continue
+                except wire.IgtlWireError as e:
+                    raise _PeerError("bad_headers", f"sent a malformed version-2 body ({e})") from None
+                del msg
                 if head.version == 2 and self.header_version < 2:
                     self.header_version = 2
                     log.info("OpenIGTLink client %s sent header version 2; answering in version 2", self.peer)
                     self.server._report("header_version", self)
-                if head.type.startswith("GET_TRANSFOR"):
-                    self.server.push_current(self)
+                    self.server.push_current(self, points=True)  # the metadata now, not a period later
+                self.server._answer(self, head.type, head.device_name)
         except (asyncio.IncompleteReadError, ConnectionError, OSError):
             pass
-        except wire.IgtlWireError as e:
-            self.server.counters["bad_headers"] += 1
-            log.warning("OpenIGTLink client %s sent a bad header (%s); closing", self.peer, e)
+        except _PeerError as e:
+            self.server.counters[e.counter] += 1
+            log.warning("OpenIGTLink client %s %s; closing the connection", self.peer, e)
+        finally:
+            self.writer.transport.abort()
 
     def info(self) -> dict[str, object]:
         """For ``/status``: who, which header version, how much was sent / dropped."""
@@ -346,9 +561,12 @@ class _Client:
 
 # --------------------------------------------------------------------------- server
 
+_REFUSAL_LOG_EVERY_S = 10.0
+"""A flood of refused connections is logged once per this period (with the count), not per peer."""
+
 
 class IgtlServer:
-    """Serve ``RobotToImage`` and ``ToolToImage`` (see the module docstring).
+    """Serve ``RobotToImage``, ``ToolToImage`` and ``PhantomSpheres`` (see the module docstring).
 
     Construct, then ``await start()`` on the event loop that should own it; ``await stop()``.
     :meth:`notify` (thread-safe) asks for an immediate push after a registration change; the
@@ -374,9 +592,12 @@ class IgtlServer:
         self._handlers: set[asyncio.Task[object]] = set()
         self._wake: asyncio.Event | None = None
         self._tick_task: asyncio.Task[None] | None = None
+        self._refusals_logged_at = -math.inf
+        self._refusals_unlogged = 0
         self.counters: dict[str, int] = {
-            "connects": 0, "refused_peers": 0, "sent": 0, "dropped": 0, "slow_disconnects": 0,
-            "bad_headers": 0, "bad_crc": 0,
+            "connects": 0, "refused_peers": 0, "refused_full": 0, "sent": 0, "dropped": 0,
+            "slow_disconnects": 0, "bad_headers": 0, "bad_crc": 0, "oversize": 0, "stalled": 0,
+            "queries": 0,
         }  # fmt: skip
 
     @property
@@ -395,6 +616,12 @@ class IgtlServer:
         return sorted((c.info() for c in self._clients), key=lambda d: str(d["peer"]))
 
     async def start(self) -> None:
+        if not wire.native_crc():
+            raise IgtlConfigError(
+                "crcmod runs without its C extension (pure Python, ~8 MB/s: a message's CRC would hold "
+                "the service); reinstall it with a C compiler present: pip install --force-reinstall "
+                "--no-binary crcmod crcmod (Debian: apt install python3-dev gcc)"
+            )
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         try:
@@ -431,20 +658,75 @@ class IgtlServer:
         if self._loop is not None and self._wake is not None:
             self._loop.call_soon_threadsafe(self._wake.set)
 
-    def push_current(self, client: _Client | None = None) -> None:
-        """Send both devices' current state to one client (or all)."""
+    def push_current(self, client: _Client | None = None, *, points: bool = False) -> None:
+        """Send the devices' current state to one client (or all); the POINT list with ``points``."""
         reg = self._registration()
-        outs = [registration_message(reg, self.config.registration_device), self._tool(reg)]
+        outs = [*registration_messages(reg, self.config), *self._tool(reg)]
+        if points:
+            outs += points_messages(reg, self.config)
         for c in [client] if client is not None else list(self._clients):
             for out in outs:
                 c.offer(out)
 
     # ---- internals ------------------------------------------------------------
 
+    def _answer(self, client: _Client, msg_type: str, device: str) -> None:
+        """Answer a query (module docstring); other messages are read and ignored."""
+        cfg = self.config
+        if not msg_type.startswith("GET_"):
+            return
+        self.counters["queries"] += 1
+        reg = self._registration()
+        outs: list[_Out]
+        if msg_type in ("GET_TRANS", "GET_TRANSFOR"):
+            if device and device not in cfg.transform_devices:
+                outs = [self._not_found(device, cfg.transform_devices)]
+            else:
+                outs = []
+                if device in ("", cfg.registration_device):
+                    outs += registration_messages(reg, cfg)
+                if device in ("", cfg.tool_device):
+                    outs += self._tool(reg)
+        elif msg_type == "GET_POINT":
+            ok = device in ("", cfg.points_device)
+            outs = points_messages(reg, cfg) if ok else [self._not_found(device, (cfg.points_device,))]
+        elif msg_type == "GET_STATUS":
+            code, text = service_status(reg, self._tool(reg))
+            content = wire.status_content(code, error_name="" if code == wire.STATUS_OK else "NOT_READY",
+                                          status_string=text)  # fmt: skip
+            outs = [_Out("STATUS", device or "oarmreg", content, {}, time.time())]
+        elif msg_type == "GET_CAPABIL":
+            content = wire.capability_content(CAPABILITY_TYPES)
+            outs = [_Out("CAPABILITY", device or "oarmreg", content, {}, time.time())]
+        else:
+            outs = [_Out("STATUS", device or "oarmreg", wire.status_content(
+                12, error_name="UNKNOWN", status_string=f"{msg_type} is not answered here; GET_CAPABIL lists "
+                "what is"), {}, time.time())]  # fmt: skip
+        for out in outs:
+            client.offer(out)
+
+    @staticmethod
+    def _not_found(device: str, known: tuple[str, ...]) -> _Out:
+        text = f"no device {device!r} here; devices: {', '.join(known)}"
+        return _Out("STATUS", device, wire.status_content(4, error_name="NOT_FOUND", status_string=text), {},
+                    time.time())  # fmt: skip
+
     def _peer_allowed(self, host: str) -> bool:
         if not self._networks:
             return is_loopback(host)
         return in_networks(host, self._networks)
+
+    def _refuse_full(self, writer: asyncio.StreamWriter, host: str) -> None:
+        self.counters["refused_full"] += 1
+        self._refusals_unlogged += 1
+        writer.transport.abort()
+        now = time.monotonic()
+        if now - self._refusals_logged_at >= _REFUSAL_LOG_EVERY_S:
+            log.warning(
+                "OpenIGTLink: %d connection(s) refused (latest from %s): igtl.max_clients = %d reached",
+                self._refusals_unlogged, host, self.config.max_clients,
+            )  # fmt: skip
+            self._refusals_logged_at, self._refusals_unlogged = now, 0
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
@@ -453,6 +735,9 @@ class IgtlServer:
             self.counters["refused_peers"] += 1
             log.warning("OpenIGTLink: peer %s is not in allowed_peer_addresses; closed", host)
             writer.transport.abort()
+            return
+        if len(self._clients) >= self.config.max_clients:
+            self._refuse_full(writer, host)
             return
         handler = asyncio.current_task()
         if handler is not None:
@@ -467,15 +752,15 @@ class IgtlServer:
         self.counters["connects"] += 1
         log.info("OpenIGTLink client %s connected (%d now)", client.peer, len(self._clients))
         self._report("connected", client)
-        self.push_current(client)
+        self.push_current(client, points=True)
         client.tasks = [asyncio.create_task(client.write_loop()), asyncio.create_task(client.read_loop())]
         try:
             await asyncio.wait(client.tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
+            writer.transport.abort()
             for t in client.tasks:
                 t.cancel()
             await asyncio.gather(*client.tasks, return_exceptions=True)
-            writer.transport.abort()
             self._clients.discard(client)
             log.info("OpenIGTLink client %s gone (%d left)", client.peer, len(self._clients))
             self._report("disconnected", client)
@@ -492,7 +777,7 @@ class IgtlServer:
             return self.source.registration()
         except Exception:
             log.exception("OpenIGTLink: the registration callback failed; sending INVALID")
-            return RegistrationState(None)
+            return RegistrationState(None, no_current_reason="the registration could not be read")
 
     def _joints(self) -> JointView | None:
         try:
@@ -501,13 +786,14 @@ class IgtlServer:
             log.exception("OpenIGTLink: the joints callback failed; ToolToImage INVALID")
             return None
 
-    def _tool(self, reg: RegistrationState, joints: JointView | None = None) -> _Out:
+    def _tool(self, reg: RegistrationState, joints: JointView | None = None) -> list[_Out]:
         j = self._joints() if joints is None else joints
-        return tool_message(reg, j, self.source, self.config, time.monotonic())
+        return tool_messages(reg, j, self.source, self.config, time.monotonic())
 
-    def _broadcast(self, out: _Out) -> None:
+    def _broadcast(self, outs: list[_Out]) -> None:
         for c in list(self._clients):
-            c.offer(out)
+            for out in outs:
+                c.offer(out)
 
     async def _tick(self) -> None:
         cfg = self.config
@@ -520,7 +806,10 @@ class IgtlServer:
             reg = self._registration()
             key = _registration_key(reg)
             if key != last_reg or now >= next_reg:
-                self._broadcast(registration_message(reg, cfg.registration_device))
+                outs = registration_messages(reg, cfg)
+                if key != last_reg:  # the POINT list on a change only (module docstring)
+                    outs += points_messages(reg, cfg)
+                self._broadcast(outs)
                 last_reg, next_reg = key, now + cfg.period_s
             joints = self._joints()
             # A new sample, a health change or a sample going stale all change the key.
@@ -548,4 +837,5 @@ def _registration_key(reg: RegistrationState) -> object:
     return (
         None if cur is None else (cur.registration_id, cur.image_from_robot.tobytes(), cur.fre_mm),
         None if reg.last_refusal is None else (reg.last_refusal.registration_id, reg.last_refusal.reason),
+        reg.no_current_reason,
     )

@@ -101,6 +101,7 @@ def test_still_robot_12_associations_and_200_silent_igtl_clients_every_verdict_s
             "dicom.enabled": True, "dicom.port": dicom_port, "dicom.ae_title": AE_TITLE,
             "dicom.maximum_associations": N_ASSOCIATIONS + 4,
             "igtl.enabled": True, "igtl.port": igtl_port,
+            "igtl.max_clients": N_IGTL_CLIENTS + 8,  # all held (the default 32 refuses the rest)
         })  # fmt: skip
         serve = ServeProcess(cfg, port, tmp_path / "serve.log")
         serve.start()

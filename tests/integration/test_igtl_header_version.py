@@ -24,6 +24,7 @@ from service.igtl.server import (
     IgtlServer,
     IgtlServerConfig,
     IgtlStateSource,
+    JointView,
     RegistrationState,
     RegistrationView,
 )
@@ -46,17 +47,24 @@ class Events:
 
 
 async def started(events: Events | None = None, **cfg: Any) -> IgtlServer:
-    src = IgtlStateSource(lambda: RegistrationState(REG), lambda: None, lambda q: np.eye(4))
+    def joints() -> JointView:  # a fresh sample at every look: ToolToImage valid (a TRANSFORM)
+        return JointView((0.0,), time.monotonic(), "connected")
+
+    src = IgtlStateSource(lambda: RegistrationState(REG), joints, lambda q: np.eye(4))
     server = IgtlServer(IgtlServerConfig(port=0, period_s=0.05, **cfg), src, on_client=events)
     await server.start()
     return server
 
 
 async def read_one(reader: asyncio.StreamReader) -> wire.Message:
-    """One whole message, its CRC checked (unpack_body raises on a mismatch)."""
+    """The next TRANSFORM, its CRC checked (unpack_body raises on a mismatch); the PhantomSpheres
+    POINT (on connect and on the version-2 switch) is read past, its CRC checked too."""
     async with asyncio.timeout(RX_TIMEOUT_S):
-        head = wire.unpack_header(await reader.readexactly(wire.HEADER_SIZE))
-        return wire.unpack_body(head, await reader.readexactly(head.body_size))
+        while True:
+            head = wire.unpack_header(await reader.readexactly(wire.HEADER_SIZE))
+            msg = wire.unpack_body(head, await reader.readexactly(head.body_size))
+            if head.type != "POINT":
+                return msg
 
 
 async def until_v2(reader: asyncio.StreamReader) -> wire.Message:

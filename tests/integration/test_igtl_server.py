@@ -4,12 +4,14 @@ loopback (issue #12).  Every server binds port 0."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import socket
 import statistics
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,6 +34,8 @@ from service.igtl.server import (
     Refusal,
     RegistrationState,
     RegistrationView,
+    SpherePoint,
+    registration_messages,
 )
 
 RX_TIMEOUT_S = 5.0
@@ -89,6 +93,61 @@ def status_is(s: str) -> Callable[[Any], bool]:
     return lambda m: m.metadata.get("TransformStatus") == s
 
 
+class RawClient:
+    """A client on a plain socket that records every message (pyigtl skips STATUS and
+    CAPABILITY); with ``v2`` it first announces header version 2 with a STATUS, as Slicer does."""
+
+    def __init__(self) -> None:
+        self.messages: list[wire.Message] = []
+        self.task: asyncio.Task[None] | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    @classmethod
+    async def connect(cls, port: int, *, v2: bool) -> RawClient:
+        self = cls()
+        reader, self.writer = await asyncio.open_connection("127.0.0.1", port)
+        if v2:
+            self.writer.write(wire.pack_status("Hello", timestamp_s=time.time()))
+        self.task = asyncio.create_task(self._read(reader))
+        return self
+
+    async def _read(self, reader: asyncio.StreamReader) -> None:
+        with contextlib.suppress(asyncio.IncompleteReadError, ConnectionError):
+            while True:
+                head = wire.unpack_header(await reader.readexactly(wire.HEADER_SIZE))
+                self.messages.append(wire.unpack_body(head, await reader.readexactly(head.body_size)))
+
+    def send(self, raw: bytes) -> None:
+        assert self.writer is not None
+        self.writer.write(raw)
+
+    async def wait(self, pred: Callable[[wire.Message], bool], what: str, *, after: int = 0) -> wire.Message:
+        """The first message from index ``after`` on that satisfies ``pred``."""
+        found: list[wire.Message] = []
+
+        def hit() -> bool:
+            found[:] = [m for m in self.messages[after:] if pred(m)]
+            return bool(found)
+
+        await wait_until(hit, what, RX_TIMEOUT_S)
+        return found[0]
+
+    async def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        if self.task is not None:
+            self.task.cancel()
+            await asyncio.gather(self.task, return_exceptions=True)
+
+
+def is_msg(msg_type: str, device: str, **meta: str) -> Callable[[wire.Message], bool]:
+    return lambda m: (
+        m.header.type == msg_type
+        and m.header.device_name == device
+        and all(m.metadata.get(k) == v for k, v in meta.items())
+    )
+
+
 async def started(holder: Holder, **cfg: Any) -> IgtlServer:
     server = IgtlServer(IgtlServerConfig(port=0, **cfg), holder.source())
     await server.start()
@@ -126,31 +185,61 @@ def test_registration_sent_in_ras_with_figures() -> None:
     asyncio.run(main())
 
 
-def test_invalid_until_current_then_refusal_keeps_previous_ok() -> None:
-    holder = Holder(RegistrationState(None))
+def test_invalid_device_is_a_status_never_a_matrix_then_refusal_keeps_previous_ok() -> None:
+    """Issue #31 item 2: without a registration no TRANSFORM reaches any client (an identity used to
+    go out, which a version-1 client shows as the tool at the image origin); each device is a
+    STATUS with a non-OK code and the reason instead, in both header versions."""
+    holder = Holder(RegistrationState(None, no_current_reason="registration 4 was withdrawn: scan changed"))
 
     async def main() -> None:
         server = await started(holder)
-        client = pyigtl_client(server.port)
+        v1, v2 = await RawClient.connect(server.port, v2=False), await RawClient.connect(server.port, v2=True)
         try:
-            msg = await receive(client, "RobotToImage", lambda m: True)
-            assert msg.metadata["TransformStatus"] == "INVALID"
-            assert "no current registration" in msg.metadata["Reason"]
-            tool = await receive(client, "ToolToImage", lambda m: True)
-            assert tool.metadata["TransformStatus"] == "INVALID"
+            for c in (v1, v2):
+                for dev in ("RobotToImage", "ToolToImage"):
+                    st = await c.wait(is_msg("STATUS", dev), f"{dev} STATUS")
+                    code, _, name, text = wire.unpack_status_content(st.content)
+                    assert (code, name) == (wire.STATUS_NOT_READY, "INVALID")
+                    assert "registration 4 was withdrawn" in text
+            await v2.wait(
+                lambda m: m.header.version == 2 and m.metadata.get("TransformStatus") == "INVALID", "v2"
+            )
+            await wait_until(lambda: server.counters["sent"] >= 8, "a few pushes")
+            assert not [m for c in (v1, v2) for m in c.messages if m.header.type == "TRANSFORM"]
             holder.reg = RegistrationState(REG)
             server.notify()
-            msg = await receive(client, "RobotToImage", status_is("OK"))
-            assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+            for c in (v1, v2):
+                m = await c.wait(is_msg("TRANSFORM", "RobotToImage"), "the transform once current")
+                assert_transform_close(
+                    wire.unpack_transform_content(m.content), RAS_FROM_LPS @ IMAGE_FROM_ROBOT
+                )
             holder.reg = RegistrationState(REG, Refusal("reg-0008", "ambiguous: symmetry margin 0.3 < 2"))
-            msg = await receive(client, "RobotToImage", lambda m: "LastRefusal" in m.metadata)
+            msg = await v2.wait(lambda m: "LastRefusal" in m.metadata, "the refusal")
         finally:
-            client.stop()
+            await v1.close()
+            await v2.close()
             await server.stop()
         assert msg.metadata["TransformStatus"] == "OK"
         assert msg.metadata["RegistrationId"] == "reg-0007"
         assert msg.metadata["LastRefusal"].startswith("reg-0008: ambiguous")
-        assert_transform_close(np.asarray(msg.matrix), RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+
+    asyncio.run(main())
+
+
+def test_send_invalid_transforms_v2_reaches_version_2_clients_only() -> None:
+    async def main() -> None:
+        server = await started(Holder(RegistrationState(None)), send_invalid_transforms_v2=True, period_s=0.1)
+        v1, v2 = await RawClient.connect(server.port, v2=False), await RawClient.connect(server.port, v2=True)
+        try:
+            m = await v2.wait(is_msg("TRANSFORM", "RobotToImage", TransformStatus="INVALID"), "INVALID v2")
+            assert m.metadata["Reason"] == "no current registration"
+            await v1.wait(is_msg("STATUS", "RobotToImage"), "the v1 client's STATUS")
+            await wait_until(lambda: len(v1.messages) >= 6, "a few pushes to the version-1 client")
+        finally:
+            await v1.close()
+            await v2.close()
+            await server.stop()
+        assert not [m for m in v1.messages if m.header.type == "TRANSFORM"]
 
     asyncio.run(main())
 
@@ -203,7 +292,7 @@ def test_tool_to_image_follows_mock_controller_joints_and_goes_invalid_when_stal
                 src = IgtlStateSource(
                     lambda: RegistrationState(REG), joints, model.robot_from_tool0, tool0_from_tcp
                 )
-                server = IgtlServer(IgtlServerConfig(port=0), src)
+                server = IgtlServer(IgtlServerConfig(port=0, send_invalid_transforms_v2=True), src)
                 await server.start()
                 client = pyigtl_client(server.port)
                 try:
@@ -333,12 +422,211 @@ def test_failing_callbacks_give_invalid_not_a_dead_server() -> None:
         src = IgtlStateSource(boom, lambda: None, lambda q: np.eye(4))
         server = IgtlServer(IgtlServerConfig(port=0), src)
         await server.start()
-        client = pyigtl_client(server.port)
+        client = await RawClient.connect(server.port, v2=True)
         try:
-            msg = await receive(client, "RobotToImage", lambda m: True)
+            msg = await client.wait(is_msg("STATUS", "RobotToImage", TransformStatus="INVALID"), "INVALID")
         finally:
-            client.stop()
+            await client.close()
             await server.stop()
-        assert msg.metadata["TransformStatus"] == "INVALID"
+        assert "could not be read" in wire.unpack_status_content(msg.content)[3]
+
+    asyncio.run(main())
+
+
+def query(msg_type: str, device: str = "", *, version: int = 1) -> bytes:
+    return wire.pack_message(msg_type, device, b"", timestamp_s=time.time(), header_version=version)
+
+
+def test_get_trans_in_both_spellings_answers_the_named_device_only() -> None:
+    """Issue #31 item 3: the reference library's ``GET_TRANS`` (what OpenIGTLinkIO sends) got
+    nothing; ``GET_TRANSFOR`` answered both devices whatever the name.  A 60 s period keeps the
+    periodic pushes out of the way: after the on-connect push, only answers arrive."""
+    holder = Holder(RegistrationState(REG))
+
+    async def main() -> None:
+        server = await started(holder, period_s=60.0)
+        c = await RawClient.connect(server.port, v2=False)
+        try:
+            await c.wait(is_msg("POINT", "PhantomSpheres"), "the on-connect push")
+            for spelling in ("GET_TRANS", "GET_TRANSFOR"):
+                for device, want in (
+                    ("RobotToImage", ["RobotToImage"]),
+                    ("ToolToImage", ["ToolToImage"]),
+                    ("", ["RobotToImage", "ToolToImage"]),
+                ):
+                    n = len(c.messages)
+                    c.send(query(spelling, device))
+                    c.send(query("GET_CAPABIL"))  # a fence: everything before it was answered
+                    fence = await c.wait(lambda m: m.header.type == "CAPABILITY", "the fence", after=n)
+                    got = c.messages[n : c.messages.index(fence, n)]
+                    assert [m.header.device_name for m in got] == want, (spelling, device, got)
+            n = len(c.messages)
+            c.send(query("GET_TRANS", "NoSuchTool"))
+            st = await c.wait(
+                lambda m, n=n: c.messages.index(m) >= n and m.header.type == "STATUS", "NOT_FOUND"
+            )
+        finally:
+            await c.close()
+            await server.stop()
+        code, _, name, text = wire.unpack_status_content(st.content)
+        assert (code, name, st.header.device_name) == (4, "NOT_FOUND", "NoSuchTool")
+        assert "RobotToImage" in text
+        ras = wire.unpack_transform_content(got[0].content)
+        assert_transform_close(ras, RAS_FROM_LPS @ IMAGE_FROM_ROBOT)
+
+    asyncio.run(main())
+
+
+def test_get_status_and_get_capabil_are_answered() -> None:
+    holder = Holder(RegistrationState(None))
+
+    async def main() -> None:
+        server = await started(holder, period_s=60.0)
+        c = await RawClient.connect(server.port, v2=False)
+        try:
+            c.send(query("GET_STATUS"))
+            not_ready = await c.wait(is_msg("STATUS", "oarmreg"), "STATUS without registration")
+            holder.reg = RegistrationState(REG)
+            holder.joints = JointView((0.1, 0.0), time.monotonic() + 3600, "connected")  # fresh for an hour
+            n = len(c.messages)
+            c.send(query("GET_STATUS", "Svc"))
+            ok = await c.wait(is_msg("STATUS", "Svc"), "OK", after=n)
+            c.send(query("GET_CAPABIL"))
+            cap = await c.wait(lambda m: m.header.type == "CAPABILITY", "CAPABILITY")
+        finally:
+            await c.close()
+            await server.stop()
+        code, _, _, text = wire.unpack_status_content(not_ready.content)
+        assert code == wire.STATUS_NOT_READY and "no current registration" in text
+        code, _, _, text = wire.unpack_status_content(ok.content)
+        assert code == wire.STATUS_OK and "reg-0007" in text, text
+        types = [cap.content[i : i + 12].rstrip(b"\0").decode() for i in range(0, len(cap.content), 12)]
+        assert {
+            "TRANSFORM",
+            "POINT",
+            "STATUS",
+            "GET_TRANS",
+            "GET_TRANSFOR",
+            "GET_STATUS",
+            "GET_CAPABIL",
+        } <= set(types)
+
+    asyncio.run(main())
+
+
+def test_a_client_switching_to_version_2_gets_the_metadata_at_once() -> None:
+    """Issue #31 item 4: the on-connect push goes out in version 1 before the client's version-2
+    STATUS is read; the first message with metadata used to wait for the next periodic push (20 s
+    in the report, 60 s here)."""
+
+    async def main() -> None:
+        server = await started(Holder(RegistrationState(REG)), period_s=60.0)
+        c = await RawClient.connect(server.port, v2=False)
+        try:
+            await c.wait(
+                lambda m: m.header.device_name == "RobotToImage" and m.header.version == 1, "v1 push"
+            )
+            c.send(wire.pack_status("Hello", timestamp_s=time.time()))  # what Slicer sends at connect
+            msg = await c.wait(
+                lambda m: m.header.version == 2 and m.header.device_name == "RobotToImage", "v2"
+            )
+        finally:
+            await c.close()
+            await server.stop()
+        assert msg.metadata["TransformStatus"] == "OK" and msg.metadata["RegistrationId"] == "reg-0007"
+
+    asyncio.run(main())
+
+
+def _doc_keys() -> dict[str, str]:
+    """docs/slicer.md §3: metadata key → the "in" column."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "slicer.md").read_text(encoding="utf-8")
+    section = text.split("## 3. Metadata", 1)[1].split("\n## ", 1)[0]
+    rows = [ln.split("|") for ln in section.splitlines() if ln.startswith("| `")]
+    return {r[1].strip().strip("`"): r[2].strip() for r in rows}
+
+
+def test_documented_metadata_keys_are_what_is_sent_both_ways() -> None:
+    """docs/slicer.md §3 lists every key a message carries and nothing that is never sent (it
+    listed ``SroSopInstanceUid``, never sent).  The union over the states: a current registration
+    with every figure, a refusal, no registration, the robot link down."""
+    full = RegistrationView(
+        IMAGE_FROM_ROBOT, "reg-0007", fre_mm=0.41, tre_pred_mm=0.6, chain_error_mm=1.02,
+        chain_error_source="nominal model prior (no active calibration)",
+        spheres=(SpherePoint("+x-r1c1", (1.0, 2.0, 3.0), 0.02),), sphere_diameter_mm=4.0,
+    )  # fmt: skip
+    holder = Holder(RegistrationState(full, Refusal("reg-0008", "moved")))
+    sent: set[str] = set()
+
+    async def collect(c: RawClient) -> None:
+        await wait_until(lambda: {m.header.device_name for m in c.messages if m.header.version == 2}
+                         >= {"RobotToImage", "ToolToImage", "PhantomSpheres"}, "every device")  # fmt: skip
+        sent.update(k for m in c.messages for k in m.metadata)
+
+    async def main() -> None:
+        server = await started(holder, send_invalid_transforms_v2=True)
+        try:
+            for reg, joints in (
+                (holder.reg, JointView((0.1, 0.0), time.monotonic() + 3600, "connected")),
+                (holder.reg, JointView((0.1, 0.0), time.monotonic(), "down", "cable")),
+                (RegistrationState(None), None),
+            ):
+                holder.reg, holder.joints = reg, joints
+                c = await RawClient.connect(server.port, v2=True)
+                try:
+                    await collect(c)
+                finally:
+                    await c.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+    documented = _doc_keys()
+    assert sent - set(documented) == set(), "sent but not in docs/slicer.md §3"
+    assert set(documented) - sent == set(), "in docs/slicer.md §3 but never sent"
+    first = list(registration_messages(RegistrationState(full), IgtlServerConfig())[0].metadata)
+    assert first[:2] == ["ChainError_pred_mm", "ChainErrorSource"], first  # the honest figure first
+
+
+def test_a_non_finite_matrix_or_tcp_is_a_status_and_the_server_keeps_serving() -> None:
+    """Issue #31 item 8: a NaN in ``tool0_from_tcp`` (or in a stored matrix) used to cut every
+    client off; now that device is a STATUS and the others keep flowing."""
+    bad = IMAGE_FROM_ROBOT.copy()
+    bad[0, 3] = np.nan
+    holder = Holder(RegistrationState(RegistrationView(bad, "reg-nan", fre_mm=0.1)))
+
+    async def main() -> None:
+        tcp = np.eye(4)
+        tcp[2, 3] = np.inf
+        src = holder.source(tcp=tcp)
+        holder.joints = JointView((0.1, 0.0), time.monotonic() + 3600, "connected")
+        server = IgtlServer(IgtlServerConfig(port=0, period_s=0.1), src)
+        await server.start()
+        c = await RawClient.connect(server.port, v2=True)
+        try:
+            for dev in ("RobotToImage", "ToolToImage"):
+                await c.wait(is_msg("STATUS", dev, TransformStatus="INVALID"), f"{dev} STATUS")
+            holder.reg = RegistrationState(REG)
+            await c.wait(is_msg("TRANSFORM", "RobotToImage", TransformStatus="OK"), "served again")
+        finally:
+            await c.close()
+            await server.stop()
+
+    asyncio.run(main())
+
+
+def test_the_server_refuses_to_start_when_crcmod_runs_without_its_c_extension(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """crcmod falls back to pure Python silently (issue #32): its own flag says so, and then the
+    server does not start (the CRC of a message would hold the event loop)."""
+    import sys
+
+    monkeypatch.setattr(sys.modules["crcmod.crcmod"], "_usingExtension", False)
+
+    async def main() -> None:
+        server = IgtlServer(IgtlServerConfig(port=0), Holder(RegistrationState(REG)).source())
+        with pytest.raises(IgtlConfigError, match="C extension"):
+            await server.start()
 
     asyncio.run(main())

@@ -8,7 +8,8 @@
 // until N_V1 of them were RobotToImage (ToolToImage comes at the robot link rate, RobotToImage
 // at the re-send period), printing one line each:
 //     V1 <device> crc=<ok|bad> <m00 m01 m02 m03 m10 ... m23>      (the upper 3x4, row-major, mm)
-// Any other header version in phase 1 prints "UNEXPECTED <version> <type> <device>" and exits 3.
+// Any other header version in phase 1 prints "UNEXPECTED <version> <type> <device>" and exits 3;
+// other version-1 messages (the PhantomSpheres POINT) are read past: "SKIP 1 <type> <device>".
 //
 // Phase 2: sends a header-version-2 STATUS (OK, no metadata), as SlicerOpenIGTLink does at connect
 // (PR #65), prints "SENT_V2_STATUS", then reads until N_V2 version-2 RobotToImage messages came.  The 1.11 library
@@ -17,6 +18,17 @@
 // splits the extended header and metadata with a few lines here (v3_proposal.md):
 //     V<version> <type> <device> crc=<ok|bad> body=<n> [meta <key>=<value>;...]
 // Exit status: 0 done, 2 connection / read failure, 3 protocol surprise.
+//
+//   igtl_ref_client HOST PORT query
+//
+// Query mode (issue #31): sends, as version 1 with the library's own classes, GET_TRANS for
+// ToolToImage (igtl::GetTransformMessage), GET_STATUS (device "RefClient"), GET_CAPABIL and
+// GET_POINT for PhantomSpheres, then reads until it has seen a TRANSFORM ToolToImage, a STATUS
+// RefClient, a CAPABILITY and a POINT, each unpacked by the library with its CRC check:
+//     TRANSFORM <device> crc=<ok|bad>
+//     STATUS <device> crc=<ok|bad> code=<C> name=<error name> text=<status string>
+//     CAPABILITY <device> crc=<ok|bad> types=<T1,T2,...>
+//     POINT <device> crc=<ok|bad> n=<N>, then per point: PT <name>|<x> <y> <z>|<diameter>
 
 #include <cstdio>
 #include <cstdlib>
@@ -24,8 +36,10 @@
 #include <string>
 #include <vector>
 
+#include "igtlCapabilityMessage.h"
 #include "igtlClientSocket.h"
 #include "igtlMessageHeader.h"
+#include "igtlPointMessage.h"
 #include "igtlStatusMessage.h"
 #include "igtlTransformMessage.h"
 #include "igtl_header.h"
@@ -54,9 +68,14 @@ static int phase1(igtl::ClientSocket::Pointer& socket, int n) {
       return 3;
     }
     header->Unpack();
-    if (std::strcmp(header->GetDeviceType(), "TRANSFORM") != 0) {
-      std::printf("UNEXPECTED 1 %s %s\n", header->GetDeviceType(), header->GetDeviceName());
-      return 3;
+    if (std::strcmp(header->GetDeviceType(), "TRANSFORM") != 0) {  // POINT, STATUS: read past
+      std::vector<unsigned char> skip(header->GetBodySizeToRead());
+      if (!skip.empty() && socket->Receive(skip.data(), static_cast<int>(skip.size())) != static_cast<int>(skip.size())) {
+        std::printf("READ_FAILED body\n");
+        return 2;
+      }
+      std::printf("SKIP 1 %s %s\n", header->GetDeviceType(), header->GetDeviceName());
+      continue;
     }
     igtl::TransformMessage::Pointer msg = igtl::TransformMessage::New();
     msg->SetMessageHeader(header);
@@ -154,9 +173,105 @@ static int phase2(igtl::ClientSocket::Pointer& socket, int n) {
   return 0;
 }
 
+static bool send_packed(igtl::ClientSocket::Pointer& socket, igtl::MessageBase* msg) {
+  msg->Pack();
+  return socket->Send(msg->GetPackPointer(), msg->GetPackSize()) != 0;
+}
+
+template <class M>
+static int receive_into(igtl::ClientSocket::Pointer& socket, igtl::MessageHeader::Pointer& header,
+                        typename M::Pointer& msg) {
+  msg->SetMessageHeader(header);
+  msg->AllocatePack();
+  if (socket->Receive(msg->GetPackBodyPointer(), msg->GetPackBodySize()) != msg->GetPackBodySize()) return -1;
+  return (msg->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;  // 1: CRC ok
+}
+
+static int query(igtl::ClientSocket::Pointer& socket) {
+  igtl::GetTransformMessage::Pointer get_trans = igtl::GetTransformMessage::New();
+  get_trans->SetDeviceName("ToolToImage");
+  igtl::GetStatusMessage::Pointer get_status = igtl::GetStatusMessage::New();
+  get_status->SetDeviceName("RefClient");
+  igtl::GetCapabilityMessage::Pointer get_capabil = igtl::GetCapabilityMessage::New();
+  get_capabil->SetDeviceName("RefClient");
+  igtl::GetPointMessage::Pointer get_point = igtl::GetPointMessage::New();
+  get_point->SetDeviceName("PhantomSpheres");
+  if (!send_packed(socket, get_trans) || !send_packed(socket, get_status) || !send_packed(socket, get_capabil) ||
+      !send_packed(socket, get_point)) {
+    std::printf("SEND_FAILED\n");
+    return 2;
+  }
+  bool got_transform = false, got_status = false, got_capability = false, got_point = false;
+  igtl::MessageHeader::Pointer header = igtl::MessageHeader::New();
+  for (int i = 0; i < 500 && !(got_transform && got_status && got_capability && got_point); ++i) {
+    header->InitPack();
+    if (socket->Receive(header->GetPackPointer(), header->GetPackSize()) != header->GetPackSize()) {
+      std::printf("READ_FAILED header\n");
+      return 2;
+    }
+    header->Unpack();
+    const std::string type = header->GetDeviceType();
+    const std::string dev = header->GetDeviceName();
+    int c = 0;
+    if (type == "TRANSFORM") {
+      igtl::TransformMessage::Pointer m = igtl::TransformMessage::New();
+      c = receive_into<igtl::TransformMessage>(socket, header, m);
+      std::printf("TRANSFORM %s crc=%s\n", dev.c_str(), c == 1 ? "ok" : "bad");
+      got_transform = got_transform || dev == "ToolToImage";
+    } else if (type == "STATUS") {
+      igtl::StatusMessage::Pointer m = igtl::StatusMessage::New();
+      c = receive_into<igtl::StatusMessage>(socket, header, m);
+      std::printf("STATUS %s crc=%s code=%d name=%s text=%s\n", dev.c_str(), c == 1 ? "ok" : "bad",
+                  m->GetCode(), m->GetErrorName(), m->GetStatusString());
+      got_status = got_status || dev == "RefClient";
+      got_transform = got_transform || dev == "ToolToImage";  // an invalid device is answered by STATUS
+    } else if (type == "CAPABILITY") {
+      igtl::CapabilityMessage::Pointer m = igtl::CapabilityMessage::New();
+      c = receive_into<igtl::CapabilityMessage>(socket, header, m);
+      std::printf("CAPABILITY %s crc=%s types=", dev.c_str(), c == 1 ? "ok" : "bad");
+      std::vector<std::string> types = m->GetTypes();
+      for (size_t k = 0; k < types.size(); ++k) std::printf("%s%s", k ? "," : "", types[k].c_str());
+      std::printf("\n");
+      got_capability = true;
+    } else if (type == "POINT") {
+      igtl::PointMessage::Pointer m = igtl::PointMessage::New();
+      c = receive_into<igtl::PointMessage>(socket, header, m);
+      std::printf("POINT %s crc=%s n=%d\n", dev.c_str(), c == 1 ? "ok" : "bad", m->GetNumberOfPointElement());
+      for (int k = 0; k < m->GetNumberOfPointElement(); ++k) {
+        igtl::PointElement::Pointer e;
+        m->GetPointElement(k, e);
+        igtlFloat32 x, y, z;
+        e->GetPosition(x, y, z);
+        std::printf("PT %s|%.9g %.9g %.9g|%.9g\n", e->GetName(), x, y, z, e->GetRadius());
+      }
+      got_point = true;
+    } else {
+      std::printf("UNEXPECTED 1 %s %s\n", type.c_str(), dev.c_str());
+      return 3;
+    }
+    if (c < 0) {
+      std::printf("READ_FAILED body\n");
+      return 2;
+    }
+  }
+  return (got_transform && got_status && got_capability && got_point) ? 0 : 3;
+}
+
 int main(int argc, char* argv[]) {
+  if (argc == 4 && std::strcmp(argv[3], "query") == 0) {
+    igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
+    if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0) {
+      std::printf("CONNECT_FAILED\n");
+      return 2;
+    }
+    socket->SetReceiveTimeout(10000);
+    int rc = query(socket);
+    std::fflush(stdout);
+    socket->CloseSocket();
+    return rc;
+  }
   if (argc != 5) {
-    std::fprintf(stderr, "usage: %s HOST PORT N_V1 N_V2\n", argv[0]);
+    std::fprintf(stderr, "usage: %s HOST PORT N_V1 N_V2 | %s HOST PORT query\n", argv[0], argv[0]);
     return 2;
   }
   igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();

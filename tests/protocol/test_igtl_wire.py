@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pyigtl
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from service.igtl import wire
 
@@ -113,3 +115,34 @@ def test_oversized_body_refused() -> None:
     raw[42:50] = (wire.MAX_BODY_SIZE + 1).to_bytes(8, "big")
     with pytest.raises(wire.IgtlWireError, match="BODY_SIZE"):
         wire.unpack_header(bytes(raw[:58]))
+
+
+@given(st.binary(max_size=5000), st.integers(0, 2**64 - 1))
+@settings(max_examples=60, deadline=None)
+def test_crcmod_crc64_equals_the_reference_table_loop(data: bytes, start: int) -> None:
+    """The C CRC (crcmod) is the pure-Python table loop it replaced, for any bytes and start value."""
+    assert wire.crc64(data, start) == wire.crc64_py(data, start)
+
+
+def test_crcmod_runs_its_c_extension() -> None:
+    """crcmod falls back to pure Python silently; the server refuses to start then (issue #32)."""
+    assert wire.native_crc()
+
+
+def test_status_capability_and_point_contents_as_the_reference_library_packs_them() -> None:
+    # bytes of igtl::CapabilityMessage::Pack (libopenigtlink 1.11) for TRANSFORM, GET_STATUS
+    assert wire.capability_content(["TRANSFORM", "GET_STATUS"]).hex() == (
+        "5452414e53464f524d0000004745545f5354415455530000"
+    )
+    code, sub, name, text = wire.unpack_status_content(
+        wire.status_content(13, error_name="INVALID", status_string="no current registration")
+    )
+    assert (code, sub, name, text) == (13, 0, "INVALID", "no current registration")
+    point = wire.Point("+x-r1c1 0.021 mm", (1.5, -2.0, 3.25), diameter_mm=4.0)
+    raw = wire.pack_message(
+        "POINT", "PhantomSpheres", wire.point_content([point]), timestamp_s=0.0, header_version=1
+    )
+    msg = pyigtl.MessageBase.create_message("POINT")
+    msg.unpack(pyigtl.MessageBase.parse_header(raw[: wire.HEADER_SIZE]), raw[wire.HEADER_SIZE :])
+    np.testing.assert_allclose(np.asarray(msg.positions), [[1.5, -2.0, 3.25]])
+    assert list(msg.names) == ["+x-r1c1 0.021 mm"] and list(msg.diameters) == [4.0]
