@@ -39,7 +39,7 @@ from service.capture import Capture
 from service.context import ServiceContext, ServiceInputs
 from service.data_dir import hold_serve_lock, make_private
 from service.event_bus import EventBus, Subscriptions
-from service.events import RegistrationDone, RegistrationRefused, ScanArrived
+from service.events import RegistrationDone, RegistrationRefused, RegistrationWithdrawn, ScanArrived
 from service.igtl.publisher import IgtlPublisher
 from service.intake import Intake
 from service.intake_scp import INTAKE_FOLDER, CStoreIntake
@@ -215,9 +215,10 @@ async def _start(
         )
         await igtl.start()
         stack.push_async_callback(igtl.stop)
-        # safety: navigation must learn at once of a new or refused registration
+        # safety: navigation must learn at once of a new, refused or withdrawn registration
         subs.listen(RegistrationDone, igtl.on_registration_done, safety=True)
         subs.listen(RegistrationRefused, igtl.on_registration_refused, safety=True)
+        subs.listen(RegistrationWithdrawn, igtl.on_registration_withdrawn, safety=True)
     pacs: PacsExporter | None = None
     if settings.pacs.enabled:
         pacs = PacsExporter(db, settings.pacs, settings.data_dir, publish)

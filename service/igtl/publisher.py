@@ -3,7 +3,8 @@
 :class:`service.igtl.server.IgtlServer` on the service loop, fed from the current registration (plus
 the last refusal), the live joints and link health, the robot model's forward kinematics and
 ``igtl.tool0_from_tcp``.  It listens to :class:`~service.events.RegistrationDone` and
-:class:`~service.events.RegistrationRefused` (bound by :mod:`service.app`) and pushes at once;
+:class:`~service.events.RegistrationRefused` and :class:`~service.events.RegistrationWithdrawn`
+(bound by :mod:`service.app`) and pushes at once;
 otherwise every ``igtl.period_s``.  It publishes ``igtl_client_connected`` /
 ``igtl_client_disconnected`` / ``igtl_client_header_version`` (the client sent a version-2 message:
 answered in version 2 from then on).
@@ -24,6 +25,7 @@ from service.events import (
     Publish,
     RegistrationDone,
     RegistrationRefused,
+    RegistrationWithdrawn,
 )
 from service.igtl.server import (
     F64,
@@ -119,6 +121,12 @@ class IgtlPublisher:
         """Push the refusal (the current registration, if any, stays)."""
         self._last_refusal = Refusal(str(event.registration_id), event.reason)
         self.server.notify()
+
+    def on_registration_withdrawn(self, event: RegistrationWithdrawn) -> None:
+        """Push at once when the current registration was withdrawn (a failed verification, a changed
+        scan): every client must see INVALID now, not at the next ``igtl.period_s``."""
+        if event.was_current:
+            self.server.notify()
 
     def _on_client(self, event: str, peer: str, n_clients: int, header_version: int) -> None:
         self.publish(_CLIENT_EVENTS[event](peer=peer, clients=n_clients, header_version=header_version))

@@ -11,6 +11,9 @@ server-sent events.
 
 from __future__ import annotations
 
+import contextlib
+import socket
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Any
@@ -19,7 +22,7 @@ import numpy as np
 import pytest
 
 from registration.model.frames import invert, transform_from_xyz_rpy
-from tests.faults._service import Q1, Events, Svc, in_process_service
+from tests.faults._service import DEADLINE_S, Q1, Events, Svc, in_process_service
 
 Q2 = (*Q1[:5], Q1[5] + 0.3)
 """The verification pose: J6 turned 0.3 rad (the phantom spins about its own axis)."""
@@ -56,8 +59,18 @@ def world(phantom: Any) -> World:
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory: pytest.TempPathFactory, world: World) -> Iterator[Svc]:
     root = tmp_path_factory.mktemp("governs")
+    # OpenIGTLink on, with a push period far beyond any wait here: what a client sees after a
+    # withdrawal must come from the withdrawal itself, not from the next periodic push
     with in_process_service(
-        root, world.phantom, world.model, **{"quality.max_verification_error_mm": GATE_MM}
+        root,
+        world.phantom,
+        world.model,
+        **{
+            "quality.max_verification_error_mm": GATE_MM,
+            "igtl.enabled": True,
+            "igtl.port": 0,
+            "igtl.period_s": 60.0,
+        },
     ) as s:
         yield s
 
@@ -95,6 +108,54 @@ def _registered(svc: Svc, world: World, for_uid: str = "") -> dict[str, Any]:
     return r.json()  # type: ignore[no-any-return]
 
 
+class IgtlWatch:
+    """A plain OpenIGTLink client (socket + :mod:`service.igtl.wire`, the decoder the demo shares with
+    pyigtl: tests/integration/test_or_integration.py) that records every message on a thread."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=DEADLINE_S)
+        self.messages: list[Any] = []
+        self.cond = threading.Condition()
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _exact(self, n: int) -> bytes:
+        buf = b""
+        while len(buf) < n:
+            chunk = self.sock.recv(n - len(buf))
+            if not chunk:
+                raise EOFError
+            buf += chunk
+        return buf
+
+    def _read(self) -> None:
+        from service.igtl import wire
+
+        with contextlib.suppress(OSError, EOFError):
+            while True:
+                head = self._exact(wire.HEADER_SIZE)
+                header = wire.unpack_header(head)
+                msg = wire.unpack_body(header, self._exact(header.body_size))
+                with self.cond:
+                    self.messages.append(msg)
+                    self.cond.notify_all()
+
+    def wait(self, pred: Any, what: str, timeout_s: float = DEADLINE_S) -> Any:
+        with self.cond:
+            got = self.cond.wait_for(lambda: any(pred(m) for m in self.messages), timeout_s)
+            seen = [(m.header.type, m.header.device_name) for m in self.messages]
+            assert got, f"no OpenIGTLink message: {what}; got {seen}"
+            return next(m for m in self.messages if pred(m))
+
+    def close(self) -> None:
+        self.sock.close()
+        self.thread.join(DEADLINE_S)
+
+
+def _igtl_port(svc: Svc) -> int:
+    return int(svc.client.get("/status").json()["listeners"]["igtl"]["port"])
+
+
 def _problem(r: Any, status: int) -> dict[str, Any]:
     assert r.status_code == status, r.text
     assert r.headers["content-type"].startswith("application/problem+json")
@@ -103,11 +164,27 @@ def _problem(r: Any, status: int) -> dict[str, Any]:
 
 @pytest.mark.parametrize("shift_mm", [2.0, 10.0])
 def test_a_failed_verification_withdraws_the_registration(svc: Svc, world: World, shift_mm: float) -> None:
+    from service.igtl import wire
+
     reg = _registered(svc, world)
     displaced = _export(svc, world.scan2, Q2, shift_mm=shift_mm)
-    with Events(svc) as events:
-        v = svc.client.post("/verify", json={"scan_id": displaced["id"]})
-        withdrawn = events.wait("registration_withdrawn", lambda d: d["registration_ids"] == [reg["id"]])
+    igtl = IgtlWatch(_igtl_port(svc))
+    try:
+        igtl.wait(lambda m: (m.header.type, m.header.device_name) == ("TRANSFORM", "RobotToImage"),
+                  "RobotToImage on connect while the registration is current")  # fmt: skip
+        with Events(svc) as events:
+            v = svc.client.post("/verify", json={"scan_id": displaced["id"]})
+            withdrawn = events.wait("registration_withdrawn", lambda d: d["registration_ids"] == [reg["id"]])
+        # navigation learns it at once (well inside the 60 s period): a non-OK STATUS under the device's name
+        status = igtl.wait(lambda m: (m.header.type, m.header.device_name) == ("STATUS", "RobotToImage"),
+                           "RobotToImage STATUS after the withdrawal", timeout_s=20.0)  # fmt: skip
+        code, _sub, _name, text = wire.unpack_status_content(status.content)
+        assert code != 1 and "withdrawn" in text, (code, text)
+        n_after = igtl.messages.index(status)
+        after = [(m.header.type, m.header.device_name) for m in igtl.messages[n_after:]]
+        assert ("TRANSFORM", "RobotToImage") not in after, "a RobotToImage matrix after the withdrawal"
+    finally:
+        igtl.close()
     if shift_mm < 5.0:  # measured: fails its gate
         ver = v.json()
         assert v.status_code == 200 and not ver["passed"] and ver["max_mm"] > GATE_MM, v.text
