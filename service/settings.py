@@ -58,8 +58,6 @@ _REG_DEFAULTS = RegistrationParams()
 
 DEFAULT_PHANTOM_FILE = default_phantom()
 ENV_PREFIX = "OARMREG_"
-MIN_TOKEN_CHARS = 16
-"""Shortest accepted API token (16 chars ≈ 96 bits if random base64; OWASP: ≥ 64 bits of entropy)."""
 
 _toml_file: contextvars.ContextVar[Path | None] = contextvars.ContextVar("oarmreg_toml_file", default=None)
 
@@ -421,7 +419,7 @@ class Settings(BaseSettings):
     port: int = Field(default=8750, ge=0, le=65535)
     api_token: SecretStr | None = None
     # A read-only token for wall displays: sees everything, changes nothing (every POST
-    # but /events/ticket answers 403).  Unset: none.  At least 16 characters, unlike api_token.
+    # but /events/ticket answers 403).  Unset: none.  Same strength rule as api_token, and different.
     api_readonly_token: SecretStr | None = None
     robot: RobotSettings = RobotSettings()
     quality: QualitySettings = QualitySettings()
@@ -459,14 +457,15 @@ class Settings(BaseSettings):
 
     @field_validator("api_token", "api_readonly_token")
     @classmethod
-    def _token_length(cls, v: SecretStr | None) -> SecretStr | None:
+    def _token_strength(cls, v: SecretStr | None) -> SecretStr | None:
+        """Refuse a token that can be guessed (:func:`service.token_strength.token_problem`)."""
+        from service.token_strength import token_problem
+
         if v is None or v.get_secret_value() == "":
             return None
-        if len(v.get_secret_value()) < MIN_TOKEN_CHARS:
-            raise ValueError(
-                f"API token is {len(v.get_secret_value())} characters; use at least {MIN_TOKEN_CHARS} "
-                "random characters (e.g. python -c 'import secrets; print(secrets.token_urlsafe(24))')"
-            )
+        problem = token_problem(v.get_secret_value())
+        if problem is not None:
+            raise ValueError(f"the API token can be guessed: {problem}")
         return v
 
     @field_validator("host")
@@ -536,8 +535,7 @@ class Settings(BaseSettings):
         if self.api.auth == "token" and self.api_token is None:
             raise ConfigError(
                 f"api_token is not set and api.auth is 'token' (the default): set {ENV_PREFIX}API_TOKEN "
-                "to at least 16 random characters "
-                "(python -c 'import secrets; print(secrets.token_urlsafe(24))'), "
+                "to a random token (make one with `oarmreg token`), "
                 "or, on a loopback bind only, api.auth = 'none-loopback-only' to serve without authentication"
             )
 
