@@ -186,6 +186,16 @@ class ApiSettings(_Section):
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
+    # --- failed authentications, throttled per client address (service.security.AuthThrottle)
+    # wrong credentials answered 401 before the address is throttled: the status page sends ~6
+    # requests at sign-in with one token, so one mistyped token must not lock its user out at once
+    auth_failures_before_throttle: int = Field(default=10, ge=1, le=1000)
+    # the first lock-out (429 + Retry-After) after those, s; doubled on each further failure
+    auth_lockout_initial_s: float = Field(default=1.0, gt=0, le=30)
+    # the longest lock-out, s (issue #32: at most 30 s, the longest an operator who mistyped waits)
+    auth_lockout_max_s: float = Field(default=30.0, gt=0, le=30)
+    # an address's failures are forgotten after this long without one, s (it ends a burst)
+    auth_failure_memory_s: float = Field(default=300.0, gt=0, le=86400)
 
 
 class DatabaseSettings(_Section):

@@ -48,6 +48,9 @@ PATTERN_BITS = 1.0
 WORD_BITS = 1.0
 """What a letter of a single-case run of :data:`WORD_MIN_CHARS` or more is worth, bits."""
 WORD_MIN_CHARS = 3
+MIN_WORDS = 2
+"""Words are counted only in a token of at least this many (a random single-case token rarely
+holds two letter-only pieces between separators; a hand-made one is usually words and dashes)."""
 HEX_DIGITS = frozenset("0123456789abcdef")
 REPEAT_MIN_CHARS = 3
 
@@ -103,12 +106,16 @@ def _word_letters(token: str) -> list[bool]:
     letters = [c for c in token if c.isascii() and c.isalpha()]
     if is_hex(token) or (any(c.islower() for c in letters) and any(c.isupper() for c in letters)):
         return out
+    words: list[tuple[int, int]] = []
     start = 0
     for end in [*(i for i, c in enumerate(token) if not c.isalnum()), len(token)]:
         piece = token[start:end]
         if len(piece) >= WORD_MIN_CHARS and piece.isascii() and piece.isalpha():
-            out[start:end] = [True] * len(piece)
+            words.append((start, end))
         start = end + 1
+    if len(words) >= MIN_WORDS:
+        for a, b in words:
+            out[a:b] = [True] * (b - a)
     return out
 
 
