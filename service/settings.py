@@ -187,8 +187,8 @@ class ApiSettings(_Section):
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
     # --- failed authentications, throttled per client address (service.security.AuthThrottle)
-    # wrong credentials answered 401 before the address is throttled: the status page sends ~6
-    # requests at sign-in with one token, so one mistyped token must not lock its user out at once
+    # wrong credentials answered 401 before the address is throttled: the status page calls 7 API
+    # paths when it loads with one token, so one mistyped token must not lock its user out at once
     auth_failures_before_throttle: int = Field(default=10, ge=1, le=1000)
     # the first lock-out (429 + Retry-After) after those, s; doubled on each further failure
     auth_lockout_initial_s: float = Field(default=1.0, gt=0, le=30)

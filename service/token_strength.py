@@ -31,8 +31,8 @@ MIN_TOKEN_CHARS = 22
 MIN_TOKEN_BITS = 76.0
 """Least estimated entropy of an accepted token, bits.  Set between the two measured populations:
 every hand-made token we tried (the project's former test tokens, ``my-super-secret-api-token-2024!``)
-scores at most 72, a random 16-byte ``token_urlsafe`` at least 96 and ``token_hex(16)`` at least 77
-(10^6 draws each, docs/security.md)."""
+scores at most 72; of 100,000 draws each, ``token_urlsafe(16)`` scored at least 92.5 and
+``token_hex(16)`` at least 80.0 (``python -m benchmarks.bench_token_strength``, docs/security.md)."""
 TOKEN_COMMAND = "oarmreg token"
 """The command that prints a good token (named in every refusal)."""
 
@@ -46,7 +46,7 @@ _CLASSES: tuple[tuple[str, int], ...] = (
 PATTERN_BITS = 1.0
 """What a character continuing a repeat, a ±1 run or an earlier piece is worth, bits."""
 WORD_BITS = 1.0
-"""What a letter of a single-case run of :data:`WORD_MIN_CHARS` or more is worth, bits."""
+"""What a letter of a word (:func:`_word_letters`) is worth, bits."""
 WORD_MIN_CHARS = 3
 MIN_WORDS = 2
 """Words are counted only in a token of at least this many (a random single-case token rarely
