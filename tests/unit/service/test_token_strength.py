@@ -20,7 +20,7 @@ PATTERNED = [
     "passwordpassword",
     "aaaaaaaaaaaaaaaaaaaaaaaaaaaaaa",  # long enough, no entropy
     "passwordpassword1234567",
-    "correcthorsebatterystaple",
+    "correct_horse_battery_staple",
     "my-super-secret-api-token-2024!",
     "OARMREG_TOKEN_PRODUCTION_2026",
     # the test tokens this project used before the rule
