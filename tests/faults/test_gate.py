@@ -317,7 +317,10 @@ def _pipelined(port: int, source: str, requests: list[bytes]) -> list[RawRespons
     with _connect(port, source) as sock:
         sender = threading.Thread(target=sock.sendall, args=(b"".join(requests),), daemon=True)
         sender.start()
-        out = [_read_one(sock) for _ in requests]
+        try:
+            out = [_read_one(sock) for _ in requests]
+        finally:
+            _pending.pop(sock.fileno(), None)  # file numbers are reused by later sockets
         sender.join(RAW_TIMEOUT_S)
         return out
 
