@@ -199,7 +199,7 @@ def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | Non
     if settings.api.auth == "none-loopback-only":
         return PRINCIPAL_NO_AUTH
     auth = _header(scope, b"authorization")
-    if auth is not None and settings.api_token is not None:
+    if auth is not None and auth.strip() and settings.api_token is not None:  # empty: no credentials
         address = client_address(scope)
         if throttle is not None:
             throttle.check(settings.api, address)  # locked out: 429, the token is not even compared

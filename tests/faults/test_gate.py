@@ -380,6 +380,9 @@ def test_guessing_is_throttled_per_address_and_audited(svc: Running) -> None:
 
 def test_requests_without_authorization_are_not_counted(svc: Running) -> None:
     anonymous = [_get(svc.port, "/status", None) for _ in range(5 * ALLOWED)]
+    anonymous += [
+        f"GET /status HTTP/1.1\r\nHost: 127.0.0.1:{svc.port}\r\nAuthorization: \r\n\r\n".encode()
+    ] * 5
     assert {r.status for r in _pipelined(svc.port, "127.0.0.4", anonymous)} == {401}
     (first_wrong,) = _pipelined(svc.port, "127.0.0.4", [_get(svc.port, "/status", "y" * 30)])
     assert first_wrong.status == 401  # not 429: the 50 header-less requests were not failures
