@@ -31,8 +31,9 @@ import numpy as np
 
 from benchmarks.common import print_table
 from service.events import Event, RegistrationDone, RegistrationRefused, ScanArrived, ScanInvalid
+from tests.helpers.tokens import make_token
 
-TOKEN = "bench-or-latency-token-0123456789"
+TOKEN = make_token()
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 WINDOW_S = 1.0
 

@@ -28,13 +28,14 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import median_time_s, naive_read_series, print_table
+from tests.helpers.tokens import make_token
 
 N_CLIENTS = 50
 REQUESTS_PER_CLIENT = 100
 POLL_PERIOD_S = 0.1
 """Paced mode: each client polls at 20 Hz (a navigation UI refresh), 1000 requests/s offered in total."""
 LOAD_TIME_LIMIT_S = 60.0
-TOKEN = "bench-token-0123456789abcdef"
+TOKEN = make_token()
 
 
 # ---- load client (runs in the second process) -----------------------------------------------

@@ -38,8 +38,9 @@ import httpx
 
 from benchmarks.bench_dicom_scp import write_series
 from benchmarks.common import print_table
+from tests.helpers.tokens import make_token
 
-TOKEN = "bench-stillness-token-0123456789abcdef"
+TOKEN = make_token()
 WINDOW_S = 2.0
 DEADLINE_S = 300.0
 

@@ -33,6 +33,7 @@ COMMANDS: dict[str, str] = {
     "restore": "service.commands.restore",
     "config": "service.commands.config",
     "qa": "service.commands.qa",  # QA protocols
+    "token": "service.commands.token",
 }
 
 

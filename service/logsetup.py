@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 from datetime import UTC, datetime
 from typing import Literal
@@ -34,6 +35,39 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(doc, ensure_ascii=False)
 
 
+SECRET_QUERY_PARAMS = ("ticket",)
+"""Query parameters whose values never reach a log: the single-use ``GET /events?ticket=`` (a
+bearer credential while it lives; :mod:`service.tickets`)."""
+_SECRET_QUERY = re.compile(r"([?&](?:" + "|".join(SECRET_QUERY_PARAMS) + r")=)[^&#\s]*")
+REDACTED = "<redacted>"
+ACCESS_LOGGER = "uvicorn.access"
+
+
+def redact_query(text: str) -> str:
+    """``text`` with the value of every :data:`SECRET_QUERY_PARAMS` parameter replaced by ``<redacted>``."""
+    return _SECRET_QUERY.sub(r"\1" + REDACTED, text)
+
+
+class RedactSecretsFilter(logging.Filter):
+    """Redacts secret query parameters in a record's message and arguments (uvicorn's access log
+    passes the request's path with its query string as an argument)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redact_query(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(redact_query(a) if isinstance(a, str) else a for a in record.args)
+        return True
+
+
+def install_redaction() -> None:
+    """Put :class:`RedactSecretsFilter` on uvicorn's access logger, once (idempotent): a logger's
+    filters run before any handler, whoever configured the handlers."""
+    logger = logging.getLogger(ACCESS_LOGGER)
+    if not any(isinstance(f, RedactSecretsFilter) for f in logger.filters):
+        logger.addFilter(RedactSecretsFilter())
+
+
 def configure(level: int, fmt: LogFormat = "text") -> None:
     """Send every record at ``level`` and above to stderr as text or JSON (replaces earlier handlers)."""
     handler = logging.StreamHandler(sys.stderr)
@@ -43,6 +77,7 @@ def configure(level: int, fmt: LogFormat = "text") -> None:
         root.removeHandler(h)
     root.addHandler(handler)
     root.setLevel(level)
+    install_redaction()
 
 
 def set_level(level: int) -> None:

@@ -15,6 +15,11 @@ byte is read (so a 10 MB body without a token costs nothing):
    ``Authorization: Bearer <api_token>``, or for ``GET /events`` a single-use ``?ticket=`` from
    ``POST /events/ticket`` (``EventSource`` cannot send headers) → else 401.  ``api.auth =
    "none-loopback-only"`` skips this on a loopback bind (settings refuse it elsewhere).
+   Failed authentications are throttled per client address (:class:`AuthThrottle`): after
+   ``api.auth_failures_before_throttle`` wrong ``Authorization`` headers the address gets 429 with
+   ``Retry-After`` (1 s, doubling per attempt, at most ``api.auth_lockout_max_s``) without its
+   token being checked; other addresses are not affected, a request without the header is not counted, and
+   each burst is one audit entry (action ``auth_throttle``).
 4. Mutating methods (POST, PUT, PATCH, DELETE) need ``Content-Type: application/json``, bodiless
    ones included → else 415.  A cross-site form or ``fetch`` without a CORS pre-flight can only
    send ``text/plain``, form or multipart bodies, so this closes CSRF.
@@ -35,14 +40,20 @@ import hashlib
 import hmac
 import json
 import logging
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.logsetup import install_redaction
+
 if TYPE_CHECKING:
     from service.context import ServiceContext
-    from service.settings import Settings
+    from service.settings import ApiSettings, Settings
 
 log = logging.getLogger(__name__)
 
@@ -153,24 +164,50 @@ def is_public(scope: Scope) -> bool:
     return path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES)
 
 
-def authenticate(ctx: ServiceContext, scope: Scope) -> str | None:
-    """Step 3: the request's principal (None for public paths); raise :class:`Refusal` (401)."""
+def token_matches(secret: str, presented: str) -> bool:
+    """Does ``presented`` equal the configured ``secret``, in constant time (``hmac.compare_digest``)?"""
+    return hmac.compare_digest(presented.strip().encode(), secret.encode())
+
+
+def bearer_principal(settings: Settings, auth: str) -> str | None:
+    """The principal of an ``Authorization`` header value (the API or the read-only token), or None."""
+    scheme, _, presented = auth.partition(" ")
+    if scheme.lower() != "bearer" or settings.api_token is None:
+        return None
+    secret = settings.api_token.get_secret_value()
+    if token_matches(secret, presented):
+        return token_principal(secret)
+    if settings.api_readonly_token is not None:
+        ro_secret = settings.api_readonly_token.get_secret_value()
+        if token_matches(ro_secret, presented):
+            return READONLY_PREFIX + token_principal(ro_secret)
+    return None
+
+
+def client_address(scope: Scope) -> str:
+    """The client's address as the server saw it (``?`` when the server does not say)."""
+    client = scope.get("client")
+    return str(client[0]) if client else "?"
+
+
+def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | None = None) -> str | None:
+    """Step 3: the request's principal (None for public paths); raise :class:`Refusal` (401, or 429
+    while ``throttle`` holds the client's address after repeated failures)."""
     settings = ctx.settings
     if is_public(scope):
         return None
     if settings.api.auth == "none-loopback-only":
         return PRINCIPAL_NO_AUTH
-    secret = settings.api_token.get_secret_value() if settings.api_token is not None else None
     auth = _header(scope, b"authorization")
-    if auth is not None and secret is not None:
-        scheme, _, presented = auth.partition(" ")
-        if scheme.lower() == "bearer" and hmac.compare_digest(presented.strip().encode(), secret.encode()):
-            return token_principal(secret)
-        ro = settings.api_readonly_token
-        if scheme.lower() == "bearer" and ro is not None:
-            ro_secret = ro.get_secret_value()
-            if hmac.compare_digest(presented.strip().encode(), ro_secret.encode()):
-                return READONLY_PREFIX + token_principal(ro_secret)
+    if auth is not None and auth.strip() and settings.api_token is not None:  # empty: no credentials
+        address = client_address(scope)
+        if throttle is not None:
+            throttle.check(settings.api, address)  # locked out: 429, the token is not even compared
+        principal = bearer_principal(settings, auth)
+        if principal is not None:
+            return principal
+        if throttle is not None:
+            throttle.failed(ctx, address)
         raise _unauthorized("the Bearer token does not match the service's api_token")
     if scope["path"] == EVENTS_PATH and scope["method"] == "GET":
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
@@ -184,6 +221,110 @@ def authenticate(ctx: ServiceContext, scope: Scope) -> str | None:
         "missing 'Authorization: Bearer <token>' header (GET /events also takes ?ticket= from "
         "POST /events/ticket); the API token is set in api_token"
     )
+
+
+@dataclass
+class _Failures:
+    """One client address's recent failed authentications."""
+
+    count: int = 0
+    first_s: float = 0.0
+    last_s: float = 0.0
+    locked_until_s: float = 0.0
+    refused: int = 0
+    """Requests answered 429 in this burst."""
+    audited: bool = False
+
+
+class AuthThrottle:
+    """Failed authentications per client address (used on the event loop only).
+
+    The first ``auth_failures_before_throttle`` failures are answered 401 at once; each further
+    one locks the address out for ``auth_lockout_initial_s · 2^k`` (at most ``auth_lockout_max_s``),
+    during which every request of that address carrying ``Authorization`` is answered 429 with
+    ``Retry-After`` before its token is compared.  An address without a failure for
+    ``auth_failure_memory_s`` starts afresh (a new burst).  Loopback is not exempt.
+    """
+
+    MAX_ADDRESSES = 10_000
+    """Addresses remembered; the least recently failed are forgotten first (bounded memory)."""
+
+    def __init__(self, clock: Any = time.monotonic) -> None:
+        self._clock = clock
+        self._by_address: OrderedDict[str, _Failures] = OrderedDict()
+
+    def _current(self, cfg: ApiSettings, address: str, now: float) -> _Failures | None:
+        rec = self._by_address.get(address)
+        if rec is not None and now - rec.last_s > cfg.auth_failure_memory_s and now >= rec.locked_until_s:
+            if rec.audited:
+                log.info("auth throttle: burst from %s ended (%d failures, %d answered 429)",
+                         address, rec.count, rec.refused)  # fmt: skip
+            del self._by_address[address]
+            return None
+        return rec
+
+    def check(self, cfg: ApiSettings, address: str) -> None:
+        """Raise 429 while ``address`` is locked out; an attempt then counts as one more failure
+        (its token is not compared), so a client that ignores ``Retry-After`` stays locked out."""
+        now = self._clock()
+        rec = self._current(cfg, address, now)
+        if rec is not None and now < rec.locked_until_s:
+            self._count(cfg, rec, now)
+            raise _throttled(rec.locked_until_s - now)
+
+    def failed(self, ctx: ServiceContext, address: str) -> None:
+        """Count a failure of ``address``; raise 429 once it is past the allowance."""
+        cfg = ctx.settings.api
+        now = self._clock()
+        rec = self._current(cfg, address, now)
+        if rec is None:
+            rec = _Failures(first_s=now)
+            self._by_address[address] = rec
+            while len(self._by_address) > self.MAX_ADDRESSES:
+                self._by_address.popitem(last=False)
+        self._by_address.move_to_end(address)
+        lock_s = self._count(cfg, rec, now)
+        if lock_s is None:
+            return
+        if not rec.audited:
+            rec.audited = True
+            self._audit(ctx, address, rec, lock_s)
+        raise _throttled(lock_s)
+
+    @staticmethod
+    def _count(cfg: ApiSettings, rec: _Failures, now: float) -> float | None:
+        """One more failure; the lock-out it starts (s), None while within the allowance."""
+        rec.count += 1
+        rec.last_s = now
+        beyond = rec.count - cfg.auth_failures_before_throttle
+        if beyond <= 0:
+            return None
+        lock_s = min(cfg.auth_lockout_initial_s * 2.0 ** min(beyond - 1, 64), cfg.auth_lockout_max_s)
+        rec.locked_until_s = max(rec.locked_until_s, now + lock_s)
+        rec.refused += 1
+        return lock_s
+
+    @staticmethod
+    def _audit(ctx: ServiceContext, address: str, rec: _Failures, lock_s: float) -> None:
+        detail = (
+            f"{rec.count} failed authentications from {address} in {rec.last_s - rec.first_s:.1f} s; "
+            f"locked out {lock_s:g} s, doubling per further failure up to api.auth_lockout_max_s "
+            f"({ctx.settings.api.auth_lockout_max_s:g} s)"
+        )
+        log.warning("auth throttle: %s", detail)
+        try:
+            ctx.db.audit.record(f"client:{address}", "auth_throttle", "api", None, "throttled", detail)
+        except Exception as e:  # the refusal matters more than its audit row
+            log.error("audit: could not record the auth throttle of %s (%s)", address, type(e).__name__)
+
+
+def _throttled(retry_after_s: float) -> Refusal:
+    wait_s = max(1, math.ceil(retry_after_s))
+    return Refusal(
+        429, "Too many failed authentications", f"too many wrong tokens from this address; try again in "
+        f"{wait_s} s (failed authentications are throttled per address: api.auth_failures_before_throttle, "
+        "api.auth_lockout_max_s)", "auth-throttled", ((b"retry-after", str(wait_s).encode()),),
+    )  # fmt: skip
 
 
 def _unauthorized(detail: str) -> Refusal:
@@ -274,6 +415,8 @@ class SecurityGate:
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
+        self.throttle = AuthThrottle()
+        install_redaction()  # the event ticket in GET /events?ticket= never reaches the access log
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -297,11 +440,10 @@ class SecurityGate:
             return
         await self._guarded(scope, receive, send, path)
 
-    @staticmethod
-    async def _admit(ctx: ServiceContext, scope: Scope, receive: Receive) -> Receive:
+    async def _admit(self, ctx: ServiceContext, scope: Scope, receive: Receive) -> Receive:
         settings = ctx.settings
         check_host_origin(settings, scope)
-        principal = authenticate(ctx, scope)
+        principal = authenticate(ctx, scope, self.throttle)
         if principal is not None:
             scope.setdefault("state", {})["principal"] = principal
             if (
@@ -350,6 +492,8 @@ def gate_summary(settings: Settings) -> dict[str, Any]:
     return {
         "auth": settings.api.auth,
         "max_body_bytes": settings.api.max_body_bytes,
+        "auth_failures_before_throttle": settings.api.auth_failures_before_throttle,
+        "auth_lockout_max_s": settings.api.auth_lockout_max_s,
         "allowed_hosts": list(settings.api.allowed_hosts) or "bind host, localhost, 127.0.0.1, [::1]",
         "allowed_origins": ["http(s):// + the allowed hosts", *settings.api.allowed_origins],
     }

@@ -59,8 +59,6 @@ _REG_DEFAULTS = RegistrationParams()
 
 DEFAULT_PHANTOM_FILE = default_phantom()
 ENV_PREFIX = "OARMREG_"
-MIN_TOKEN_CHARS = 16
-"""Shortest accepted API token (16 chars ≈ 96 bits if random base64; OWASP: ≥ 64 bits of entropy)."""
 
 _toml_file: contextvars.ContextVar[Path | None] = contextvars.ContextVar("oarmreg_toml_file", default=None)
 
@@ -224,6 +222,16 @@ class ApiSettings(_Section):
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
+    # --- failed authentications, throttled per client address (service.security.AuthThrottle)
+    # wrong credentials answered 401 before the address is throttled: the status page calls 7 API
+    # paths when it loads with one token, so one mistyped token must not lock its user out at once
+    auth_failures_before_throttle: int = Field(default=10, ge=1, le=1000)
+    # the first lock-out (429 + Retry-After) after those, s; doubled on each further failure
+    auth_lockout_initial_s: float = Field(default=1.0, gt=0, le=30)
+    # the longest lock-out, s (issue #32: at most 30 s, the longest an operator who mistyped waits)
+    auth_lockout_max_s: float = Field(default=30.0, gt=0, le=30)
+    # an address's failures are forgotten after this long without one, s (it ends a burst)
+    auth_failure_memory_s: float = Field(default=300.0, gt=0, le=86400)
 
 
 class DatabaseSettings(_Section):
@@ -478,7 +486,7 @@ class Settings(BaseSettings):
     port: int = Field(default=8750, ge=0, le=65535)
     api_token: SecretStr | None = None
     # A read-only token for wall displays: sees everything, changes nothing (every POST
-    # but /events/ticket answers 403).  Unset: none.  At least 16 characters, unlike api_token.
+    # but /events/ticket answers 403).  Unset: none.  Same strength rule as api_token, and different.
     api_readonly_token: SecretStr | None = None
     robot: RobotSettings = RobotSettings()
     quality: QualitySettings = QualitySettings()
@@ -516,14 +524,15 @@ class Settings(BaseSettings):
 
     @field_validator("api_token", "api_readonly_token")
     @classmethod
-    def _token_length(cls, v: SecretStr | None) -> SecretStr | None:
+    def _token_strength(cls, v: SecretStr | None) -> SecretStr | None:
+        """Refuse a token that can be guessed (:func:`service.token_strength.token_problem`)."""
+        from service.token_strength import token_problem
+
         if v is None or v.get_secret_value() == "":
             return None
-        if len(v.get_secret_value()) < MIN_TOKEN_CHARS:
-            raise ValueError(
-                f"API token is {len(v.get_secret_value())} characters; use at least {MIN_TOKEN_CHARS} "
-                "random characters (e.g. python -c 'import secrets; print(secrets.token_urlsafe(24))')"
-            )
+        problem = token_problem(v.get_secret_value())
+        if problem is not None:
+            raise ValueError(f"the API token can be guessed: {problem}")
         return v
 
     @field_validator("host")
@@ -593,8 +602,7 @@ class Settings(BaseSettings):
         if self.api.auth == "token" and self.api_token is None:
             raise ConfigError(
                 f"api_token is not set and api.auth is 'token' (the default): set {ENV_PREFIX}API_TOKEN "
-                "to at least 16 random characters "
-                "(python -c 'import secrets; print(secrets.token_urlsafe(24))'), "
+                "to a random token (make one with `oarmreg token`), "
                 "or, on a loopback bind only, api.auth = 'none-loopback-only' to serve without authentication"
             )
 

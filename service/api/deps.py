@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hmac
 from typing import Annotated
 
 from fastapi import Depends, Path, Query, Request
@@ -11,6 +10,7 @@ from pydantic import SecretStr
 
 from service.context import ServiceContext
 from service.errors import AuthError
+from service.security import token_matches
 
 
 async def get_ctx(request: Request) -> ServiceContext:
@@ -24,14 +24,12 @@ _bearer = HTTPBearer(auto_error=False, description="API token (settings: api_tok
 
 
 def token_ok(settings_token: SecretStr | None, presented: str | None) -> bool:
-    """True if ``presented`` (the Bearer credentials) matches the API token, in constant time
-    (``hmac.compare_digest``); always True when no token is configured (loopback only)."""
+    """True if ``presented`` (the Bearer credentials) matches the API token
+    (:func:`service.security.token_matches`, constant time); always True when no token is
+    configured (loopback only)."""
     if settings_token is None:
         return True
-    if presented is None:
-        return False
-    secret = settings_token.get_secret_value()
-    return hmac.compare_digest(presented.encode(), secret.encode())
+    return presented is not None and token_matches(settings_token.get_secret_value(), presented)
 
 
 async def require_token(

@@ -105,8 +105,9 @@ def run(args: argparse.Namespace) -> int:
     notes = []
     if settings.api.auth == "token" and settings.api_token is None:
         notes.append(
-            "api_token is not set: `oarmreg serve` refuses to start until OARMREG_API_TOKEN holds at "
-            "least 16 random characters (or, on a loopback bind, api.auth = 'none-loopback-only')"
+            "api_token is not set: `oarmreg serve` refuses to start until OARMREG_API_TOKEN holds a "
+            "random token (`oarmreg token` makes one; or, on a loopback bind, "
+            "api.auth = 'none-loopback-only')"
         )
     if args.json:
         doc = {"config_file": str(args.config) if args.config else None, "valid": True, "notes": notes,

@@ -10,9 +10,11 @@ C-STORE, retried with back-off across link failures and restarts.
   stored record (:func:`service.sro_export.sro_dataset`, status ``accepted``: what the archive
   keeps is the accepted registration, not whether it is current; its UIDs are derived from the
   registration, so a re-send is the same instance and the PACS overwrites or ignores it).
-* Outcomes (:mod:`service.pacs.scu`): ``sent`` → ``sent``; ``refused`` → ``failed`` with the
-  PACS's status (no automatic retry: ``POST /registrations/{id}/pacs-export``); ``unreachable`` →
-  ``pending`` again after ``retry_initial_s · 2^(attempts-1)`` capped at ``retry_max_s``, until
+* Outcomes (:mod:`service.pacs.scu`): ``sent`` → ``sent``; ``refused`` (a permanent status such
+  as 0xA9xx or 0xCxxx) → ``failed`` with the PACS's status (no automatic retry:
+  ``POST /registrations/{id}/pacs-export``); ``transient`` (0xA7xx out of resources, 0x0213)
+  and ``unreachable`` → ``pending`` again after ``retry_initial_s · 2^(attempts-1)`` capped at
+  ``retry_max_s``, until
   ``give_up_after_s`` after queueing → ``failed``.  A registration withdrawn before it was sent
   is not sent (``failed``, reason says so).  Every ``sent`` / ``failed`` is published
   (``pacs_export_sent`` / ``pacs_export_failed``) and written to the audit log.
@@ -30,7 +32,7 @@ from pathlib import Path
 
 from registration.errors import OarmRegError
 from service.events import PacsExportFailed, PacsExportSent, Publish, RegistrationDone
-from service.pacs.scu import StoreOutcome, c_store, destination
+from service.pacs.scu import RETRIED, StoreOutcome, c_store, destination
 from service.settings import PacsSettings
 from service.store import Database
 from service.store.pacs_exports import PacsExport
@@ -141,13 +143,15 @@ class PacsExporter:
             return
         sop = str(ds.SOPInstanceUID)
         outcome = self._send(raw, self.cfg)
-        if outcome.kind == "unreachable":
-            self._again(row, attempts, outcome.reason, sop)
+        if outcome.kind in RETRIED:
+            self._again(row, attempts, outcome.reason, sop, outcome.dimse_status)
         else:
             state = "sent" if outcome.kind == "sent" else "failed"
             self._finish(row, attempts, state, outcome.dimse_status, outcome.reason, sop)
 
-    def _again(self, row: PacsExport, attempts: int, reason: str, sop: str) -> None:
+    def _again(
+        self, row: PacsExport, attempts: int, reason: str, sop: str, status: int | None = None
+    ) -> None:
         now = time.time()
         queued = datetime.fromisoformat(row.queued_at).timestamp()
         if now - queued > self.cfg.give_up_after_s:
@@ -155,7 +159,7 @@ class PacsExporter:
                 row,
                 attempts,
                 "failed",
-                None,
+                status,
                 f"gave up after {now - queued:.0f} s and {attempts} "
                 f"attempts (pacs.give_up_after_s); last: {reason}",
                 sop,
@@ -173,7 +177,7 @@ class PacsExporter:
             row.registration_id,
             state="pending",
             attempts=attempts,
-            dimse_status=None,
+            dimse_status=status,
             reason=reason,
             sop_instance_uid=sop,
             next_attempt_unix_s=now + delay,

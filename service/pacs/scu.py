@@ -7,14 +7,20 @@
     C-STORE response status Success (0x0000) or a Warning (0x0001, 0xB000, 0xB006, 0xB007): the
     PACS has the object.
 ``refused``
-    The PACS answered and said no: a Failure status (0xA7xx out of resources, 0xA9xx data set does
-    not match the SOP class, 0xCxxx cannot understand, 0x0122 SOP class not supported, ...), a
+    The PACS answered and said no, permanently: an Error or Failure status that DICOM does not
+    class as transient (0xA9xx data set does not match the SOP class, 0xCxxx cannot understand,
+    0x0122 SOP class not supported, 0x0124 not authorised, 0x0110 processing failure, ...), a
     permanent association rejection (e.g. called AE title not recognised), or no accepted
     presentation context for Spatial Registration Storage.  Retrying will not help until someone
     changes something; ``dimse_status`` and ``reason`` say what the PACS said.
+``transient``
+    The PACS answered that it cannot take the object *now*: a status of :data:`TRANSIENT_STATUSES`
+    (PS3.4 Annex B.2.3 "Refused: Out of Resources" 0xA700-0xA7FF, PS3.7 Annex C "Resource
+    limitation" 0x0213).  Retried with back-off, like ``unreachable``; ``dimse_status`` says which.
 ``unreachable``
     No answer: connection refused or timed out, TLS handshake failed, association aborted or
-    rejected transiently, no C-STORE response.  Retried with back-off.
+    rejected transiently (PS3.8 A-ASSOCIATE-RJ result 2, "rejected-transient"), no C-STORE
+    response.  Retried with back-off.
 """
 
 from __future__ import annotations
@@ -36,7 +42,19 @@ SPATIAL_REGISTRATION_STORAGE = "1.2.840.10008.5.1.4.1.1.66.1"
 WARNING_STATUSES = frozenset({0x0001, 0xB000, 0xB006, 0xB007})
 """PS3.4 Annex B.2.3 (C-STORE): the instance was stored, with a coercion or element warning."""
 
-Outcome = Literal["sent", "refused", "unreachable"]
+TRANSIENT_STATUS_RANGES: tuple[tuple[int, int], ...] = ((0xA700, 0xA7FF), (0x0213, 0x0213))
+"""C-STORE statuses DICOM defines as "try again later": 0xA7xx Refused: Out of Resources (PS3.4
+Annex B.2.3, Storage Service Class) and 0x0213 Resource limitation (PS3.7 Annex C, the general
+DIMSE failure statuses).  Every other Failure / Error status is permanent."""
+RETRIED: frozenset[str] = frozenset({"transient", "unreachable"})
+"""Outcomes the export queue retries with back-off."""
+
+Outcome = Literal["sent", "refused", "transient", "unreachable"]
+
+
+def is_transient(status: int) -> bool:
+    """Is DIMSE ``status`` one DICOM defines as transient (:data:`TRANSIENT_STATUS_RANGES`)?"""
+    return any(lo <= status <= hi for lo, hi in TRANSIENT_STATUS_RANGES)
 
 
 @dataclass(frozen=True)
@@ -122,11 +140,12 @@ def c_store(sro_bytes: bytes, cfg: PacsSettings) -> StoreOutcome:
             return StoreOutcome(
                 "sent", code, f"stored by {where}" + (f" with warning: {comment}" if comment else "")
             )
-        return StoreOutcome(
-            "refused",
-            code,
-            f"{where} refused the object: status 0x{code:04X}" + (f" ({comment})" if comment else ""),
-        )
+        said = f"status 0x{code:04X}" + (f" ({comment})" if comment else "")
+        if is_transient(code):
+            return StoreOutcome(
+                "transient", code, f"{where} cannot take the object now: {said} (transient; retried)"
+            )
+        return StoreOutcome("refused", code, f"{where} refused the object: {said} (permanent; not retried)")
     finally:
         if assoc.is_established:
             assoc.release()

@@ -12,7 +12,9 @@ from typing import Literal
 
 from service.store.base import Connection, utc_now
 
-AuditAction = Literal["register", "verify", "activate", "delete", "pacs_export", "qa_protocol_create"]
+AuditAction = Literal[
+    "register", "verify", "activate", "delete", "pacs_export", "qa_protocol_create", "auth_throttle"
+]
 MAX_DETAIL_CHARS = 500
 
 

@@ -21,11 +21,12 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.helpers.tokens import make_token
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import wait_for, wait_robot_still
 
 REPO = Path(__file__).resolve().parents[2]
-TOKEN = "fault-suite-token-0123456789abcdef"
+TOKEN = make_token()
 WINDOW_S = 0.6
 DEADLINE_S = 60.0
 Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)

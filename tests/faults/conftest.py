@@ -16,7 +16,9 @@ from typing import Any
 
 import httpx
 
-TOKEN = "fault-suite-token-0123456789abcdef"
+from tests.helpers.tokens import make_token
+
+TOKEN = make_token()
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 JSON = {"Content-Type": "application/json"}
 RAW_TIMEOUT_S = 30.0

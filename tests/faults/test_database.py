@@ -19,6 +19,7 @@ from service.error_map import EXIT_CONFIG, EXIT_USAGE
 from service.records import NewScan
 from service.store import Database
 from tests.faults.conftest import JSON, REPO_ROOT, fault_settings, mock_robot, serve
+from tests.helpers.tokens import make_token
 
 N_SCANS = 83
 """As many records as the tester lost to a 0-byte file."""
@@ -34,7 +35,7 @@ def make_db(path: Path, n: int = N_SCANS) -> None:
 
 def serve_cli(root: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     """``oarmreg serve`` in a subprocess (it must fail before listening)."""
-    env = {**os.environ, "OARMREG_API_TOKEN": "fault-suite-token-0123456789abcdef"}
+    env = {**os.environ, "OARMREG_API_TOKEN": make_token()}
     return subprocess.run(
         [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--data", str(root / "data"),
          "--watch", str(root / "watch"), "--robot-link", "simple-message://127.0.0.1:9", *extra],

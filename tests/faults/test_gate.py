@@ -1,4 +1,4 @@
-"""Issue #13 items 2, 5, 6, 7: the gate in front of the real service (uvicorn on loopback).
+"""Issue #13 items 2, 5, 6, 7 and #32 item 5: the gate in front of the real service (uvicorn on loopback).
 
 Body limit and authentication before the body is read, CSRF (Content-Type) and DNS rebinding
 (Host, Origin), docs behind the token, ids in SQLite's range with strict types, 500s that close
@@ -8,8 +8,12 @@ their connection without internals, single-use event tickets, the audit log.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import logging
+import secrets
 import socket
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,6 +26,7 @@ from tests.faults.conftest import (
     JSON,
     RAW_TIMEOUT_S,
     TOKEN,
+    RawResponse,
     Running,
     closed_by_peer,
     fault_settings,
@@ -294,3 +299,119 @@ def test_audit_names_the_token_by_hash_only(svc: Running) -> None:
     assert mine["principal"] == "token:" + hashlib.sha256(TOKEN.encode()).hexdigest()[:12]
     assert mine["detail"] == "Not found"
     assert TOKEN not in svc.client.get("/audit").text
+
+
+# ---- issue #32 item 5: failed authentications throttled per address; the ticket never logged --
+# Different clients are raw sockets bound to other loopback source addresses: 127.0.0.2 guesses,
+# 127.0.0.1 (the module's client) and 127.0.0.3 are the others.
+
+GUESSES = 3000
+ALLOWED = 10
+"""api.auth_failures_before_throttle (the default): wrong tokens answered 401 before 429."""
+
+
+def _connect(port: int, source: str) -> socket.socket:
+    return socket.create_connection(("127.0.0.1", port), timeout=RAW_TIMEOUT_S, source_address=(source, 0))
+
+
+def _get(port: int, path: str, token: str | None) -> bytes:
+    auth = f"Authorization: Bearer {token}\r\n" if token is not None else ""
+    return f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n{auth}\r\n".encode()
+
+
+def _pipelined(port: int, source: str, requests: list[bytes]) -> list[RawResponse]:
+    """Send ``requests`` back to back on one connection from ``source``; read every response."""
+    with _connect(port, source) as sock:
+        sender = threading.Thread(target=sock.sendall, args=(b"".join(requests),), daemon=True)
+        sender.start()
+        try:
+            out = [_read_one(sock) for _ in requests]
+        finally:
+            _pending.pop(sock.fileno(), None)  # file numbers are reused by later sockets
+        sender.join(RAW_TIMEOUT_S)
+        return out
+
+
+_pending: dict[int, bytes] = {}
+
+
+def _read_one(sock: socket.socket) -> RawResponse:
+    """One response; bytes already received past it are kept for the next call (pipelining)."""
+    buf = _pending.pop(sock.fileno(), b"")
+    while b"\r\n\r\n" not in buf:
+        chunk = sock.recv(65536)
+        if not chunk:
+            raise ConnectionError(f"closed before a full response head: {buf[:200]!r}")
+        buf += chunk
+    head, _, rest = buf.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {k.strip().lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
+    length = int(headers.get("content-length", "0"))
+    while len(rest) < length:
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        rest += chunk
+    _pending[sock.fileno()] = rest[length:]
+    return RawResponse(int(lines[0].split()[1]), headers, rest[:length])
+
+
+def test_guessing_is_throttled_per_address_and_audited(svc: Running) -> None:
+    wrong = [_get(svc.port, "/status", secrets.token_urlsafe(32)) for _ in range(GUESSES)]
+    answers = _pipelined(svc.port, "127.0.0.2", wrong)
+    statuses = [r.status for r in answers]
+    assert statuses[:ALLOWED] == [401] * ALLOWED
+    assert statuses[ALLOWED:] == [429] * (GUESSES - ALLOWED), sorted(set(statuses[ALLOWED:]))
+    waits = {int(r.headers["retry-after"]) for r in answers[ALLOWED:]}
+    assert min(waits) >= 1 and max(waits) <= 30, waits
+    problem = json.loads(answers[-1].body)
+    assert problem["status"] == 429 and "api.auth_failures_before_throttle" in problem["detail"]
+
+    # locked out: even the right token is not compared from that address ...
+    (locked,) = _pipelined(svc.port, "127.0.0.2", [_get(svc.port, "/status", TOKEN)])
+    assert locked.status == 429 and 1 <= int(locked.headers["retry-after"]) <= 30
+    # ... while other addresses are unaffected: the right token works, a wrong one is a plain 401
+    assert svc.client.get("/status").status_code == 200  # from 127.0.0.1
+    other = _pipelined(
+        svc.port, "127.0.0.3", [_get(svc.port, "/status", TOKEN), _get(svc.port, "/status", "x")]
+    )
+    assert [r.status for r in other] == [200, 401]
+
+    entries = [e for e in svc.client.get("/audit").json() if e["action"] == "auth_throttle"]
+    assert [e["principal"] for e in entries] == ["client:127.0.0.2"]  # one entry for the burst
+    assert (
+        entries[0]["outcome"] == "throttled"
+        and f"{ALLOWED + 1} failed authentications" in entries[0]["detail"]
+    )
+
+
+def test_requests_without_authorization_are_not_counted(svc: Running) -> None:
+    anonymous = [_get(svc.port, "/status", None) for _ in range(5 * ALLOWED)]
+    anonymous += [
+        f"GET /status HTTP/1.1\r\nHost: 127.0.0.1:{svc.port}\r\nAuthorization: \r\n\r\n".encode()
+    ] * 5
+    assert {r.status for r in _pipelined(svc.port, "127.0.0.4", anonymous)} == {401}
+    (first_wrong,) = _pipelined(svc.port, "127.0.0.4", [_get(svc.port, "/status", "y" * 30)])
+    assert first_wrong.status == 401  # not 429: the 50 header-less requests were not failures
+
+
+def test_the_event_ticket_never_reaches_the_access_log(svc: Running) -> None:
+    access = logging.getLogger("uvicorn.access")
+    text = io.StringIO()
+    handler = logging.StreamHandler(text)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    old_level = access.level
+    access.addHandler(handler)
+    access.setLevel(logging.INFO)
+    try:
+        ticket = svc.client.post("/events/ticket", headers=JSON).json()["ticket"]
+        with httpx.Client(base_url=svc.base_url) as c, c.stream("GET", f"/events?ticket={ticket}") as r:
+            assert r.status_code == 200 and next(r.iter_lines()) == ": connected"
+        assert httpx.get(f"{svc.base_url}/events?ticket={ticket}").status_code == 401  # used up: logged too
+        assert svc.client.get("/health", headers=AUTH).status_code == 200  # a line after them
+    finally:
+        access.removeHandler(handler)
+        access.setLevel(old_level)
+    log = text.getvalue()
+    assert "/health" in log and log.count("/events?ticket=<redacted>") == 2, log
+    assert ticket not in log

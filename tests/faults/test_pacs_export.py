@@ -35,6 +35,8 @@ class Pacs:
 
     port: int
     hold: bool = False
+    answers: list[int] = field(default_factory=list)
+    """Statuses to answer, one per C-STORE, before Success (e.g. 0xA700 while "out of resources")."""
     received: list[str] = field(default_factory=list)
     arrived: threading.Event = field(default_factory=threading.Event)
     release: threading.Event = field(default_factory=threading.Event)
@@ -44,7 +46,7 @@ class Pacs:
         self.arrived.set()
         if self.hold:
             self.release.wait(HOLD_S)
-        return 0x0000
+        return self.answers.pop(0) if self.answers else 0x0000
 
 
 @contextlib.contextmanager
@@ -141,3 +143,71 @@ def test_pacs_down_then_killed_mid_send_loses_nothing(tmp_path: Path, phantom: A
     assert [a["outcome"] for a in audit if a["action"] == "pacs_export" and a["target_id"] == reg2] == [
         "sent"
     ]
+
+
+def _accepted_registration(db: Any, n: int) -> int:
+    """An accepted registration with its scan's instance UIDs, written through the service's store
+    (what the SRO is built from), without running detection: the test is about the send."""
+    from service.records import NewScan, RegistrationFigures, RegistrationRecord
+    from service.store.scan_instances import ScanInstances
+
+    series = f"1.2.826.0.1.3680043.10.1432.{n}"
+    sid, _ = db.scans.upsert(NewScan(series_uid=series, folder=f"/scan{n}", status="complete"))
+    db.scan_instances.put(
+        ScanInstances(series_uid=series, study_uid=series + ".1", frame_of_reference_uid=series + ".2",
+                      sop_class_uids=("1.2.840.10008.5.1.4.1.1.2",), sop_instance_uids=(series + ".3",))
+    )  # fmt: skip
+    figures = RegistrationFigures(
+        fle_mm=0.1, n_expected=28, n_detected=28, n_matched=28, symmetry_margin=12, rotation_det=1.0,
+        predicted_tre_mm=(0.1,), targets_image_mm=((0.0, 0.0, 0.0),), targets_source="request",
+        spheres=(), provenance={"series_uid": series},
+    )  # fmt: skip
+    identity = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    rid: int = db.registrations.insert(
+        RegistrationRecord(created_at="2026-01-01T00:00:00+00:00", status="accepted", config_hash="t",
+                           software_version="t", scan_id=sid, series_uid=series, image_from_robot=identity,
+                           fre_mm=0.1, figures=figures),
+        make_current=True,
+    )  # fmt: skip
+    return rid
+
+
+def test_out_of_resources_is_retried_and_a_permanent_error_stops(tmp_path: Path) -> None:
+    """Issue #32 item 6: the PACS answers 0xA700 (Refused: Out of Resources, transient in PS3.4
+    B.2.3) twice, then "recovers": sent on the third attempt.  0xA900 (data set does not match the
+    SOP class, permanent): failed after one attempt, naming the status.  The real exporter and SCU
+    against a pynetdicom Storage SCP on loopback."""
+    from service.pacs.exporter import PacsExporter
+    from service.settings import PacsSettings
+    from service.store import Database
+
+    pacs_port = free_port()
+    cfg = PacsSettings(host="127.0.0.1", port=pacs_port, ae_title=PACS_AET, retry_initial_s=0.1,
+                       retry_max_s=0.4, timeout_s=5.0)  # fmt: skip
+    db = Database.open(tmp_path / "oarmreg.sqlite3")
+    events: list[Any] = []
+    exporter = PacsExporter(db, cfg, tmp_path, events.append)
+    try:
+        with running_pacs(Pacs(pacs_port, answers=[0xA700, 0xA700])) as pacs:
+            exporter.start()
+            reg1 = _accepted_registration(db, 1)
+            exporter.enqueue(reg1)
+            sent = wait_for(
+                lambda: (e := db.pacs_exports.get(reg1)) and e.state != "pending" and e, "reg 1 done"
+            )
+            assert sent.state == "sent" and sent.dimse_status == 0 and sent.attempts == 3, sent
+            assert pacs.received == [sent.sop_instance_uid] * 3  # two refusals, then stored
+
+            pacs.answers = [0xA900]
+            reg2 = _accepted_registration(db, 2)
+            exporter.enqueue(reg2)
+            failed = wait_for(
+                lambda: (e := db.pacs_exports.get(reg2)) and e.state != "pending" and e, "reg 2"
+            )
+            assert failed.state == "failed" and failed.attempts == 1, failed
+            assert failed.dimse_status == 0xA900 and "status 0xA900" in failed.reason, failed
+            assert "permanent" in failed.reason
+    finally:
+        exporter.stop()
+        db.close()
+    assert [type(e).__name__ for e in events] == ["PacsExportSent", "PacsExportFailed"]

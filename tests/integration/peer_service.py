@@ -20,11 +20,12 @@ from pynetdicom import AE
 from drivers.dicom_scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event
+from tests.helpers.tokens import make_token
 from tests.integration.polling import wait_for
 
 E = TypeVar("E", bound=Event)
 
-TOKEN = "peer-suite-test-token-0123456789"
+TOKEN = make_token()
 WINDOW_S = 0.6
 DEADLINE_S = 60.0
 AE_TITLE = "OARMREG"

@@ -25,9 +25,10 @@ import numpy as np
 import pytest
 
 from registration.model import frames
+from tests.helpers.tokens import make_token
 from tests.integration.polling import wait_for
 
-TOKEN = "calibration-test-token-0123456789"
+TOKEN = make_token()
 WINDOW_S = 0.6
 DEADLINE_S = 120.0
 JSON = {"Content-Type": "application/json"}

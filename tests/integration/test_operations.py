@@ -20,11 +20,12 @@ from pathlib import Path
 import pytest
 
 from tests.faults.conftest import fault_settings, mock_robot, serve
+from tests.helpers.tokens import make_token
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "configs" / "oarmreg.toml"
 UNIT = REPO / "deploy" / "oarmreg.service"
-TOKEN = "operations-test-token-0123456789"
+TOKEN = make_token()
 
 
 def _cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:

@@ -37,13 +37,14 @@ from service.events import (
     IgtlClientHeaderVersion,
     RegistrationRefused,
 )
+from tests.helpers.tokens import make_token
 from tests.integration.polling import wait_for
 
 E = TypeVar("E", bound=Event)
 
 pyigtl = pytest.importorskip("pyigtl")
 
-TOKEN = "or-integration-test-token-0123456789"
+TOKEN = make_token()
 WINDOW_S = 0.6
 DEADLINE_S = 60.0
 AE_TITLE = "OARMREG"

@@ -9,12 +9,13 @@ from typing import Any
 import pytest
 
 from tests.faults.conftest import TOKEN, Running, fault_settings, mock_robot, serve
+from tests.helpers.tokens import make_token
 
 POSES = [
     {"name": "p1", "joints_rad": [0.0, 0.0, 1.5708, 0.0, 0.7854, 0.0]},
     {"name": "p2", "joints_rad": [0.0, 0.0, 1.5708, 0.0, 0.7854, 0.3]},
 ]
-READONLY = "wall-display-token-0123456789abcdef"
+READONLY = make_token()
 
 
 @pytest.fixture(scope="module")

@@ -30,10 +30,11 @@ import numpy as np
 import pytest
 
 from registration.model.frames import apply, invert, transform_from_xyz_rpy
+from tests.helpers.tokens import make_token
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import wait_for, wait_robot_still
 
-TOKEN = "integration-test-token-0123456789"
+TOKEN = make_token()
 WINDOW_S = 0.6
 """Stillness window for the tests (s): short, so the robot settles quickly."""
 DEADLINE_S = 60.0

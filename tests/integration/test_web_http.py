@@ -16,10 +16,11 @@ import httpx
 import pytest
 
 from tests.faults.conftest import TOKEN, Running, fault_settings, mock_robot, serve
+from tests.helpers.tokens import make_token
 
 REPO = Path(__file__).resolve().parents[2]
 NAV_UI = "http://nav-ui.example:8080"
-READONLY = "wall-display-token-0123456789abcdef"
+READONLY = make_token()
 PUBLIC = ("/", "/favicon.ico", "/docs", "/static/app.js", "/static/app.css", "/static/docs.js",
           "/static/swagger/swagger-ui-bundle.js", "/static/swagger/swagger-ui.css", "/health")  # fmt: skip
 """Every path that answers without a token (the page, its assets, the docs shell, liveness)."""

@@ -9,8 +9,9 @@ import pytest
 
 from registration.errors import ConfigError
 from service.settings import load_settings
+from tests.helpers.tokens import make_token
 
-TOKEN = "unit-test-token-0123456789abcdef"
+TOKEN = make_token()
 
 
 def test_defaults_are_loopback_and_off() -> None:
