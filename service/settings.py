@@ -188,6 +188,17 @@ class ApiSettings(_Section):
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
+    # --- connection bounds (issue #32; service.http_limits).  Connections held open at once; one
+    # more closes the oldest idle one (no request in progress), so /health and the page keep
+    # answering while a peer floods the port.  256: a browser opens at most 6 per host (Chromium's
+    # per-host limit) and an SSE stream holds one, so ~40 browser tabs plus the navigation clients.
+    max_connections: int = Field(default=256, ge=8, le=16384)
+    # A connection must complete a request header within this long of opening (and of its previous
+    # response), s; then it is closed.  uvicorn's timeout_keep_alive does not close a connection that
+    # never sends a byte (issue #32: idle peers stayed past 20 s).  A LAN client sends its header in
+    # milliseconds; Apache's mod_reqtimeout allows 20 s for the first header bytes; 10 s frees an idle
+    # peer's descriptor within seconds.
+    first_request_timeout_s: float = Field(default=10.0, gt=0, le=300)
 
 
 class DatabaseSettings(_Section):
@@ -271,6 +282,8 @@ class IgtlSettings(_Section):
     port: int = Field(default=18944, ge=0, le=65535)
     allowed_peer_addresses: tuple[str, ...] = ()
     period_s: float = Field(default=1.0, gt=0, le=60)
+    # clients connected at once (also added by i31b; counted in the descriptor budget, issue #32)
+    max_clients: int = Field(default=32, ge=1, le=4096)
     tool0_from_tcp: Tool0FromTcp = Tool0FromTcp()
 
     @field_validator("allowed_peer_addresses")
@@ -567,6 +580,26 @@ class Settings(BaseSettings):
         except (OSError, NotRegularFileError):
             h.update(b"<phantom file unreadable>")
         return h.hexdigest()[:16]
+
+
+DESCRIPTOR_MARGIN = 256
+"""Descriptors besides the listeners' peers: the database and its journal, the robot link (a socket
+and, with ``robot.link_process``, its child's pipes), the listening sockets, the folder watcher's
+inotify, scan and temp files being read or written, logs, the interpreter's own.  An idle service
+holds about 40 (``ls /proc/PID/fd``); a registration decoding a series adds a few more."""
+
+
+def descriptor_budget(settings: Settings) -> list[tuple[str, int]]:
+    """``(setting, descriptors)`` the configured maxima can hold open at once (issue #32): one per
+    HTTP connection, OpenIGTLink client and DICOM association, plus :data:`DESCRIPTOR_MARGIN`."""
+    out = [("api.max_connections", settings.api.max_connections)]
+    if settings.igtl.enabled:
+        out.append(("igtl.max_clients", settings.igtl.max_clients))
+    if settings.dicom.enabled:
+        # one socket per association, plus the temp file of the instance being received
+        out.append(("dicom.maximum_associations", 2 * settings.dicom.maximum_associations))
+    out.append(("margin (files, database, robot link)", DESCRIPTOR_MARGIN))
+    return out
 
 
 class _RelativePathsToml(TomlConfigSettingsSource):
