@@ -16,6 +16,8 @@ O-arm scan.  The test process opens the hostile peers over loopback (it raises i
 * the same mix with the OpenIGTLink bounds of helper i31b's branch (``igtl.max_clients``, the stall
   timeout; skipped until its server enforces ``max_clients``): the service's descriptors stay within
   its budget and its RSS under :data:`RSS_BOUND_MB`;
+* never silent: an association refused because every ``dicom.maximum_associations`` slot is taken
+  is counted, logged and the ``intake-refusing`` problem until an association is released again;
 * start-up: maxima that cannot fit the hard descriptor limit make ``serve`` exit 3 naming the setting.
 
 Every wait polls with a deadline; nothing sleeps.
@@ -344,6 +346,45 @@ def test_hostile_mix_descriptors_and_memory_stay_bounded(hostile: Hostile) -> No
         held(hostile)
         wait_for(lambda: hostile.descriptors() <= budget, f"the service's descriptors within {budget}")
         assert hostile.rss_mb() < RSS_BOUND_MB, hostile.rss_mb()
+
+
+# ---------------------------------------------------------------------------- never silent
+
+
+def test_associations_refused_for_want_of_slots_are_a_problem_until_one_is_released(
+    hostile: Hostile,
+) -> None:
+    from pynetdicom import AE
+
+    from drivers.dicom_scu import associate
+
+    echoscu = shutil.which("echoscu")
+    assert echoscu is not None
+    ae = AE(ae_title="HOLDER")
+    ae.add_requested_context("1.2.840.10008.1.1")  # Verification
+    slots = hostile.client.get("/status").json()["listeners"]["dicom"]
+    before = slots["counters"].get("rejected_busy", 0)
+    held_assocs = []
+    try:
+        for _ in range(10):  # dicom.maximum_associations (default): every slot
+            a = associate(ae, "127.0.0.1", hostile.dicom_port, ae_title=AE_TITLE)
+            assert a.is_established
+            held_assocs.append(a)
+        r = subprocess.run([echoscu, "-aec", AE_TITLE, "127.0.0.1", str(hostile.dicom_port)],
+                           capture_output=True, timeout=DEADLINE_S)  # fmt: skip
+        assert r.returncode != 0, "an 11th association was accepted"
+        problems = wait_for(hostile.intake_problems, "the intake-refusing problem")
+        assert "dicom.maximum_associations" in problems[0]["detail"], problems
+        counters = hostile.client.get("/status").json()["listeners"]["dicom"]["counters"]
+        assert counters["rejected_busy"] == before + 1, counters
+        assert hostile.client.get("/ready").status_code == 503
+    finally:
+        for a in held_assocs:
+            a.release()
+    r = subprocess.run([echoscu, "-aec", AE_TITLE, "127.0.0.1", str(hostile.dicom_port)],
+                       capture_output=True, timeout=DEADLINE_S)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    wait_for(lambda: hostile.intake_problems() == [], "the problem cleared by a released association")
 
 
 # ---------------------------------------------------------------------------- start-up
