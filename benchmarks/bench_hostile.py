@@ -47,7 +47,8 @@ IGTL_HEADER = struct.Struct(">H12s20sQQQ")
 STALLED_ANNOUNCED = 8 * 1024 * 1024
 STALLED_SENT = 1024 * 1024
 START_TIMEOUT_S = 120.0
-CONNECT_TIMEOUT_S = 60.0
+CONNECT_TIMEOUT_S = 120.0
+"""A connect past a full listen backlog completes on a SYN retry (1, 3, 7 … s later)."""
 
 
 def _free_port() -> int:
@@ -136,6 +137,7 @@ def _connect_all(port: int, n: int, stack: contextlib.ExitStack) -> list[socket.
             p.register(s.fileno(), select.POLLOUT)
         done = {fd for fd, _ in p.poll(1000)}
         pending = [s for s in pending if s.fileno() not in done]
+    print(f"  {n - len(pending)} of {n} peers connected to port {port}")
     return socks
 
 

@@ -586,7 +586,8 @@ DESCRIPTOR_MARGIN = 256
 """Descriptors besides the listeners' peers: the database and its journal, the robot link (a socket
 and, with ``robot.link_process``, its child's pipes), the listening sockets, the folder watcher's
 inotify, scan and temp files being read or written, logs, the interpreter's own.  An idle service
-holds about 40 (``ls /proc/PID/fd``); a registration decoding a series adds a few more."""
+with every listener on holds 26 (``ls /proc/PID/fd``, benchmarks/bench_hostile.py); a registration
+decoding a series adds a few more."""
 
 
 def descriptor_budget(settings: Settings) -> list[tuple[str, int]]:
