@@ -205,12 +205,14 @@ def _row(label: str, pid: int, url: str, a: argparse.Namespace) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     p.add_argument("--peers", type=int, default=1100, help="idle peers on each of HTTP and OpenIGTLink")
+    p.add_argument("--igtl-peers", type=int, default=None, help="idle OpenIGTLink peers (default: --peers)")
     p.add_argument("--stalled", type=int, default=20, help="OpenIGTLink peers stalled mid-body")
     p.add_argument("--probes", type=int, default=40, help="GET /health per phase")
     p.add_argument("--timeout", type=float, default=10.0, help="a probe with no answer by then failed, s")
     p.add_argument("--checkout", type=Path, default=REPO, help="run the service from this checkout")
     a = p.parse_args(argv)
-    need = 2 * a.peers + a.stalled + 256
+    igtl_peers = a.peers if a.igtl_peers is None else a.igtl_peers
+    need = a.peers + igtl_peers + a.stalled + 256
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft != resource.RLIM_INFINITY and soft < need:
         resource.setrlimit(resource.RLIMIT_NOFILE, (min(need, hard), hard))
@@ -221,13 +223,15 @@ def main(argv: list[str] | None = None) -> int:
         _service(checkout, Path(tmp), link) as (proc, ports),
     ):
         url = f"http://127.0.0.1:{ports['http']}"
-        print(f"service from {checkout}: {a.peers} idle peers on HTTP and on OpenIGTLink, {a.stalled} "
-              f"stalled OpenIGTLink bodies; /health probes time out after {a.timeout:g} s")  # fmt: skip
+        print(
+            f"service from {checkout}: {a.peers} idle peers on HTTP, {igtl_peers} on OpenIGTLink, "
+            f"{a.stalled} stalled OpenIGTLink bodies; /health probes time out after {a.timeout:g} s"
+        )
         print("phase    | med ms  | p95 ms  | failed  | RSS MB | fds   ")
         print(_row("idle", proc.pid, url, a) + f" | DICOM echo {_echo(ports['dicom'])}")
         with contextlib.ExitStack() as stack:
             _connect_all(ports["http"], a.peers, stack)
-            _connect_all(ports["igtl"], a.peers, stack)
+            _connect_all(ports["igtl"], igtl_peers, stack)
             _stall(ports["igtl"], a.stalled, stack)
             settle_s, fds = _settle(proc.pid, 120.0)
             print(f"  the service settled in {settle_s:.1f} s at {fds} descriptors")
