@@ -45,7 +45,11 @@ import errno
 import logging
 import os
 import re
+import select
+import socket
+import ssl
 import threading
+import time
 import uuid
 from collections import Counter
 from collections.abc import Callable
@@ -66,6 +70,8 @@ from pydicom.uid import (
 from pynetdicom import AE, evt
 from pynetdicom import _config as _pn_config
 from pynetdicom.dimse_primitives import C_STORE
+from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAssociationServer
+from pynetdicom.utils import make_target
 
 from registration.errors import ConfigError
 from service.netaddr import Network, in_networks, is_loopback, parse_networks
@@ -309,6 +315,77 @@ def _fsync_dir(d: Path) -> None:
         os.close(fd)
 
 
+# --------------------------------------------------------------------------- descriptors above 1024
+
+
+class PollAssociationSocket(AssociationSocket):
+    """pynetdicom's association socket whose :attr:`ready` asks ``poll`` instead of ``select``.
+
+    pynetdicom 3.0 checks for incoming data with ``select.select([sock], [], [], 0)``, which raises
+    ``ValueError`` for a descriptor >= 1024 (FD_SETSIZE); pynetdicom takes that for a closed
+    connection, so once the process holds more than 1024 descriptors (idle peers on the other
+    listeners) every new association was aborted before its A-ASSOCIATE-RQ was read, silently
+    (issue #32).  ``poll`` has no such limit; the answer is otherwise the same (readable, hung up or
+    in error all mean "read now").  pynetdicom has no switch for this.  The listener itself uses
+    ``socketserver``'s ``PollSelector`` already.
+    """
+
+    on_transport_error: Callable[[str], None] | None = None
+    """Called (with the reason) when ``poll`` fails on an open socket: an internal failure, not a peer
+    that closed."""
+
+    @property
+    def ready(self) -> bool:
+        sock = self.socket
+        if sock is None or self._is_connected is False:
+            return False
+        fd = sock.fileno()
+        try:
+            if fd < 0:
+                raise OSError(errno.EBADF, "socket closed")
+            poller = select.poll()
+            poller.register(fd, select.POLLIN | select.POLLPRI)
+            ready = bool(poller.poll(0))
+        except (OSError, ValueError) as e:
+            if fd >= 0 and self.on_transport_error is not None:
+                self.on_transport_error(f"poll on descriptor {fd} failed ({e})")
+            self.event_queue.put("Evt17")  # Evt17: transport connection closed (as pynetdicom does)
+            return False
+        if isinstance(sock, ssl.SSLSocket):  # buffered TLS data that poll cannot see (pynetdicom #528)
+            return ready or bool(sock.pending())
+        return ready
+
+
+class _PollRequestHandler(RequestHandler):
+    """pynetdicom's request handler, its association on a :class:`PollAssociationSocket`."""
+
+    def _create_association(self) -> Any:
+        assoc = super()._create_association()
+        sock = assoc.dul.socket
+        if type(sock) is AssociationSocket:  # the same object and state, only ``ready`` differs
+            sock.__class__ = PollAssociationSocket
+            cast(PollAssociationSocket, sock).on_transport_error = getattr(
+                self.server, "on_transport_error", None
+            )
+        return assoc
+
+
+class _Server(ThreadedAssociationServer):
+    """pynetdicom's threaded server whose failed ``accept`` is reported (``socketserver`` drops it
+    silently; EMFILE when the process is out of descriptors)."""
+
+    on_accept_error: Callable[[OSError], None] | None = None
+    on_transport_error: Callable[[str], None] | None = None
+
+    def get_request(self) -> tuple[socket.socket, tuple[str, int]]:
+        try:
+            return super().get_request()
+        except OSError as e:
+            if self.on_accept_error is not None and e.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
+                self.on_accept_error(e)
+            raise
+
+
 # --------------------------------------------------------------------------- the SCP
 
 
@@ -357,7 +434,13 @@ class StorageScp:
         self.counters: dict[str, int] = {
             "stored": 0, "duplicates": 0, "replaced": 0, "refused": 0, "echoes": 0,
             "released": 0, "aborted": 0, "bytes": 0,
+            "rejected_busy": 0, "accept_errors": 0, "transport_errors": 0,
         }  # fmt: skip
+        self.association_failure: str | None = None
+        """Why the intake last refused or failed an association for its own reasons (all
+        ``maximum_associations`` slots taken, ``accept`` failing, a transport error); None once an
+        association is released normally again.  A ``GET /status`` problem while set."""
+        self._accept_error_logged_at = -1e18
 
     @property
     def active_associations(self) -> int:
@@ -394,10 +477,9 @@ class StorageScp:
             (evt.EVT_RELEASED, self._on_released),
             (evt.EVT_ABORTED, self._on_aborted),
         ]
+        handlers.append((evt.EVT_REJECTED, self._on_rejected))
         try:
-            self._server = ae.start_server(
-                (self.config.host, self.config.port), block=False, evt_handlers=handlers
-            )
+            self._server = self._start_server(ae, handlers)
         except OSError as e:
             raise DicomScpConfigError(
                 f"cannot listen for DICOM on {self.config.host}:{self.config.port} ({e}); "
@@ -405,6 +487,22 @@ class StorageScp:
             ) from None
         log.info("DICOM Storage SCP %s on %s:%d → %s", self.config.ae_title, self.config.host,
                  self.port, self.intake_dir)  # fmt: skip
+
+    def _start_server(self, ae: AE, handlers: list[Any]) -> _Server:
+        """``ae.start_server(block=False)`` with :class:`_Server` and :class:`_PollRequestHandler`
+        (pynetdicom's own non-blocking start, which takes neither)."""
+        server = cast(_Server, ae.make_server(
+            (self.config.host, self.config.port), evt_handlers=handlers, server_class=_Server,
+            request_handler=_PollRequestHandler,
+        ))  # fmt: skip
+        server.on_accept_error = self._on_accept_error
+        server.on_transport_error = self._on_transport_error
+        thread = threading.Thread(
+            target=make_target(server.serve_forever), name="oarmreg-dicom-accept", daemon=True
+        )
+        thread.start()
+        ae._servers.append(server)  # as start_server does: server.shutdown() removes it there
+        return server
 
     def stop(self) -> None:
         if self._server is not None:
@@ -430,6 +528,50 @@ class StorageScp:
                 self.callbacks.on_refused(refusal)
             except Exception:
                 log.exception("DICOM SCP: on_refused callback failed")
+
+    def _association_failed(self, counter: str, reason: str, *, log_it: bool = True) -> None:
+        with self._lock:
+            self.counters[counter] += 1
+            self.association_failure = reason
+        if log_it:
+            log.warning("DICOM SCP: %s", reason)
+
+    def _on_rejected(self, event: evt.Event) -> None:
+        """pynetdicom rejected an association itself (its ACSE checks): all slots taken, mostly."""
+        prim = event.assoc.acceptor.primitive
+        peer = str(event.assoc.requestor.address)
+        calling = str(event.assoc.requestor.ae_title).strip()
+        if prim is not None and (prim.result_source, prim.diagnostic) == (0x03, 0x02):
+            n = self.config.maximum_associations
+            self._association_failed(
+                "rejected_busy",
+                f"association from {calling} {peer} rejected: all dicom.maximum_associations = {n} slots "
+                "are taken (local limit exceeded); the sender must retry; raise dicom.maximum_associations "
+                "if the O-arm and other senders need more at once",
+            )
+        else:
+            why = "" if prim is None else f" (result {prim.result}, source {prim.result_source}, "
+            why += "" if prim is None else f"diagnostic {prim.diagnostic})"
+            self._refuse(ScpRefusal("association", f"association rejected by pynetdicom{why}", calling, peer))
+
+    def _on_accept_error(self, e: OSError) -> None:
+        """``accept`` failed (EMFILE: out of descriptors): the peer waits unanswered in the backlog."""
+        now = time.monotonic()
+        with self._lock:
+            quiet = now - self._accept_error_logged_at < 10.0
+            if not quiet:
+                self._accept_error_logged_at = now
+        self._association_failed(
+            "accept_errors",
+            f"cannot accept a DICOM connection ({e.strerror or e}); the O-arm cannot send scans: check "
+            "the descriptor budget (docs/operations.md) and what holds the service's connections",
+            log_it=not quiet,
+        )
+
+    def _on_transport_error(self, reason: str) -> None:
+        self._association_failed(
+            "transport_errors", f"association dropped by a transport error: {reason}; see the log"
+        )
 
     def _on_conn_open(self, event: evt.Event) -> None:
         """Bound every blocking read / write of this connection: pynetdicom applies its
@@ -623,6 +765,7 @@ class StorageScp:
             return
         with self._lock:
             self.counters["released"] += 1
+            self.association_failure = None  # the intake works again
         for series_dir in sorted(set(state.series) | set(state.tallies)):
             n = sum(1 for _ in series_dir.glob("*.dcm"))
             log.info("DICOM SCP: series %s released by %s with %d instance(s) on disk",

@@ -128,6 +128,16 @@ def intake_write_problems(ctx: ServiceContext) -> list[HealthProblem]:
     ]
 
 
+def intake_association_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """The C-STORE intake refused or failed an association for its own reasons (every
+    ``dicom.maximum_associations`` slot taken, ``accept`` failing, a transport error; issue #32);
+    cleared by the next association released normally.  Counters: ``listeners.dicom.counters``."""
+    why = None if ctx.cstore is None else ctx.cstore.scp.association_failure
+    if why is None:
+        return []
+    return [HealthProblem("intake-refusing", "C-STORE intake refusing associations", why)]
+
+
 def retention_problems(ctx: ServiceContext) -> list[HealthProblem]:
     """Retention could not bring the scan folders under ``retention.max_disk_mb``."""
     p = ctx.retention_problem
@@ -192,6 +202,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     listener_problems,
     data_dir_problems,
     intake_write_problems,
+    intake_association_problems,
     retention_problems,
     qa_drift_problems,
     bus_listener_problems,

@@ -222,6 +222,17 @@ class ApiSettings(_Section):
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
+    # --- connection bounds (issue #32; service.http_limits).  Connections held open at once; one
+    # more closes the oldest idle one (no request in progress), so /health and the page keep
+    # answering while a peer floods the port.  256: a browser opens at most 6 per host (Chromium's
+    # per-host limit) and an SSE stream holds one, so ~40 browser tabs plus the navigation clients.
+    max_connections: int = Field(default=256, ge=8, le=16384)
+    # A connection must complete a request header within this long of opening (and of its previous
+    # response), s; then it is closed.  uvicorn's timeout_keep_alive does not close a connection that
+    # never sends a byte (issue #32: idle peers stayed past 20 s).  A LAN client sends its header in
+    # milliseconds; Apache's mod_reqtimeout allows 20 s for the first header bytes; 10 s frees an idle
+    # peer's descriptor within seconds.
+    first_request_timeout_s: float = Field(default=10.0, gt=0, le=300)
     # --- failed authentications, throttled per client address (service.security.AuthThrottle)
     # wrong credentials answered 401 before the address is throttled: the status page calls 7 API
     # paths when it loads with one token, so one mistyped token must not lock its user out at once
@@ -319,7 +330,8 @@ class IgtlSettings(_Section):
     # Listener limits (docs/security.md, "OpenIGTLink listener limits"); the defaults and their
     # origin are in service/igtl/server.py.
     max_clients: int = Field(default=_igtl.MAX_CLIENTS, ge=1, le=1024)
-    """Connections held at once; more are closed at once and counted (``refused_full``)."""
+    """Connections held at once; more are closed at once and counted (``refused_full``); counted in
+    the descriptor budget (:func:`descriptor_budget`)."""
     status_max_body_bytes: int = Field(
         default=_igtl.STATUS_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
     )
@@ -632,6 +644,27 @@ class Settings(BaseSettings):
         except (OSError, NotRegularFileError):
             h.update(b"<phantom file unreadable>")
         return h.hexdigest()[:16]
+
+
+DESCRIPTOR_MARGIN = 256
+"""Descriptors besides the listeners' peers: the database and its journal, the robot link (a socket
+and, with ``robot.link_process``, its child's pipes), the listening sockets, the folder watcher's
+inotify, scan and temp files being read or written, logs, the interpreter's own.  An idle service
+with every listener on holds 26 (``ls /proc/PID/fd``, benchmarks/bench_hostile.py); a registration
+decoding a series adds a few more."""
+
+
+def descriptor_budget(settings: Settings) -> list[tuple[str, int]]:
+    """``(setting, descriptors)`` the configured maxima can hold open at once (issue #32): one per
+    HTTP connection, OpenIGTLink client and DICOM association, plus :data:`DESCRIPTOR_MARGIN`."""
+    out = [("api.max_connections", settings.api.max_connections)]
+    if settings.igtl.enabled:
+        out.append(("igtl.max_clients", settings.igtl.max_clients))
+    if settings.dicom.enabled:
+        # one socket per association, plus the temp file of the instance being received
+        out.append(("dicom.maximum_associations", 2 * settings.dicom.maximum_associations))
+    out.append(("margin (files, database, robot link)", DESCRIPTOR_MARGIN))
+    return out
 
 
 class _RelativePathsToml(TomlConfigSettingsSource):

@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
         hold_serve_lock(settings.data_dir).close()
     check_ports(settings)  # before preflight opens (and may create) the database
+    raise_descriptor_limit(settings)
     preflight(settings)
     app = create_app(settings)
     config = uvicorn.Config(
@@ -90,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         host=settings.host,
         port=settings.port,
         **ssl_options,
+        **http_limits(settings),
         log_config=None,  # the CLI configured logging
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
         loop=UVICORN_LOOP,
@@ -101,6 +103,48 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError(f"the service did not start on {settings.host}:{settings.port} (see the log above)")
     return 0
+
+
+def http_limits(settings: Any) -> dict[str, Any]:
+    """uvicorn ``Config`` options bounding HTTP connections (``api.max_connections``,
+    ``api.first_request_timeout_s``; :mod:`service.http_limits`)."""
+    from service.http_limits import bounded_protocol
+
+    return {"http": bounded_protocol(settings.api.max_connections, settings.api.first_request_timeout_s)}
+
+
+def raise_descriptor_limit(settings: Any) -> int:
+    """Raise this process's soft ``RLIMIT_NOFILE`` to cover the configured maxima
+    (:func:`service.settings.descriptor_budget`); returns the descriptors needed.
+
+    The soft limit is only ever raised (never lowered), up to the hard limit.
+
+    Raises
+    ------
+    ConfigError
+        The maxima need more than the hard limit: names the largest setting and how to fix it.
+    """
+    import resource
+
+    from registration.errors import ConfigError
+    from service.settings import descriptor_budget
+
+    budget = descriptor_budget(settings)
+    need = sum(n for _, n in budget)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    unlimited = resource.RLIM_INFINITY
+    if hard != unlimited and need > hard:
+        name, n = max(budget[:-1], key=lambda item: item[1])
+        parts = ", ".join(f"{k} {v}" for k, v in budget)
+        raise ConfigError(
+            f"the configured connection maxima need {need} file descriptors ({parts}) but this process "
+            f"may open at most {hard} (RLIMIT_NOFILE hard limit): lower '{name}' (it needs {n}) or raise "
+            "the hard limit (systemd LimitNOFILE=, ulimit -Hn, /etc/security/limits.conf)"
+        )
+    if soft != unlimited and soft < need:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (need, hard))
+        log.info("file descriptor limit raised from %d to %d for the connection maxima", soft, need)
+    return need
 
 
 def apply_log_settings(args: argparse.Namespace, settings: Any) -> None:
@@ -211,6 +255,12 @@ class ServerThread:
         self.thread.join(timeout_s)
 
 
+def _app_http_limits(app: Any) -> dict[str, Any]:
+    """:func:`http_limits` of the app's settings (an app from :func:`service.app.create_app`)."""
+    inputs = getattr(getattr(app, "state", None), "inputs", None)
+    return http_limits(inputs.settings) if inputs is not None else {}
+
+
 @contextlib.contextmanager
 def serve_in_thread(
     app: Any, host: str = "127.0.0.1", port: int = 0, *, ssl_options: dict[str, Any] | None = None
@@ -238,6 +288,7 @@ def serve_in_thread(
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
         loop=UVICORN_LOOP,
         **(ssl_options or {}),
+        **_app_http_limits(app),
     )
     server = _Server(config, app)
     failure: list[BaseException] = []

@@ -182,7 +182,8 @@ BODY_LIMIT_MAX_BYTES = 1024 * 1024
 """No per-type limit may exceed 1 MiB: its CRC (crcmod's C code, ~290 MB/s) stays under ~4 ms."""
 MAX_CLIENTS = 32
 """Navigation workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and
-bounds the descriptors the listener can hold (i32a sums the listeners' maxima against RLIMIT_NOFILE)."""
+bounds the descriptors the listener can hold (:func:`service.settings.descriptor_budget` sums the
+listeners' maxima against RLIMIT_NOFILE)."""
 STALL_TIMEOUT_S = 5.0
 """A started message must be complete within this (58 + at most 64 KiB on loopback or a LAN takes
 milliseconds; 5 s forgives a congested link, and frees a slot soon)."""

@@ -1,0 +1,243 @@
+"""``/health`` latency and service memory under the hostile mix of issue 32.
+
+Starts ``python -m service.cli serve`` (a process of its own, the DICOM SCP and the OpenIGTLink
+server on, the mock robot controller in another process), then, over loopback:
+
+1. idle: ``--probes`` sequential ``GET /health`` on fresh connections (median, p95), RSS, descriptors;
+2. the hostile mix: ``--peers`` idle TCP connections to each of the HTTP and OpenIGTLink ports and
+   ``--stalled`` OpenIGTLink peers stalled half-way through an 8 MiB STATUS body; once the service
+   has taken the burst (its descriptor count still for 3 s; the time it took is printed) the same
+   probes, RSS and descriptors, and whether a DICOM association still works (dcmtk ``echoscu``; the
+   issue's failure was every association aborted above 1024 descriptors).
+
+"Before" is the same run against the code before issue 32: ``--checkout DIR`` runs the service
+from another checkout (``git worktree add /tmp/before <commit>``); settings it does not know
+(``api.max_connections``, ``api.first_request_timeout_s``) are left out.  A probe that gets no
+answer within ``--timeout`` counts as a failure, not a latency.  Bounded: a fixed number of
+probes and peers, loopback only.
+
+Run: ``.venv/bin/python -m benchmarks.bench_hostile [--peers 1100] [--stalled 20] [--probes 40]
+[--checkout DIR]``.  The process raises its own ``RLIMIT_NOFILE`` for the peers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import os
+import resource
+import select
+import shutil
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[1]
+TOKEN = "bench-hostile-" + "k" * 24
+IGTL_HEADER = struct.Struct(">H12s20sQQQ")
+STALLED_ANNOUNCED = 8 * 1024 * 1024
+STALLED_SENT = 1024 * 1024
+START_TIMEOUT_S = 120.0
+CONNECT_TIMEOUT_S = 120.0
+"""A connect past a full listen backlog completes on a SYN retry (1, 3, 7 … s later)."""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait(pred: object, what: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():  # type: ignore[operator]
+            return
+        time.sleep(0.05)  # polling a child process's state: nothing to wait on
+    raise TimeoutError(f"{what} not within {timeout_s} s")
+
+
+@contextlib.contextmanager
+def _mock_robot(checkout: Path) -> Iterator[str]:
+    mock = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "mock", "robot", "--link", "simple-message://127.0.0.1:0"],
+        cwd=checkout, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(checkout)},
+    )  # fmt: skip
+    try:
+        assert mock.stdout is not None
+        yield mock.stdout.readline().strip()
+    finally:
+        mock.terminate()
+        mock.wait(30)
+
+
+@contextlib.contextmanager
+def _service(
+    checkout: Path, root: Path, link: str
+) -> Iterator[tuple[subprocess.Popen[bytes], dict[str, int]]]:
+    ports = {"http": _free_port(), "dicom": _free_port(), "igtl": _free_port()}
+    new = "max_connections" in (checkout / "service" / "settings.py").read_text()
+    lines = [
+        f'watch_dir = "{root / "watch"}"', f'data_dir = "{root / "data"}"', f'api_token = "{TOKEN}"',
+        f"port = {ports['http']}", "[robot]", f'link_url = "{link}"',
+        "[dicom]", "enabled = true", f"port = {ports['dicom']}",
+        "[igtl]", "enabled = true", f"port = {ports['igtl']}",
+    ]  # fmt: skip
+    if new:
+        lines += ["[api]", "max_connections = 256", "first_request_timeout_s = 10.0"]
+    cfg = root / "oarmreg.toml"
+    cfg.write_text("\n".join(lines) + "\n")
+    with (root / "serve.log").open("wb") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--config", str(cfg)],
+            cwd=checkout, stdout=log, stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": str(checkout)},
+        )  # fmt: skip
+    try:
+
+        def up() -> bool:
+            if proc.poll() is not None:
+                raise RuntimeError(
+                    f"serve exited {proc.returncode}: {(root / 'serve.log').read_text()[-2000:]}"
+                )
+            with contextlib.suppress(httpx.HTTPError):
+                return httpx.get(f"http://127.0.0.1:{ports['http']}/health", timeout=2.0).status_code == 200
+            return False
+
+        _wait(up, "the service", START_TIMEOUT_S)
+        yield proc, ports
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def _connect_all(port: int, n: int, stack: contextlib.ExitStack) -> list[socket.socket]:
+    socks = []
+    for _ in range(n):
+        s = stack.enter_context(socket.socket())
+        s.setblocking(False)
+        err = s.connect_ex(("127.0.0.1", port))
+        if err not in (0, errno.EINPROGRESS):
+            raise OSError(err, os.strerror(err))
+        socks.append(s)
+    pending = list(socks)
+    deadline = time.monotonic() + CONNECT_TIMEOUT_S
+    while pending and time.monotonic() < deadline:
+        p = select.poll()
+        for s in pending:
+            p.register(s.fileno(), select.POLLOUT)
+        done = {fd for fd, _ in p.poll(1000)}
+        pending = [s for s in pending if s.fileno() not in done]
+    print(f"  {n - len(pending)} of {n} peers connected to port {port}")
+    return socks
+
+
+def _stall(port: int, n: int, stack: contextlib.ExitStack) -> None:
+    head = IGTL_HEADER.pack(1, b"STATUS", b"stall", 0, STALLED_ANNOUNCED, 0)
+    for s in _connect_all(port, n, stack):
+        with contextlib.suppress(BlockingIOError, ConnectionError):
+            s.send(head + b"\0" * STALLED_SENT)
+
+
+def _settle(pid: int, timeout_s: float) -> tuple[float, int]:
+    """Until the service's descriptor count holds still for 3 s (it has accepted the burst or
+    dropped what it drops): (seconds taken, descriptors)."""
+    t0 = time.monotonic()
+    last, since = -1, t0
+    while time.monotonic() - t0 < timeout_s:
+        n = len(os.listdir(f"/proc/{pid}/fd"))
+        if n != last:
+            last, since = n, time.monotonic()
+        elif time.monotonic() - since >= 3.0:
+            break
+        time.sleep(0.2)  # sampling a count: nothing to wait on
+    return time.monotonic() - t0, last
+
+
+def _probes(url: str, n: int, timeout_s: float) -> tuple[list[float], int]:
+    """``n`` ``GET /health`` on fresh connections: latencies of the 200s (s), failures."""
+    lat, failed = [], 0
+    for _ in range(n):
+        t0 = time.perf_counter()
+        try:
+            ok = httpx.get(url + "/health", timeout=timeout_s).status_code == 200
+        except httpx.HTTPError:
+            ok = False
+        if ok:
+            lat.append(time.perf_counter() - t0)
+        else:
+            failed += 1
+    return lat, failed
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _echo(port: int) -> str:
+    echoscu = shutil.which("echoscu")
+    if echoscu is None:
+        return "echoscu not installed"
+    r = subprocess.run([echoscu, "-aec", "OARMREG", "127.0.0.1", str(port)], capture_output=True, timeout=60)
+    return "ok" if r.returncode == 0 else f"FAILED ({r.stderr.decode(errors='replace').strip()[-80:]})"
+
+
+def _row(label: str, pid: int, url: str, a: argparse.Namespace) -> str:
+    lat, failed = _probes(url, a.probes, a.timeout)
+    med = f"{statistics.median(lat) * 1e3:7.1f}" if lat else "      -"
+    p95 = f"{sorted(lat)[int(0.95 * (len(lat) - 1))] * 1e3:7.1f}" if lat else "      -"
+    fds = len(os.listdir(f"/proc/{pid}/fd"))
+    return f"{label:<8} | {med} | {p95} | {failed:>3}/{a.probes:<3} | {_rss_mb(pid):6.0f} | {fds:>5}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    p.add_argument("--peers", type=int, default=1100, help="idle peers on each of HTTP and OpenIGTLink")
+    p.add_argument("--igtl-peers", type=int, default=None, help="idle OpenIGTLink peers (default: --peers)")
+    p.add_argument("--stalled", type=int, default=20, help="OpenIGTLink peers stalled mid-body")
+    p.add_argument("--probes", type=int, default=40, help="GET /health per phase")
+    p.add_argument("--timeout", type=float, default=10.0, help="a probe with no answer by then failed, s")
+    p.add_argument("--checkout", type=Path, default=REPO, help="run the service from this checkout")
+    a = p.parse_args(argv)
+    igtl_peers = a.peers if a.igtl_peers is None else a.igtl_peers
+    need = a.peers + igtl_peers + a.stalled + 256
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < need:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (min(need, hard), hard))
+    checkout = a.checkout.resolve()
+    with (
+        tempfile.TemporaryDirectory(prefix="oarmreg-hostile-") as tmp,
+        _mock_robot(checkout) as link,
+        _service(checkout, Path(tmp), link) as (proc, ports),
+    ):
+        url = f"http://127.0.0.1:{ports['http']}"
+        print(
+            f"service from {checkout}: {a.peers} idle peers on HTTP, {igtl_peers} on OpenIGTLink, "
+            f"{a.stalled} stalled OpenIGTLink bodies; /health probes time out after {a.timeout:g} s"
+        )
+        print("phase    | med ms  | p95 ms  | failed  | RSS MB | fds   ")
+        print(_row("idle", proc.pid, url, a) + f" | DICOM echo {_echo(ports['dicom'])}")
+        with contextlib.ExitStack() as stack:
+            _connect_all(ports["http"], a.peers, stack)
+            _connect_all(ports["igtl"], igtl_peers, stack)
+            _stall(ports["igtl"], a.stalled, stack)
+            settle_s, fds = _settle(proc.pid, 120.0)
+            print(f"  the service settled in {settle_s:.1f} s at {fds} descriptors")
+            print(_row("hostile", proc.pid, url, a) + f" | DICOM echo {_echo(ports['dicom'])}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
