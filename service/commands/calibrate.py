@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import output_file
+from service.commands.argtypes import output_dir, output_file
 from service.commands.detect import add_method_argument
 
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
@@ -38,7 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run_p = sub.add_parser("run", help="calibrate from the scans listed in POSES.json")
     run_p.add_argument("poses", type=Path, metavar="POSES.json")
     run_p.add_argument(
-        "--out", type=Path, required=True, metavar="CALDIR", help="folder for robot.urdf + calibration.json"
+        "--out",
+        type=output_dir,
+        required=True,
+        metavar="CALDIR",
+        help="folder for robot.urdf, calibration.json",
     )
     run_p.add_argument(
         "--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)"
@@ -128,6 +132,11 @@ def _config_error(msg: str) -> Exception:
 
 N_JOINTS = 6
 """Joints of the Stäubli TX60 / TX2-60 (both URDFs): one angle each per pose."""
+
+
+def _is_number(value: object) -> bool:
+    """A JSON number (``true``/``false`` and strings are not angles)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
@@ -361,8 +370,11 @@ def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any
 
     obj = _load_json(args.joints)
     joints = obj.get("joints_rad") if isinstance(obj, dict) else None
-    if not isinstance(joints, list):
-        raise _config_error(f'{args.joints}: expected {{"joints_rad": [6 numbers]}}')
+    if not isinstance(joints, list) or not all(_is_number(v) for v in joints):
+        raise _config_error(
+            f'{args.joints}: expected {{"joints_rad": [6 numbers]}} (radians, J1…J6), got '
+            f"{joints!r}; fix the file (every angle a JSON number)"
+        )
     if args.calibration is not None:
         model, rod, doc = load_calibration(args.calibration)
         provenance["calibration"] = {

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import positive_float, positive_int
+from service.commands.argtypes import UsageError, output_dir, output_file, positive_float, positive_int
 
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
 
@@ -21,7 +21,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, ORIENTATIONS, PRESET_NAMES
 
     default_pose = ",".join(f"{v:g}" for v in DEMO_POSE_XYZ_RPY)
-    parser.add_argument("--out", required=True, type=Path, help="output folder for the series and truth.json")
+    parser.add_argument(
+        "--out",
+        required=True,
+        type=output_dir,
+        help="output folder for the series and truth.json (its parent must exist; a non-empty folder is "
+        "refused unless --replace)",
+    )
+    parser.add_argument(
+        "--replace",
+        action="store_true",
+        help="--out holds an earlier simulated series: delete its *.dcm and truth.json first",
+    )
     parser.add_argument(
         "--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)"
     )
@@ -72,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--orientation", choices=sorted(ORIENTATIONS), default="axial")
     parser.add_argument(
         "--png",
-        type=Path,
+        type=output_file,
         default=None,
         help="render the slice cutting most spheres: FILE stem + _bone/_soft/_zoom_bone + _window.png",
     )
@@ -94,6 +105,41 @@ def _overrides(args: argparse.Namespace, base_photons_per_ray: float) -> dict[st
     return overrides
 
 
+SIMULATED_FILES = ("*.dcm", "truth.json")
+"""What ``simulate`` writes into ``--out`` (and ``--replace`` deletes)."""
+
+
+def clear_output_folder(out: Path, *, replace: bool) -> None:
+    """Refuse a non-empty ``out`` (its old slices would mix with the new series) unless ``replace``;
+    with ``replace``, delete an earlier simulated series, and refuse anything else found there.
+
+    Raises
+    ------
+    UsageError
+        ``out`` holds files and ``replace`` is false, or holds files simulate did not write.
+    """
+    if not out.is_dir():
+        return
+    entries = sorted(out.iterdir())
+    if not entries:
+        return
+    if not replace:
+        raise UsageError(
+            f"--out {out} is not empty ({len(entries)} entries, e.g. {entries[0].name}): new slices would "
+            "mix with the old ones; give an empty or new folder, or --replace to delete an earlier "
+            "simulated series there"
+        )
+    ours = {p for pattern in SIMULATED_FILES for p in out.glob(pattern) if p.is_file()}
+    others = [p for p in entries if p not in ours]
+    if others:
+        raise UsageError(
+            f"--replace: {out} holds {len(others)} entries simulate did not write (e.g. {others[0].name}); "
+            "not deleting them: give another folder"
+        )
+    for p in ours:
+        p.unlink()
+
+
 def run(args: argparse.Namespace) -> int:
     from mocks.oarm.cbct import CBCT_PRESET_NAMES, ConeBeamSettings, simulate_cbct
     from mocks.oarm.dicom_export import write_dicom_series
@@ -103,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.dose <= 0:
         raise ConfigError(f"--dose must be > 0, got {args.dose}")
+    clear_output_folder(args.out, replace=args.replace)
     phantom = load_phantom(args.phantom)
     pose = pose_from_string(args.pose)
     extras = SceneExtras(
