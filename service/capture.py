@@ -132,6 +132,7 @@ class Capture:
         which flap under ordinary load); ``down`` is the link's.
         """
         h = self.link.health()
+        counters = self.link.counters()
         latest = self.link.latest()
         now = time.monotonic()
         hist = self.link.history(now - max(self.settings.stillness.window_s * 4, PERIOD_HISTORY_S))
@@ -157,6 +158,7 @@ class Capture:
             "last_frame_age_s": age if latest is not None else None,
             "history_s": float(span),
             "max_receive_gap_s": gap_s,
+            **{k: int(counters.get(k, 0)) for k in ("down_events", "connect_failures")},
         }
 
     def problem(self) -> str | None:

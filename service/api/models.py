@@ -146,6 +146,10 @@ class LinkOut(_Out):
     max_receive_gap_s: float | None = Field(
         None, description="Largest time between two received joint frames over the last 60 s, s."
     )
+    down_events: int = Field(0, description="Times the link went down since the service started.")
+    connect_failures: int = Field(
+        0, description="Reconnect attempts that failed during those outages (each logged at DEBUG only)."
+    )
 
 
 class JointsOut(_Out):
