@@ -85,7 +85,8 @@ def _add_logging_options(parser: argparse.ArgumentParser, suffix: str) -> None:
     from service.logsetup import LEVELS, LOG_FORMATS
 
     parser.add_argument("-v", "--verbose", dest="verbose" + suffix, action="count", default=0,
-                        help="more logging (-v info, -vv debug; serve logs at info by default)")  # fmt: skip
+                        help="more logging, one level per -v: warning by default, -v info, -vv debug; "
+                        "serve starts at info, so serve -v is debug")  # fmt: skip
     parser.add_argument("--log-level", dest="log_level" + suffix, type=str.upper, choices=LEVELS,
                         default=None, help="log level (overrides -v and serve's [log] level)")  # fmt: skip
     parser.add_argument("--log-format", dest="log_format" + suffix, choices=LOG_FORMATS, default=None,

@@ -33,6 +33,8 @@ def test_detect_writes_the_documented_json(export, tmp_path: Path, capsys) -> No
     assert main(["detect", str(folder), "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "sphere(s)" in text and f"wrote {out}" in text
+    assert "nan" not in text  # unmeasured radius / slices / score print as "-" (issue 34)
+    assert not [ln for ln in text.splitlines() if ln.rstrip().endswith(" 0  0.00")], text
     doc = json.loads(out.read_text())
     assert doc["frame"] == "image" and doc["series_uid"]
     centres = np.array([s["center_mm"] for s in doc["spheres"]])
