@@ -51,6 +51,7 @@ def _project_deps_pth() -> str:
     return "\n".join(lines) + "\n"
 
 
+@pytest.mark.slow  # builds a wheel: ~85 s on an idle 2-core machine, more when loaded
 @pytest.mark.timeout(600)
 def test_the_install_recipe_gives_a_config_that_passes_its_check(tmp_path: Path) -> None:
     root, src = tmp_path / "root", tmp_path / "src"
