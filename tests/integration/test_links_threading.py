@@ -227,7 +227,9 @@ def test_a_down_link_is_one_warning_then_one_info_when_back(caplog: pytest.LogCa
             await wait_until(lambda: link.counters().get("connect_failures", 0) >= 10, "10 failed reconnects")
             with run_mock_controller("simple-message", ScriptedRobot(Q), port=port or 0):
                 await wait_until(lambda: link.health().state == "connected", "reconnected")
-            return link.counters()
+                counters = link.counters()
+                await link.close()  # before this controller stops: no second outage
+            return counters
         finally:
             await link.close()
 
