@@ -434,7 +434,12 @@ class BaseLink:
             "protocol_errors": 0,
             "connects": 0,
             "disconnects": 0,
+            "connect_failures": 0,
+            "down_events": 0,
         }
+        self._down_logged = False
+        """A WARNING said the link is down (one per outage; an INFO says when it is back)."""
+        self._down_since_t_s: float | None = None
         self._thread: LoopThread | None = None
         self._first_state = asyncio.Event()  # set on the link's loop
         self._stop = asyncio.Event()  # set on the link's loop by close()
@@ -623,7 +628,12 @@ class BaseLink:
             self._down_reason = ""
             self._counters["connects"] += 1
             self._sessions.append(LinkSession(self._counters["connects"], time.monotonic(), None))
-        log.info("robot link %s: connected", self.url)
+            was_down, since = self._down_logged, self._down_since_t_s
+            self._down_logged, self._down_since_t_s = False, None
+        if was_down and since is not None:
+            log.info("robot link %s: connected again after %.1f s down", self.url, time.monotonic() - since)
+        else:
+            log.info("robot link %s: connected", self.url)
 
     def _count(self, key: str, n: int = 1) -> None:
         with self._lock:
@@ -734,9 +744,28 @@ class BaseLink:
             if self._closing.is_set():
                 break
             delay = self._backoff.next_delay_s()
+            self._log_down(reason)
             log.debug("robot link %s: down (%s); retry in %.3f s", self.url, reason, delay)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), delay)
+
+    def _log_down(self, reason: str) -> None:
+        """One WARNING per outage (the first failed session or connect after being up or starting);
+        the retries that follow count in ``connect_failures`` and log at DEBUG only."""
+        with self._lock:
+            first = not self._down_logged
+            if first:
+                self._down_logged = True
+                self._down_since_t_s = time.monotonic()
+                self._counters["down_events"] += 1
+            else:
+                self._counters["connect_failures"] += 1
+        if first:
+            log.warning(
+                "robot link %s: down (%s); reconnecting in the background with back-off up to %.3g s, "
+                "logging again when it is back (GET /status counts the failed attempts)",
+                self.url, reason, self._backoff.max_s,
+            )  # fmt: skip
 
     async def _one_session(self) -> str:
         """Run one :meth:`_session` and its cleanup; return why it ended."""
@@ -753,7 +782,7 @@ class BaseLink:
             log.error("robot link %s: %s; closing the connection as corrupt", self.url, e)
         except (OSError, EOFError, TimeoutError, RobotLinkError, _Disconnect) as e:
             reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
-            log.info("robot link %s: %s", self.url, reason)
+            log.debug("robot link %s: %s", self.url, reason)  # _run logs one WARNING per outage
         except Exception as e:  # a bug must not kill the reader silently
             reason = f"unexpected {type(e).__name__}: {e}"
             log.exception("robot link %s: unexpected error", self.url)

@@ -132,6 +132,7 @@ class Capture:
         which flap under ordinary load); ``down`` is the link's.
         """
         h = self.link.health()
+        counters = self.link.counters()
         latest = self.link.latest()
         now = time.monotonic()
         hist = self.link.history(now - max(self.settings.stillness.window_s * 4, PERIOD_HISTORY_S))
@@ -161,6 +162,7 @@ class Capture:
             # the controller's last STATUS in_motion (TriState 1 / 0 / −1): true, false, or None (unknown,
             # or no STATUS yet); a TRUE inside a scan's window refuses it as moved
             "in_motion": None if status is None or status.in_motion not in (0, 1) else status.in_motion == 1,
+            **{k: int(counters.get(k, 0)) for k in ("down_events", "connect_failures")},
         }
 
     def problem(self) -> str | None:

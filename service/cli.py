@@ -2,7 +2,10 @@
 
 ``main(argv=None) -> int`` is callable from tests.  Exit codes: see
 :mod:`service.error_map` (0 ok, 2 usage, 3 configuration, 4 input data,
-5 robot link, 6 registration refused, 7 accuracy gate).
+5 robot link, 6 registration refused, 7 accuracy gate, 8 file system) and docs/cli.md.
+Every failure is one line on stderr: the project's typed errors by their family; an ``OSError``
+(a path that cannot be read or written) exit 8; a ``ValueError`` from parsing a file (JSON and
+the like) exit 4.  The traceback of those two is logged at DEBUG (``--log-level DEBUG``).
 """
 
 from __future__ import annotations
@@ -11,11 +14,14 @@ import argparse
 import importlib
 import logging
 import os
+import re
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from registration import __version__
-from service.error_map import FAMILIES, exit_code_of, title_of
+from service.commands.argtypes import UsageError
+from service.error_map import EXIT_FILES, EXIT_INPUT, EXIT_USAGE, FAMILIES, exit_code_of, title_of
 
 log = logging.getLogger(__name__)
 
@@ -37,9 +43,17 @@ COMMANDS: dict[str, str] = {
 }
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argparse parser whose usage error is one line (what was wrong, where the help is), exit 2,
+    as every other failure of the CLI; subcommand parsers inherit the class."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The full parser, or with ``only`` one subcommand (its module alone is imported: start-up time)."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="oarmreg",
         description="O-arm ↔ Stäubli spatial registration (Bai et al. 2018, "
         "doi:10.1088/1742-6596/1016/1/012006)",
@@ -72,7 +86,8 @@ def _add_logging_options(parser: argparse.ArgumentParser, suffix: str) -> None:
     from service.logsetup import LEVELS, LOG_FORMATS
 
     parser.add_argument("-v", "--verbose", dest="verbose" + suffix, action="count", default=0,
-                        help="more logging (-v info, -vv debug; serve logs at info by default)")  # fmt: skip
+                        help="more logging, one level per -v: warning by default, -v info, -vv debug; "
+                        "serve starts at info, so serve -v is debug")  # fmt: skip
     parser.add_argument("--log-level", dest="log_level" + suffix, type=str.upper, choices=LEVELS,
                         default=None, help="log level (overrides -v and serve's [log] level)")  # fmt: skip
     parser.add_argument("--log-format", dest="log_format" + suffix, choices=LOG_FORMATS, default=None,
@@ -97,8 +112,34 @@ def _requested_command(argv: Sequence[str]) -> str | None:
     return word if word in COMMANDS else None
 
 
+_NEGATIVE_LIST_RE = re.compile(r"^-[0-9.][0-9.eE+-]*(,[0-9.eE+-]*)+$")
+"""A comma-separated list of numbers starting with a negative one (``-12.3,4,5``)."""
+
+
+def join_negative_lists(argv: Sequence[str]) -> list[str]:
+    """``--pose -12.3,4,...`` → ``--pose=-12.3,4,...``.
+
+    argparse takes a word starting with ``-`` for an option unless it looks like one negative
+    number, so a comma-separated list starting with a negative value ("expected one argument")
+    needs joining to its long option.  Such a word can never be an option itself.
+    """
+    out: list[str] = []
+    for word in argv:
+        prev = out[-1] if out else ""
+        if _NEGATIVE_LIST_RE.match(word) and prev.startswith("--") and "=" not in prev and prev != "--":
+            out[-1] = f"{prev}={word}"
+        else:
+            out.append(word)
+    return out
+
+
+def _one_line(command: str, title: str, e: BaseException | str, code: int) -> int:
+    print(f"oarmreg {command}: {title}: {e}", file=sys.stderr)  # noqa: T201
+    return code
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = join_negative_lists(sys.argv[1:] if argv is None else argv)
     parser = build_parser(only=_requested_command(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
@@ -112,13 +153,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args._run(args))
     except FAMILIES as e:
-        print(f"oarmreg {args.command}: {title_of(e)}: {e}", file=sys.stderr)  # noqa: T201
-        return exit_code_of(e)
+        return _one_line(args.command, title_of(e), e, exit_code_of(e))
+    except UsageError as e:
+        return _one_line(args.command, "Usage error", e, EXIT_USAGE)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as e:  # a path no command checked: one line, not a traceback
+        log.debug("file system error", exc_info=True)
+        where = f" ({e.filename})" if e.filename and str(e.filename) not in str(e) else ""
+        return _one_line(
+            args.command,
+            "File system error",
+            f"{e}{where}; check the path exists, is writable by this user and the disk has room",
+            EXIT_FILES,
+        )
+    except ValueError as e:  # a value in a file the command parsed (JSON, numbers): input data
+        log.debug("invalid value", exc_info=True)
+        return _one_line(
+            args.command, "Invalid input", f"{e}; fix the value in the input and run again", EXIT_INPUT
+        )
 
 
 if __name__ == "__main__":

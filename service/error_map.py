@@ -17,6 +17,8 @@ Exit codes (documented in the README):
 6   registration refused (ambiguous, mirrored, too few spheres,
     degenerate, robot moved)
 7   accuracy gate failed (FRE / verification over threshold)
+8   file system (CLI only: a path cannot be read or written --
+    missing, no permission, disk full, read-only)
 ==  ==========================================================
 """
 
@@ -52,6 +54,8 @@ EXIT_INPUT = 4
 EXIT_ROBOT_LINK = 5
 EXIT_REFUSED = 6
 EXIT_ACCURACY = 7
+EXIT_FILES = 8
+"""CLI only (:func:`service.cli.main`): an ``OSError`` no command turned into a typed error."""
 
 
 @dataclass(frozen=True)

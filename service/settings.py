@@ -741,10 +741,67 @@ def load_settings(config_file: str | Path | None = None, overrides: dict[str, An
             tomllib.loads(path.read_text(encoding="utf-8"))
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    env_problems, env_keys = _unknown_environment()
     token = _toml_file.set(path)
     try:
-        return Settings(**_nest(overrides or {}))
+        settings = Settings(**_nest(overrides or {}))
     except ValidationError as e:
-        raise ConfigError("; ".join(_describe_error(err, path) for err in e.errors())) from None
+        problems = [
+            _describe_error(err, path)
+            for err in e.errors()
+            if not (err.get("type") == "extra_forbidden" and _loc(err) in env_keys)
+        ]
+        raise ConfigError("; ".join(env_problems + problems)) from None
     finally:
         _toml_file.reset(token)
+    if env_problems:
+        raise ConfigError("; ".join(env_problems))
+    return settings
+
+
+NON_SETTING_ENV_VARS = frozenset({"OARMREG_CHROMIUM", "OARMREG_FAULT_KILLS"})
+"""``OARMREG_*`` variables that are not settings: the test suite's own (tests/browser/harness.py,
+tests/faults/test_fault_kill.py)."""
+
+
+def _loc(err: Any) -> str:
+    return ".".join(str(p) for p in err.get("loc", ()) if not isinstance(p, int))
+
+
+def _setting_keys(model: type[BaseModel] = Settings, prefix: str = "") -> set[str]:
+    """Every dotted setting key (``quality.max_fre_mm``) and section (``quality``) of ``model``."""
+    keys: set[str] = set()
+    for name, field in model.model_fields.items():
+        key = prefix + name
+        keys.add(key)
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            keys |= _setting_keys(ann, key + ".")
+    return keys
+
+
+def _unknown_environment(environ: dict[str, str] | None = None) -> tuple[list[str], set[str]]:
+    """Problems with ``OARMREG_*`` environment variables that name no setting (a typo such as
+    ``OARMREG_API_TOKN`` would otherwise leave the token unset without a word), and their dotted
+    keys (so the model's own "unknown setting" for a nested one is not blamed on the TOML file)."""
+    import difflib
+    import os
+
+    env = os.environ if environ is None else environ
+    known = _setting_keys()
+    names = {ENV_PREFIX + k.upper().replace(".", "__"): k for k in known}
+    problems: list[str] = []
+    keys: set[str] = set()
+    for var in sorted(env):
+        upper = var.upper()
+        if not upper.startswith(ENV_PREFIX) or upper in NON_SETTING_ENV_VARS or upper in names:
+            continue
+        keys.add(upper.removeprefix(ENV_PREFIX).lower().replace("__", "."))
+        close = difflib.get_close_matches(upper, names, n=1, cutoff=0.8)
+        hint = f"did you mean {close[0]}? " if close else ""
+        problems.append(
+            f"unknown environment variable {var} (no setting "
+            f"'{upper.removeprefix(ENV_PREFIX).lower().replace('__', '.')}'); {hint}fix its name or unset it "
+            "(settings: configs/oarmreg.toml, OARMREG_ + key in capitals, '__' between section and key)"
+        )
+    return problems, keys

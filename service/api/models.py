@@ -185,6 +185,10 @@ class LinkOut(_Out):
         description="The controller's last STATUS in_motion: true, false, or null (unknown or no STATUS). "
         "TRUE inside a scan's stillness window refuses the scan as moved.",
     )
+    down_events: int = Field(0, description="Times the link went down since the service started.")
+    connect_failures: int = Field(
+        0, description="Reconnect attempts that failed during those outages (each logged at DEBUG only)."
+    )
 
 
 class JointsOut(_Out):

@@ -9,8 +9,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
+
+
+class UsageError(Exception):
+    """A combination of flags the command cannot run with, found in ``run`` (exit 2, one line)."""
 
 
 def _number(text: str, kind: type[float] | type[int]) -> float:
@@ -68,6 +74,9 @@ def output_file(text: str) -> Path:
         raise argparse.ArgumentTypeError(
             f"{text} exists and is not a regular file (a folder?): give a file path"
         )
+    _check_parent(text, path)
+    if path.exists() and not os.access(path, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text} exists and this user cannot overwrite it")
     return path
 
 
@@ -79,3 +88,38 @@ def renamed(new_flag: str, why: str) -> Callable[[str], str]:
 
     parse.__name__ = f"renamed_to_{new_flag}"
     return parse
+
+
+def output_dir(text: str) -> Path:
+    """A folder the command creates or fills: refused when a non-folder is there, or when it is
+    missing and its parent is missing or not writable (nothing is created but the folder named)."""
+    path = Path(text)
+    if path.exists():
+        if not path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text} exists and is not a folder: give a folder path")
+        _probe_writable(text, path)
+        return path
+    _check_parent(text, path)
+    return path
+
+
+def _check_parent(text: str, path: Path) -> None:
+    """The folder ``path`` goes into exists and this user may write there (nothing is created)."""
+    parent = path.parent
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(
+            f"{text}: folder {parent} does not exist; create it first (nothing is created for you)"
+        )
+    _probe_writable(text, parent)
+
+
+def _probe_writable(text: str, folder: Path) -> None:
+    """Create and at once delete a hidden file in ``folder``: permissions alone do not tell (root
+    passes every access check, and /proc or a read-only mount still refuse)."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".oarmreg-write-check-"):
+            pass
+    except OSError as e:
+        raise argparse.ArgumentTypeError(
+            f"{text}: cannot write into folder {folder} ({e.strerror or e}); choose a writable folder"
+        ) from None

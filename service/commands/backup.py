@@ -13,7 +13,14 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("out", type=Path, metavar="OUT", help="new (or empty) folder for the backup")
+    from service.commands.argtypes import output_dir
+
+    parser.add_argument(
+        "out",
+        type=output_dir,
+        metavar="OUT",
+        help="new (or empty) folder for the backup (parent must exist)",
+    )
     add_data_arguments(parser)
 
 

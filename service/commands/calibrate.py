@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import output_file
+from service.commands.argtypes import output_dir, output_file
 from service.commands.detect import add_method_argument
 
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
@@ -38,7 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run_p = sub.add_parser("run", help="calibrate from the scans listed in POSES.json")
     run_p.add_argument("poses", type=Path, metavar="POSES.json")
     run_p.add_argument(
-        "--out", type=Path, required=True, metavar="CALDIR", help="folder for robot.urdf + calibration.json"
+        "--out",
+        type=output_dir,
+        required=True,
+        metavar="CALDIR",
+        help="folder for robot.urdf, calibration.json",
     )
     run_p.add_argument(
         "--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)"
@@ -112,6 +116,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="volume centre in the image frame (default: REG.json's series_geometry; without one, the "
         "phantom centre at the registration, with a warning)",
     )
+    plan_p.add_argument(
+        "--keep-out",
+        action="append",
+        default=[],
+        metavar="NAME:X0,Y0,Z0,X1,Y1,Z1",
+        help="a box in the image frame (LPS mm) the arm must stay out of (gantry housing, table); "
+        "repeatable; the plan names the poses whose joints, tool0 or phantom come within 50 mm",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -128,6 +140,11 @@ def _config_error(msg: str) -> Exception:
 
 N_JOINTS = 6
 """Joints of the Stäubli TX60 / TX2-60 (both URDFs): one angle each per pose."""
+
+
+def _is_number(value: object) -> bool:
+    """A JSON number (``true``/``false`` and strings are not angles)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
@@ -361,8 +378,11 @@ def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any
 
     obj = _load_json(args.joints)
     joints = obj.get("joints_rad") if isinstance(obj, dict) else None
-    if not isinstance(joints, list):
-        raise _config_error(f'{args.joints}: expected {{"joints_rad": [6 numbers]}}')
+    if not isinstance(joints, list) or not all(_is_number(v) for v in joints):
+        raise _config_error(
+            f'{args.joints}: expected {{"joints_rad": [6 numbers]}} (radians, J1…J6), got '
+            f"{joints!r}; fix the file (every angle a JSON number)"
+        )
     if args.calibration is not None:
         model, rod, doc = load_calibration(args.calibration)
         provenance["calibration"] = {
@@ -463,7 +483,9 @@ def run_plan(args: argparse.Namespace) -> int:
         },
         **plan.to_dict(),
     }
+    notes = keep_out_and_travel(args, doc, y, chain, rod, q0, plan.joints_rad)
     write_json(args.json, doc)
+    sys.stdout.write(notes)
     sys.stdout.write(
         f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates in the volume of "
         f"{source}; predicted identification condition number {plan.predicted_condition_number:.1f}, "
@@ -472,3 +494,59 @@ def run_plan(args: argparse.Namespace) -> int:
         + f"written: {args.json}\n"
     )
     return 0
+
+
+def _keep_out_boxes(specs: list[str]) -> list[Any]:
+    from registration.calibration.keepout import KeepOutBox
+
+    boxes: list[Any] = []
+    for spec in specs:
+        name, _, numbers = spec.rpartition(":")
+        try:
+            v = [float(x) for x in numbers.split(",")]
+            if len(v) != 6:
+                raise ValueError("expected 6 numbers")
+            boxes.append(KeepOutBox(name or f"box{len(boxes) + 1}", (v[0], v[1], v[2]), (v[3], v[4], v[5])))
+        except ValueError as e:
+            raise _config_error(
+                f"--keep-out {spec!r}: {e}; give NAME:X0,Y0,Z0,X1,Y1,Z1 (image LPS mm)"
+            ) from None
+    return boxes
+
+
+def keep_out_and_travel(
+    args: argparse.Namespace, doc: dict[str, Any], y: Any, chain: Any, rod: Any, q0: Any, joints: Any
+) -> str:
+    """Add the keep-out report (``--keep-out`` boxes) and a short-travel scan order to the plan's
+    ``doc``; the lines to print (registration/calibration/keepout.py)."""
+    from registration.calibration.keepout import keep_out_report, order_for_short_travel, travel_rad
+
+    lines = []
+    boxes = _keep_out_boxes(list(getattr(args, "keep_out", []) or []))
+    report = keep_out_report(y, chain, rod, joints, boxes)
+    doc["keep_out"] = {
+        "boxes": [{"name": b.name, "min_mm": list(b.min_mm), "max_mm": list(b.max_mm)} for b in boxes],
+        "poses": [
+            {"index": r.index, "clearance_mm": r.clearance_mm, "box": r.box, "point": r.point, "near": r.near}
+            for r in report
+        ],
+    }
+    near = [r for r in report if r.near]
+    if not boxes:
+        lines.append("keep-out: none given (--keep-out NAME:X0,Y0,Z0,X1,Y1,Z1 for the gantry and table)\n")
+    elif near:
+        lines += [
+            f"keep-out: pose {r.index} {r.point} is {r.clearance_mm:.0f} mm from '{r.box}' "
+            f"({'INSIDE' if r.clearance_mm < 0 else 'near'}): check it on the pendant before moving\n"
+            for r in near
+        ]
+    else:
+        lines.append(f"keep-out: every pose stays > 50 mm from {len(boxes)} box(es)\n")
+    order = order_for_short_travel(q0, joints)
+    planned, short = travel_rad(q0, joints, list(range(len(joints)))), travel_rad(q0, joints, order)
+    doc["short_travel_order"] = {"order": order, "travel_rad": short, "planned_order_travel_rad": planned}
+    lines.append(
+        f"scan order for short joint travel: {','.join(map(str, order))} "
+        f"(sum of the largest joint step per move {short:.2f} rad, planned order {planned:.2f} rad)\n"
+    )
+    return "".join(lines)

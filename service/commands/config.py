@@ -79,21 +79,31 @@ def sources(settings: Any, config_file: Path | None, environ: dict[str, str]) ->
 
 
 def validate_resources(settings: Any) -> None:
-    """What ``serve`` checks at start-up besides the settings themselves; ConfigError naming the key."""
+    """What ``serve`` checks at start-up besides the settings themselves: every problem in one
+    ConfigError, each naming its key (not only the first found)."""
+    from drivers.errors import LinkConfigError
     from drivers.factory import open_link
     from registration.errors import ConfigError
     from registration.model.kinematics import RobotModel
     from registration.model.phantom import load_phantom
 
+    problems = []
     try:
         load_phantom(settings.phantom_file)
     except ConfigError as e:
-        raise ConfigError(f"setting 'phantom_file' ({settings.phantom_file}): {e}") from None
+        problems.append(f"setting 'phantom_file' ({settings.phantom_file}): {e}")
     try:
         RobotModel.load(settings.robot.model)
     except ConfigError as e:
-        raise ConfigError(f"setting 'robot.model' ({settings.robot.model!r}): {e}") from None
-    open_link(settings.robot.link_url)  # parses the URL and its options; connects nothing
+        problems.append(f"setting 'robot.model' ({settings.robot.model!r}): {e}")
+    try:
+        open_link(settings.robot.link_url)  # parses the URL and its options; connects nothing
+    except LinkConfigError as e:
+        problems.append(f"setting 'robot.link_url' ({settings.robot.link_url!r}): {e}")
+    if len(problems) == 1:
+        raise ConfigError(problems[0])
+    if problems:
+        raise ConfigError(f"{len(problems)} problems: " + "; ".join(problems))
 
 
 def run(args: argparse.Namespace) -> int:

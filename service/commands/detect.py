@@ -106,6 +106,17 @@ def detection_params_for_phantom(
     return params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm, **overrides)
 
 
+def sphere_fit_columns(radius_mm: float, n_slices: int, score: float) -> tuple[str, str, str]:
+    """The table's radius, slices and score, or ``-`` where the estimator did not measure them
+    (a NaN radius; no circle slices, whose fraction the score is)."""
+    import math
+
+    radius = f"{radius_mm:.3f}" if math.isfinite(radius_mm) else "-"
+    if n_slices <= 0:
+        return radius, "-", "-"
+    return radius, str(n_slices), f"{score:.2f}" if math.isfinite(score) else "-"
+
+
 def run(args: argparse.Namespace) -> int:
     from registration.detection import detect_spheres
     from registration.dicom import load_series
@@ -139,11 +150,16 @@ def run(args: argparse.Namespace) -> int:
         f"{'#':>3}  {'x (L) mm':>10} {'y (P) mm':>10} {'z (S) mm':>10}  "
         f"{'radius mm':>9}  {'slices':>6}  {'score':>5}\n"
     )
+    unknown = False
     for n, s in enumerate(result.spheres):
         x, y, z = (float(v) for v in s.center_image_mm)
+        radius, slices, score = sphere_fit_columns(s.radius_mm, s.n_slices, s.score)
+        unknown |= "-" in (radius.strip(), slices.strip(), score.strip())
+        out.write(f"{n:>3}  {x:>10.3f} {y:>10.3f} {z:>10.3f}  {radius:>9}  {slices:>6}  {score:>5}\n")
+    if unknown:
         out.write(
-            f"{n:>3}  {x:>10.3f} {y:>10.3f} {z:>10.3f}  "
-            f"{s.radius_mm:>9.3f}  {s.n_slices:>6d}  {s.score:>5.2f}\n"
+            f"  (-: not measured by the {result.method} estimator, which fits no circle per slice; "
+            "its centres are the result)\n"
         )
     if result.rejections:
         out.write(f"rejected {len(result.rejections)} candidate(s):\n")

@@ -11,7 +11,14 @@ from pathlib import Path
 from typing import Any
 
 from registration.io.resources import default_phantom
-from service.commands.argtypes import float_below, output_file, positive_float, positive_int, renamed
+from service.commands.argtypes import (
+    UsageError,
+    float_below,
+    output_file,
+    positive_float,
+    positive_int,
+    renamed,
+)
 from service.commands.detect import add_method_argument
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
@@ -113,7 +120,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--sro",
-        type=Path,
+        type=output_file,
         metavar="OUT.dcm",
         help="also write the DICOM Spatial Registration object (needs DICOM_DIR; not written on refusal)",
     )
@@ -125,8 +132,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--data",
         type=Path,
-        default=Path("oarmreg-data"),
-        help="service data folder holding the robot frame UID (default: %(default)s)",
+        default=None,
+        help="service data folder holding the robot frame UID (with --sro, give it or --robot-frame-uid)",
     )
 
 
@@ -254,6 +261,7 @@ def run(args: argparse.Namespace) -> int:
     from registration.model.phantom import load_phantom
     from service.settings import load_settings
 
+    check_sro_arguments(args)
     try:
         timings: dict[str, float] = {}
         provenance: dict[str, Any] = {
@@ -358,6 +366,16 @@ def default_targets(robot_mm: Any, phantom: Any, distance_mm: float) -> tuple[An
     return default_targets_robot_mm(centre, distance_mm), label
 
 
+def check_sro_arguments(args: argparse.Namespace) -> None:
+    """``--sro`` needs the robot frame's UID from somewhere the user named (never a folder made in
+    the working directory behind their back)."""
+    if getattr(args, "sro", None) is not None and args.robot_frame_uid is None and args.data is None:
+        raise UsageError(
+            "--sro needs the robot base frame's Frame of Reference UID: give --data DIR (the service's "
+            "data folder, which holds it) or --robot-frame-uid UID"
+        )
+
+
 def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     """Write the Spatial Registration object of this registration to ``args.sro``.
 
@@ -378,7 +396,7 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
         raise PointsFileError("--sro needs DICOM_DIR: the Spatial Registration object references the scan")
     uid = args.robot_frame_uid
     if uid is None:
-        uid = robot_frame_uid(args.data)
+        uid = robot_frame_uid(args.data)  # check_sro_arguments made sure --data is given
     elif not (_UID_RE.match(uid) and len(uid) <= 64):
         raise RobotFrameUidError(f"--robot-frame-uid {uid!r} is not a DICOM UID (digits, dots, ≤ 64 chars)")
     series_uid = str(doc.get("provenance", {}).get("series_uid", ""))
@@ -397,7 +415,6 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
         chain_error_mm=doc.get("predicted_chain_error_mm"),
         software_version=str(doc.get("provenance", {}).get("software", "")),
     )
-    args.sro.parent.mkdir(parents=True, exist_ok=True)
     ds.save_as(args.sro, enforce_file_format=True)
 
 

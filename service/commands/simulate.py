@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from registration.io.resources import default_phantom
-from service.commands.argtypes import positive_float, positive_int
+from service.commands.argtypes import UsageError, output_dir, output_file, positive_float, positive_int
 
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
 
 DEFAULT_PHANTOM = default_phantom()
+JOINTS = 6
+"""Joints of the TX60 / TX2-60 arms the simulated cell models."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,7 +26,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, ORIENTATIONS, PRESET_NAMES
 
     default_pose = ",".join(f"{v:g}" for v in DEMO_POSE_XYZ_RPY)
-    parser.add_argument("--out", required=True, type=Path, help="output folder for the series and truth.json")
+    parser.add_argument(
+        "--out",
+        required=True,
+        type=output_dir,
+        help="output folder for the series and truth.json (its parent must exist; a non-empty folder is "
+        "refused unless --replace)",
+    )
+    parser.add_argument(
+        "--replace",
+        action="store_true",
+        help="--out holds an earlier simulated series: delete its *.dcm and truth.json first",
+    )
     parser.add_argument(
         "--phantom", type=Path, default=DEFAULT_PHANTOM, help="phantom TOML (default: %(default)s)"
     )
@@ -60,6 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--views", type=positive_int, default=None, help="override the number of views")
     parser.add_argument("--slices", type=positive_int, default=None, help="override the number of slices")
+    parser.add_argument(
+        "--rows", type=positive_int, default=None, help="override the image rows (FOV = rows × pixel)"
+    )
+    parser.add_argument("--columns", type=positive_int, default=None, help="override the image columns")
     parser.add_argument("--vertebra", action="store_true", help="add a bone block (vertebra) beside the cube")
     parser.add_argument("--rod", action="store_true", help="add the steel connecting rod")
     parser.add_argument(
@@ -70,9 +90,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--unsigned", action="store_true", help="unsigned pixels, RescaleIntercept -1024")
     parser.add_argument("--bits-stored", type=int, choices=(12, 16), default=16)
     parser.add_argument("--orientation", choices=sorted(ORIENTATIONS), default="axial")
+    cal = parser.add_argument_group(
+        "robot poses (calibration from the CLI, docs/calibration.md)",
+        "pose the phantom by joint angles through a simulated TRUE cell (mocks/cell.py: joint origins, "
+        "zero offsets, sag and rod off their nominal values, encoder noise) beside a named O-arm "
+        "placement; writes joints.json (the joints the controller would report) beside the scan",
+    )
+    cal.add_argument(
+        "--joints",
+        metavar="J1,...,J6|FILE.json",
+        help='joint angles in radians, as a comma list, a file {"joints_rad": [...]}, or a '
+        "`calibrate plan` output / POSES.json with --pose-index (replaces --pose)",
+    )
+    cal.add_argument(
+        "--pose-index",
+        type=int,
+        default=None,
+        metavar="K",
+        help='with --joints FILE.json holding "poses": take poses[K] (0-based)',
+    )
+    cal.add_argument(
+        "--placement",
+        default=None,
+        metavar="NAME",
+        help="O-arm placement: scans with the same NAME share the hidden image_from_robot and one "
+        "FrameOfReferenceUID (derived from NAME); default 'bench' with --joints, else a new UID per run",
+    )
+    cal.add_argument("--robot", default="tx60", help="nominal robot model of the cell (default: %(default)s)")
+    cal.add_argument(
+        "--cell-seed",
+        type=int,
+        default=None,
+        help="seed of the simulated true cell (default: the demo's, mocks/oarm/placement.py)",
+    )
+    cal.add_argument(
+        "--poses",
+        type=output_file,
+        default=None,
+        metavar="POSES.json",
+        help="with --joints: add this scan (scan_dir relative to the file, reported joints) to a "
+        "`calibrate run` POSES.json, created if missing",
+    )
     parser.add_argument(
         "--png",
-        type=Path,
+        type=output_file,
         default=None,
         help="render the slice cutting most spheres: FILE stem + _bone/_soft/_zoom_bone + _window.png",
     )
@@ -89,9 +150,112 @@ def _overrides(args: argparse.Namespace, base_photons_per_ray: float) -> dict[st
         overrides["n_views"] = args.views
     if args.slices:
         overrides["n_slices"] = args.slices
+    for flag in ("rows", "columns"):
+        if getattr(args, flag, None):
+            overrides[flag] = getattr(args, flag)
     if args.scatter_spr is not None:
         overrides["scatter_spr"] = args.scatter_spr
     return overrides
+
+
+SIMULATED_FILES = ("*.dcm", "truth.json", "joints.json")
+"""What ``simulate`` writes into ``--out`` (and ``--replace`` deletes)."""
+
+
+def clear_output_folder(out: Path, *, replace: bool) -> None:
+    """Refuse a non-empty ``out`` (its old slices would mix with the new series) unless ``replace``;
+    with ``replace``, delete an earlier simulated series, and refuse anything else found there.
+
+    Raises
+    ------
+    UsageError
+        ``out`` holds files and ``replace`` is false, or holds files simulate did not write.
+    """
+    if not out.is_dir():
+        return
+    entries = sorted(out.iterdir())
+    if not entries:
+        return
+    if not replace:
+        raise UsageError(
+            f"--out {out} is not empty ({len(entries)} entries, e.g. {entries[0].name}): new slices would "
+            "mix with the old ones; give an empty or new folder, or --replace to delete an earlier "
+            "simulated series there"
+        )
+    ours = {p for pattern in SIMULATED_FILES for p in out.glob(pattern) if p.is_file()}
+    others = [p for p in entries if p not in ours]
+    if others:
+        raise UsageError(
+            f"--replace: {out} holds {len(others)} entries simulate did not write (e.g. {others[0].name}); "
+            "not deleting them: give another folder"
+        )
+    for p in ours:
+        p.unlink()
+
+
+def joints_from_argument(text: str, pose_index: int | None) -> list[float]:
+    """Six joint angles (rad) from ``--joints``: a comma list, or a JSON file with ``joints_rad``, or
+    with ``pose_index`` a file with ``"poses": [{"joints_rad": ...}, ...]``.
+
+    Raises
+    ------
+    PointsFileError
+        Not six finite numbers, a missing file, or ``pose_index`` out of range.
+    """
+    from registration.errors import PointsFileError
+    from registration.io.points import _load_json
+
+    path = Path(text)
+    if path.suffix.lower() == ".json" or path.is_file():
+        obj = _load_json(path)
+        where = str(path)
+        if pose_index is not None:
+            poses = obj.get("poses") if isinstance(obj, dict) else None
+            if not isinstance(poses, list) or not -len(poses) <= pose_index < len(poses):
+                n = len(poses) if isinstance(poses, list) else 0
+                raise PointsFileError(f"{path}: --pose-index {pose_index} but the file lists {n} poses")
+            obj, where = poses[pose_index], f"{path} poses[{pose_index}]"
+        values = obj.get("joints_rad") if isinstance(obj, dict) else None
+    else:
+        if pose_index is not None:
+            raise PointsFileError("--pose-index needs --joints FILE.json")
+        where = "--joints"
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            values = None
+    if (
+        not isinstance(values, list)
+        or len(values) != JOINTS
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+        or not all(math.isfinite(v) for v in values)
+    ):
+        raise PointsFileError(
+            f"{where}: expected {JOINTS} finite joint angles in radians (J1…J6), "
+            f"got {values if values is not None else text!r}"
+        )
+    return [float(v) for v in values]
+
+
+def write_joints(out: Path, joints_rad: list[float], robot: str, placement: str, poses: Path | None) -> None:
+    """``out/joints.json`` (what `register --joints` reads) and, with ``poses``, its POSES.json entry."""
+    import os
+
+    from registration.io.points import _load_json, write_json
+
+    write_json(out / "joints.json", {"joints_rad": joints_rad, "robot_model": robot, "placement": placement})
+    if poses is None:
+        return
+    doc = _load_json(poses) if poses.is_file() else {"robot_model": robot, "poses": []}
+    entries = doc.get("poses") if isinstance(doc, dict) else None
+    if not isinstance(entries, list):
+        from registration.errors import PointsFileError
+
+        raise PointsFileError(f'{poses}: expected {{"robot_model": ..., "poses": [...]}}; give a new file')
+    scan_dir = os.path.relpath(out.resolve(), poses.resolve().parent)
+    entries = [e for e in entries if not (isinstance(e, dict) and e.get("scan_dir") == scan_dir)]
+    entries.append({"name": out.name, "scan_dir": scan_dir, "joints_rad": joints_rad, "placement": placement})
+    write_json(poses, {**doc, "poses": entries})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -103,8 +267,29 @@ def run(args: argparse.Namespace) -> int:
 
     if args.dose <= 0:
         raise ConfigError(f"--dose must be > 0, got {args.dose}")
+    clear_output_folder(args.out, replace=args.replace)
     phantom = load_phantom(args.phantom)
-    pose = pose_from_string(args.pose)
+    placement = None
+    reported: list[float] | None = None
+    if args.joints is not None:
+        from mocks.oarm.placement import DEFAULT_CELL_SEED, make_placement, reported_joints
+
+        joints = joints_from_argument(args.joints, args.pose_index)
+        placement = make_placement(
+            args.placement or "bench",
+            args.robot,
+            DEFAULT_CELL_SEED if args.cell_seed is None else args.cell_seed,
+        )
+        from registration.model.kinematics import RobotModel
+
+        RobotModel.load(args.robot).check_joints(joints)  # a joint outside its limit: refused here
+        rng = np.random.default_rng(args.seed)
+        pose = placement.image_from_phantom_true(joints, rng)
+        reported = reported_joints(placement, joints, rng)
+    else:
+        if args.poses is not None or args.pose_index is not None:
+            raise UsageError("--poses and --pose-index need --joints")
+        pose = pose_from_string(args.pose)
     extras = SceneExtras(
         vertebra=args.vertebra,
         rod=args.rod,
@@ -138,7 +323,20 @@ def run(args: argparse.Namespace) -> int:
         scan, args.out, reverse_order=args.reverse_order, unsigned=args.unsigned, bits_stored=args.bits_stored
     )
     out = sys.stdout
+    for_uid = res.frame_of_reference_uid
+    if args.placement is not None or placement is not None:
+        from mocks.cell import set_frame_of_reference
+        from mocks.oarm.placement import placement_frame_of_reference_uid
+
+        for_uid = placement_frame_of_reference_uid(args.placement or "bench")
+        set_frame_of_reference(Path(args.out), for_uid)
+    if placement is not None and reported is not None:
+        write_joints(Path(args.out), reported, args.robot, placement.name, args.poses)
+        out.write(f"joints (as the controller reports them): {Path(args.out) / 'joints.json'}\n")
+        if args.poses is not None:
+            out.write(f"added to {args.poses}\n")
     out.write(f"series {res.series_uid}: {len(res.paths)} files in {Path(args.out).resolve()}\n")
+    out.write(f"frame of reference: {for_uid}\n")
     out.write(f"truth: {res.truth_path}\n")
     out.write(
         f"spheres fully imaged: {len(scan.sphere_indices)} of {phantom.n_spheres} "

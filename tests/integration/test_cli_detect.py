@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,8 @@ def test_detect_writes_the_documented_json(export, tmp_path: Path, capsys) -> No
     assert main(["detect", str(folder), "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "sphere(s)" in text and f"wrote {out}" in text
+    assert "nan" not in text  # unmeasured radius / slices / score print as "-" (issue 34)
+    assert not [ln for ln in text.splitlines() if ln.rstrip().endswith(" 0  0.00")], text
     doc = json.loads(out.read_text())
     assert doc["frame"] == "image" and doc["series_uid"]
     centres = np.array([s["center_mm"] for s in doc["spheres"]])
@@ -57,8 +60,11 @@ def test_simulate_cone_beam_preset_then_detect(tmp_path: Path, capsys) -> None: 
     assert main(["simulate", "--out", str(series), "--preset", "cbct-ci", "--seed", "4"]) == 0
     truth = json.loads((series / "truth.json").read_text())
     assert truth["settings"]["preset_name"] == "cbct-ci" and truth["settings"]["n_views"] == 120
-    assert main(["detect", str(series), "--json", str(out)]) == 0
     capsys.readouterr()
+    assert main(["detect", str(series), "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    # issue 34: spheres the estimator fitted no circles to were listed 'nan  0  0.00'; now '-'
+    assert "nan" not in table and not re.search(r"\s0\s+0\.00\s*$", table, re.M), table
     centres = np.array([s["center_mm"] for s in json.loads(out.read_text())["spheres"]])
     expected = np.array(truth["spheres_image_mm"])
     assert len(expected) >= 20

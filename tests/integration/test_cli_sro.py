@@ -39,7 +39,7 @@ def test_register_writes_an_sro_with_the_stored_robot_frame_uid(
     from registration.io.sro import image_from_robot_of
     from service.robot_frame import robot_frame_uid
 
-    data, sro, js = tmp_path / "data", tmp_path / "out" / "reg.dcm", tmp_path / "reg.json"
+    data, sro, js = tmp_path / "data", tmp_path / "reg.dcm", tmp_path / "reg.json"
     argv = [
         "register",
         str(scan_dir),

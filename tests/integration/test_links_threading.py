@@ -210,3 +210,35 @@ def test_never_connected_health_names_the_error_and_checklist() -> None:
         assert h.state == "down" and "firewall" in h.reason
 
     asyncio.run(main())
+
+
+def test_a_down_link_is_one_warning_then_one_info_when_back(caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 34: a controller that is gone was an INFO ConnectionRefusedError every 0.5 s forever.
+    Now: one WARNING when the link goes down, the retries counted (DEBUG only), one INFO when back."""
+    from urllib.parse import urlsplit
+
+    async def main() -> dict[str, int]:
+        with run_mock_controller("simple-message", ScriptedRobot(Q)) as mock:
+            url = mock.url
+            port = urlsplit(url).port
+            link = open_link(url, backoff_initial_s=0.01, backoff_max_s=0.02)
+            await link.connect()
+        try:  # the controller is gone: many refused reconnects
+            await wait_until(lambda: link.counters().get("connect_failures", 0) >= 10, "10 failed reconnects")
+            with run_mock_controller("simple-message", ScriptedRobot(Q), port=port or 0):
+                await wait_until(lambda: link.health().state == "connected", "reconnected")
+                counters = link.counters()
+                await link.close()  # before this controller stops: no second outage
+            return counters
+        finally:
+            await link.close()
+
+    with caplog.at_level(logging.DEBUG, logger="drivers.base"):
+        counters = asyncio.run(main())
+    ours = [r for r in caplog.records if r.name == "drivers.base"]
+    warnings = [r.getMessage() for r in ours if r.levelno == logging.WARNING]
+    infos = [r.getMessage() for r in ours if r.levelno == logging.INFO]
+    assert len(warnings) == 1 and "down" in warnings[0], warnings
+    assert not [m for m in infos if "Refused" in m or "refused" in m], infos
+    assert sum("connected again" in m for m in infos) == 1, infos
+    assert counters["down_events"] == 1 and counters["connect_failures"] >= 10

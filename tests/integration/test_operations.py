@@ -275,3 +275,15 @@ def test_the_systemd_unit_verifies(tmp_path: Path) -> None:
     r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert "ignoring" not in r.stderr and "Unknown" not in r.stderr, r.stderr
+
+
+def test_config_check_names_every_problem_at_once(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], root_logging: None
+) -> None:
+    """Issue 34: a missing phantom stopped the check before the robot model and link were looked at."""
+    clean_env.setenv("OARMREG_ROBOT__MODEL", str(tmp_path / "missing.urdf"))
+    clean_env.setenv("OARMREG_PHANTOM_FILE", str(tmp_path / "missing_phantom.toml"))
+    clean_env.setenv("OARMREG_ROBOT__LINK_URL", "simple-message://127.0.0.1:11002?no_such_option=1")
+    rc, _, err = _cli(["config", "check", "--config", str(SHIPPED)], capsys)
+    assert rc == 3 and "3 problems" in err
+    assert all(k in err for k in ("'phantom_file'", "'robot.model'", "'robot.link_url'")), err

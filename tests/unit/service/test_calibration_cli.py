@@ -131,3 +131,25 @@ def test_calibrate_run_refuses_a_bad_poses_file_before_reading_scans(
     err = capsys.readouterr().err
     assert "Invalid poses file" in err and words in err and "No CT series" not in err
     assert not (tmp_path / "cal").exists()
+
+
+def test_plan_names_poses_in_a_keep_out_box_and_a_short_travel_order(
+    tmp_path: Path, phantom: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 34: the plan said nothing of the gantry or table; a box around the start pose's phantom
+    (the table, say) must be reported, and a scan order no longer in joint travel is proposed."""
+    model = RobotModel.load("tx60")
+    reg, y = _registration(tmp_path, model)
+    c = (y @ model.robot_from_tool0(START_JOINTS_RAD) @ default_tool0_from_phantom())[:3, 3]
+    box = ",".join(f"{v:.1f}" for v in [*(c - 400), *(c + 400)])
+    out = tmp_path / "plan.json"
+    argv = ["calibrate", "plan", "--registration", str(reg), "--json", str(out), "--keep-out", f"table:{box}"]
+    assert main(argv) == EXIT_OK
+    text = capsys.readouterr().out
+    plan = json.loads(out.read_text())
+    assert plan["keep_out"]["boxes"][0]["name"] == "table"
+    assert all(p["near"] for p in plan["keep_out"]["poses"]) and "INSIDE" in text
+    travel = plan["short_travel_order"]
+    assert sorted(travel["order"]) == list(range(len(plan["poses"])))
+    assert travel["travel_rad"] <= travel["planned_order_travel_rad"]
+    assert main([*argv[:-2], "--keep-out", "bad:1,2,3"]) == EXIT_INPUT

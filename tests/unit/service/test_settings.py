@@ -41,8 +41,11 @@ def test_defaults_are_valid_and_loopback() -> None:
 
 
 def test_shipped_config_loads_and_resolves_paths_against_its_folder() -> None:
+    from registration.io.resources import default_phantom
+
     s = load_settings(REPO / "configs" / "oarmreg.toml")
-    assert s.phantom_file == REPO / "configs" / "phantoms" / "bai2018_cube.toml"
+    # no phantom_file in the shipped TOML: the packaged cube, wherever the TOML is copied (issue 34)
+    assert s.phantom_file == default_phantom()
     assert s.phantom_file.is_file()
     assert s.watch_dir == REPO / "oarm-export"
 
@@ -167,3 +170,25 @@ def test_no_settings_at_import_time() -> None:
 )
 def test_is_loopback(host: str, loop: bool) -> None:
     assert is_loopback(host) is loop
+
+
+def test_an_unknown_environment_variable_is_named_as_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 34: OARMREG_API_TOKN was ignored without a word (auth silently off); a nested typo
+    was blamed on the TOML file."""
+    monkeypatch.setenv("OARMREG_API_TOKN", TOKEN)
+    with pytest.raises(
+        ConfigError, match=r"environment variable OARMREG_API_TOKN .*did you mean OARMREG_API_TOKEN"
+    ):
+        load_settings()
+    monkeypatch.delenv("OARMREG_API_TOKN")
+    monkeypatch.setenv("OARMREG_QUALITY__MAX_FRE", "0.4")
+    cfg = write(tmp_path, "port = 9001\n")
+    with pytest.raises(ConfigError) as e:
+        load_settings(cfg)
+    assert "environment variable OARMREG_QUALITY__MAX_FRE" in str(e.value)
+    assert str(cfg) not in str(e.value) and "OARMREG_QUALITY__MAX_FRE_MM" in str(e.value)
+    monkeypatch.setenv("OARMREG_CHROMIUM", "/usr/bin/chromium")  # the test suite's own: not a setting
+    monkeypatch.delenv("OARMREG_QUALITY__MAX_FRE")
+    assert load_settings(cfg).port == 9001

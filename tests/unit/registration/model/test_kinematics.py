@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +13,8 @@ from registration.errors import ConfigError, KinematicsError, OarmRegError
 from registration.model.frames import transform_from_xyz_rpy
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 
-REFERENCE = Path(
-    os.environ.get("OARMREG_REFERENCE_DIR")
-    or Path(__file__).resolve().parents[4].parent / "shared" / "reference" / "robots"
-)
-"""The steering repo's shared/ sits beside the project checkout (locally and in CI);
-``OARMREG_REFERENCE_DIR`` points elsewhere (a worktree, for instance)."""
+REFERENCE = Path(__file__).resolve().parents[3] / "data" / "reference_robots"
+"""Reference values carried into the repository; origin: tests/data/reference_robots/README.md."""
 FK_JSON = REFERENCE / "fk_reference.json"
 MODELS = [("tx60", "staubli_tx60"), ("tx2_60", "staubli_tx2_60")]
 JSON_POSITION_ROUNDING_MM = 0.0005 + 1e-9
@@ -30,12 +25,8 @@ FK_TOL_MM = 1e-6
 
 
 def _reference(path: Path) -> Path:
-    """``path`` if it exists; else skip, or fail under CI (where shared/ is always laid out)."""
-    if not path.is_file():
-        message = f"shared reference file {path} not found (set OARMREG_REFERENCE_DIR?)"
-        if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
+    """``path``, which the checkout carries: a missing file is a failure, never a skip."""
+    assert path.is_file(), f"reference file {path} missing from the checkout"
     return path
 
 
