@@ -251,6 +251,22 @@ def feasible_poses(
     inside_margin_mm : ndarray, shape (C,)
         Smallest distance of a sphere centre to the volume boundary.
     """
+    q, tilts, inside, _ = _feasible(
+        image_from_robot, chain, tool0_from_phantom, centres_phantom_mm, start_joints_rad, volume, params
+    )
+    return q, tilts, inside
+
+
+def _feasible(
+    image_from_robot: ArrayLike,
+    chain: SerialChain,
+    tool0_from_phantom: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    start_joints_rad: ArrayLike,
+    volume: ScanVolume,
+    params: PlannerParams,
+) -> tuple[F64, F64, F64, str]:
+    """:func:`feasible_poses` and why the other candidates were dropped (for a refusal)."""
     y = as_transform(image_from_robot, "image_from_robot")
     x = as_transform(tool0_from_phantom, "tool0_from_phantom")
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
@@ -263,12 +279,24 @@ def feasible_poses(
     q, err = solve_ik(chain, np.concatenate([targets, targets]), seeds)
     tilts = np.concatenate([tilts, tilts])
     margin = math.radians(params.joint_margin_deg)
-    ok = (err < IK_TOL_MM) & np.all((q >= chain.lower_rad + margin) & (q <= chain.upper_rad - margin), axis=1)
+    reached = err < IK_TOL_MM
+    in_limits = np.all((q >= chain.lower_rad + margin) & (q <= chain.upper_rad - margin), axis=1)
     fk = y @ chain.robot_from_tool0_batch(q) @ x
     inside = volume.inside_margin_mm(np.einsum("cij,nj->cni", fk[:, :3, :3], pts) + fk[:, None, :3, 3])
-    ok &= inside >= params.margin_mm + params.model_error_mm
+    in_volume = inside >= params.margin_mm + params.model_error_mm
+    ok = reached & in_limits & in_volume
+    n_far = int((~reached).sum())
+    n_limit = int((reached & ~in_limits).sum())
+    n_out = int((reached & in_limits & ~in_volume).sum())
+    centre = tuple(round(v, 1) for v in volume.centre_image_mm)
+    why = (
+        f"of {len(q)} candidate solutions (tilts up to {max(params.tilts_deg):g}°, shifts "
+        f"±{params.shift_mm:g} mm about the volume centre {centre} mm), {n_far} are out of the arm's "
+        f"reach, {n_limit} come within {params.joint_margin_deg:g}° of a joint limit and {n_out} put a "
+        f"sphere less than {params.margin_mm + params.model_error_mm:g} mm inside the scan volume"
+    )
     idx = _unique(q, np.flatnonzero(ok))
-    return q[idx], tilts[idx], inside[idx]
+    return q[idx], tilts[idx], inside[idx], why
 
 
 def plan_poses(
@@ -293,12 +321,16 @@ def plan_poses(
     x = as_transform(tool0_from_phantom, "tool0_from_phantom")
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
     q0 = np.asarray(start_joints_rad, dtype=np.float64).reshape(-1)
-    q, tilts, inside = feasible_poses(y, chain, x, pts, q0, volume=volume, params=params)
+    if not (np.all(np.isfinite(y)) and np.all(np.isfinite(q0)) and np.all(np.isfinite(x))):
+        raise PlanningError(
+            "the registration, the start joints or the rod hold a non-finite number: re-register the scan"
+        )
+    q, tilts, inside, why = _feasible(y, chain, x, pts, q0, volume, params)
     if len(q) < params.n_poses:
         raise PlanningError(
-            f"only {len(q)} feasible calibration poses found (need {params.n_poses}): the phantom cannot be "
-            f"kept {params.margin_mm:g} mm inside the scan volume within the joint limits at enough "
-            "orientations; centre the O-arm on the phantom or start from a pose further from the limits"
+            f"only {len(q)} distinct feasible calibration poses found (need {params.n_poses}): {why}. "
+            "Centre the O-arm's volume on the phantom (or the phantom in it), start from a pose further "
+            "from the joint limits, or ask for fewer poses (--n)"
         )
     info = _information(chain, y, x, pts, q, params.parameter_set)
     first = int(np.argmin(np.max(np.abs(q - q0), axis=1)))
