@@ -332,6 +332,15 @@ def summary(d: dict[str, Any]) -> str:
         + (f", worst pose {_fmt(d['predicted_working']['max_mm'])} mm" if d.get("predicted_working") else "")
         + f"; from leave-one-pose-out: {_fmt(d.get('lopo_predicted_rms_mm'))} mm RMS",
     ]
+    if d.get("target_rms_mm") is not None:
+        lines.append(
+            f"planner's target {d['target_rms_mm']:g} mm RMS over the working volume: "
+            + (
+                "met"
+                if d.get("target_met")
+                else "NOT met — add poses (`oarmreg calibrate plan` without --n) and calibrate again"
+            )
+        )
     if d["outlier_poses"]:
         lines.append(f"outlier poses excluded: {', '.join(d['outlier_poses'])}")
     if d["dropped_parameters"]:
