@@ -78,6 +78,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="refuse when the predicted RMS error at the worst pose of the working volume exceeds this "
         "(default 0.5 mm)",
     )
+    run_p.add_argument(
+        "--config", type=Path, default=None, help="service TOML ([calibration] target_rms_mm to compare with)"
+    )
     add_method_argument(run_p)
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
@@ -214,6 +217,7 @@ def calibration_params(
     max_condition: float | None = None,
     estimator: str | None = None,
     max_predicted_error_mm: float | None = None,
+    target_rms_mm: float | None = None,
 ) -> Any:
     """The one mapping from the CLI flags / the service's request fields to ``CalibrationParams``:
     ``oarmreg calibrate run``, ``POST /calibrations`` and ``oarmreg demo --calibrate`` all pass
@@ -227,6 +231,8 @@ def calibration_params(
         extra["estimator"] = estimator
     if max_predicted_error_mm is not None:
         extra["max_predicted_error_mm"] = max_predicted_error_mm
+    if target_rms_mm is not None:
+        extra["target_rms_mm"] = target_rms_mm
     return CalibrationParams(
         parameter_set=parameter_set,  # type: ignore[arg-type]
         max_condition=max_condition,
@@ -251,6 +257,7 @@ def run_calibration(args: argparse.Namespace) -> int:
     from registration.io.points import write_json
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom
     from registration.model.phantom import load_phantom
+    from service.settings import load_settings
 
     robot_name, poses = read_poses_file(args.poses)
     model = RobotModel.load(args.robot or robot_name or "tx60")
@@ -267,6 +274,7 @@ def run_calibration(args: argparse.Namespace) -> int:
         max_condition=args.max_condition,
         estimator=args.estimator,
         max_predicted_error_mm=args.max_predicted_error_mm,
+        target_rms_mm=load_settings(args.config).calibration.target_rms_mm,
     )
     result = calibrate(
         matched,

@@ -306,6 +306,9 @@ def test_the_unmodelled_floor_widens_the_chain_prediction_the_residuals_cannot(
         r = calibrate(poses, nominal, rod, pts, CalibrationParams(leave_one_out=False, **extra))  # type: ignore[arg-type]
         assert r.prediction is not None
         chain_mm[label] = float(np.sqrt(np.mean(r.prediction.chain_rms_mm**2)))
+        doc = r.to_dict()  # the record states the prediction against the planner's target
+        assert doc["target_rms_mm"] == CalibrationParams().target_rms_mm == 0.075
+        assert doc["target_met"] == (r.prediction.rms_mm <= 0.075)
     assert chain_mm["repeatability"] > 1.05 * chain_mm["bare"], chain_mm
     # the floor the prediction adds (0.04 mm) is in the sandwich too: 0.04 / 0.0096 ≈ 4 × the shared part
     assert chain_mm["defaults"] > 1.5 * chain_mm["repeatability"], chain_mm
