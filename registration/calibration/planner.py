@@ -1,7 +1,9 @@
 """Plan the poses of a calibration session from one registration.
 
 Given ``image_from_robot`` of the current O-arm placement, the arm, the rod and
-the phantom, propose K joint configurations that
+the phantom, propose joint configurations — as many as the calibration needs to meet a target
+error over the working volume (``PlannerParams.target_rms_mm``, predicted exactly as the
+calibration will predict it), or a forced count — that
 
 * keep every sphere centre at least ``margin_mm`` inside the scan volume
   (a cylinder: the FOV disk × the axial coverage),
@@ -15,10 +17,11 @@ the phantom, propose K joint configurations that
 and report the condition number of the identification Jacobian the chosen
 set is predicted to give (:mod:`registration.calibration.solver`, same parameter set
 and normalisation).  Candidates are solved by damped Newton IK from the
-registration's joints and their wrist-flipped twin; the set is chosen greedily
-for the largest log-determinant of the normalised information matrix
-(D-optimal design), then poses are swapped while that lowers the condition
-number.  Collisions of the
+registration's joints and their wrist-flipped twin (damped least squares on the quaternion log
+map, :mod:`registration.calibration.sampling`); the set is chosen greedily for the largest
+log-determinant of the normalised information matrix (D-optimal design), the count is the
+shortest prefix of that order meeting the target, then (≤ 15 poses) poses are swapped while that
+lowers the condition number without raising the predicted error.  Collisions of the
 arm with the O-arm gantry are not modelled: check the plan before running it.
 """
 
@@ -188,18 +191,6 @@ def _candidate_targets(image_from_phantom_0: F64, volume: ScanVolume, p: Planner
                 out.append(make_transform(r0 @ r_tilt @ r_yaw, centre + shifts[len(out) % len(shifts)]))
                 tilts.append(tilt)
     return np.stack(out), np.array(tilts)
-
-
-def _information(chain: SerialChain, y: F64, x: F64, pts: F64, q: F64, parameter_set: str) -> F64:
-    """(C, P, P) information matrices JᵀJ of each candidate pose."""
-    params = minimal_parameter_set(chain, parameter_set)
-    model = _Model(y, x, chain, params)
-    n_pts = len(pts)
-    data = _Data(
-        q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n_pts, 3)), np.repeat(np.arange(len(q)), n_pts)
-    )
-    jac = _jacobian(model, data, np.zeros(len(params))).reshape(len(q), n_pts * 3, len(params))
-    return np.asarray(np.einsum("cij,cik->cjk", jac, jac), dtype=np.float64)
 
 
 def condition_number(information: F64) -> float:
