@@ -624,6 +624,126 @@ def band(
     return 0
 
 
+WORKFLOW_COUNTS: tuple[int | None, ...] = (None, 10, 15, 20, 30)
+"""Pose counts of ``--workflow``: the planner's own (None) and forced ones (issue #33)."""
+
+
+def workflow(
+    seeds: tuple[int, ...], scales: tuple[float, ...], starts: tuple[int, ...], draws: int, fle_rms_mm: float
+) -> int:
+    """Issue #33's test bed: the planner's own plans at its default count and at forced counts, from
+    registrations at several poses, on cells with sag; per case ``draws`` sessions
+    (:func:`benchmarks.calib_testbed.redraw_session`) calibrated with the defaults.  Per case: the
+    issue's floor (true model + oracle registration), the true model with its own registration, the
+    plain least-squares peer (first session), the defaults' held-out mean / max (first session),
+    the planner's and the calibration's predicted RMS, and, over the sessions, how often
+    predicted / measured RMS is in 0.67–1.5 for the product and for the ideal predictor (the RMS of
+    the measured RMS over the sessions) and how often the product is optimistic (< 0.67).
+    Forced counts are run from the first start only."""
+    from benchmarks import calib_testbed as tb
+    from benchmarks.common import print_table
+
+    prm = CalibrationParams(leave_one_out=False)
+    rows: list[list[Any]] = []
+    ideal_in: list[float] = []
+    prod_in: list[float] = []
+    prod_low: list[float] = []
+    prod_high: list[float] = []
+    default_vs_floor: list[tuple[float, bool]] = []
+    vs_peer: list[float] = []
+    t0 = time.perf_counter()
+    for seed in seeds:
+        for scale in scales:
+            for start in starts:
+                for n in WORKFLOW_COUNTS if start == starts[0] else (None,):
+                    bed = tb.build(tb.Case(seed, scale, "planned", n, start))
+                    plan = bed.info["plan"]
+                    oracle = tb.floor_errors(bed)
+                    true_model = tb.score(bed, tb.true_model_predictor(bed))
+                    rng = np.random.default_rng(seed * 100_003 + int(scale * 10) * 101 + start * 7 + (n or 0))
+                    meas, pred = [], []
+                    first: F64 | None = None
+                    peer: F64 | None = None
+                    for d in range(draws):
+                        b = tb.redraw_session(bed, rng, fle_rms_mm)
+                        r = tb.run_calibrate(b, prm)
+                        e = tb.score(b, tb.result_predictor(r))
+                        if d == 0:
+                            first, peer = e, tb.score(b, tb.peer_fit(b))
+                        meas.append(math.sqrt(float(np.mean(e**2))))
+                        pred.append(r.predicted_held_out_rms_mm)
+                    assert first is not None and peer is not None
+                    m, p = np.array(meas), np.array(pred)
+                    ideal = math.sqrt(float(np.mean(m**2)))
+                    ideal_in.append(float(np.mean((ideal / m >= 1 / 1.5) & (ideal / m <= 1.5))))
+                    prod_in.append(float(np.mean((p / m >= 1 / 1.5) & (p / m <= 1.5))))
+                    prod_low.append(float(np.mean(p / m < 1 / 1.5)))
+                    prod_high.append(float(np.mean(p / m > 2.0)))
+                    if n is None:
+                        within = float(oracle.mean()) <= prm.max_predicted_error_mm
+                        default_vs_floor.append((float(first.mean()) / float(oracle.mean()), within))
+                        vs_peer.append(float(first.mean()) / float(peer.mean()))
+                    rows.append(
+                        [
+                            bed.case.label,
+                            f"{len(bed.cal_joints_rad)} ({plan.count_reason})",
+                            _mm(oracle),
+                            _mm(true_model),
+                            _mm(peer),
+                            _mm(first),
+                            f"{plan.predicted_rms_mm:.3f}",
+                            f"{float(np.median(p)):.3f}",
+                            f"{float(np.median(m)):.3f}",
+                            f"{float(np.min(p / m)):.2f}–{float(np.max(p / m)):.2f}",
+                        ]
+                    )
+                    sys.stderr.write(f"{bed.case.label}: done ({time.perf_counter() - t0:.0f} s)\n")
+    print_table(
+        f"Workflow test bed (issue #33): planned poses (planner's count and forced), seeds {seeds} × "
+        f"error scales {scales}, from scans {tuple(s + 1 for s in starts)}, {tb.N_HELD_OUT} held-out poses "
+        f"≥ {tb.MIN_HELD_OUT_SEPARATION_DEG:g}° away, {draws} sessions per case; held-out mean / max (mm)",
+        [
+            "case",
+            "poses (why)",
+            "issue's floor: true model + oracle registration",
+            "true model, own registration",
+            "peer: plain LSQ (48)",
+            "defaults",
+            "planner predicted RMS",
+            "calibration predicted RMS (median)",
+            "measured RMS (median)",
+            "predicted / measured (min–max)",
+        ],
+        rows,
+    )
+    share_ideal = statistics.mean(ideal_in)
+    inside = [v for v, w in default_vs_floor if w]
+    print_table(
+        "Summary (issue #33 Done-when in brackets)",
+        ["figure", "value"],
+        [
+            (
+                "planner's default count: held-out mean ≤ 1.5 × issue's floor, of sets whose floor is within "
+                "the limit [≥ 90 %]",
+                f"{sum(v <= 1.5 for v in inside)} of {len(inside)}",
+            ),
+            (
+                "planner's default count: defaults mean / peer mean, max over sets [≤ 1.05]",
+                f"{max(vs_peer):.3f} (mean {statistics.mean(vs_peer):.3f})",
+            ),
+            ("ideal predictor in band (0.67–1.5), mean share", f"{share_ideal:.3f}"),
+            (
+                "product in band, mean share [≥ 0.95 × ideal's]",
+                f"{statistics.mean(prod_in):.3f} ({statistics.mean(prod_in) / share_ideal:.2f} × ideal)",
+            ),
+            ("product optimistic (< 0.67), share [≤ 5 %]", f"{statistics.mean(prod_low):.3f}"),
+            ("product above 2.0, share", f"{statistics.mean(prod_high):.3f}"),
+            ("total time (s)", f"{time.perf_counter() - t0:.0f}"),
+        ],
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from benchmarks.common import median_time_s, print_table
 
@@ -668,6 +788,17 @@ def main(argv: list[str] | None = None) -> int:
         "--zip-scales", action="store_true", help="seed i at scale i instead of every seed × every scale"
     )
     ap.add_argument("--fle", type=float, default=0.07, help="detection noise (mm 3-D RMS) of --band")
+    ap.add_argument(
+        "--workflow",
+        type=int,
+        metavar="DRAWS",
+        help="issue #33's test bed: the planner's own count and forced counts, DRAWS sessions per case",
+    )
+    ap.add_argument(
+        "--starts",
+        default="0,2",
+        help="--workflow: the planner starts from these scans (0: the first scan, i: the i-th planned pose)",
+    )
     args = ap.parse_args(argv)
     seeds: tuple[int, ...] = TUNING_SEEDS if args.tuning else FINAL_SEEDS
     scales: tuple[float, ...] = TUNING_SCALES if args.tuning else FINAL_SCALES
@@ -675,6 +806,9 @@ def main(argv: list[str] | None = None) -> int:
         seeds = tuple(int(v) for v in args.seeds.split(","))
     if args.scales:
         scales = tuple(float(v) for v in args.scales.split(","))
+    if args.workflow:
+        starts = tuple(int(v) for v in args.starts.split(","))
+        return workflow(seeds, scales, starts, args.workflow, args.fle)
     if args.band:
         return band(seeds, scales, args.poses, args.band, args.fle, args.zip_scales, args.band_redraw)
     if not args.solve_only and not args.dicom_session:

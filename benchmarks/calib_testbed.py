@@ -109,11 +109,18 @@ class Case:
     seed: int
     scale: float
     pose_set: str  # "random" | "planned"
-    n_poses: int = 10
+    n_poses: int | None = 10
+    """Pose count; None for ``planned``: the planner's own count (its target), 10 for ``random``."""
+    start: int = 0
+    """Which registration the planner starts from: 0 the first scan at :data:`START_JOINTS_RAD`,
+    i ≥ 1 a scan at the i-th pose of the planner's plan from that first scan (issue #33: the planner
+    must plan from any scan)."""
 
     @property
     def label(self) -> str:
-        return f"seed {self.seed} ×{self.scale:g} {self.pose_set}"
+        n = "default" if self.n_poses is None else str(self.n_poses)
+        start = f" from scan {self.start + 1}" if self.start else ""
+        return f"seed {self.seed} ×{self.scale:g} {self.pose_set} {n}{start}"
 
 
 @dataclass(eq=False)
@@ -254,9 +261,16 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
     first = _detect(rng, frames.apply(cell.image_from_phantom_true(y, q0, rng), pts))
     q0_rep = cell.reported_joints(q0, rng)
     y_reg0 = fit_rigid(frames.apply(model.robot_from_tool0(q0_rep) @ rod, pts), first)
+    plan = None
     if case.pose_set == "planned":
+        q_start, y_start = q0_rep, y_reg0
+        if case.start:
+            q_s = plan_poses(y_reg0, chain, rod, pts, q0_rep, volume=SCAN_VOLUME).joints_rad[case.start - 1]
+            det = _detect(rng, frames.apply(cell.image_from_phantom_true(y, q_s, rng), pts))
+            q_start = cell.reported_joints(q_s, rng)
+            y_start = fit_rigid(frames.apply(model.robot_from_tool0(q_start) @ rod, pts), det)
         plan = plan_poses(
-            y_reg0, chain, rod, pts, q0_rep, volume=SCAN_VOLUME, params=PlannerParams(n_poses=case.n_poses)
+            y_start, chain, rod, pts, q_start, volume=SCAN_VOLUME, params=PlannerParams(n_poses=case.n_poses)
         )
         cal_q = plan.joints_rad
     else:
@@ -268,7 +282,7 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
             pts,
             q0_rep,
             SCAN_VOLUME,
-            n=case.n_poses,
+            n=case.n_poses or 10,
             max_tilt_deg=60.0,
             margin_mm=5.0,
         )
@@ -323,6 +337,7 @@ def build(case: Case, *, render_cache: Path | None = None) -> Bed:
             "cal_truth_mm": cal_truth,
             "reg_truth_mm": reg_truth,
             "reg_joints_rad": reg_q[0],
+            "plan": plan,
         },
     )
 

@@ -94,11 +94,16 @@ class CalibrationRequest:
     max_condition: float | None = None
     """Optional extra refusal on the identification condition number (``--max-condition``)."""
 
-    def params(self) -> CalibrationParams:
+    def params(self, target_rms_mm: float | None = None) -> CalibrationParams:
+        """``target_rms_mm``: the planner's target the result is compared with
+        (``calibration.target_rms_mm``)."""
         from service.commands.calibrate import calibration_params
 
         p: CalibrationParams = calibration_params(
-            parameter_set=self.parameter_set, drop_weak=self.drop_weak, max_condition=self.max_condition
+            parameter_set=self.parameter_set,
+            drop_weak=self.drop_weak,
+            max_condition=self.max_condition,
+            target_rms_mm=target_rms_mm,
         )
         return p
 
@@ -200,7 +205,9 @@ class CalibrationJobs:
             cal_id = self.db.calibrations.insert(draft)
             self._stop.clear()
             self._thread = threading.Thread(
-                target=self._work, args=(cal_id, scans, req.params()), name=f"calibration-{cal_id}"
+                target=self._work,
+                args=(cal_id, scans, req.params(self.settings.calibration.target_rms_mm)),
+                name=f"calibration-{cal_id}",
             )
             self._thread.start()
         self.publish(CalibrationStarted(calibration_id=cal_id, scan_ids=draft.scan_ids))
@@ -234,7 +241,10 @@ class CalibrationJobs:
             created_at=utc_now(),
             status=status,
             scan_ids=tuple(s.id for s in scans),
-            params={**dataclasses.asdict(req.params()), "request": _request_json(req)},
+            params={
+                **dataclasses.asdict(req.params(self.settings.calibration.target_rms_mm)),
+                "request": _request_json(req),
+            },
             config_hash=self.orchestrator.config_hash,
             software_version=__version__,
             frame_of_reference_uid=fors[0] if len(fors) == 1 else "",

@@ -1,7 +1,9 @@
 """Plan the poses of a calibration session from one registration.
 
 Given ``image_from_robot`` of the current O-arm placement, the arm, the rod and
-the phantom, propose K joint configurations that
+the phantom, propose joint configurations — as many as the calibration needs to meet a target
+error over the working volume (``PlannerParams.target_rms_mm``, predicted exactly as the
+calibration will predict it), or a forced count — that
 
 * keep every sphere centre at least ``margin_mm`` inside the scan volume
   (a cylinder: the FOV disk × the axial coverage),
@@ -15,10 +17,11 @@ the phantom, propose K joint configurations that
 and report the condition number of the identification Jacobian the chosen
 set is predicted to give (:mod:`registration.calibration.solver`, same parameter set
 and normalisation).  Candidates are solved by damped Newton IK from the
-registration's joints and their wrist-flipped twin; the set is chosen greedily
-for the largest log-determinant of the normalised information matrix
-(D-optimal design), then poses are swapped while that lowers the condition
-number.  Collisions of the
+registration's joints and their wrist-flipped twin (damped least squares on the quaternion log
+map, :mod:`registration.calibration.sampling`); the set is chosen greedily for the largest
+log-determinant of the normalised information matrix (D-optimal design), the count is the
+shortest prefix of that order meeting the target, then (≤ 15 poses) poses are swapped while that
+lowers the condition number without raising the predicted error.  Collisions of the
 arm with the O-arm gantry are not modelled: check the plan before running it.
 """
 
@@ -26,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -46,6 +49,7 @@ from registration.calibration.sampling import (
     sample_poses_in_volume,
     solve_ik,
 )
+from registration.calibration.targets import MAX_PLANNED_POSES, TARGET_RMS_MM
 from registration.calibration.urdf import SerialChain, rotation_about
 from registration.errors import RegistrationError
 from registration.model.frames import as_transform, invert, make_transform
@@ -58,6 +62,7 @@ __all__ = [
     "PosePlan",
     "ScanVolume",
     "plan_poses",
+    "predict_plan",
     "predicted_centres_image_mm",
     "sample_poses_in_volume",
     "solve_ik",
@@ -70,9 +75,20 @@ class PlanningError(RegistrationError):
     title = "Cannot plan calibration poses"
 
 
+DEFAULT_TARGET_RMS_MM: Final = TARGET_RMS_MM
+DEFAULT_MAX_POSES: Final = MAX_PLANNED_POSES
+MIN_PLANNED_POSES: Final = 10
+"""Fewest poses the planner proposes on its own: below this the prediction rests on too few
+poses to see the unmodelled error (docs/calibration.md); ``n_poses`` may force down to 6."""
+
+
 @dataclass(frozen=True)
 class PlannerParams:
-    n_poses: int = 10
+    n_poses: int | None = None
+    """Forced pose count (``--n``); None: the fewest (≥ :data:`MIN_PLANNED_POSES`) whose predicted RMS
+    over the working volume meets ``target_rms_mm``, at most ``max_poses``."""
+    target_rms_mm: float = DEFAULT_TARGET_RMS_MM
+    max_poses: int = DEFAULT_MAX_POSES
     margin_mm: float = 5.0
     """Every sphere ≥ 5 mm inside the scan volume and FOV (a sphere cut by the FOV edge is refused)."""
     model_error_mm: float = 2.0
@@ -115,11 +131,27 @@ class PosePlan:
     poses (posterior with the priors, FLE ``PlannerParams.fle_rms_mm``)."""
     advice: str = ""
     """Empty when ``predicted_error_mm`` is within the limit; else what the plan would need."""
+    predicted_rms_mm: float = float("nan")
+    """Predicted RMS error over the working volume (what held-out poses measure), mm."""
+    target_rms_mm: float = float("nan")
+    count_reason: str = ""
+    """Why this many poses: ``"target"`` (the fewest meeting ``target_rms_mm``), ``"max_poses"``
+    (the target not met within the maximum), ``"candidates"`` (not met, fewer feasible poses than
+    the maximum) or ``"forced"`` (``n_poses`` given)."""
+
+    @property
+    def target_met(self) -> bool:
+        return bool(self.predicted_rms_mm <= self.target_rms_mm)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "predicted_condition_number": self.predicted_condition_number,
             "predicted_error_mm": self.predicted_error_mm,
+            "predicted_rms_mm": self.predicted_rms_mm,
+            "target_rms_mm": self.target_rms_mm,
+            "target_met": self.target_met,
+            "n_poses": len(self.joints_rad),
+            "count_reason": self.count_reason,
             "advice": self.advice,
             "n_candidates": self.n_candidates,
             "poses": [
@@ -159,18 +191,6 @@ def _candidate_targets(image_from_phantom_0: F64, volume: ScanVolume, p: Planner
                 out.append(make_transform(r0 @ r_tilt @ r_yaw, centre + shifts[len(out) % len(shifts)]))
                 tilts.append(tilt)
     return np.stack(out), np.array(tilts)
-
-
-def _information(chain: SerialChain, y: F64, x: F64, pts: F64, q: F64, parameter_set: str) -> F64:
-    """(C, P, P) information matrices JᵀJ of each candidate pose."""
-    params = minimal_parameter_set(chain, parameter_set)
-    model = _Model(y, x, chain, params)
-    n_pts = len(pts)
-    data = _Data(
-        q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n_pts, 3)), np.repeat(np.arange(len(q)), n_pts)
-    )
-    jac = _jacobian(model, data, np.zeros(len(params))).reshape(len(q), n_pts * 3, len(params))
-    return np.asarray(np.einsum("cij,cik->cjk", jac, jac), dtype=np.float64)
 
 
 def condition_number(information: F64) -> float:
@@ -251,6 +271,22 @@ def feasible_poses(
     inside_margin_mm : ndarray, shape (C,)
         Smallest distance of a sphere centre to the volume boundary.
     """
+    q, tilts, inside, _ = _feasible(
+        image_from_robot, chain, tool0_from_phantom, centres_phantom_mm, start_joints_rad, volume, params
+    )
+    return q, tilts, inside
+
+
+def _feasible(
+    image_from_robot: ArrayLike,
+    chain: SerialChain,
+    tool0_from_phantom: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    start_joints_rad: ArrayLike,
+    volume: ScanVolume,
+    params: PlannerParams,
+) -> tuple[F64, F64, F64, str]:
+    """:func:`feasible_poses` and why the other candidates were dropped (for a refusal)."""
     y = as_transform(image_from_robot, "image_from_robot")
     x = as_transform(tool0_from_phantom, "tool0_from_phantom")
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
@@ -263,12 +299,113 @@ def feasible_poses(
     q, err = solve_ik(chain, np.concatenate([targets, targets]), seeds)
     tilts = np.concatenate([tilts, tilts])
     margin = math.radians(params.joint_margin_deg)
-    ok = (err < IK_TOL_MM) & np.all((q >= chain.lower_rad + margin) & (q <= chain.upper_rad - margin), axis=1)
+    reached = err < IK_TOL_MM
+    in_limits = np.all((q >= chain.lower_rad + margin) & (q <= chain.upper_rad - margin), axis=1)
     fk = y @ chain.robot_from_tool0_batch(q) @ x
     inside = volume.inside_margin_mm(np.einsum("cij,nj->cni", fk[:, :3, :3], pts) + fk[:, None, :3, 3])
-    ok &= inside >= params.margin_mm + params.model_error_mm
+    in_volume = inside >= params.margin_mm + params.model_error_mm
+    ok = reached & in_limits & in_volume
+    n_far = int((~reached).sum())
+    n_limit = int((reached & ~in_limits).sum())
+    n_out = int((reached & in_limits & ~in_volume).sum())
+    centre = tuple(round(v, 1) for v in volume.centre_image_mm)
+    why = (
+        f"of {len(q)} candidate solutions (tilts up to {max(params.tilts_deg):g}°, shifts "
+        f"±{params.shift_mm:g} mm about the volume centre {centre} mm), {n_far} are out of the arm's "
+        f"reach, {n_limit} come within {params.joint_margin_deg:g}° of a joint limit and {n_out} put a "
+        f"sphere less than {params.margin_mm + params.model_error_mm:g} mm inside the scan volume"
+    )
     idx = _unique(q, np.flatnonzero(ok))
-    return q[idx], tilts[idx], inside[idx]
+    return q[idx], tilts[idx], inside[idx], why
+
+
+@dataclass(frozen=True, eq=False)
+class _PlanPredictor:
+    """The calibration's own prediction (:mod:`registration.calibration.prediction`) for a pose set
+    before it is scanned: the same parameters, prior weight (:class:`CalibrationParams` defaults: no
+    prior for ``"ls"``), sandwich for the per-pose unmodelled error (``unmodelled_floor_mm``, which
+    the fit absorbs at its own poses) and additive terms, on noise-free planning data with the
+    detection error ``fle_rms_mm``, over the working volume's poses sampled once."""
+
+    jeff: F64  # (W, 3N, P) effective Jacobians at the working poses
+    prior: F64
+    s2: float
+    unmodelled_mm: float
+    registration_tre_mm: float
+
+    @classmethod
+    def build(
+        cls, model: _Model, pts: F64, q_reg: F64, volume: ScanVolume, params: PlannerParams
+    ) -> _PlanPredictor:
+        from registration.calibration.prediction import (
+            LS_PRIOR_WEIGHT,
+            WORKING_POSES,
+            WORKING_SEED,
+            _effective_jacobians,
+        )
+        from registration.calibration.records import PRIORS, CalibrationParams
+        from registration.calibration.solver import _registration_tre_rms_mm
+
+        cp = CalibrationParams()
+        y, x, chain = model.unpack(np.zeros(len(model.params)))
+        wq = sample_poses_in_volume(
+            y,
+            chain,
+            x,
+            pts,
+            q_reg,
+            volume.grown(cp.working_margin_mm),
+            np.random.default_rng(WORKING_SEED),
+            n=WORKING_POSES,
+            max_tilt_deg=75.0,
+            margin_mm=0.0,
+            n_candidates=300,
+        )
+        if not len(wq):
+            wq = q_reg[None]
+        prior = 1.0 / np.array([PRIORS.sigma_posterior(p) for p in model.params]) ** 2
+        if cp.estimator == "ls":
+            prior = prior * LS_PRIOR_WEIGHT
+        return cls(
+            _effective_jacobians(model, np.zeros(len(model.params)), wq, q_reg, pts),
+            prior,
+            params.fle_rms_mm**2 / 3.0,
+            max(cp.unmodelled_floor_mm, cp.repeatability_rms_mm),
+            _registration_tre_rms_mm(params.fle_rms_mm, pts),
+        )
+
+    def predict(self, info: F64, shared_info: F64) -> tuple[float, float]:
+        """(RMS over the working poses, worst pose's RMS) mm, from Σ JᵢᵀJᵢ and Σ SᵢᵀSᵢ of a set."""
+        from registration.calibration.prediction import sandwich_from_sums
+
+        cov = sandwich_from_sums(info, shared_info, self.s2, self.prior, self.unmodelled_mm)
+        n = self.jeff.shape[1] // 3
+        chain_ms = np.einsum("wip,pq,wiq->w", self.jeff, cov, self.jeff) / n
+        chain_ms = np.where(chain_ms < 0.0, np.inf, chain_ms)
+        per = np.sqrt(chain_ms + 2.0 * self.unmodelled_mm**2 + self.registration_tre_mm**2)
+        return float(np.sqrt(np.mean(per**2))), float(per.max())
+
+
+def _pose_jacobians(model: _Model, pts: F64, q: F64) -> F64:
+    """(C, 3N, P) sphere Jacobians of each pose at the nominal parameters."""
+    n = len(pts)
+    data = _Data(q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n))
+    jac = _jacobian(model, data, np.zeros(len(model.params)))
+    return np.asarray(jac.reshape(len(q), 3 * n, len(model.params)), dtype=np.float64)
+
+
+def _set_sums(jac: F64) -> tuple[F64, F64]:
+    """Per pose (C, P, P): JᵢᵀJᵢ and SᵢᵀSᵢ, Sᵢ the (3, P) sum of its sphere Jacobians."""
+    s = jac.reshape(len(jac), -1, 3, jac.shape[2]).sum(axis=1)
+    return np.einsum("cij,cik->cjk", jac, jac), np.einsum("cip,ciq->cpq", s, s)
+
+
+def _refuse_too_few(n_feasible: int, need: int, why: str) -> PlanningError:
+    return PlanningError(
+        f"only {n_feasible} distinct feasible calibration poses found (need {need}): {why}. "
+        "Centre the O-arm's volume on the phantom (or the phantom in it), start from a pose further "
+        "from the joint limits, or ask for fewer poses (--n)"
+    )
 
 
 def plan_poses(
@@ -281,110 +418,139 @@ def plan_poses(
     volume: ScanVolume = ScanVolume(),
     params: PlannerParams = PlannerParams(),
 ) -> PosePlan:
-    """Propose ``params.n_poses`` calibration poses (see the module docstring).
+    """Propose calibration poses (see the module docstring): ``params.n_poses`` of them, or without
+    it the fewest (from :data:`MIN_PLANNED_POSES`, in the D-optimal greedy order) whose predicted RMS
+    over the working volume meets ``params.target_rms_mm``, at most ``params.max_poses``.
 
     Raises
     ------
     PlanningError
-        Fewer feasible candidates than poses requested (the phantom cannot be placed in the
-        volume at enough orientations from here: move the O-arm or the arm's start pose).
+        Fewer feasible candidates than the poses needed (the phantom cannot be placed in the
+        volume at enough orientations from here: the message counts why and says what to change).
     """
     y = as_transform(image_from_robot, "image_from_robot")
     x = as_transform(tool0_from_phantom, "tool0_from_phantom")
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
     q0 = np.asarray(start_joints_rad, dtype=np.float64).reshape(-1)
-    q, tilts, inside = feasible_poses(y, chain, x, pts, q0, volume=volume, params=params)
-    if len(q) < params.n_poses:
+    if not (np.all(np.isfinite(y)) and np.all(np.isfinite(q0)) and np.all(np.isfinite(x))):
         raise PlanningError(
-            f"only {len(q)} feasible calibration poses found (need {params.n_poses}): the phantom cannot be "
-            f"kept {params.margin_mm:g} mm inside the scan volume within the joint limits at enough "
-            "orientations; centre the O-arm on the phantom or start from a pose further from the limits"
+            "the registration, the start joints or the rod hold a non-finite number: re-register the scan"
         )
-    info = _information(chain, y, x, pts, q, params.parameter_set)
+    q, tilts, inside, why = _feasible(y, chain, x, pts, q0, volume, params)
+    forced = params.n_poses is not None
+    least = int(params.n_poses) if params.n_poses is not None else MIN_PLANNED_POSES
+    if len(q) < least:
+        raise _refuse_too_few(len(q), least, why)
+    model = _Model(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
+    jac = _pose_jacobians(model, pts, q)
+    info, shared = _set_sums(jac)
+    predictor = _PlanPredictor.build(model, pts, q0, volume, params)
     first = int(np.argmin(np.max(np.abs(q - q0), axis=1)))
-    sel = np.array(_swap_for_condition(info, _greedy_d_optimal(info, params.n_poses, first)))
+    most = least if forced else min(params.max_poses, len(q))
+    order = _greedy_d_optimal(info, max(most, least), first)
+    k, reason = least, "forced"
+    if not forced:
+        reason = "candidates" if len(q) < params.max_poses else "max_poses"
+        k = most
+        for kk in range(least, most + 1):
+            sel_k = order[:kk]
+            if predictor.predict(info[sel_k].sum(0), shared[sel_k].sum(0))[0] <= params.target_rms_mm:
+                k, reason = kk, "target"
+                break
+    chosen = order[:k]
+    if k <= SWAP_MAX_POSES:
+        swapped = _swap_for_condition(info, list(chosen))
+        if (
+            predictor.predict(info[swapped].sum(0), shared[swapped].sum(0))[0]
+            <= predictor.predict(info[chosen].sum(0), shared[chosen].sum(0))[0]
+        ):
+            chosen = swapped
+    sel = np.array(chosen)
     cond = condition_number(info[sel].sum(axis=0))
     ordered, steps = _order_short_moves(q[sel], q0)
-    order = [int(np.flatnonzero(np.all(q[sel] == row, axis=1))[0]) for row in ordered]
-    pred = predicted_plan_error_mm(y, chain, x, pts, q[sel], volume, params)
-    advice = ""
-    if pred > params.max_predicted_error_mm:
-        more = (
-            q[np.argsort(-np.einsum("cii->c", info))[: 2 * params.n_poses]]
-            if len(q) > params.n_poses
-            else q[sel]
-        )
-        pred_more = predicted_plan_error_mm(y, chain, x, pts, more, volume, params)
-        advice = (
-            f"the {params.n_poses} poses are predicted to leave {pred:.2f} mm at the worst pose of the "
-            f"working volume (> {params.max_predicted_error_mm:g} mm); "
-            + (
-                f"{len(more)} poses would give {pred_more:.2f} mm — plan with --n {len(more)}"
-                if pred_more <= params.max_predicted_error_mm
-                else f"even {len(more)} poses give {pred_more:.2f} mm: allow a wider tilt (tilts_deg up to "
-                f"{max(params.tilts_deg):g}° now) or calibrate from a second O-arm placement"
+    move = [int(np.flatnonzero(np.all(q[sel] == row, axis=1))[0]) for row in ordered]
+    rms, worst = predictor.predict(info[sel].sum(0), shared[sel].sum(0))
+    advice = _plan_advice(k, reason, rms, worst, params, len(q))
+    return PosePlan(
+        ordered,
+        cond,
+        tilts[sel][move],
+        inside[sel][move],
+        steps,
+        len(q),
+        worst,
+        advice,
+        rms,
+        params.target_rms_mm,
+        reason,
+    )
+
+
+SWAP_MAX_POSES: Final = 15
+"""Above this many poses the condition-number swaps are skipped (their cost grows as K × candidates
+and the greedy D-optimal set is already well conditioned there)."""
+
+
+def _plan_advice(
+    k: int, reason: str, rms: float, worst: float, params: PlannerParams, n_feasible: int
+) -> str:
+    parts = []
+    if rms > params.target_rms_mm:
+        if reason == "forced":
+            parts.append(
+                f"the {k} poses are predicted to leave {rms:.3f} mm RMS over the working volume, above the "
+                f"target {params.target_rms_mm:g} mm: plan without --n to let the planner choose the count"
             )
+        else:
+            limit = (
+                f"the maximum of {params.max_poses} poses"
+                if reason == "max_poses"
+                else f"all {n_feasible} feasible poses"
+            )
+            parts.append(
+                f"the target {params.target_rms_mm:g} mm RMS over the working volume is not met with {limit} "
+                f"(predicted {rms:.3f} mm): calibrate from a second O-arm placement, allow wider tilts, or "
+                "raise calibration.max_poses"
+            )
+    if worst > params.max_predicted_error_mm:
+        parts.append(
+            f"the worst pose of the working volume is predicted at {worst:.2f} mm, above the calibration's "
+            f"refusal limit {params.max_predicted_error_mm:g} mm: the calibration would be refused"
         )
-    return PosePlan(ordered, cond, tilts[sel][order], inside[sel][order], steps, len(q), pred, advice)
+    return "; ".join(parts)
+
+
+def predict_plan(
+    image_from_robot: ArrayLike,
+    chain: SerialChain,
+    tool0_from_phantom: ArrayLike,
+    centres_phantom_mm: ArrayLike,
+    joints_rad: ArrayLike,
+    *,
+    volume: ScanVolume = ScanVolume(),
+    params: PlannerParams = PlannerParams(),
+    registration_joints_rad: ArrayLike | None = None,
+) -> tuple[float, float]:
+    """(RMS over the working volume, worst pose) mm predicted for calibrating from ``joints_rad``
+    (K, n) — a plan made earlier, by another planner or by hand — exactly as :func:`plan_poses`
+    predicts its own."""
+    y = as_transform(image_from_robot, "image_from_robot")
+    x = as_transform(tool0_from_phantom, "tool0_from_phantom")
+    pts = np.asarray(centres_phantom_mm, dtype=np.float64)
+    q = np.asarray(joints_rad, dtype=np.float64).reshape(-1, chain.n_joints)
+    q_reg = q[0] if registration_joints_rad is None else np.asarray(registration_joints_rad, dtype=np.float64)
+    model = _Model(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
+    info, shared = _set_sums(_pose_jacobians(model, pts, q))
+    return _PlanPredictor.build(model, pts, q_reg.reshape(-1), volume, params).predict(
+        info.sum(0), shared.sum(0)
+    )
 
 
 def predicted_plan_error_mm(
     y: F64, chain: SerialChain, x: F64, pts: F64, joints_rad: F64, volume: ScanVolume, params: PlannerParams
 ) -> float:
-    """Worst-pose predicted error over the working volume of a calibration from ``joints_rad``:
-    the calibration's posterior (its priors; data noise FLE/√3 per component) propagated as
-    :func:`registration.calibration.solver.predict_working_error` does, on noise-free planning data."""
-    from registration.calibration.prediction import (
-        WORKING_POSES,
-        WORKING_SEED,
-        predict_working_error,
-    )
-    from registration.calibration.records import (
-        PRIORS,
-        CalibrationParams,
-    )
-
-    cp = CalibrationParams()
-    model = _Model(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
-    n = len(pts)
-    k = len(joints_rad)
-    data = _Data(joints_rad, np.tile(pts, (k, 1)), np.zeros((k * n, 3)), np.repeat(np.arange(k), n))
-    jac = _jacobian(model, data, np.zeros(len(model.params)))
-    s2 = params.fle_rms_mm**2 / 3.0
-    sig = np.array([PRIORS.sigma_posterior(p) for p in model.params])
-    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(1.0 / sig**2)
-    d = np.sqrt(np.diag(a))
-    cov = np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d)
-    rng = np.random.default_rng(WORKING_SEED)
-    work = volume.grown(cp.working_margin_mm)
-    wq = sample_poses_in_volume(
-        y,
-        chain,
-        x,
-        pts,
-        joints_rad[0],
-        work,
-        rng,
-        n=WORKING_POSES,
-        max_tilt_deg=75.0,
-        margin_mm=0.0,
-        n_candidates=300,
-    )
-    if not len(wq):
-        wq = joints_rad
-    from registration.calibration.solver import _registration_tre_rms_mm
-
-    pred = predict_working_error(
-        model,
-        np.zeros(len(model.params)),
-        cov,
-        wq,
-        joints_rad[0],
-        pts,
-        unmodelled_rms_mm=cp.unmodelled_floor_mm,
-        registration_tre_rms_mm=_registration_tre_rms_mm(params.fle_rms_mm, pts),
-    )
-    return pred.max_mm
+    """Worst-pose predicted error over the working volume of a calibration from ``joints_rad``."""
+    return predict_plan(y, chain, x, pts, joints_rad, volume=volume, params=params)[1]
 
 
 def _unique(q: F64, idx: NDArray[np.intp]) -> NDArray[np.intp]:

@@ -81,13 +81,28 @@ def _posterior_cov(
     prior = 1.0 / sig**2
     if params.estimator == "ls":
         prior = prior * LS_PRIOR_WEIGHT
-    a = np.einsum("ij,ik->jk", jac, jac) / s2 + np.diag(prior)
+    return sandwich_covariance(jac, data.pose_of, s2, prior, pose_shared_rms_mm)
+
+
+def sandwich_covariance(
+    jac: F64, pose_of: NDArray[np.int64], s2: float, prior: F64, pose_shared_rms_mm: float
+) -> F64:
+    """H⁻¹ (H + E) H⁻¹, H = JᵀJ / s2 + diag(prior), E = (u² / 3) Σ_poses SᵢᵀSᵢ / s2²
+    (:func:`_posterior_cov`; the planner calls it on its noise-free planning Jacobian)."""
+    per_pose = jac.reshape(-1, 3, jac.shape[1])
+    sums = np.stack([per_pose[pose_of == i].sum(axis=0) for i in np.unique(pose_of)])
+    return sandwich_from_sums(
+        np.einsum("ij,ik->jk", jac, jac), np.einsum("kip,kiq->pq", sums, sums), s2, prior, pose_shared_rms_mm
+    )
+
+
+def sandwich_from_sums(info: F64, shared_info: F64, s2: float, prior: F64, pose_shared_rms_mm: float) -> F64:
+    """:func:`sandwich_covariance` from JᵀJ (``info``) and Σ SᵢᵀSᵢ (``shared_info``)."""
+    a = info / s2 + np.diag(prior)
     d = np.sqrt(np.diag(a))
     h_inv = np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d)
     if pose_shared_rms_mm > 0.0:
-        per_pose = jac.reshape(-1, 3, len(values))
-        sums = np.stack([per_pose[data.pose_of == i].sum(axis=0) for i in np.unique(data.pose_of)])
-        e = (pose_shared_rms_mm**2 / 3.0) * np.einsum("kip,kiq->pq", sums, sums) / s2**2
+        e = (pose_shared_rms_mm**2 / 3.0) * shared_info / s2**2
         h_inv = h_inv + h_inv @ e @ h_inv
     return np.asarray((h_inv + h_inv.T) / 2.0, dtype=np.float64)
 

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import __version__
+from registration.calibration.targets import TARGET_RMS_MM
 from registration.calibration.urdf import SerialChain
 from registration.errors import RegistrationError
 
@@ -179,6 +180,9 @@ class CalibrationParams:
     this (mm).  0.5 mm: research/calibration.md §6 suggested gate on predicted TRE, half the
     ≈ 1 mm the nominal model gives (docs/calibration.md)."""
     min_poses: int = MIN_POSES
+    target_rms_mm: float = TARGET_RMS_MM
+    """The planner's target (``calibration.target_rms_mm``): the result says whether its predicted
+    RMS over the working volume meets it (it is not a refusal; ``max_predicted_error_mm`` is)."""
     robust_scale_mm: float = 0.2
     """soft-L1 loss scale: residuals ≫ this (a wrong match, ≥ 1 mm) weigh linearly, not squared;
     true-cell residuals after calibration are ≈ 0.05 mm."""
@@ -274,6 +278,8 @@ class CalibrationResult:
     unmodelled_rms_mm: float = float("nan")
     prediction: WorkingPrediction | None = None
     working_volume: dict[str, Any] | None = None
+    target_rms_mm: float = TARGET_RMS_MM
+    """The planner's target the prediction is compared with (``CalibrationParams.target_rms_mm``)."""
 
     @property
     def predicted_held_out_rms_mm(self) -> float:
@@ -364,6 +370,8 @@ class CalibrationResult:
             "predicted_held_out_rms_mm": _finite_or_none(self.predicted_held_out_rms_mm),
             "lopo_predicted_rms_mm": _finite_or_none(self.lopo_predicted_rms_mm),
             "predicted_chain_error_mm": _finite_or_none(self.predicted_chain_error_mm),
+            "target_rms_mm": self.target_rms_mm,
+            "target_met": bool(self.predicted_held_out_rms_mm <= self.target_rms_mm),
             "estimator": self.estimator,
             "prior_scale": _finite_or_none(self.prior_scale),
             "cross_validation": (

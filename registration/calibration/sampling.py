@@ -10,6 +10,7 @@ from typing import Final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from registration.calibration.urdf import SerialChain, rotation_about
 from registration.model.frames import apply, as_transform, invert
@@ -54,38 +55,87 @@ class ScanVolume:
         return np.asarray(per_point.min(axis=-1), dtype=np.float64)
 
 
+IK_DAMPING: Final = 1e-3
+"""Damping of the IK step, as a fraction of the largest singular value of its Jacobian: the step
+is the damped least-squares (Levenberg–Marquardt) one, finite at singular configurations."""
+IK_MAX_STEP_RAD: Final = 0.3
+"""Largest change of one joint per IK iteration."""
+
+
+def _rotation_log(r: F64) -> F64:
+    """(C, 3) rotation vectors of rotations (C, 3, 3): the log map, through the unit quaternion.
+
+    Smooth up to and including 180° (unlike θ / (2 sin θ) · vee(R − Rᵀ), which divides by a vanishing
+    sin θ there: the planner's ``Singular matrix`` of issue #33).  A non-finite rotation gives NaN."""
+    out = np.full((len(r), 3), np.nan)
+    ok = np.all(np.isfinite(r), axis=(1, 2))
+    if ok.any():
+        out[ok] = Rotation.from_matrix(r[ok]).as_rotvec()
+    return out
+
+
 def _pose_error(chain: SerialChain, q: F64, target: F64) -> F64:
     """(C, 6) residual: position (mm) and weighted rotation vector of target⁻¹ · FK(q)."""
-    t = chain.robot_from_tool0_batch(q)
+    return _pose_error_at(chain.robot_from_tool0_batch(q), target)
+
+
+def _pose_error_at(t: F64, target: F64) -> F64:
     dr = np.einsum("cji,cjk->cik", target[:, :3, :3], t[:, :3, :3])
-    cos = np.clip((np.trace(dr, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    ang = np.arccos(cos)
-    vee = np.stack([dr[:, 2, 1] - dr[:, 1, 2], dr[:, 0, 2] - dr[:, 2, 0], dr[:, 1, 0] - dr[:, 0, 1]], axis=1)
-    sin = np.sin(ang)
-    factor = np.where(sin > 1e-9, ang / np.maximum(2.0 * sin, 1e-300), 0.5)
-    rot = vee * factor[:, None]
+    rot = _rotation_log(dr)
     return np.concatenate([t[:, :3, 3] - target[:, :3, 3], IK_ROTATION_WEIGHT_MM * rot], axis=1)
+
+
+def _fk_and_body_jacobian(chain: SerialChain, q: F64) -> tuple[F64, F64]:
+    """``robot_from_tool0`` (C, 4, 4) and the (C, 6, n) Jacobian of (position mm, weighted rotation)
+    with the rotation part in the tool's own frame (R(q + dq) = R(q) exp(J_rot dq)): always a small
+    rotation, so no branch of the log map is crossed however far the target is.  With the residual
+    e = log(R_targetᵀ R(q)) the step J_rot dq = −e is exact for the rotation (R_targetᵀ R exp(−ê) = I)."""
+    n = chain.n_joints
+    out = np.broadcast_to(np.eye(4), (len(q), 4, 4)).copy()
+    origins = np.zeros((len(q), n, 3))
+    axes = np.zeros((len(q), n, 3))
+    for i in range(n):
+        out = out @ chain.parent_from_joint[i]
+        origins[:, i] = out[:, :3, 3]
+        axes[:, i] = out[:, :3, :3] @ chain.axes[i]
+        out[:, :3, :3] = out[:, :3, :3] @ rotation_about(chain.axes[i], q[:, i])
+    t = np.asarray(out @ chain.last_from_tool0, dtype=np.float64)
+    lin = np.cross(axes, t[:, None, :3, 3] - origins)  # (C, n, 3)
+    ang = np.einsum("cji,cnj->cni", t[:, :3, :3], axes)
+    return t, np.concatenate([lin, IK_ROTATION_WEIGHT_MM * ang], axis=2).transpose(0, 2, 1)
+
+
+def _damped_step(jac: F64, r: F64) -> F64:
+    """(C, n) damped least-squares step −(JᵀJ + λ²I)⁻¹ Jᵀ r, λ² = :data:`IK_DAMPING`² · tr(JᵀJ)
+    (≥ that fraction of the largest singular value squared): the normal matrix is positive definite
+    at every configuration, singular ones included, so the step is bounded and the solve cannot
+    fail on a finite Jacobian."""
+    jt = np.swapaxes(jac, 1, 2)
+    normal = jt @ jac
+    lam2 = IK_DAMPING**2 * np.trace(normal, axis1=1, axis2=2) + 1e-12
+    lhs = normal + lam2[:, None, None] * np.eye(jac.shape[2])
+    return np.asarray(-np.linalg.solve(lhs, jt @ r[..., None])[..., 0], dtype=np.float64)
 
 
 def solve_ik(
     chain: SerialChain, robot_from_tool0: F64, seeds_rad: F64, iterations: int = 40
 ) -> tuple[F64, F64]:
-    """Damped-Newton IK for C targets (C, 4, 4) from C seeds (C, n) → (joints (C, n), error (C,))."""
+    """Damped least-squares IK for C targets (C, 4, 4) from C seeds (C, n) → (joints (C, n),
+    error (C,)).  Never raises on a target: one that cannot be reached (or a non-finite seed) ends
+    with a large (or infinite) error, which the callers' tolerance refuses."""
     q = np.array(seeds_rad, dtype=np.float64)
-    n = chain.n_joints
-    h = 1e-6
+    target = np.asarray(robot_from_tool0, dtype=np.float64)
+    finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(target), axis=(1, 2))
+    q[~finite] = 0.0
     for _ in range(iterations):
-        r = _pose_error(chain, q, robot_from_tool0)
-        probes = q[:, None, :] + h * np.eye(n)[None]
-        rp = _pose_error(chain, probes.reshape(-1, n), np.repeat(robot_from_tool0, n, axis=0)).reshape(
-            len(q), n, 6
-        )
-        jac = np.swapaxes((rp - r[:, None, :]) / h, 1, 2)  # (C, 6, n)
-        jt = np.swapaxes(jac, 1, 2)
-        lhs = jt @ jac + 1e-6 * np.eye(n)
-        step = np.linalg.solve(lhs, -(jt @ r[..., None]))[..., 0]
-        q = q + np.clip(step, -0.3, 0.3)
-    err = np.linalg.norm(_pose_error(chain, q, robot_from_tool0), axis=1)
+        t, jac = _fk_and_body_jacobian(chain, q)
+        r = _pose_error_at(t, target)
+        ok = np.all(np.isfinite(jac), axis=(1, 2)) & np.all(np.isfinite(r), axis=1)
+        step = np.zeros_like(q)
+        step[ok] = _damped_step(jac[ok], r[ok])
+        q = q + np.clip(step, -IK_MAX_STEP_RAD, IK_MAX_STEP_RAD)
+    err = np.linalg.norm(_pose_error(chain, q, target), axis=1)
+    err = np.where(finite & np.isfinite(err), err, np.inf)
     return q, err
 
 

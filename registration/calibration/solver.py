@@ -333,10 +333,12 @@ def calibrate(
     fle = _fle_rms_mm(r, len(model.params))
     reg_tre = _registration_tre_rms_mm(fle, pts)
     shared = _unmodelled_rms_mm(model, fit_data, values, fle)
-    cov = _posterior_cov(
-        model, fit_data, values, params, scale, pose_shared_rms_mm=max(shared, params.repeatability_rms_mm)
-    )
     unmod = max(shared, params.unmodelled_floor_mm)
+    # the per-pose error the prediction adds at every working pose was there at the calibration poses
+    # too, and the fit absorbed it into the parameters: the sandwich takes the same figure (issue #33)
+    cov = _posterior_cov(
+        model, fit_data, values, params, scale, pose_shared_rms_mm=max(unmod, params.repeatability_rms_mm)
+    )
     t_p = time.perf_counter()
     inflation, split = (
         _farthest_split_inflation(model, fit_data, values, params, fle, unmod)
@@ -398,6 +400,7 @@ def calibrate(
         unmodelled_rms_mm=unmod,
         prediction=prediction,
         working_volume=volume_doc,
+        target_rms_mm=params.target_rms_mm,
     )
 
 

@@ -79,6 +79,11 @@ class CalibrationOut(BaseModel):
     predicted_held_out_rms_mm: float | None = Field(
         None, description="Expected RMS sphere error at unseen poses after a one-scan registration."
     )
+    target_rms_mm: float | None = Field(
+        None,
+        description="The pose planner's target (calibration.target_rms_mm) the prediction is compared with.",
+    )
+    target_met: bool | None = Field(None, description="predicted_held_out_rms_mm ≤ target_rms_mm.")
     tool0_from_phantom: list[list[float]] | None = None
     image_from_robot: list[list[float]] | None = Field(
         None, description="Of the calibration session's placement."
@@ -96,7 +101,8 @@ def calibration_out(rec: CalibrationRecord) -> CalibrationOut:
     r = rec.result or {}
     keys = (
         "fit_rms_mm", "leave_one_pose_out_mean_mm", "leave_one_pose_out_max_mm", "predicted_held_out_rms_mm",
-        "tool0_from_phantom", "image_from_robot", "parameters", "poses", "identification",
+        "target_rms_mm", "target_met", "tool0_from_phantom", "image_from_robot", "parameters", "poses",
+        "identification",
         "dropped_parameters", "outlier_poses", "provenance", "timings_s",
     )  # fmt: skip
     return CalibrationOut(

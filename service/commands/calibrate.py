@@ -82,11 +82,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="refuse when the predicted RMS error at the worst pose of the working volume exceeds this "
         "(default 0.5 mm)",
     )
+    run_p.add_argument(
+        "--config", type=Path, default=None, help="service TOML ([calibration] target_rms_mm to compare with)"
+    )
     add_method_argument(run_p)
     plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
-    plan_p.add_argument("--n", type=int, default=10, help="number of poses (default %(default)s, at least 6)")
+    plan_p.add_argument(
+        "--n",
+        type=int,
+        default=None,
+        help="force this number of poses (at least 6); default: the fewest (10 or more) whose predicted RMS "
+        "error over the working volume meets calibration.target_rms_mm, at most calibration.max_poses",
+    )
     plan_p.add_argument("--json", type=output_file, required=True, metavar="OUT.json")
+    plan_p.add_argument(
+        "--predict",
+        type=Path,
+        metavar="POSES.json",
+        help="predict for this pose set (a plan's JSON or calibrate run's POSES.json) instead of planning",
+    )
+    plan_p.add_argument("--config", type=Path, default=None, help="service TOML ([calibration] settings)")
     plan_p.add_argument(
         "--joints",
         type=Path,
@@ -218,6 +234,7 @@ def calibration_params(
     max_condition: float | None = None,
     estimator: str | None = None,
     max_predicted_error_mm: float | None = None,
+    target_rms_mm: float | None = None,
 ) -> Any:
     """The one mapping from the CLI flags / the service's request fields to ``CalibrationParams``:
     ``oarmreg calibrate run``, ``POST /calibrations`` and ``oarmreg demo --calibrate`` all pass
@@ -231,6 +248,8 @@ def calibration_params(
         extra["estimator"] = estimator
     if max_predicted_error_mm is not None:
         extra["max_predicted_error_mm"] = max_predicted_error_mm
+    if target_rms_mm is not None:
+        extra["target_rms_mm"] = target_rms_mm
     return CalibrationParams(
         parameter_set=parameter_set,  # type: ignore[arg-type]
         max_condition=max_condition,
@@ -255,6 +274,7 @@ def run_calibration(args: argparse.Namespace) -> int:
     from registration.io.points import write_json
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom
     from registration.model.phantom import load_phantom
+    from service.settings import load_settings
 
     robot_name, poses = read_poses_file(args.poses)
     model = RobotModel.load(args.robot or robot_name or "tx60")
@@ -271,6 +291,7 @@ def run_calibration(args: argparse.Namespace) -> int:
         max_condition=args.max_condition,
         estimator=args.estimator,
         max_predicted_error_mm=args.max_predicted_error_mm,
+        target_rms_mm=load_settings(args.config).calibration.target_rms_mm,
     )
     result = calibrate(
         matched,
@@ -336,6 +357,15 @@ def summary(d: dict[str, Any]) -> str:
         + (f", worst pose {_fmt(d['predicted_working']['max_mm'])} mm" if d.get("predicted_working") else "")
         + f"; from leave-one-pose-out: {_fmt(d.get('lopo_predicted_rms_mm'))} mm RMS",
     ]
+    if d.get("target_rms_mm") is not None:
+        lines.append(
+            f"planner's target {d['target_rms_mm']:g} mm RMS over the working volume: "
+            + (
+                "met"
+                if d.get("target_met")
+                else "NOT met — add poses (`oarmreg calibrate plan` without --n) and calibrate again"
+            )
+        )
     if d["outlier_poses"]:
         lines.append(f"outlier poses excluded: {', '.join(d['outlier_poses'])}")
     if d["dropped_parameters"]:
@@ -410,18 +440,50 @@ def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any
     return sphere_centres_robot_mm(model, q, rod, load_phantom(phantom_path).centres_phantom_mm)
 
 
+def _pose_set_joints(path: Path, model: Any) -> Any:
+    """(K, 6) joints of a plan's JSON (``poses[].joints_rad``, as ``calibrate plan`` writes) or of a
+    ``calibrate run`` POSES.json (the same key beside ``scan_dir``)."""
+    import numpy as np
+
+    from registration.io.points import _load_json
+
+    obj = _load_json(path)
+    poses = obj.get("poses") if isinstance(obj, dict) else None
+    if not isinstance(poses, list) or not poses:
+        raise _config_error(
+            f'{path}: expected {{"poses": [{{"joints_rad": [6 numbers]}}, ...]}} (a plan or POSES.json)'
+        )
+    rows = []
+    for i, p in enumerate(poses):
+        q = p.get("joints_rad") if isinstance(p, dict) else None
+        if (
+            not isinstance(q, list)
+            or len(q) != N_JOINTS
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in q)
+        ):
+            raise _config_error(
+                f"{path}: poses[{i}].joints_rad must be {N_JOINTS} finite numbers (rad), got {q!r}"
+            )
+        rows.append(model.check_joints(q))
+    if len(rows) < 6:
+        raise _config_error(f"{path}: {len(rows)} pose(s); a calibration needs at least 6")
+    return np.asarray(rows, dtype=np.float64)
+
+
 def run_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses
+    from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses, predict_plan
     from registration.calibration.urdf import read_chain
     from registration.io.points import _load_json, read_registration, write_json
     from registration.model import frames
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom
     from registration.model.phantom import load_phantom
+    from service.settings import load_settings
 
-    if args.n < 6:
+    if args.n is not None and args.n < 6:
         raise _config_error(f"--n {args.n}: a calibration needs at least 6 poses")
+    cal_settings = load_settings(args.config).calibration
     y = read_registration(args.registration)
     reg_doc = _load_json(args.registration)
     prov = reg_doc.get("provenance", {}) or {}
@@ -470,26 +532,64 @@ def run_plan(args: argparse.Namespace) -> int:
         args.half_length_mm if args.half_length_mm is not None else base.half_length_mm,
         base.axis_image,
     )
-    plan = plan_poses(y, chain, rod, pts, q0, volume=volume, params=PlannerParams(n_poses=args.n))
+    params = PlannerParams(
+        n_poses=args.n, target_rms_mm=cal_settings.target_rms_mm, max_poses=cal_settings.max_poses
+    )
+    volume_doc = {
+        "centre_image_mm": list(volume.centre_image_mm),
+        "fov_radius_mm": volume.fov_radius_mm,
+        "half_length_mm": volume.half_length_mm,
+        "axis_image": list(volume.axis_image),
+        "from": source,
+    }
+    if args.predict is not None:
+        given = _pose_set_joints(args.predict, model)
+        rms, worst = predict_plan(
+            y, chain, rod, pts, given, volume=volume, params=params, registration_joints_rad=q0
+        )
+        met = rms <= params.target_rms_mm
+        write_json(
+            args.json,
+            {
+                "robot_model": model.name,
+                "registration": str(args.registration),
+                "poses_file": str(args.predict),
+                "n_poses": len(given),
+                "volume": volume_doc,
+                "predicted_rms_mm": rms,
+                "predicted_error_mm": worst,
+                "target_rms_mm": params.target_rms_mm,
+                "target_met": met,
+            },
+        )
+        sys.stdout.write(
+            f"{len(given)} poses of {args.predict}: predicted error over the working volume {rms:.3f} mm RMS "
+            f"(worst pose {worst:.3f} mm) against the target {params.target_rms_mm:g} mm: "
+            f"{'met' if met else 'NOT met — plan without --predict to let the planner add poses'}\n"
+            f"written: {args.json}\n"
+        )
+        return 0
+    plan = plan_poses(y, chain, rod, pts, q0, volume=volume, params=params)
     doc = {
         "robot_model": model.name,
         "registration": str(args.registration),
-        "volume": {
-            "centre_image_mm": list(volume.centre_image_mm),
-            "fov_radius_mm": volume.fov_radius_mm,
-            "half_length_mm": volume.half_length_mm,
-            "axis_image": list(volume.axis_image),
-            "from": source,
-        },
+        "volume": volume_doc,
         **plan.to_dict(),
     }
     notes = keep_out_and_travel(args, doc, y, chain, rod, q0, plan.joints_rad)
     write_json(args.json, doc)
     sys.stdout.write(notes)
+    why = {
+        "target": f"the fewest meeting the target {params.target_rms_mm:g} mm RMS",
+        "max_poses": f"calibration.max_poses; the target {params.target_rms_mm:g} mm is NOT met",
+        "candidates": f"every feasible pose; the target {params.target_rms_mm:g} mm is NOT met",
+        "forced": "--n",
+    }[plan.count_reason]
     sys.stdout.write(
-        f"{len(plan.joints_rad)} poses planned from {plan.n_candidates} feasible candidates in the volume of "
-        f"{source}; predicted identification condition number {plan.predicted_condition_number:.1f}, "
-        f"predicted error over the working volume {plan.predicted_error_mm:.3f} mm at the worst pose\n"
+        f"{len(plan.joints_rad)} poses planned ({why}) from {plan.n_candidates} feasible candidates in the "
+        f"volume of {source}; predicted identification condition number "
+        f"{plan.predicted_condition_number:.1f}, predicted error over the working volume "
+        f"{plan.predicted_rms_mm:.3f} mm RMS (worst pose {plan.predicted_error_mm:.3f} mm)\n"
         + (f"{plan.advice}\n" if plan.advice else "")
         + f"written: {args.json}\n"
     )

@@ -4,7 +4,8 @@ Called by :mod:`service.commands.demo` once its own registration and verificatio
 and the simulated O-arm pose the phantom through the TRUE cell, :class:`mocks.cell.TrueCell`,
 while the service believes the nominal robot and rod).
 
-1. plan K poses (:func:`registration.calibration.planner.plan_poses`) from the current registration;
+1. plan the poses (:func:`registration.calibration.planner.plan_poses`, its own count) from the current
+   registration;
 2. move the mock robot to each, scan (one FrameOfReferenceUID), export into the watch folder;
 3. ``POST /calibrations`` with those scans, wait for it;
 4. move the O-arm (a new hidden ``image_from_robot``, a new FrameOfReferenceUID), scan once at a
@@ -28,7 +29,6 @@ import numpy as np
 
 from registration.model import frames
 
-N_POSES = 10
 N_HELD_OUT = 10
 CAL_PRESET = {"rows": 200, "columns": 200, "n_slices": 120, "n_views": 120}
 """The ``small`` preset at 200 × 200 × 120 (0.7 × 0.7 × 1 mm), 120 views: detection stays accurate
@@ -125,10 +125,12 @@ def _plan(d: Any) -> tuple[Any, Any]:
     chain, pts, q0 = read_chain(d.model.urdf_path), d.phantom.centres_phantom_mm, cur["joints_rad"]
     plan = plan_poses(
         np.asarray(cur["image_from_robot"]), chain, d.tool0_from_phantom, pts, q0, volume=volume,
-        params=PlannerParams(n_poses=N_POSES, shift_mm=18.0),
+        params=PlannerParams(shift_mm=18.0),
     )  # fmt: skip
     _err(
-        f"  planned {N_POSES} calibration poses from {plan.n_candidates} candidates (predicted "
+        f"  planned {len(plan.joints_rad)} calibration poses (the planner's count: predicted "
+        f"{plan.predicted_rms_mm:.3f} mm RMS over the working volume, target {plan.target_rms_mm:g} mm "
+        f"{'met' if plan.target_met else 'NOT met'}) from {plan.n_candidates} candidates (predicted "
         f"condition number {plan.predicted_condition_number:.0f})"
     )
     y2 = _moved_y(d)

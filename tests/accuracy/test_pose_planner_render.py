@@ -101,3 +101,48 @@ def test_planned_poses_image_every_sphere_in_an_off_centre_volume(phantom: Any, 
         assert not missing.size, (
             f"pose {i}: spheres {missing.tolist()} not imaged (nearest {nearest[missing]})"
         )
+
+
+def test_every_pose_of_a_default_plan_keeps_every_sphere_inside_and_one_renders(
+    phantom: Any, tmp_path: Path
+) -> None:
+    """Issue #33: the planner's own count (no ``n_poses``) in an O-arm-sized volume (212 mm FOV ×
+    160 mm; 1.06 mm pixels, 1 mm slices, 90 views so one scan simulates in seconds), from a registration of
+    the first scan (its detections: truth + 0.05 mm noise): every sphere of every planned pose
+    ≥ 5 mm inside by the TRUE cell, and the pose with the least margin, rendered (simulator →
+    DICOM → detection), images all 28 spheres."""
+    model = RobotModel.load("tx60")
+    chain = read_chain(model.urdf_path)
+    rod = default_tool0_from_phantom()
+    cell = TrueCell.sample(33, model, rod, CellErrorSizes())
+    rng = np.random.default_rng(33)
+    pts = phantom.centres_phantom_mm
+    s = AcquisitionSettings.preset(
+        "small", rows=200, columns=200, pixel_mm=1.06, n_slices=160, slice_spacing_mm=1.0, n_views=90
+    )
+    volume = ScanVolume(fov_radius_mm=s.fov_radius_mm, half_length_mm=s.n_slices * s.slice_spacing_mm / 2)
+    y = frames.transform_from_xyz_rpy(PHANTOM_OFFSET_MM, [10.0, -5.0, 30.0]) @ frames.invert(
+        cell.robot_from_tool0_true(START_JOINTS_RAD) @ cell.tool0_from_phantom
+    )
+    detected = frames.apply(cell.image_from_phantom_true(y, START_JOINTS_RAD, rng), pts)
+    q_rep = cell.reported_joints(START_JOINTS_RAD, rng)
+    reg0 = register_points(
+        frames.apply(model.robot_from_tool0(q_rep) @ rod, pts),
+        detected + rng.normal(0.0, 0.05 / np.sqrt(3.0), detected.shape),
+        phantom=phantom,
+    )
+    plan = plan_poses(reg0.image_from_robot, chain, rod, pts, q_rep, volume=volume)
+    assert plan.count_reason != "forced" and len(plan.joints_rad) >= 10
+    margins = [
+        float(volume.inside_margin_mm(frames.apply(cell.image_from_phantom_true(y, q), pts)[None])[0])
+        for q in plan.joints_rad
+    ]
+    assert min(margins) >= MIN_INSIDE_MM, margins
+    q = plan.joints_rad[int(np.argmin(margins))]
+    scan = simulate_pose_scan(
+        cell, y, q, phantom, s, tmp_path / "tightest", rng, frame_of_reference_uid=FOR_UID
+    )
+    truth = frames.apply(scan.truth_image_from_phantom, pts)
+    assert float(volume.inside_margin_mm(truth[None])[0]) >= MIN_INSIDE_MM
+    nearest = np.linalg.norm(truth[:, None] - scan.detections_image_mm[None], axis=-1).min(axis=1)
+    assert np.all(nearest <= MATCH_MM), nearest

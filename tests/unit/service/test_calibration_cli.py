@@ -14,6 +14,7 @@ from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from service.cli import main
 from service.error_map import EXIT_INPUT, EXIT_OK
+from service.settings import CalibrationSettings
 
 START_JOINTS_RAD = [0.2, -0.15, 1.75, 0.3, 0.6, -0.9]
 
@@ -35,9 +36,21 @@ def test_plan_keeps_every_sphere_inside_the_volume_and_the_joints_inside_their_l
     model = RobotModel.load("tx60")
     reg, y = _registration(tmp_path, model)
     out = tmp_path / "plan.json"
-    assert main(["calibrate", "plan", "--registration", str(reg), "--n", "10", "--json", str(out)]) == EXIT_OK
+    assert main(["calibrate", "plan", "--registration", str(reg), "--json", str(out)]) == EXIT_OK
     plan = json.loads(out.read_text())
-    assert len(plan["poses"]) == 10
+    # the planner chose the count (issue #33): the fewest from 10 meeting the target, or says why not
+    assert len(plan["poses"]) == plan["n_poses"]
+    assert plan["target_rms_mm"] == CalibrationSettings().target_rms_mm
+    assert 10 <= plan["n_poses"] <= CalibrationSettings().max_poses
+    assert plan["predicted_error_mm"] >= plan["predicted_rms_mm"] > 0.0
+    assert plan["target_met"] == (plan["count_reason"] == "target")
+    # the same pose set judged without planning gives the plan's own prediction
+    judged = tmp_path / "judged.json"
+    argv = ["calibrate", "plan", "--registration", str(reg), "--predict", str(out), "--json", str(judged)]
+    assert main(argv) == EXIT_OK
+    doc = json.loads(judged.read_text())
+    assert doc["n_poses"] == plan["n_poses"]
+    assert doc["predicted_rms_mm"] == pytest.approx(plan["predicted_rms_mm"], rel=1e-9)
     assert plan["predicted_condition_number"] <= 100.0
     c = plan["volume"]["centre_image_mm"]
     volume = ScanVolume(centre_image_mm=(c[0], c[1], c[2]))
