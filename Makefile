@@ -26,9 +26,10 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy registration drivers service mocks benchmarks
 
-# Build the wheel, install it into a fresh venv outside the checkout, run simulate + detect.
+# Build the wheel by docs/operations.md's install recipe, install it into a fresh venv in a temporary
+# root, check the copied TOML, run simulate + detect from it (part of `make test` too).
 wheel-smoke: $(STAMP)
-	.ci/wheel-smoke $(BIN)/python
+	$(BIN)/python -m pytest -q -n 0 tests/integration/test_install_recipe.py
 
 # Two workers, each module on one of them (module-scoped services and the per-module leak guard
 # stay whole); `PYTEST_WORKERS=0 make test` runs it in one process.
@@ -37,7 +38,6 @@ PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --di
 
 test: lint
 	$(BIN)/python -m pytest $(PYTEST_PARALLEL)
-	$(MAKE) wheel-smoke
 
 # The edit loop: lint, then every test but the simulator-driven accuracy ones (marker `slow`).
 test-fast: lint
