@@ -17,12 +17,14 @@ import asyncio
 import contextlib
 import logging
 import time
+from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
 from service.events import LinkState, Publish
+from service.records import JointSnapshot, stillness_verdict
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -184,8 +186,8 @@ class Capture:
 
     def snapshot(
         self, first_seen_t_s: float, last_change_t_s: float, *, preexisting: bool = False
-    ) -> dict[str, Any]:
-        """Joints at a scan's arrival and the stillness verdict (a JSON-ready dict for the database).
+    ) -> JointSnapshot:
+        """Joints at a scan's arrival and the stillness verdict, one typed record for the database.
 
         The window runs from ``stillness.window_s`` before ``first_seen_t_s`` (the first file of the
         series appeared) to ``last_change_t_s`` (the last file landed), monotonic seconds.
@@ -194,27 +196,24 @@ class Capture:
 
         st = self.settings.stillness
         h = self.health()
-        base: dict[str, Any] = {
-            "captured_at": datetime.now(UTC).isoformat(),
-            "link_url": self.url,
-            "link_state": h["state"],
-            "link_reason": h["reason"],
-            "window_s": st.window_s,
-            "joints_rad": None,
-            "joints_received_at": None,
-            "still": False,
-            "max_deviation_rad": None,
-            "covered_s": 0.0,
-            "n_samples": 0,
-        }
+        unknown = JointSnapshot(
+            captured_at=datetime.now(UTC).isoformat(),
+            link_url=self.url,
+            link_state=h["state"],
+            link_reason=h["reason"],
+            window_s=st.window_s,
+            verdict="incomplete",
+            covered_s=0.0,
+        )
         if preexisting:
-            base["stillness_verdict"] = "incomplete"
-            base["stillness_reason"] = (
-                "joint history incomplete: the series was already in the watch folder when the service "
-                "started, so the joint angles during its acquisition are unknown; re-export or rescan it "
-                "while the service runs"
+            return replace(
+                unknown,
+                stillness_reason=(
+                    "joint history incomplete: the series was already in the watch folder when the service "
+                    "started, so the joint angles during its acquisition are unknown; re-export or rescan "
+                    "it while the service runs"
+                ),
             )
-            return base
         start_t = first_seen_t_s - st.window_s
         link = self.link
         streamed = bool(getattr(link, "streamed", False))
@@ -224,12 +223,14 @@ class Capture:
         samples = link.history(start_t - st.max_gap_s)
         samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
         if not samples:
-            base["stillness_verdict"] = "incomplete"
-            base["stillness_reason"] = (
-                f"joint history incomplete: no joint samples from {self.url} between {st.window_s:g} s "
-                f"before the scan arrived and its last file; the robot link is {h['state']} ({h['reason']})"
+            return replace(
+                unknown,
+                stillness_reason=(
+                    f"joint history incomplete: no joint samples from {self.url} between {st.window_s:g} s "
+                    f"before the scan arrived and its last file; the robot link is {h['state']} "
+                    f"({h['reason']})"
+                ),
             )
-            return base
         # the joints "at arrival": the last sample at or before the first file, else the first after it
         before = [s for s in samples if s.t_s <= first_seen_t_s]
         at = before[-1] if before else samples[0]
@@ -252,19 +253,16 @@ class Capture:
             period_s=period_s,
             in_motion_t_s=self._in_motion_t_s(start_t, last_change_t_s),
         )
-        base.update(
-            joints_rad=[float(v) for v in at.joints_rad],
+        return replace(
+            unknown,
+            verdict=stillness_verdict(res.verdict),
+            joints_rad=tuple(float(v) for v in at.joints_rad),
             joints_received_at=at.received_at.isoformat(),
-            still=bool(res.still),
             max_deviation_rad=float(res.max_deviation_rad),
             covered_s=float(res.covered_s),
             n_samples=int(res.n_samples),
             stillness_reason=str(res.reason),
-            stillness_verdict=res.verdict,
-            max_receive_gap_s=float(res.max_receive_gap_s),
-            stream_period_s=period_s,
         )
-        return base
 
     def _in_motion_t_s(self, start_t_s: float, end_t_s: float) -> list[float]:
         """Receive times of the controller statuses in ``[start_t_s, end_t_s]`` reporting ``in_motion``

@@ -8,7 +8,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -28,7 +28,7 @@ class SnapshotSource(Protocol):
 
     def snapshot(
         self, first_seen_t_s: float, last_change_t_s: float, *, preexisting: bool = False
-    ) -> dict[str, Any]: ...
+    ) -> JointSnapshot: ...
 
 
 def new_scan(arrival: SeriesArrival, snapshot: JointSnapshot) -> NewScan:
@@ -99,10 +99,8 @@ class Intake:
         if arrival.duplicate:
             self.db.scans.upsert(NewScan(series_uid=uid, folder=str(arrival.folder), status="complete"))
             return
-        snap = JointSnapshot.from_capture(
-            self.capture.snapshot(
-                arrival.first_seen_t_s, arrival.last_change_t_s, preexisting=arrival.preexisting
-            )
+        snap = self.capture.snapshot(
+            arrival.first_seen_t_s, arrival.last_change_t_s, preexisting=arrival.preexisting
         )
         scan = new_scan(arrival, snap)
         files = arrival.files

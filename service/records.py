@@ -75,17 +75,45 @@ class ScanGeometry:
         )
 
 
+StillnessVerdict = Literal["still", "moved", "incomplete"]
+"""Whether the robot stayed still over a scan's window (registration.model.stillness.VERDICTS,
+docs/safety.md "Stillness and health"): ``still`` may be registered; ``moved`` refuses as moved;
+``incomplete`` (the joint history does not cover the window) refuses as unknown."""
+
+STILLNESS_VERDICTS: tuple[StillnessVerdict, ...] = ("still", "moved", "incomplete")
+
+
+def stillness_verdict(value: str) -> StillnessVerdict:
+    """``value`` as a :data:`StillnessVerdict`.
+
+    Raises
+    ------
+    ValueError
+        ``value`` is none of :data:`STILLNESS_VERDICTS` (a stillness model or a stored row this
+        software does not know): refuse rather than guess.
+    """
+    for v in STILLNESS_VERDICTS:
+        if value == v:
+            return v
+    raise ValueError(
+        f"unknown stillness verdict {value!r}: expected one of {', '.join(STILLNESS_VERDICTS)}; "
+        "the database or the stillness model is newer than this software: upgrade oarmreg"
+    )
+
+
 @dataclass(frozen=True)
 class JointSnapshot:
     """The joints captured at a scan's arrival and the stillness verdict over the window before it.
 
-    ``joints_rad`` is None when no joint sample was available (link down, pre-existing series).
+    ``verdict`` is the one source of truth for the gate (:func:`service.scan_checks.check_capture`);
+    ``stillness_reason`` is for people and is never parsed.  ``joints_rad`` is None when no joint
+    sample was available (link down, pre-existing series).
     """
 
     link_url: str
     link_state: str
     window_s: float
-    still: bool
+    verdict: StillnessVerdict
     captured_at: str = ""
     link_reason: str = ""
     joints_rad: tuple[float, ...] | None = None
@@ -96,32 +124,9 @@ class JointSnapshot:
     stillness_reason: str = ""
 
     @property
-    def verdict(self) -> str:
-        """``still`` / ``moved`` / ``incomplete`` (registration.model.stillness.VERDICTS), derived from
-        ``still`` and the reason: every "moved" reason starts with "robot moved"
-        (registration.model.stillness.assess_stillness), so records stored before the verdict existed
-        read the same way."""
-        if self.still:
-            return "still"
-        return "moved" if self.stillness_reason.startswith("robot moved") else "incomplete"
-
-    @classmethod
-    def from_capture(cls, d: Mapping[str, Any]) -> JointSnapshot:
-        """From the JSON-ready dict :meth:`service.capture.Capture.snapshot` returns."""
-        return cls(
-            link_url=str(d["link_url"]),
-            link_state=str(d["link_state"]),
-            window_s=float(d["window_s"]),
-            still=bool(d["still"]),
-            captured_at=str(d.get("captured_at", "")),
-            link_reason=str(d.get("link_reason", "")),
-            joints_rad=floats(d.get("joints_rad")),
-            joints_received_at=d.get("joints_received_at"),
-            max_deviation_rad=d.get("max_deviation_rad"),
-            covered_s=d.get("covered_s"),
-            n_samples=int(d.get("n_samples", 0)),
-            stillness_reason=str(d.get("stillness_reason", "")),
-        )
+    def still(self) -> bool:
+        """The verdict is ``still``."""
+        return self.verdict == "still"
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,8 @@ from service.records import JointSnapshot, ScanRecord
 
 
 def check_capture(scan: ScanRecord, window_s: float) -> tuple[JointSnapshot, tuple[float, ...]]:
-    """The scan's joint snapshot and joints, or the refusal.
+    """The scan's joint snapshot and joints, or the refusal, decided by the typed
+    :attr:`JointSnapshot.verdict` alone (the reason text is quoted, never parsed).
 
     Parameters
     ----------
@@ -42,7 +43,7 @@ def check_capture(scan: ScanRecord, window_s: float) -> tuple[JointSnapshot, tup
     rescan = f"keep the robot still for {window_s:g} s before and during the scan, then rescan"
     if snap.verdict == "moved":
         raise RobotMovedError(f"the robot moved during {what}: {snap.stillness_reason}; {rescan}")
-    if snap.joints_rad is None or not snap.still:
+    if snap.verdict != "still" or snap.joints_rad is None:  # incomplete (never the reason text)
         if snap.link_state == "down":
             raise RobotLinkError(
                 f"robot link {snap.link_url} was down around {what} ({snap.link_reason}): "

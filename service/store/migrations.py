@@ -37,6 +37,8 @@
 ``registrations.withdrawn_by_scan`` / ``withdrawn_by_verification`` (9)
     a registration withdrawn by a verification (issue #31): the verification scan, and the stored
     verification when it could be computed (NULL: the error was beyond what matching can bridge).
+``joint_snapshots.verdict`` (10)
+    the typed stillness verdict the registration gate reads (backfilled from the reason text once).
 """
 
 from __future__ import annotations
@@ -324,6 +326,24 @@ registration may be current"): ``withdrawn_at`` / ``withdrawn_reason`` as for a 
 the verification scan and, when the error could be computed, the stored verification.  A row with
 ``withdrawn_by_scan`` set was withdrawn by a verification; without it, by its own scan's change."""
 MIGRATIONS = (*MIGRATIONS, VERIFICATION_WITHDRAWAL_MIGRATION)
+
+STILLNESS_VERDICT_MIGRATION = """
+    ALTER TABLE joint_snapshots ADD COLUMN verdict TEXT NOT NULL DEFAULT 'incomplete'
+        CHECK (verdict IN ('still', 'moved', 'incomplete'));
+    -- the only place the reason text decides a verdict: rows written before the column existed, once
+    UPDATE joint_snapshots SET verdict = CASE
+        WHEN still <> 0 THEN 'still'
+        WHEN substr(stillness_reason, 1, 11) = 'robot moved' THEN 'moved'
+        ELSE 'incomplete'
+    END
+"""
+"""The stillness verdict (``still`` / ``moved`` / ``incomplete``) is a column written from the typed
+:attr:`service.records.JointSnapshot.verdict`, and the registration gate reads only it (issue #35).
+Rows stored before it are backfilled here, once, the way the software that wrote them read them:
+``still`` set is ``still``; every ``moved`` reason of registration.model.stillness starts with
+"robot moved"; anything else (no samples, a gap, a reconnect, a series already there) is
+``incomplete``.  The default refuses a row that somehow lacks one."""
+MIGRATIONS = (*MIGRATIONS, STILLNESS_VERDICT_MIGRATION)
 
 SCHEMA_VERSION = len(MIGRATIONS)
 """The schema version this software writes."""

@@ -5,7 +5,15 @@ from __future__ import annotations
 import sqlite3
 from typing import cast
 
-from service.records import JointSnapshot, NewScan, ScanGeometry, ScanRecord, ScanStatus, floats
+from service.records import (
+    JointSnapshot,
+    NewScan,
+    ScanGeometry,
+    ScanRecord,
+    ScanStatus,
+    floats,
+    stillness_verdict,
+)
 from service.store.base import Connection, dumps, loads, utc_now
 
 _SCAN_COLUMNS = (
@@ -305,7 +313,7 @@ def _insert_snapshot(c: sqlite3.Connection, scan_id: int, s: JointSnapshot, now:
     c.execute(
         "INSERT INTO joint_snapshots (scan_id, captured_at, link_url, link_state, link_reason, "
         "joints_json, joints_received_at, still, max_deviation_rad, covered_s, n_samples, window_s, "
-        "stillness_reason) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        "stillness_reason, verdict) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         (
             scan_id,
             s.captured_at or now,
@@ -320,6 +328,7 @@ def _insert_snapshot(c: sqlite3.Connection, scan_id: int, s: JointSnapshot, now:
             s.n_samples,
             float(s.window_s),
             s.stillness_reason,
+            s.verdict,
         ),
     )
 
@@ -332,7 +341,7 @@ def _snapshot(s: sqlite3.Row) -> JointSnapshot:
         link_reason=s["link_reason"],
         joints_rad=floats(loads(s["joints_json"])),
         joints_received_at=s["joints_received_at"],
-        still=bool(s["still"]),
+        verdict=stillness_verdict(s["verdict"]),
         max_deviation_rad=s["max_deviation_rad"],
         covered_s=s["covered_s"],
         n_samples=int(s["n_samples"]),

@@ -39,7 +39,7 @@ def db(tmp_path: Path) -> Iterator[Database]:
 SNAP = JointSnapshot(
     link_url="simple-message://127.0.0.1:1",
     link_state="connected",
-    still=True,
+    verdict="still",
     window_s=2.0,
     joints_rad=(0.0, 0.1, 0.2, 0.3, 0.4, 0.5),
     joints_received_at="2025-01-01T00:00:00+00:00",
