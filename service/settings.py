@@ -283,7 +283,7 @@ class DicomSettings(_Section):
     port: int = Field(default=11112, ge=0, le=65535)
     allowed_calling_ae_titles: tuple[str, ...] = ()
     allowed_peer_addresses: tuple[str, ...] = ()
-    # --- bounds; service.dicom_scp.DicomScpConfig takes its defaults from here
+    # --- bounds (service.dicom_scp.StorageScp reads them from here)
     # association negotiation / release, s (pynetdicom's ARTIM timer; its default 30 s let 30 silent
     # sockets hold every slot for ~30 s)
     acse_timeout_s: float = Field(default=10.0, gt=0, le=3600)
@@ -303,6 +303,13 @@ class DicomSettings(_Section):
     @classmethod
     def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
         return _check_networks(v)
+
+    @field_validator("ae_title")
+    @classmethod
+    def _ae_title(cls, v: str) -> str:
+        if not (v.isascii() and v.strip()):
+            raise ValueError(f"dicom.ae_title must be 1–16 ASCII characters, not all spaces, got {v!r}")
+        return v
 
     @model_validator(mode="after")
     def _allow_lists(self) -> DicomSettings:
@@ -347,6 +354,21 @@ class IgtlSettings(_Section):
     """Largest body of any other type (read and ignored)."""
     stall_timeout_s: float = Field(default=_igtl.STALL_TIMEOUT_S, gt=0, le=300)
     """A message begun must be complete within this; else its connection is closed."""
+    # Per-client delivery (the defaults and their origin are in service/igtl/server.py).
+    poll_period_s: float = Field(default=_igtl.POLL_PERIOD_S, gt=0, le=1)
+    """How often new joint samples are looked for, s."""
+    joint_max_age_s: float = Field(default=_igtl.JOINT_MAX_AGE_S, gt=0, le=60)
+    """A joint sample older than this makes ToolToImage INVALID even if the link says OK, s."""
+    client_queue_max: int = Field(default=_igtl.CLIENT_QUEUE_MAX, ge=1, le=4096)
+    """Messages queued per client (the oldest dropped when full)."""
+    client_buffer_bytes: int = Field(default=_igtl.CLIENT_BUFFER_BYTES, ge=1024, le=64 * 1024 * 1024)
+    """Transport write-buffer high-water mark per client, bytes."""
+    socket_send_buffer_bytes: int = Field(
+        default=_igtl.SOCKET_SEND_BUFFER_BYTES, ge=1024, le=64 * 1024 * 1024
+    )
+    """SO_SNDBUF of each accepted socket, bytes."""
+    slow_client_timeout_s: float = Field(default=_igtl.SLOW_CLIENT_TIMEOUT_S, gt=0, le=300)
+    """A client whose socket accepts nothing for this long is disconnected, s."""
     send_invalid_transforms_v2: bool = False
     """Send an INVALID device's TRANSFORM (identity, ``TransformStatus=INVALID``) to header-version-2
     clients besides its STATUS; version-1 clients never get one (PLUS: SendValidTransformsOnly)."""
