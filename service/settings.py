@@ -46,6 +46,7 @@ from pydantic_settings import (
 )
 
 import registration.calibration.targets as _cal_targets
+from registration.detection.estimators import METHODS
 from registration.errors import ConfigError
 from registration.io.resources import default_phantom
 from registration.matching.records import (
@@ -192,12 +193,27 @@ class RetentionSettings(_Section):
     interval_s: float = Field(default=3600.0, ge=1, le=86400)
 
 
+DETECTION_METHODS: tuple[str, ...] = ("default", *METHODS)
+"""``detection.method``: ``default`` (the phantom material's estimator) or a name from the estimator
+table (:data:`registration.detection.estimators.METHODS`)."""
+
+
 class DetectionSettings(_Section):
     # "default": the centre estimator for the phantom's sphere material
     # (registration.detection.METHOD_FOR_MATERIAL: "core" for tungsten carbide, "rays" for steel,
     # else "subvoxel").
-    method: Literal["default", "subvoxel", "paper", "core", "rays"] = "default"
+    # Any other name: one of registration.detection.estimators.METHODS (the estimator table).
+    method: str = "default"
     use_mar: bool = True
+
+    @field_validator("method")
+    @classmethod
+    def _known_method(cls, v: str) -> str:
+        if v not in DETECTION_METHODS:
+            raise ValueError(
+                f"detection.method {v!r} is not a centre estimator: use one of {', '.join(DETECTION_METHODS)}"
+            )
+        return v
 
 
 AUTH_MODES = ("token", "none-loopback-only")
