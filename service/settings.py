@@ -53,7 +53,6 @@ from registration.matching.records import (
     RegistrationParams,
 )
 from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
-from service.igtl import server as _igtl
 from service.netaddr import is_loopback
 
 _REG_DEFAULTS = RegistrationParams()
@@ -342,6 +341,11 @@ class DicomSettings(_Section):
         return self
 
 
+IGTL_BODY_LIMIT_MAX_BYTES = 1024 * 1024
+"""No OpenIGTLink per-type body limit may exceed 1 MiB: its CRC (crcmod's C code, ~290 MB/s) stays
+under ~4 ms."""
+
+
 class IgtlSettings(_Section):
     """OpenIGTLink server (``RobotToImage``, ``ToolToImage``), :mod:`service.igtl.server`."""
 
@@ -351,39 +355,39 @@ class IgtlSettings(_Section):
     allowed_peer_addresses: tuple[str, ...] = ()
     period_s: float = Field(default=1.0, gt=0, le=60)
     tool0_from_tcp: Tool0FromTcp = Tool0FromTcp()
-    # Listener limits (docs/security.md, "OpenIGTLink listener limits"); the defaults and their
-    # origin are in service/igtl/server.py.
-    max_clients: int = Field(default=_igtl.MAX_CLIENTS, ge=1, le=1024)
-    """Connections held at once; more are closed at once and counted (``refused_full``); counted in
-    the descriptor budget (:func:`descriptor_budget`)."""
-    status_max_body_bytes: int = Field(
-        default=_igtl.STATUS_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
-    )
-    """Largest STATUS body a client may send; a larger BODY_SIZE closes its connection unread."""
-    query_max_body_bytes: int = Field(
-        default=_igtl.QUERY_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
-    )
-    """Largest GET_/STT_/STP_/RTS_ body."""
-    other_max_body_bytes: int = Field(
-        default=_igtl.OTHER_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
-    )
-    """Largest body of any other type (read and ignored)."""
-    stall_timeout_s: float = Field(default=_igtl.STALL_TIMEOUT_S, gt=0, le=300)
-    """A message begun must be complete within this; else its connection is closed."""
-    # Per-client delivery (the defaults and their origin are in service/igtl/server.py).
-    poll_period_s: float = Field(default=_igtl.POLL_PERIOD_S, gt=0, le=1)
-    """How often new joint samples are looked for, s."""
-    joint_max_age_s: float = Field(default=_igtl.JOINT_MAX_AGE_S, gt=0, le=60)
-    """A joint sample older than this makes ToolToImage INVALID even if the link says OK, s."""
-    client_queue_max: int = Field(default=_igtl.CLIENT_QUEUE_MAX, ge=1, le=4096)
-    """Messages queued per client (the oldest dropped when full)."""
-    client_buffer_bytes: int = Field(default=_igtl.CLIENT_BUFFER_BYTES, ge=1024, le=64 * 1024 * 1024)
+    # Listener limits (docs/security.md, "OpenIGTLink listener limits").
+    max_clients: int = Field(default=32, ge=1, le=1024)
+    """Connections held at once; more are closed at once and counted (``refused_full``).  Navigation
+    workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and bounds the
+    descriptors the listener can hold (:func:`descriptor_budget` sums the listeners' maxima against
+    RLIMIT_NOFILE)."""
+    status_max_body_bytes: int = Field(default=4096, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
+    """Largest STATUS body a client may send, bytes; a larger BODY_SIZE closes its connection unread.
+    A STATUS is 30 bytes + its status string (+ 12 + metadata in version 2); SlicerOpenIGTLink's
+    version-2 announcement is 44 bytes; 4 KiB leaves room for a PLUS-style error text."""
+    query_max_body_bytes: int = Field(default=1024, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
+    """Largest GET_/STT_/STP_/RTS_ body, bytes: no content in version 1, 12 + a few metadata pairs in
+    version 2."""
+    other_max_body_bytes: int = Field(default=64 * 1024, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
+    """Largest body of any other type (read and ignored), bytes: TRANSFORM 48 B, POINT 136 B a point,
+    a STRING at most 64 KiB (uint16 length) — not images."""
+    stall_timeout_s: float = Field(default=5.0, gt=0, le=300)
+    """A message begun must be complete within this, s; else its connection is closed (58 B + at most
+    64 KiB on loopback or a LAN takes milliseconds; 5 s forgives a congested link, frees a slot soon)."""
+    # Per-client delivery.
+    poll_period_s: float = Field(default=0.01, gt=0, le=1)
+    """How often new joint samples are looked for, s: 100 Hz, twice the 50 Hz VAL3 rate."""
+    joint_max_age_s: float = Field(default=0.25, gt=0, le=60)
+    """A joint sample older than this makes ToolToImage INVALID even if the link says OK, s (12
+    samples at the 50 Hz VAL3 rate)."""
+    client_queue_max: int = Field(default=64, ge=1, le=4096)
+    """Messages queued per client; when full the oldest is dropped."""
+    client_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
     """Transport write-buffer high-water mark per client, bytes."""
-    socket_send_buffer_bytes: int = Field(
-        default=_igtl.SOCKET_SEND_BUFFER_BYTES, ge=1024, le=64 * 1024 * 1024
-    )
-    """SO_SNDBUF of each accepted socket, bytes."""
-    slow_client_timeout_s: float = Field(default=_igtl.SLOW_CLIENT_TIMEOUT_S, gt=0, le=300)
+    socket_send_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
+    """SO_SNDBUF of each accepted socket, bytes: bounds what a stalled client can pile up in the kernel
+    (and so how fast it is detected) instead of Linux's autotuning up to 4 MiB."""
+    slow_client_timeout_s: float = Field(default=2.0, gt=0, le=300)
     """A client whose socket accepts nothing for this long is disconnected, s."""
     send_invalid_transforms_v2: bool = False
     """Send an INVALID device's TRANSFORM (identity, ``TransformStatus=INVALID``) to header-version-2

@@ -173,24 +173,8 @@ class IgtlStateSource:
 
 
 # --------------------------------------------------------------------------- config
-
-STATUS_MAX_BODY_BYTES = 4096
-"""A client's STATUS: 30 bytes + its status string (+ 12 + metadata in version 2).  SlicerOpenIGTLink's
-version-2 announcement is 44 bytes; 4 KiB leaves room for a PLUS-style error text."""
-QUERY_MAX_BODY_BYTES = 1024
-"""GET_/STT_/STP_/RTS_ queries: no content in version 1, 12 + a few metadata pairs in version 2."""
-OTHER_MAX_BODY_BYTES = 64 * 1024
-"""Anything else a client may push (read and ignored): TRANSFORM 48 B, POINT 136 B a point, a
-STRING at most 64 KiB (uint16 length) — not images."""
-BODY_LIMIT_MAX_BYTES = 1024 * 1024
-"""No per-type limit may exceed 1 MiB: its CRC (crcmod's C code, ~290 MB/s) stays under ~4 ms."""
-MAX_CLIENTS = 32
-"""Navigation workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and
-bounds the descriptors the listener can hold (:func:`service.settings.descriptor_budget` sums the
-listeners' maxima against RLIMIT_NOFILE)."""
-STALL_TIMEOUT_S = 5.0
-"""A started message must be complete within this (58 + at most 64 KiB on loopback or a LAN takes
-milliseconds; 5 s forgives a congested link, and frees a slot soon)."""
+# Every limit and period is an ``[igtl]`` setting (:class:`service.settings.IgtlSettings`: the
+# defaults and their origin are there).
 
 CAPABILITY_TYPES: tuple[str, ...] = (
     "TRANSFORM", "POINT", "STATUS", "CAPABILITY",
@@ -200,21 +184,6 @@ CAPABILITY_TYPES: tuple[str, ...] = (
 
 _QUERY_PREFIXES = ("GET_", "STT_", "STP_", "RTS_")
 
-
-POLL_PERIOD_S = 0.01
-"""How often new joint samples are looked for: 100 Hz, twice the 50 Hz VAL3 rate."""
-JOINT_MAX_AGE_S = 0.25
-"""A joint sample older than this makes ToolToImage INVALID even if the link says OK (12 samples at
-the 50 Hz VAL3 rate)."""
-CLIENT_QUEUE_MAX = 64
-"""Messages queued per client; when full the oldest is dropped."""
-CLIENT_BUFFER_BYTES = 64 * 1024
-"""Transport write-buffer high-water mark per client."""
-SOCKET_SEND_BUFFER_BYTES = 64 * 1024
-"""SO_SNDBUF of each accepted socket: bounds what a stalled client can pile up in the kernel (and so
-how fast it is detected) instead of Linux's autotuning up to 4 MiB."""
-SLOW_CLIENT_TIMEOUT_S = 2.0
-"""A client whose socket accepts nothing for this long is disconnected."""
 
 REGISTRATION_DEVICE = "RobotToImage"
 TOOL_DEVICE = "ToolToImage"
