@@ -134,7 +134,9 @@ def serving_settings(settings: DicomSettings) -> DicomSettings:
     try:
         return type(settings).model_validate({**settings.model_dump(), "enabled": True})
     except ValidationError as e:
-        raise DicomScpConfigError("; ".join(str(err["msg"]) for err in e.errors())) from None
+        raise DicomScpConfigError(
+            "; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
+        ) from None
 
 
 @dataclass(frozen=True)

@@ -200,7 +200,9 @@ def serving_settings(settings: IgtlSettings) -> IgtlSettings:
     try:
         return type(settings).model_validate({**settings.model_dump(), "enabled": True})
     except ValidationError as e:
-        raise IgtlConfigError("; ".join(str(err["msg"]) for err in e.errors())) from None
+        raise IgtlConfigError(
+            "; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
+        ) from None
 
 
 def max_body_bytes(settings: IgtlSettings, msg_type: str) -> int:
