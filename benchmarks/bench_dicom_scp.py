@@ -23,7 +23,8 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from service.dicom_scp import DicomScpConfig, StorageScp
+from service.dicom_scp import StorageScp
+from service.settings import DicomSettings
 
 
 def write_series(folder: Path, n: int, size: int = 512) -> int:
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         rates = []
         for run in range(args.runs):
             intake = Path(tmp) / f"intake{run}"
-            with StorageScp(DicomScpConfig(port=0), intake) as scp:
+            with StorageScp(DicomSettings(port=0), intake) as scp:
                 t0 = time.perf_counter()
                 send(src, scp.port)
                 dt = time.perf_counter() - t0

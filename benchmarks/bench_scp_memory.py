@@ -24,7 +24,8 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from service.dicom_scp import DicomScpConfig, StorageScp
+from service.dicom_scp import StorageScp
+from service.settings import DicomSettings
 
 
 def write_instance(path: Path, mb: int, series: str, k: int) -> int:
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         series = generate_uid()
         files = [out / f"CT{k}.dcm" for k in range(a.associations)]
         total = sum(write_instance(f, a.mb, series, k) for k, f in enumerate(files))
-        scp = StorageScp(DicomScpConfig(port=0, allowed_calling_ae_titles=("BENCH",)), intake)
+        scp = StorageScp(DicomSettings(port=0, allowed_calling_ae_titles=("BENCH",)), intake)
         scp.start()
         try:
             Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM to the current RSS

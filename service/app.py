@@ -24,6 +24,8 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Coroutine
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
@@ -39,7 +41,7 @@ from service.capture import Capture
 from service.context import ServiceContext, ServiceInputs
 from service.data_dir import hold_serve_lock, make_private
 from service.event_bus import EventBus, Subscriptions
-from service.events import RegistrationDone, RegistrationRefused, RegistrationWithdrawn, ScanArrived
+from service.events import Publish, RegistrationDone, RegistrationRefused, RegistrationWithdrawn, ScanArrived
 from service.igtl.publisher import IgtlPublisher
 from service.intake import Intake
 from service.intake_scp import INTAKE_FOLDER, CStoreIntake
@@ -172,14 +174,71 @@ async def _start(
     pushed or auto-registered.
     """
     settings, bus = inputs.settings, inputs.bus
-    publish = bus.publish
     bus.bind(asyncio.get_running_loop())
+    db = _open_database(settings, stack)
+    core = await _start_core(inputs, db, stack)
+    outputs = await _start_outputs(inputs, core, stack)
+    watcher = _start_watcher(settings, core, stack) if start_watcher else None
+    cstore = await _start_cstore(settings, core, stack, bus.publish)
+    stack.callback(outputs.subs.close)  # at shutdown, before the intakes stop (see the docstring)
+    stack.callback(bus.close)  # first of all: end the SSE streams
+
+    ctx = ServiceContext(
+        settings=settings, bus=bus, phantom=inputs.phantom, robot_model=inputs.robot_model,
+        robot_link=inputs.robot_link, volumes=inputs.volumes, tickets=inputs.tickets,
+        started_at=inputs.started_at, db=db, capture=core.capture, orchestrator=core.orchestrator,
+        calibrations=core.calibrations, watcher=watcher, cstore=cstore, igtl=outputs.igtl,
+        pacs=outputs.pacs, auto_register=outputs.auto_register,
+    )  # fmt: skip
+    if settings.api.auth == "none-loopback-only":
+        log.warning(
+            "authentication is OFF (api.auth = 'none-loopback-only'): any local process or user can change "
+            "the current registration; set api_token and api.auth = 'token' for clinical use"
+        )
+    _task(stack, _retention_loop(ctx), "oarmreg-retention")
+    log.info("oarmreg %s: %s", __version__, startup_line(ctx))
+    return ctx
+
+
+@dataclass(frozen=True)
+class _Core:
+    """What every service runs: the database and what records scans and registrations in it."""
+
+    db: Database
+    orchestrator: Orchestrator
+    calibrations: CalibrationJobs
+    lifecycle: ScanLifecycle
+    capture: Capture
+    intake: Intake
+    intake_dir: Path
+
+
+@dataclass(frozen=True)
+class _Outputs:
+    """The bus listeners: auto-registration and the operating-room outputs (each optional)."""
+
+    subs: Subscriptions
+    auto_register: AutoRegister | None
+    igtl: IgtlPublisher | None
+    pacs: PacsExporter | None
+
+
+def _open_database(settings: Settings, stack: contextlib.AsyncExitStack) -> Database:
+    """The private data folder, its serve lock (a second serve on it: exit 3) and the database,
+    watched for integrity."""
     make_private(settings.data_dir)  # umask 077, folder 0700, files 0600
-    serve_lock = hold_serve_lock(settings.data_dir)  # a second serve on this folder: exit 3
+    serve_lock = hold_serve_lock(settings.data_dir)
     stack.callback(serve_lock.close)
     db = Database.open(settings.db_path)
     stack.callback(db.close)
     _task(stack, _watch_database(db, settings.database.integrity_check_interval_s), "oarmreg-db-watch")
+    return db
+
+
+async def _start_core(inputs: ServiceInputs, db: Database, stack: contextlib.AsyncExitStack) -> _Core:
+    """The orchestrator and calibration jobs, scan-change recovery after a crash, the joint capture
+    and the intake that records scans."""
+    settings, publish = inputs.settings, inputs.bus.publish
     orchestrator = Orchestrator(
         settings, db, inputs.phantom, inputs.robot_model, publish, volumes=inputs.volumes
     )
@@ -199,19 +258,24 @@ async def _start(
     intake = Intake(
         db, capture, inputs.volumes, publish, withdraw=orchestrator.withdraw_scan, lifecycle=lifecycle
     )
+    return _Core(db, orchestrator, calibrations, lifecycle, capture, intake, intake_dir)
 
-    subs = Subscriptions(bus)
+
+async def _start_outputs(inputs: ServiceInputs, core: _Core, stack: contextlib.AsyncExitStack) -> _Outputs:
+    """Auto-registration, the OpenIGTLink server and the PACS export, each bound to the bus."""
+    settings, publish = inputs.settings, inputs.bus.publish
+    subs = Subscriptions(inputs.bus)
     stack.callback(subs.close)
     auto_register: AutoRegister | None = None
     if settings.service.auto_register:
-        auto_register = AutoRegister(orchestrator)
+        auto_register = AutoRegister(core.orchestrator)
         await auto_register.start()
         stack.push_async_callback(auto_register.stop)
         subs.listen(ScanArrived, auto_register.on_scan_arrived)
     igtl: IgtlPublisher | None = None
     if settings.igtl.enabled:
         igtl = IgtlPublisher(
-            settings.igtl, orchestrator, capture, inputs.robot_link, inputs.robot_model, publish
+            settings.igtl, core.orchestrator, core.capture, inputs.robot_link, inputs.robot_model, publish
         )
         await igtl.start()
         stack.push_async_callback(igtl.stop)
@@ -221,49 +285,41 @@ async def _start(
         subs.listen(RegistrationWithdrawn, igtl.on_registration_withdrawn, safety=True)
     pacs: PacsExporter | None = None
     if settings.pacs.enabled:
-        pacs = PacsExporter(db, settings.pacs, settings.data_dir, publish)
+        pacs = PacsExporter(core.db, settings.pacs, settings.data_dir, publish)
         await asyncio.to_thread(pacs.start)
         stack.push_async_callback(asyncio.to_thread, pacs.stop)
         subs.listen(RegistrationDone, pacs.on_registration_done)
+    return _Outputs(subs, auto_register, igtl, pacs)
 
-    watcher: SeriesWatcher | None = None
-    if start_watcher:
-        w = settings.watcher
-        watcher = SeriesWatcher(
-            settings.watch_dir,
-            on_series=intake,
-            is_known=db.scans.has_complete,
-            recorded_slices=db.scans.recorded_slices,
-            recorded_content=db.scans.recorded_content,
-            quiet_period_s=w.quiet_period_s,
-            poll_interval_s=w.poll_interval_s,
-            use_polling_only=w.use_polling_only,
-        )
-        watcher.start()
-        stack.push_async_callback(asyncio.to_thread, watcher.stop)
-    cstore: CStoreIntake | None = None
-    if settings.dicom.enabled:
-        cstore = CStoreIntake(settings.dicom, intake_dir, db, intake, lifecycle, publish)
-        await cstore.start()
-        stack.push_async_callback(cstore.stop)
-    stack.callback(subs.close)  # at shutdown, before the intakes stop (see the docstring)
-    stack.callback(bus.close)  # first of all: end the SSE streams
 
-    ctx = ServiceContext(
-        settings=settings, bus=bus, phantom=inputs.phantom, robot_model=inputs.robot_model,
-        robot_link=inputs.robot_link, volumes=inputs.volumes, tickets=inputs.tickets,
-        started_at=inputs.started_at, db=db, capture=capture, orchestrator=orchestrator,
-        calibrations=calibrations, watcher=watcher, cstore=cstore, igtl=igtl, pacs=pacs,
-        auto_register=auto_register,
-    )  # fmt: skip
-    if settings.api.auth == "none-loopback-only":
-        log.warning(
-            "authentication is OFF (api.auth = 'none-loopback-only'): any local process or user can change "
-            "the current registration; set api_token and api.auth = 'token' for clinical use"
-        )
-    _task(stack, _retention_loop(ctx), "oarmreg-retention")
-    log.info("oarmreg %s: %s", __version__, startup_line(ctx))
-    return ctx
+def _start_watcher(settings: Settings, core: _Core, stack: contextlib.AsyncExitStack) -> SeriesWatcher:
+    """The folder watcher feeding the intake."""
+    w, db = settings.watcher, core.db
+    watcher = SeriesWatcher(
+        settings.watch_dir,
+        on_series=core.intake,
+        is_known=db.scans.has_complete,
+        recorded_slices=db.scans.recorded_slices,
+        recorded_content=db.scans.recorded_content,
+        quiet_period_s=w.quiet_period_s,
+        poll_interval_s=w.poll_interval_s,
+        use_polling_only=w.use_polling_only,
+    )
+    watcher.start()
+    stack.push_async_callback(asyncio.to_thread, watcher.stop)
+    return watcher
+
+
+async def _start_cstore(
+    settings: Settings, core: _Core, stack: contextlib.AsyncExitStack, publish: Publish
+) -> CStoreIntake | None:
+    """The DICOM Storage SCP feeding the intake, when ``[dicom] enabled``."""
+    if not settings.dicom.enabled:
+        return None
+    cstore = CStoreIntake(settings.dicom, core.intake_dir, core.db, core.intake, core.lifecycle, publish)
+    await cstore.start()
+    stack.push_async_callback(cstore.stop)
+    return cstore
 
 
 def _task(stack: contextlib.AsyncExitStack, coro: Coroutine[Any, Any, None], name: str) -> None:

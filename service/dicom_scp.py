@@ -55,7 +55,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from pydicom.uid import (
     UID,
@@ -74,8 +74,11 @@ from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAsso
 from pynetdicom.utils import make_target
 
 from registration.errors import ConfigError
-from service.netaddr import Network, in_networks, is_loopback, parse_networks
+from service.netaddr import in_networks, parse_networks
 from service.scan_lifecycle import OfferTally
+
+if TYPE_CHECKING:
+    from service.settings import DicomSettings
 
 log = logging.getLogger(__name__)
 
@@ -122,67 +125,18 @@ class DicomScpConfigError(ConfigError):
     title = "Invalid DICOM SCP configuration"
 
 
-def _default(name: str) -> Any:
-    """A ``[dicom]`` setting's default (:class:`service.settings.DicomSettings`: one source of truth)."""
-    from service.settings import DicomSettings
+def serving_settings(settings: DicomSettings) -> DicomSettings:
+    """``[dicom]`` as a listening SCP needs it: validated by :class:`service.settings.DicomSettings`
+    as an enabled section (its allow-list rule applies to any SCP that listens), raising
+    :class:`DicomScpConfigError` with the settings' own message."""
+    from pydantic import ValidationError
 
-    return DicomSettings.model_fields[name].default
-
-
-@dataclass(frozen=True)
-class DicomScpConfig:
-    enabled: bool = False
-    host: str = "127.0.0.1"
-    ae_title: str = "OARMREG"
-    port: int = 11112
-    allowed_calling_ae_titles: tuple[str, ...] = ()
-    """Calling AE titles accepted (empty: any)."""
-    allowed_peer_addresses: tuple[str, ...] = ()
-    """Peer IP addresses or networks (CIDR) accepted (empty: any that can reach the bind)."""
-    acse_timeout_s: float = _default("acse_timeout_s")
-    """Association negotiation / release (pynetdicom's ARTIM timer; its default is 30 s)."""
-    dimse_timeout_s: float = _default("dimse_timeout_s")
-    """Between DIMSE messages of an established association (pynetdicom's default)."""
-    network_timeout_s: float = _default("network_timeout_s")
-    """An established association with no traffic at all is aborted (pynetdicom's default)."""
-    socket_timeout_s: float = _default("socket_timeout_s")
-    """Per accepted connection: a ``recv`` / ``send`` that makes no progress for this long drops the
-    peer (a half-sent PDU otherwise blocks its thread and slot forever)."""
-    maximum_associations: int = _default("maximum_associations")
-    """Concurrent associations (pynetdicom's default); one more is rejected "local limit exceeded"."""
-    max_instance_mb: float = _default("max_instance_mb")
-    """Largest instance accepted; larger ones are answered 0xA700 (received to a temp file, never held
-    in memory)."""
-
-    def __post_init__(self) -> None:
-        if not (0 < len(self.ae_title) <= 16 and self.ae_title.isascii() and self.ae_title.strip()):
-            raise DicomScpConfigError(f"dicom.ae_title must be 1–16 ASCII characters, got {self.ae_title!r}")
-        if not 0 <= self.port <= 65535:
-            raise DicomScpConfigError(f"dicom.port must be 0–65535, got {self.port}")
-        for name in ("acse_timeout_s", "dimse_timeout_s", "network_timeout_s", "socket_timeout_s"):
-            if not 0 < float(getattr(self, name)) <= 3600:
-                raise DicomScpConfigError(f"dicom.{name} must be in (0, 3600] s, got {getattr(self, name)}")
-        if not 1 <= self.maximum_associations <= 1000:
-            raise DicomScpConfigError(
-                f"dicom.maximum_associations must be 1–1000, got {self.maximum_associations}"
-            )
-        if not 0 < self.max_instance_mb <= 65536:
-            raise DicomScpConfigError(
-                f"dicom.max_instance_mb must be in (0, 65536], got {self.max_instance_mb}"
-            )
-        self.networks()
-        if not is_loopback(self.host) and not (self.allowed_calling_ae_titles or self.allowed_peer_addresses):
-            raise DicomScpConfigError(
-                f"refusing to accept DICOM on {self.host!r} with both allow-lists empty: set "
-                "dicom.allowed_calling_ae_titles (the O-arm's AE title) and/or "
-                "dicom.allowed_peer_addresses, or bind 127.0.0.1"
-            )
-
-    def networks(self) -> tuple[Network, ...]:
-        try:
-            return parse_networks(self.allowed_peer_addresses, "dicom.allowed_peer_addresses")
-        except ValueError as e:
-            raise DicomScpConfigError(str(e)) from None
+    try:
+        return type(settings).model_validate({**settings.model_dump(), "enabled": True})
+    except ValidationError as e:
+        raise DicomScpConfigError(
+            "; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -404,7 +358,8 @@ class StorageScp:
 
     Parameters
     ----------
-    config : DicomScpConfig
+    config : DicomSettings
+        The ``[dicom]`` section (validated again as an enabled one: see :func:`serving_settings`).
     intake_dir : Path
         Root of ``<Study>/<Series>/<SOP>.dcm``; created if missing.
     callbacks : ScpCallbacks
@@ -414,19 +369,19 @@ class StorageScp:
 
     def __init__(
         self,
-        config: DicomScpConfig,
+        config: DicomSettings,
         intake_dir: Path,
         callbacks: ScpCallbacks | None = None,
         *,
         write: Writer = os.write,
     ) -> None:
-        self.config = config
+        self.config = config = serving_settings(config)
         self.intake_dir = Path(intake_dir)
         self.write_failure: str | None = None
         """Why the last instance could not be written (ENOSPC, EIO…); None once one is stored again."""
         self.callbacks = callbacks or ScpCallbacks()
         self._write = write
-        self._networks = config.networks()
+        self._networks = parse_networks(config.allowed_peer_addresses, "dicom.allowed_peer_addresses")
         self._allowed_aets = {a.strip() for a in config.allowed_calling_ae_titles}
         self._lock = threading.Lock()
         self._assocs: dict[int, _AssocState] = {}

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from registration.errors import OarmRegError
-from service.dicom_scp import DicomScpConfig, ScpCallbacks, ScpRefusal, StorageScp
+from service.dicom_scp import ScpCallbacks, ScpRefusal, StorageScp
 from service.events import (
     DicomAssociationAborted,
     DicomAssociationReleased,
@@ -57,18 +57,6 @@ INTAKE_FOLDER = "dicom-intake"
 DECODE_WORKERS = 2
 """Threads decoding C-STORE instances as they arrive (one per core of the 2-core reference machine:
 under load one fell behind the SCU, so release waited for its backlog)."""
-
-
-def scp_config(d: DicomSettings) -> DicomScpConfig:
-    """The SCP's configuration from ``[dicom]``."""
-    return DicomScpConfig(
-        enabled=True, host=d.host, ae_title=d.ae_title, port=d.port,
-        allowed_calling_ae_titles=d.allowed_calling_ae_titles,
-        allowed_peer_addresses=d.allowed_peer_addresses,
-        acse_timeout_s=d.acse_timeout_s, dimse_timeout_s=d.dimse_timeout_s,
-        network_timeout_s=d.network_timeout_s, socket_timeout_s=d.socket_timeout_s,
-        maximum_associations=d.maximum_associations, max_instance_mb=d.max_instance_mb,
-    )  # fmt: skip
 
 
 class CStoreIntake:
@@ -104,7 +92,7 @@ class CStoreIntake:
             on_refused=self._hop(self._on_refused),
             on_instance_stored=self._on_instance_stored,
         )
-        self.scp = StorageScp(scp_config(settings), intake_dir, callbacks)
+        self.scp = StorageScp(settings, intake_dir, callbacks)
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()

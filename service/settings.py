@@ -46,13 +46,13 @@ from pydantic_settings import (
 )
 
 import registration.calibration.targets as _cal_targets
+from registration.detection.estimators import METHODS
 from registration.errors import ConfigError
 from registration.io.resources import default_phantom
 from registration.matching.records import (
     RegistrationParams,
 )
 from registration.model.stillness import DEFAULT_MAX_DEVIATION_RAD, DEFAULT_MAX_GAP_S
-from service.igtl import server as _igtl
 from service.netaddr import is_loopback
 
 _REG_DEFAULTS = RegistrationParams()
@@ -192,12 +192,27 @@ class RetentionSettings(_Section):
     interval_s: float = Field(default=3600.0, ge=1, le=86400)
 
 
+DETECTION_METHODS: tuple[str, ...] = ("default", *METHODS)
+"""``detection.method``: ``default`` (the phantom material's estimator) or a name from the estimator
+table (:data:`registration.detection.estimators.METHODS`)."""
+
+
 class DetectionSettings(_Section):
     # "default": the centre estimator for the phantom's sphere material
     # (registration.detection.METHOD_FOR_MATERIAL: "core" for tungsten carbide, "rays" for steel,
     # else "subvoxel").
-    method: Literal["default", "subvoxel", "paper", "core", "rays"] = "default"
+    # Any other name: one of registration.detection.estimators.METHODS (the estimator table).
+    method: str = "default"
     use_mar: bool = True
+
+    @field_validator("method")
+    @classmethod
+    def _known_method(cls, v: str) -> str:
+        if v not in DETECTION_METHODS:
+            raise ValueError(
+                f"detection.method {v!r} is not a centre estimator: use one of {', '.join(DETECTION_METHODS)}"
+            )
+        return v
 
 
 AUTH_MODES = ("token", "none-loopback-only")
@@ -283,7 +298,7 @@ class DicomSettings(_Section):
     port: int = Field(default=11112, ge=0, le=65535)
     allowed_calling_ae_titles: tuple[str, ...] = ()
     allowed_peer_addresses: tuple[str, ...] = ()
-    # --- bounds; service.dicom_scp.DicomScpConfig takes its defaults from here
+    # --- bounds (service.dicom_scp.StorageScp reads them from here)
     # association negotiation / release, s (pynetdicom's ARTIM timer; its default 30 s let 30 silent
     # sockets hold every slot for ~30 s)
     acse_timeout_s: float = Field(default=10.0, gt=0, le=3600)
@@ -304,6 +319,13 @@ class DicomSettings(_Section):
     def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
         return _check_networks(v)
 
+    @field_validator("ae_title")
+    @classmethod
+    def _ae_title(cls, v: str) -> str:
+        if not (v.isascii() and v.strip()):
+            raise ValueError(f"dicom.ae_title must be 1–16 ASCII characters, not all spaces, got {v!r}")
+        return v
+
     @model_validator(mode="after")
     def _allow_lists(self) -> DicomSettings:
         if (
@@ -319,6 +341,11 @@ class DicomSettings(_Section):
         return self
 
 
+IGTL_BODY_LIMIT_MAX_BYTES = 1024 * 1024
+"""No OpenIGTLink per-type body limit may exceed 1 MiB: its CRC (crcmod's C code, ~290 MB/s) stays
+under ~4 ms."""
+
+
 class IgtlSettings(_Section):
     """OpenIGTLink server (``RobotToImage``, ``ToolToImage``), :mod:`service.igtl.server`."""
 
@@ -328,25 +355,40 @@ class IgtlSettings(_Section):
     allowed_peer_addresses: tuple[str, ...] = ()
     period_s: float = Field(default=1.0, gt=0, le=60)
     tool0_from_tcp: Tool0FromTcp = Tool0FromTcp()
-    # Listener limits (docs/security.md, "OpenIGTLink listener limits"); the defaults and their
-    # origin are in service/igtl/server.py.
-    max_clients: int = Field(default=_igtl.MAX_CLIENTS, ge=1, le=1024)
-    """Connections held at once; more are closed at once and counted (``refused_full``); counted in
-    the descriptor budget (:func:`descriptor_budget`)."""
-    status_max_body_bytes: int = Field(
-        default=_igtl.STATUS_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
-    )
-    """Largest STATUS body a client may send; a larger BODY_SIZE closes its connection unread."""
-    query_max_body_bytes: int = Field(
-        default=_igtl.QUERY_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
-    )
-    """Largest GET_/STT_/STP_/RTS_ body."""
-    other_max_body_bytes: int = Field(
-        default=_igtl.OTHER_MAX_BODY_BYTES, ge=64, le=_igtl.BODY_LIMIT_MAX_BYTES
-    )
-    """Largest body of any other type (read and ignored)."""
-    stall_timeout_s: float = Field(default=_igtl.STALL_TIMEOUT_S, gt=0, le=300)
-    """A message begun must be complete within this; else its connection is closed."""
+    # Listener limits (docs/security.md, "OpenIGTLink listener limits").
+    max_clients: int = Field(default=32, ge=1, le=1024)
+    """Connections held at once; more are closed at once and counted (``refused_full``).  Navigation
+    workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and bounds the
+    descriptors the listener can hold (:func:`descriptor_budget` sums the listeners' maxima against
+    RLIMIT_NOFILE)."""
+    status_max_body_bytes: int = Field(default=4096, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
+    """Largest STATUS body a client may send, bytes; a larger BODY_SIZE closes its connection unread.
+    A STATUS is 30 bytes + its status string (+ 12 + metadata in version 2); SlicerOpenIGTLink's
+    version-2 announcement is 44 bytes; 4 KiB leaves room for a PLUS-style error text."""
+    query_max_body_bytes: int = Field(default=1024, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
+    """Largest GET_/STT_/STP_/RTS_ body, bytes: no content in version 1, 12 + a few metadata pairs in
+    version 2."""
+    other_max_body_bytes: int = Field(default=64 * 1024, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
+    """Largest body of any other type (read and ignored), bytes: TRANSFORM 48 B, POINT 136 B a point,
+    a STRING at most 64 KiB (uint16 length) — not images."""
+    stall_timeout_s: float = Field(default=5.0, gt=0, le=300)
+    """A message begun must be complete within this, s; else its connection is closed (58 B + at most
+    64 KiB on loopback or a LAN takes milliseconds; 5 s forgives a congested link, frees a slot soon)."""
+    # Per-client delivery.
+    poll_period_s: float = Field(default=0.01, gt=0, le=1)
+    """How often new joint samples are looked for, s: 100 Hz, twice the 50 Hz VAL3 rate."""
+    joint_max_age_s: float = Field(default=0.25, gt=0, le=60)
+    """A joint sample older than this makes ToolToImage INVALID even if the link says OK, s (12
+    samples at the 50 Hz VAL3 rate)."""
+    client_queue_max: int = Field(default=64, ge=1, le=4096)
+    """Messages queued per client; when full the oldest is dropped."""
+    client_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
+    """Transport write-buffer high-water mark per client, bytes."""
+    socket_send_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
+    """SO_SNDBUF of each accepted socket, bytes: bounds what a stalled client can pile up in the kernel
+    (and so how fast it is detected) instead of Linux's autotuning up to 4 MiB."""
+    slow_client_timeout_s: float = Field(default=2.0, gt=0, le=300)
+    """A client whose socket accepts nothing for this long is disconnected, s."""
     send_invalid_transforms_v2: bool = False
     """Send an INVALID device's TRANSFORM (identity, ``TransformStatus=INVALID``) to header-version-2
     clients besides its STATUS; version-1 clients never get one (PLUS: SendValidTransformsOnly)."""

@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from registration.detection.estimators import METHODS
 from registration.io.resources import default_phantom
 from service.commands.argtypes import output_file, positive_float
 
@@ -40,13 +41,13 @@ def add_method_argument(parser: argparse.ArgumentParser) -> None:
     """``--method``, the same for every command that detects: an override of the estimator only."""
     parser.add_argument(
         "--method",
-        choices=("subvoxel", "paper", "core", "rays"),
+        choices=METHODS,
         default=None,
         help="centre estimator instead of the phantom material's (registration.detection."
         "METHOD_FOR_MATERIAL), keeping the material's other detection settings: subvoxel (3-D "
-        "intensity-weighted centroid), paper (per-slice Pythagorean depth, Bai 2018), core (saturated "
-        "core of an opaque sphere: tungsten carbide) or rays (outline of a streaked sphere: steel, "
-        "titanium)",
+        "intensity-weighted centroid), paper (per-slice Pythagorean depth, Bai 2018), model (a blurred, "
+        "saturated ball fitted to the raw voxels), core (saturated core of an opaque sphere: tungsten "
+        "carbide) or rays (outline of a streaked sphere: steel, titanium)",
     )
 
 

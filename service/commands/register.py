@@ -111,8 +111,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help="service TOML settings file: its [quality] gates and default_target_distance_mm, as the "
-        "service uses them (default: the built-in defaults and OARMREG_* environment)",
+        help="service TOML settings file: its [quality] gates and default_target_distance_mm and its "
+        "[detection] method and use_mar, as the service uses them; flags override it (default: the "
+        "built-in defaults and OARMREG_* environment)",
     )
     parser.add_argument("--max-fre-mm", type=positive_float, help="override the FRE gate (mm, > 0)")
     parser.add_argument(
@@ -157,8 +158,12 @@ def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timi
     from registration.detection import detect_spheres
     from registration.dicom import load_series
     from service.commands.detect import detection_params_for_phantom
+    from service.settings import load_settings
 
-    dparams = detection_params_for_phantom(args.phantom, method=args.method)
+    # [detection] from the TOML the service reads (defaults < file < OARMREG_* < --method)
+    ds = load_settings(args.config).detection
+    method = args.method if args.method is not None else (None if ds.method == "default" else ds.method)
+    dparams = detection_params_for_phantom(args.phantom, method=method, use_mar=ds.use_mar)
     t0 = time.perf_counter()
     volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     timings["load_s"] = time.perf_counter() - t0

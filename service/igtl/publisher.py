@@ -30,7 +30,6 @@ from service.events import (
 from service.igtl.server import (
     F64,
     IgtlServer,
-    IgtlServerConfig,
     IgtlStateSource,
     JointView,
     Refusal,
@@ -81,19 +80,7 @@ class IgtlPublisher:
             robot_from_tool0=robot_model.robot_from_tool0,
             tool0_from_tcp=settings.tool0_from_tcp.matrix(),
         )
-        cfg = IgtlServerConfig(
-            host=settings.host,
-            port=settings.port,
-            allowed_peer_addresses=settings.allowed_peer_addresses,
-            period_s=settings.period_s,
-            max_clients=settings.max_clients,
-            status_max_body_bytes=settings.status_max_body_bytes,
-            query_max_body_bytes=settings.query_max_body_bytes,
-            other_max_body_bytes=settings.other_max_body_bytes,
-            stall_timeout_s=settings.stall_timeout_s,
-            send_invalid_transforms_v2=settings.send_invalid_transforms_v2,
-        )
-        self.server = IgtlServer(cfg, source, on_client=self._on_client)
+        self.server = IgtlServer(settings, source, on_client=self._on_client)
 
     async def start(self) -> None:
         await self.server.start()

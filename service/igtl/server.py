@@ -73,13 +73,17 @@ import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from registration.errors import ConfigError
 from service.igtl import wire
-from service.netaddr import Network, in_networks, is_loopback, parse_networks
+from service.netaddr import in_networks, is_loopback, parse_networks
+
+if TYPE_CHECKING:
+    from service.settings import IgtlSettings
 
 log = logging.getLogger(__name__)
 
@@ -169,24 +173,8 @@ class IgtlStateSource:
 
 
 # --------------------------------------------------------------------------- config
-
-STATUS_MAX_BODY_BYTES = 4096
-"""A client's STATUS: 30 bytes + its status string (+ 12 + metadata in version 2).  SlicerOpenIGTLink's
-version-2 announcement is 44 bytes; 4 KiB leaves room for a PLUS-style error text."""
-QUERY_MAX_BODY_BYTES = 1024
-"""GET_/STT_/STP_/RTS_ queries: no content in version 1, 12 + a few metadata pairs in version 2."""
-OTHER_MAX_BODY_BYTES = 64 * 1024
-"""Anything else a client may push (read and ignored): TRANSFORM 48 B, POINT 136 B a point, a
-STRING at most 64 KiB (uint16 length) — not images."""
-BODY_LIMIT_MAX_BYTES = 1024 * 1024
-"""No per-type limit may exceed 1 MiB: its CRC (crcmod's C code, ~290 MB/s) stays under ~4 ms."""
-MAX_CLIENTS = 32
-"""Navigation workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and
-bounds the descriptors the listener can hold (:func:`service.settings.descriptor_budget` sums the
-listeners' maxima against RLIMIT_NOFILE)."""
-STALL_TIMEOUT_S = 5.0
-"""A started message must be complete within this (58 + at most 64 KiB on loopback or a LAN takes
-milliseconds; 5 s forgives a congested link, and frees a slot soon)."""
+# Every limit and period is an ``[igtl]`` setting (:class:`service.settings.IgtlSettings`: the
+# defaults and their origin are there).
 
 CAPABILITY_TYPES: tuple[str, ...] = (
     "TRANSFORM", "POINT", "STATUS", "CAPABILITY",
@@ -197,86 +185,33 @@ CAPABILITY_TYPES: tuple[str, ...] = (
 _QUERY_PREFIXES = ("GET_", "STT_", "STP_", "RTS_")
 
 
-@dataclass(frozen=True)
-class IgtlServerConfig:
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-    allowed_peer_addresses: tuple[str, ...] = ()
-    """IP addresses or networks (CIDR) allowed to connect; required off loopback."""
-    period_s: float = 1.0
-    """Periodic re-send of both devices (research §3.3: late joiners get nothing otherwise)."""
-    poll_period_s: float = 0.01
-    """How often new joint samples are looked for: 100 Hz, twice the 50 Hz VAL3 rate."""
-    joint_max_age_s: float = 0.25
-    """A joint sample older than this makes ToolToImage INVALID even if the link says OK."""
-    client_queue_max: int = 64
-    client_buffer_bytes: int = 64 * 1024
-    """Transport write-buffer high-water mark per client."""
-    socket_send_buffer_bytes: int = 64 * 1024
-    """SO_SNDBUF of each accepted socket: bounds what a stalled client can pile up in the
-    kernel (and so how fast it is detected) instead of Linux's autotuning up to 4 MiB."""
-    slow_client_timeout_s: float = 2.0
-    """A client whose socket accepts nothing for this long is disconnected."""
-    registration_device: str = "RobotToImage"
-    tool_device: str = "ToolToImage"
-    points_device: str = "PhantomSpheres"
-    max_clients: int = MAX_CLIENTS
-    status_max_body_bytes: int = STATUS_MAX_BODY_BYTES
-    query_max_body_bytes: int = QUERY_MAX_BODY_BYTES
-    other_max_body_bytes: int = OTHER_MAX_BODY_BYTES
-    stall_timeout_s: float = STALL_TIMEOUT_S
-    send_invalid_transforms_v2: bool = False
-    """Also send an INVALID device's TRANSFORM (identity, ``TransformStatus=INVALID``) to version-2
-    clients; version-1 clients never get one."""
+REGISTRATION_DEVICE = "RobotToImage"
+TOOL_DEVICE = "ToolToImage"
+POINTS_DEVICE = "PhantomSpheres"
+TRANSFORM_DEVICES: tuple[str, str] = (REGISTRATION_DEVICE, TOOL_DEVICE)
 
-    def __post_init__(self) -> None:
-        timeouts: tuple[str, ...] = ("period_s", "poll_period_s", "joint_max_age_s", "slow_client_timeout_s")
-        timeouts += ("stall_timeout_s",)
-        for name in timeouts:
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise IgtlConfigError(f"igtl.{name} must be > 0 s, got {v}")
-        if self.client_queue_max < 1 or min(self.client_buffer_bytes, self.socket_send_buffer_bytes) < 1024:
-            raise IgtlConfigError(
-                "igtl.client_queue_max must be >= 1, client_buffer_bytes and socket_send_buffer_bytes >= 1024"
-            )
-        if self.max_clients < 1:
-            raise IgtlConfigError(f"igtl.max_clients must be >= 1, got {self.max_clients}")
-        for name in ("status_max_body_bytes", "query_max_body_bytes", "other_max_body_bytes"):
-            v = getattr(self, name)
-            if not wire.EXT_HEADER_SIZE + 30 <= v <= BODY_LIMIT_MAX_BYTES:
-                raise IgtlConfigError(
-                    f"igtl.{name} must be between {wire.EXT_HEADER_SIZE + 30} and {BODY_LIMIT_MAX_BYTES} "
-                    f"bytes, got {v}"
-                )
-        for dev in (self.registration_device, self.tool_device, self.points_device):
-            if not dev.isascii() or not 0 < len(dev) <= wire.DEVICE_NAME_SIZE:
-                raise IgtlConfigError(f"device name {dev!r} must be 1–20 ASCII bytes")
-        self.allowed_networks()  # validates the entries
-        if not is_loopback(self.host) and not self.allowed_peer_addresses:
-            raise IgtlConfigError(
-                f"refusing to serve OpenIGTLink on {self.host!r} without an allow-list: the protocol "
-                "has no authentication; set igtl.allowed_peer_addresses (e.g. ['10.0.0.12']) "
-                "or bind 127.0.0.1"
-            )
 
-    def allowed_networks(self) -> tuple[Network, ...]:
-        try:
-            return parse_networks(self.allowed_peer_addresses, "igtl.allowed_peer_addresses")
-        except ValueError as e:
-            raise IgtlConfigError(str(e)) from None
+def serving_settings(settings: IgtlSettings) -> IgtlSettings:
+    """``[igtl]`` as a running server needs it: validated by :class:`service.settings.IgtlSettings`
+    as an enabled section (its allow-list rule applies to any server that listens), raising
+    :class:`IgtlConfigError` with the settings' own message."""
+    from pydantic import ValidationError
 
-    def max_body_bytes(self, msg_type: str) -> int:
-        """The largest body accepted for a message of ``msg_type`` (module docstring)."""
-        if msg_type == "STATUS":
-            return self.status_max_body_bytes
-        if msg_type.startswith(_QUERY_PREFIXES):
-            return self.query_max_body_bytes
-        return self.other_max_body_bytes
+    try:
+        return type(settings).model_validate({**settings.model_dump(), "enabled": True})
+    except ValidationError as e:
+        raise IgtlConfigError(
+            "; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
+        ) from None
 
-    @property
-    def transform_devices(self) -> tuple[str, str]:
-        return (self.registration_device, self.tool_device)
+
+def max_body_bytes(settings: IgtlSettings, msg_type: str) -> int:
+    """The largest body accepted for a message of ``msg_type`` (module docstring)."""
+    if msg_type == "STATUS":
+        return settings.status_max_body_bytes
+    if msg_type.startswith(_QUERY_PREFIXES):
+        return settings.query_max_body_bytes
+    return settings.other_max_body_bytes
 
 
 # --------------------------------------------------------------------------- messages
@@ -306,7 +241,7 @@ def _transform(device: str, matrix: F64, meta: dict[str, str]) -> _Out:
 
 
 def invalid_messages(
-    device: str, reason: str, code: int, meta: dict[str, str], cfg: IgtlServerConfig
+    device: str, reason: str, code: int, meta: dict[str, str], cfg: IgtlSettings
 ) -> list[_Out]:
     """What replaces the TRANSFORM of an invalid device: a STATUS to everyone (code, ``INVALID``,
     the reason), and with ``send_invalid_transforms_v2`` the INVALID TRANSFORM to version 2 only."""
@@ -335,7 +270,7 @@ def _figures(cur: RegistrationView) -> dict[str, str]:
     return meta
 
 
-def registration_messages(state: RegistrationState, cfg: IgtlServerConfig) -> list[_Out]:
+def registration_messages(state: RegistrationState, cfg: IgtlSettings) -> list[_Out]:
     """The ``RobotToImage`` device for ``state`` (see the module docstring)."""
     meta: dict[str, str] = {"ImageFrame": "RAS", "SourceFrame": "robot"}
     cur = state.current
@@ -343,25 +278,23 @@ def registration_messages(state: RegistrationState, cfg: IgtlServerConfig) -> li
         meta["LastRefusal"] = f"{state.last_refusal.registration_id}: {state.last_refusal.reason}"[:500]
     if cur is None:
         return invalid_messages(
-            cfg.registration_device, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg
+            REGISTRATION_DEVICE, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg
         )
     with np.errstate(all="ignore"):
         matrix = RAS_FROM_LPS @ cur.image_from_robot
     if not np.all(np.isfinite(matrix)):  # never a matrix the receiver cannot trust (nor a dead push loop)
         reason = f"registration {cur.registration_id} has a non-finite matrix"
-        return invalid_messages(cfg.registration_device, reason, wire.STATUS_UNKNOWN_ERROR, meta, cfg)
+        return invalid_messages(REGISTRATION_DEVICE, reason, wire.STATUS_UNKNOWN_ERROR, meta, cfg)
     meta = {**_figures(cur), "TransformStatus": "OK", **meta}
-    return [_transform(cfg.registration_device, matrix, meta)]
+    return [_transform(REGISTRATION_DEVICE, matrix, meta)]
 
 
-def points_messages(state: RegistrationState, cfg: IgtlServerConfig) -> list[_Out]:
+def points_messages(state: RegistrationState, cfg: IgtlSettings) -> list[_Out]:
     """The ``PhantomSpheres`` POINT list (image RAS), or its STATUS without a registration."""
     cur = state.current
     meta: dict[str, str] = {"ImageFrame": "RAS"}
     if cur is None:
-        return invalid_messages(cfg.points_device, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg)[
-            :1
-        ]
+        return invalid_messages(POINTS_DEVICE, _no_registration(state), wire.STATUS_NOT_READY, meta, cfg)[:1]
     points = []
     for sp in cur.spheres:
         ras = (RAS_FROM_LPS[:3, :3] @ np.asarray(sp.image_lps_mm, dtype=np.float64)).tolist()
@@ -376,14 +309,14 @@ def points_messages(state: RegistrationState, cfg: IgtlServerConfig) -> list[_Ou
     meta["RegistrationId"] = cur.registration_id
     meta["Spheres"] = ",".join(sp.sphere for sp in cur.spheres)[:2000]
     meta["Residuals_mm"] = ",".join(f"{sp.residual_mm:.4f}" for sp in cur.spheres)[:2000]
-    return [_Out("POINT", cfg.points_device, wire.point_content(points), meta, time.time())]
+    return [_Out("POINT", POINTS_DEVICE, wire.point_content(points), meta, time.time())]
 
 
 def tool_messages(
     state: RegistrationState,
     joints: JointView | None,
     source: IgtlStateSource,
-    cfg: IgtlServerConfig,
+    cfg: IgtlSettings,
     now_t_s: float,
 ) -> list[_Out]:
     """The ``ToolToImage`` device (a STATUS without registration, or with a down/stale link)."""
@@ -410,8 +343,8 @@ def tool_messages(
         except Exception as e:  # KinematicsError or a bug in the callback: never a matrix, keep serving
             reason, code = f"forward kinematics failed: {e}", wire.STATUS_UNKNOWN_ERROR
         else:
-            return [_transform(cfg.tool_device, m, {"TransformStatus": "OK", **meta})]
-    return invalid_messages(cfg.tool_device, reason, code, meta, cfg)
+            return [_transform(TOOL_DEVICE, m, {"TransformStatus": "OK", **meta})]
+    return invalid_messages(TOOL_DEVICE, reason, code, meta, cfg)
 
 
 def service_status(state: RegistrationState, tool: list[_Out]) -> tuple[int, str]:
@@ -510,7 +443,7 @@ class _Client:
                 head = wire.unpack_header(first + await self.reader.readexactly(wire.HEADER_SIZE - 1))
                 if head.version not in (1, 2):
                     raise wire.IgtlWireError(f"header version {head.version} (this server reads 1 and 2)")
-                limit = cfg.max_body_bytes(head.type)
+                limit = max_body_bytes(cfg, head.type)
                 if head.body_size > limit:
                     raise _PeerError(
                         "oversize",
@@ -576,17 +509,17 @@ class IgtlServer:
 
     def __init__(
         self,
-        config: IgtlServerConfig,
+        config: IgtlSettings,
         source: IgtlStateSource,
         *,
         on_client: Callable[[str, str, int, int], None] | None = None,
     ) -> None:
-        self.config = config
+        self.config = serving_settings(config)
         self.source = source
         self.on_client = on_client
         """``on_client(event, peer, n_clients, header_version)`` on the loop; event ``connected`` /
         ``header_version`` (the client switched to version 2) / ``disconnected``."""
-        self._networks = config.allowed_networks()
+        self._networks = parse_networks(config.allowed_peer_addresses, "igtl.allowed_peer_addresses")
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._clients: set[_Client] = set()
@@ -680,17 +613,17 @@ class IgtlServer:
         reg = self._registration()
         outs: list[_Out]
         if msg_type in ("GET_TRANS", "GET_TRANSFOR"):
-            if device and device not in cfg.transform_devices:
-                outs = [self._not_found(device, cfg.transform_devices)]
+            if device and device not in TRANSFORM_DEVICES:
+                outs = [self._not_found(device, TRANSFORM_DEVICES)]
             else:
                 outs = []
-                if device in ("", cfg.registration_device):
+                if device in ("", REGISTRATION_DEVICE):
                     outs += registration_messages(reg, cfg)
-                if device in ("", cfg.tool_device):
+                if device in ("", TOOL_DEVICE):
                     outs += self._tool(reg)
         elif msg_type == "GET_POINT":
-            ok = device in ("", cfg.points_device)
-            outs = points_messages(reg, cfg) if ok else [self._not_found(device, (cfg.points_device,))]
+            ok = device in ("", POINTS_DEVICE)
+            outs = points_messages(reg, cfg) if ok else [self._not_found(device, (POINTS_DEVICE,))]
         elif msg_type == "GET_STATUS":
             code, text = service_status(reg, self._tool(reg))
             content = wire.status_content(code, error_name="" if code == wire.STATUS_OK else "NOT_READY",

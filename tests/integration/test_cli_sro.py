@@ -66,3 +66,20 @@ def test_register_writes_an_sro_with_the_stored_robot_frame_uid(
     bad = tmp_path / "bad.dcm"
     assert main([*argv, "--sro", str(bad), "--robot-frame-uid", "01.x"]) != 0
     assert not bad.exists()
+
+
+def test_register_reads_detection_from_the_toml_and_the_flag_overrides_it(
+    scan_dir: Path, phantom: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue #35: ``register --config`` takes ``[detection] method`` as the service does (the steel
+    phantom's own estimator is ``rays``); ``--method`` overrides the file."""
+    import json
+
+    monkeypatch.delenv("OARMREG_DETECTION__METHOD", raising=False)
+    toml, js = tmp_path / "oarmreg.toml", tmp_path / "reg.json"
+    toml.write_text('[detection]\nmethod = "subvoxel"\n', encoding="utf-8")
+    argv = ["register", str(scan_dir), "--robot-points", str(_robot_points(tmp_path, phantom))]
+    argv += ["--json", str(js), "--config", str(toml)]
+    for extra, want in (([], "subvoxel"), (["--method", "core"], "core")):
+        assert main([*argv, *extra]) == 0
+        assert json.loads(js.read_text())["provenance"]["detection_method"] == want

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pydicom
 import pytest
+from pydantic import ValidationError
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import (
     CTImageStorage,
@@ -31,13 +32,13 @@ from drivers.dicom_scu import associate
 from service.dicom_scp import (
     STATUS_DATASET_MISMATCH,
     STATUS_OUT_OF_RESOURCES,
-    DicomScpConfig,
     DicomScpConfigError,
     ScpCallbacks,
     ScpRefusal,
     StorageScp,
     atomic_write,
 )
+from service.settings import DicomSettings
 
 DEADLINE_S = 10.0
 STORESCU = shutil.which("storescu")
@@ -94,7 +95,7 @@ def simulated_series(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture
 def scp(tmp_path: Path) -> Iterator[tuple[StorageScp, Recorder]]:
     rec = Recorder()
-    server = StorageScp(DicomScpConfig(port=0), tmp_path / "intake", rec.callbacks())
+    server = StorageScp(DicomSettings(port=0), tmp_path / "intake", rec.callbacks())
     server.start()
     try:
         yield server, rec
@@ -192,7 +193,7 @@ def test_storescu_series_stored_atomically_then_identical_resend_changes_nothing
 @needs_dcmtk
 def test_echoscu_with_calling_ae_not_on_the_list_is_rejected(tmp_path: Path) -> None:
     rec = Recorder()
-    cfg = DicomScpConfig(port=0, allowed_calling_ae_titles=("OARM",))
+    cfg = DicomSettings(port=0, allowed_calling_ae_titles=("OARM",))
     with StorageScp(cfg, tmp_path, rec.callbacks()) as server:
         r = subprocess.run([ECHOSCU, "-aet", "INTRUDER", "-aec", "OARMREG", "127.0.0.1", str(server.port)],
                            capture_output=True, text=True, timeout=30)  # fmt: skip
@@ -282,7 +283,7 @@ def test_duplicate_resend_changes_nothing_and_different_content_replaces(
 def test_calling_ae_not_on_the_list_rejected_with_reason(tmp_path: Path) -> None:
     rec = Recorder()
     with StorageScp(
-        DicomScpConfig(port=0, allowed_calling_ae_titles=("OARM",)), tmp_path, rec.callbacks()
+        DicomSettings(port=0, allowed_calling_ae_titles=("OARM",)), tmp_path, rec.callbacks()
     ) as s:
         bad = associate(scu("INTRUDER"), "127.0.0.1", s.port, ae_title="OARMREG")
         assert bad.is_rejected
@@ -293,7 +294,7 @@ def test_calling_ae_not_on_the_list_rejected_with_reason(tmp_path: Path) -> None
 def test_peer_address_not_on_the_list_rejected(tmp_path: Path) -> None:
     rec = Recorder()
     with StorageScp(
-        DicomScpConfig(port=0, allowed_peer_addresses=("127.0.0.2",)), tmp_path, rec.callbacks()
+        DicomSettings(port=0, allowed_peer_addresses=("127.0.0.2",)), tmp_path, rec.callbacks()
     ) as s:
         bad = associate(scu(), "127.0.0.1", s.port, ae_title="OARMREG")
         assert bad.is_rejected
@@ -337,7 +338,7 @@ def enospc_after(n_bytes: int) -> Any:
 def test_disk_full_injected_is_a700_and_nothing_half_written(tmp_path: Path) -> None:
     rec = Recorder()
     big = [ct(rows=64, cols=64) for _ in range(3)]  # 8 KiB of pixels each
-    with StorageScp(DicomScpConfig(port=0), tmp_path, rec.callbacks(), write=enospc_after(12_000)) as s:
+    with StorageScp(DicomSettings(port=0), tmp_path, rec.callbacks(), write=enospc_after(12_000)) as s:
         statuses = store(s.port, big)
     assert statuses == [0, STATUS_OUT_OF_RESOURCES, STATUS_OUT_OF_RESOURCES]
     assert [p.name for p in files(tmp_path)] == [f"{big[0].SOPInstanceUID}.dcm"]
@@ -362,7 +363,7 @@ def tiny_tmpfs(tmp_path: Path) -> Iterator[Path]:
 def test_disk_full_on_a_real_1mb_tmpfs_is_a700(tiny_tmpfs: Path) -> None:
     rec = Recorder()
     big = [ct(rows=384, cols=384) for _ in range(4)]  # 288 KiB each: the 4th cannot fit in 1 MiB
-    with StorageScp(DicomScpConfig(port=0), tiny_tmpfs, rec.callbacks()) as s:
+    with StorageScp(DicomSettings(port=0), tiny_tmpfs, rec.callbacks()) as s:
         statuses = store(s.port, big)
     assert statuses[:3] == [0, 0, 0] and statuses[3] == STATUS_OUT_OF_RESOURCES
     assert files(tiny_tmpfs, ".*.part") == []
@@ -383,13 +384,18 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("host", ["0.0.0.0", "10.1.2.3"])
-def test_non_loopback_without_allow_lists_refuses_to_start(host: str) -> None:
+def test_non_loopback_without_allow_lists_refuses_to_start(host: str, tmp_path: Path) -> None:
+    """The rule lives in ``DicomSettings``; an SCP built from a section (even one not marked
+    enabled) is held to it, so no listener can bypass it."""
     with pytest.raises(DicomScpConfigError, match="allow-lists empty"):
-        DicomScpConfig(host=host)
-    DicomScpConfig(host=host, allowed_calling_ae_titles=("OARM",))
-    DicomScpConfig(host=host, allowed_peer_addresses=("10.1.2.0/24",))
+        StorageScp(DicomSettings(host=host), tmp_path)
+    with pytest.raises(ValidationError, match="allow-lists empty"):
+        DicomSettings(host=host, enabled=True)
+    StorageScp(DicomSettings(host=host, allowed_calling_ae_titles=("OARM",)), tmp_path)
+    StorageScp(DicomSettings(host=host, allowed_peer_addresses=("10.1.2.0/24",)), tmp_path)
 
 
-def test_bad_ae_title_refused() -> None:
-    with pytest.raises(DicomScpConfigError, match="ae_title"):
-        DicomScpConfig(ae_title="A_TITLE_LONGER_THAN_16")
+@pytest.mark.parametrize("title", ["A_TITLE_LONGER_THAN_16", "    ", "ÄRZTE"])
+def test_bad_ae_title_refused(title: str) -> None:
+    with pytest.raises(ValidationError, match="ae_title"):
+        DicomSettings(ae_title=title)

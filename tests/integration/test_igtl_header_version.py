@@ -22,12 +22,12 @@ from service.igtl import wire
 from service.igtl.server import (
     RAS_FROM_LPS,
     IgtlServer,
-    IgtlServerConfig,
     IgtlStateSource,
     JointView,
     RegistrationState,
     RegistrationView,
 )
+from service.settings import IgtlSettings
 
 RX_TIMEOUT_S = 5.0
 IMAGE_FROM_ROBOT = np.array(
@@ -51,7 +51,7 @@ async def started(events: Events | None = None, **cfg: Any) -> IgtlServer:
         return JointView((0.0,), time.monotonic(), "connected")
 
     src = IgtlStateSource(lambda: RegistrationState(REG), joints, lambda q: np.eye(4))
-    server = IgtlServer(IgtlServerConfig(port=0, period_s=0.05, **cfg), src, on_client=events)
+    server = IgtlServer(IgtlSettings(port=0, period_s=0.05, **cfg), src, on_client=events)
     await server.start()
     return server
 

@@ -18,6 +18,7 @@ import numpy as np
 import pyigtl
 import pytest
 from polling import wait_until
+from pydantic import ValidationError
 
 from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
@@ -28,7 +29,6 @@ from service.igtl.server import (
     RAS_FROM_LPS,
     IgtlConfigError,
     IgtlServer,
-    IgtlServerConfig,
     IgtlStateSource,
     JointView,
     Refusal,
@@ -37,6 +37,7 @@ from service.igtl.server import (
     SpherePoint,
     registration_messages,
 )
+from service.settings import IgtlSettings
 
 RX_TIMEOUT_S = 5.0
 
@@ -149,7 +150,7 @@ def is_msg(msg_type: str, device: str, **meta: str) -> Callable[[wire.Message], 
 
 
 async def started(holder: Holder, **cfg: Any) -> IgtlServer:
-    server = IgtlServer(IgtlServerConfig(port=0, **cfg), holder.source())
+    server = IgtlServer(IgtlSettings(port=0, **cfg), holder.source())
     await server.start()
     return server
 
@@ -292,7 +293,7 @@ def test_tool_to_image_follows_mock_controller_joints_and_goes_invalid_when_stal
                 src = IgtlStateSource(
                     lambda: RegistrationState(REG), joints, model.robot_from_tool0, tool0_from_tcp
                 )
-                server = IgtlServer(IgtlServerConfig(port=0, send_invalid_transforms_v2=True), src)
+                server = IgtlServer(IgtlSettings(port=0, send_invalid_transforms_v2=True), src)
                 await server.start()
                 client = pyigtl_client(server.port)
                 try:
@@ -338,7 +339,7 @@ async def read_ids(reader: asyncio.StreamReader, ids: list[int], arrivals: list[
 
 def test_client_that_never_reads_does_not_delay_the_others_and_is_disconnected() -> None:
     holder = Holder(RegistrationState(REG))
-    cfg = IgtlServerConfig(
+    cfg = IgtlSettings(
         port=0, poll_period_s=0.005, client_queue_max=32, client_buffer_bytes=1024,
         socket_send_buffer_bytes=16 * 1024, slow_client_timeout_s=0.5,
     )  # fmt: skip
@@ -402,16 +403,19 @@ def test_peer_not_on_allow_list_is_closed_and_listed_peer_served() -> None:
 
 @pytest.mark.parametrize("host", ["0.0.0.0", "192.168.10.5", "::"])
 def test_non_loopback_bind_without_allow_list_refuses_to_start(host: str) -> None:
+    """The rule lives in ``IgtlSettings``; a server built from a section (even one not marked
+    enabled) is held to it."""
+    src = Holder(RegistrationState(REG)).source()
     with pytest.raises(IgtlConfigError, match="allowed_peer_addresses"):
-        IgtlServerConfig(host=host)
-    IgtlServerConfig(host=host, allowed_peer_addresses=("10.0.0.0/24",))  # explicit list: fine
+        IgtlServer(IgtlSettings(host=host), src)
+    with pytest.raises(ValidationError, match="allowed_peer_addresses"):
+        IgtlSettings(host=host, enabled=True)
+    IgtlServer(IgtlSettings(host=host, allowed_peer_addresses=("10.0.0.0/24",)), src)  # explicit list: fine
 
 
-def test_bad_allow_list_entry_and_long_device_name_refused() -> None:
-    with pytest.raises(IgtlConfigError, match="allowed_peer_addresses"):
-        IgtlServerConfig(allowed_peer_addresses=("not-an-ip",))
-    with pytest.raises(IgtlConfigError, match="20"):
-        IgtlServerConfig(tool_device="StylusTipToImageRASFrame")
+def test_bad_allow_list_entry_refused() -> None:
+    with pytest.raises(ValidationError, match="allowed_peer_addresses"):
+        IgtlSettings(allowed_peer_addresses=("not-an-ip",))
 
 
 def test_failing_callbacks_give_invalid_not_a_dead_server() -> None:
@@ -420,7 +424,7 @@ def test_failing_callbacks_give_invalid_not_a_dead_server() -> None:
 
     async def main() -> None:
         src = IgtlStateSource(boom, lambda: None, lambda q: np.eye(4))
-        server = IgtlServer(IgtlServerConfig(port=0), src)
+        server = IgtlServer(IgtlSettings(port=0), src)
         await server.start()
         client = await RawClient.connect(server.port, v2=True)
         try:
@@ -584,7 +588,7 @@ def test_documented_metadata_keys_are_what_is_sent_both_ways() -> None:
     documented = _doc_keys()
     assert sent - set(documented) == set(), "sent but not in docs/slicer.md §3"
     assert set(documented) - sent == set(), "in docs/slicer.md §3 but never sent"
-    first = list(registration_messages(RegistrationState(full), IgtlServerConfig())[0].metadata)
+    first = list(registration_messages(RegistrationState(full), IgtlSettings())[0].metadata)
     assert first[:2] == ["ChainError_pred_mm", "ChainErrorSource"], first  # the honest figure first
 
 
@@ -600,7 +604,7 @@ def test_a_non_finite_matrix_or_tcp_is_a_status_and_the_server_keeps_serving() -
         tcp[2, 3] = np.inf
         src = holder.source(tcp=tcp)
         holder.joints = JointView((0.1, 0.0), time.monotonic() + 3600, "connected")
-        server = IgtlServer(IgtlServerConfig(port=0, period_s=0.1), src)
+        server = IgtlServer(IgtlSettings(port=0, period_s=0.1), src)
         await server.start()
         c = await RawClient.connect(server.port, v2=True)
         try:
@@ -625,7 +629,7 @@ def test_the_server_refuses_to_start_when_crcmod_runs_without_its_c_extension(
     monkeypatch.setattr(sys.modules["crcmod.crcmod"], "_usingExtension", False)
 
     async def main() -> None:
-        server = IgtlServer(IgtlServerConfig(port=0), Holder(RegistrationState(REG)).source())
+        server = IgtlServer(IgtlSettings(port=0), Holder(RegistrationState(REG)).source())
         with pytest.raises(IgtlConfigError, match="C extension"):
             await server.start()
 

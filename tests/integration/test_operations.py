@@ -236,10 +236,11 @@ def test_refused_standard_contexts_are_debug_and_still_counted(
     from pynetdicom import AE
 
     from drivers.dicom_scu import associate
-    from service.dicom_scp import DicomScpConfig, ScpCallbacks, StorageScp
+    from service.dicom_scp import ScpCallbacks, StorageScp
+    from service.settings import DicomSettings
 
     caplog.set_level(logging.DEBUG, logger="service.dicom_scp")
-    with StorageScp(DicomScpConfig(port=0), tmp_path, ScpCallbacks(None, None, None)) as scp:
+    with StorageScp(DicomSettings(port=0), tmp_path, ScpCallbacks(None, None, None)) as scp:
         for contexts in ((CTImageStorage, MRImageStorage, UltrasoundImageStorage), (MRImageStorage,)):
             ae = AE(ae_title="OARM")
             for c in contexts:

@@ -14,7 +14,7 @@ import pytest
 
 from registration.model.kinematics import RobotModel
 from service.igtl.publisher import IgtlPublisher
-from service.igtl.server import IgtlServerConfig, registration_messages, tool_messages
+from service.igtl.server import registration_messages, tool_messages
 from service.records import RegistrationRecord
 from service.settings import IgtlSettings
 
@@ -66,7 +66,7 @@ def test_a_registration_not_accepted_and_current_is_invalid_with_its_reason(
     pub = publisher(OrchestratorState(record, reason))
     state = pub._registration_state()
     assert state.current is None
-    cfg = IgtlServerConfig()
+    cfg = IgtlSettings()
     for out in [*registration_messages(state, cfg), *tool_messages(state, None, pub.server.source, cfg, 0.0)]:
         assert out.type == "STATUS" and out.metadata["TransformStatus"] == "INVALID"
         assert want in out.metadata["Reason"], out.metadata["Reason"]
@@ -76,5 +76,5 @@ def test_the_accepted_current_registration_is_served(phantom: Any) -> None:
     state = publisher(OrchestratorState(ACCEPTED, phantom=phantom))._registration_state()
     assert state.current is not None and state.current.registration_id == "7"
     np.testing.assert_array_equal(state.current.image_from_robot, np.asarray(IMAGE_FROM_ROBOT))
-    out = registration_messages(state, IgtlServerConfig())
+    out = registration_messages(state, IgtlSettings())
     assert [o.type for o in out] == ["TRANSFORM"] and out[0].metadata["TransformStatus"] == "OK"
