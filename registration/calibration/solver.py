@@ -221,14 +221,6 @@ def _registration_tre_rms_mm(fle_rms_mm: float, centres_phantom_mm: F64) -> floa
     return math.sqrt(float(np.mean(np.asarray(tre) ** 2)))
 
 
-def _std_errors(jac: F64, r: F64) -> F64:
-    """Standard errors from σ² (JᵀJ)⁻¹, σ² = Σr² / (m − P)."""
-    dof = max(jac.shape[0] - jac.shape[1], 1)
-    s2 = float(r @ r) / dof
-    cov = np.linalg.pinv(np.einsum("ij,ik->jk", jac, jac)) * s2
-    return np.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), dtype=np.float64)
-
-
 # ---------------------------------------------------------------- MAP: priors, cross-validation, posterior
 
 
