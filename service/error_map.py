@@ -6,7 +6,7 @@ service's problem-details handler (:mod:`service.api.problems`) and the CLI
 :data:`ERROR_MAP`; an exception's own ``title`` attribute, where its class sets one, wins over
 the family's.
 
-Exit codes (documented in the README):
+Exit codes (documented in docs/cli.md, "Exit codes"):
 
 ==  ==========================================================
 0   success

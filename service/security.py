@@ -485,15 +485,3 @@ class SecurityGate:
             await send_problem(
                 send, 500, "Internal error", INTERNAL_DETAIL, path, kind="internal", close=True
             )
-
-
-def gate_summary(settings: Settings) -> dict[str, Any]:
-    """For /status: the gate's configuration (no secrets)."""
-    return {
-        "auth": settings.api.auth,
-        "max_body_bytes": settings.api.max_body_bytes,
-        "auth_failures_before_throttle": settings.api.auth_failures_before_throttle,
-        "auth_lockout_max_s": settings.api.auth_lockout_max_s,
-        "allowed_hosts": list(settings.api.allowed_hosts) or "bind host, localhost, 127.0.0.1, [::1]",
-        "allowed_origins": ["http(s):// + the allowed hosts", *settings.api.allowed_origins],
-    }

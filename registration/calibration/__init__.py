@@ -8,19 +8,4 @@ over the working volume);
 :mod:`.planner` proposes the poses that identify them inside the scan's real volume, on top of
 :mod:`.sampling` (poses and inverse kinematics inside a volume); :mod:`.urdf` writes the
 calibrated model as a URDF the service and Pinocchio load.
-
-``registration.calibration`` was one module before this package: its names are still read from
-here, lazily, for one release (``CHANGELOG.md``); import them from the modules above.
 """
-
-import importlib
-from typing import Any
-
-
-def __getattr__(name: str) -> Any:
-    """The old module path's names (one release): ``from registration.calibration import X``."""
-    for part in ("solver", "records", "model", "fit", "prediction"):
-        module = importlib.import_module(f"registration.calibration.{part}")
-        if hasattr(module, name):
-            return getattr(module, name)
-    raise AttributeError(f"module 'registration.calibration' has no attribute {name!r}")

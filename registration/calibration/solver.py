@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
@@ -221,14 +222,6 @@ def _registration_tre_rms_mm(fle_rms_mm: float, centres_phantom_mm: F64) -> floa
     return math.sqrt(float(np.mean(np.asarray(tre) ** 2)))
 
 
-def _std_errors(jac: F64, r: F64) -> F64:
-    """Standard errors from σ² (JᵀJ)⁻¹, σ² = Σr² / (m − P)."""
-    dof = max(jac.shape[0] - jac.shape[1], 1)
-    s2 = float(r @ r) / dof
-    cov = np.linalg.pinv(np.einsum("ij,ik->jk", jac, jac)) * s2
-    return np.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), dtype=np.float64)
-
-
 # ---------------------------------------------------------------- MAP: priors, cross-validation, posterior
 
 
@@ -294,15 +287,98 @@ def calibrate(
     check_session(poses, params.min_poses)
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
     data = _stack(poses, pts)
+    model, dropped = _start_model(poses, chain, pts, data, params)
+    timings = {"start_s": time.perf_counter() - t0}
+    fit = _solve(model, data, poses, params, timings)
+    jac = _jacobian(fit.model, fit.data, fit.values)
+    r = _residuals(fit.model, fit.data, fit.values)
+    rank, cond, s, weak, _ = _identifiability(jac, fit.model.params, params.rank_rtol)
+    _refuse_if_outliers_left_it_weak(poses, fit, cond, weak, params, chain.joint_names)
+    pred = _predict(fit, r, pts, params, scan_volume, timings)
+    if not pred.prediction.max_mm <= params.max_predicted_error_mm:  # NaN (unbounded) refuses too
+        raise NotIdentifiableError(
+            _prediction_refusal(pred.prediction, params, fit.data.joints_rad, chain.joint_names)
+        )
+    t2 = time.perf_counter()
+    nan = np.full(len(poses), np.nan)
+    lopo, lopo_rms = (
+        _leave_one_out(fit.model, data, fit.values, fit.used, params) if params.leave_one_out else (nan, nan)
+    )
+    timings["leave_one_out_s"] = time.perf_counter() - t2
+    y, x, cal_chain = fit.model.unpack(fit.values)
+    return CalibrationResult(
+        image_from_robot=y,
+        tool0_from_phantom=x,
+        chain=cal_chain,
+        parameters=fit.model.params,
+        values=fit.values,
+        std_errors=np.sqrt(np.clip(np.diag(pred.cov), 0.0, None)),
+        rank=rank,
+        condition_number=cond,
+        singular_values=s,
+        dropped=dropped,
+        pose_names=tuple(p.name for p in poses),
+        used=fit.used,
+        pose_rms_mm=fit.rms,
+        pose_max_mm=fit.mx,
+        sphere_residuals_mm=tuple(fit.per),
+        sphere_indices=tuple(np.asarray(p.sphere_indices, dtype=np.int64) for p in poses),
+        outliers=tuple(poses[int(i)].name for i in np.flatnonzero(~fit.used)),
+        lopo_pose_mean_mm=lopo,
+        lopo_pose_rms_mm=lopo_rms,
+        timings_s=timings,
+        fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
+        fle_rms_mm=pred.fle,
+        registration_tre_rms_mm=pred.reg_tre,
+        estimator=params.estimator,
+        prior_scale=fit.scale,
+        cv_scores=fit.cv,
+        posterior_cov=pred.cov,
+        unmodelled_rms_mm=pred.unmod,
+        prediction=pred.prediction,
+        working_volume=pred.volume_doc,
+        target_rms_mm=params.target_rms_mm,
+    )
+
+
+def _start_model(
+    poses: Sequence[MatchedPose], chain: SerialChain, pts: F64, data: _Data, params: CalibrationParams
+) -> tuple[_Model, tuple[str, ...]]:
+    """Shah's closed-form start, the identifiable parameter set and the priors at scale 1."""
     y0, x0 = _initial_estimate(poses, chain, pts)
     # MAP puts its priors on the physical joint-origin errors (6 per joint, "all"): on the minimal set
     # the priors would sit on combinations that absorb the redundant errors (misspecified: 1.5 × the
     # LS error on the tuning seeds, measured), so "full" means "all" for the MAP estimator.
     pset = "all" if params.estimator == "map" and params.parameter_set == "full" else params.parameter_set
     model = _Model(y0, x0, chain, minimal_parameter_set(chain, pset))
-    model, dropped, rank, cond, s = _select_parameters(model, data, params, chain.joint_names)
-    model = model.with_prior(_prior_weights(model, params, 1.0))
-    timings = {"start_s": time.perf_counter() - t0}
+    model, dropped, _, _, _ = _select_parameters(model, data, params, chain.joint_names)
+    return model.with_prior(_prior_weights(model, params, 1.0)), dropped
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """The robust fit without its outlier poses, at the chosen prior scale."""
+
+    model: _Model
+    values: F64
+    used: NDArray[np.bool_]
+    data: _Data
+    """The poses kept (``used``)."""
+    rms: F64
+    mx: F64
+    per: list[F64]
+    scale: float
+    cv: dict[float, float] | None
+
+
+def _solve(
+    model: _Model,
+    data: _Data,
+    poses: Sequence[MatchedPose],
+    params: CalibrationParams,
+    timings: dict[str, float],
+) -> _Solved:
+    """Fit, drop outlier poses, then (MAP) refit at the given or cross-validated prior scale."""
     t1 = time.perf_counter()
     values, used, (rms, mx, per) = _fit_without_outliers(model, data, poses, params)
     fit_data = data.subset(used)
@@ -319,37 +395,74 @@ def calibrate(
         values = _fit(model, fit_data, values, params)
         rms, mx, per = _per_pose(model, data, values, len(poses))
     timings["solve_s"] = time.perf_counter() - t1
-    jac = _jacobian(model, fit_data, values)
-    r = _residuals(model, fit_data, values)
-    rank, cond, s, weak, _ = _identifiability(jac, model.params, params.rank_rtol)
+    return _Solved(model, values, used, fit_data, rms, mx, per, scale, cv)
+
+
+def _refuse_if_outliers_left_it_weak(
+    poses: Sequence[MatchedPose],
+    fit: _Solved,
+    cond: float,
+    weak: Sequence[Parameter],
+    params: CalibrationParams,
+    joint_names: Sequence[str],
+) -> None:
+    """NotIdentifiableError when dropping the outlier poses left the parameters unidentified."""
     limit = params.max_condition if params.max_condition is not None else math.inf
-    if not used.all() and cond > limit and params.on_weak == "refuse":
-        excluded = ", ".join(p.name for p, u in zip(poses, used, strict=True) if not u)
-        advice = _motion_advice(weak, fit_data.joints_rad, chain.joint_names)
+    if not fit.used.all() and cond > limit and params.on_weak == "refuse":
+        excluded = ", ".join(p.name for p, u in zip(poses, fit.used, strict=True) if not u)
+        advice = _motion_advice(weak, fit.data.joints_rad, joint_names)
         raise NotIdentifiableError(
             f"without the outlier scans {excluded} the remaining poses no longer identify the parameters "
             f"(condition number {cond:.3g} > {limit:g}); rescan them. {advice}"
         )
-    fle = _fle_rms_mm(r, len(model.params))
+
+
+@dataclass(frozen=True)
+class _Predicted:
+    """The error figures of the fit and the error to expect over the working volume."""
+
+    fle: float
+    reg_tre: float
+    unmod: float
+    cov: F64
+    prediction: WorkingPrediction
+    volume_doc: dict[str, Any]
+
+
+def _predict(
+    fit: _Solved,
+    r: F64,
+    pts: F64,
+    params: CalibrationParams,
+    scan_volume: ScanVolume | None,
+    timings: dict[str, float],
+) -> _Predicted:
+    """FLE, the unmodelled error, the posterior covariance and the working-volume prediction."""
+    fle = _fle_rms_mm(r, len(fit.model.params))
     reg_tre = _registration_tre_rms_mm(fle, pts)
-    shared = _unmodelled_rms_mm(model, fit_data, values, fle)
+    shared = _unmodelled_rms_mm(fit.model, fit.data, fit.values, fle)
     unmod = max(shared, params.unmodelled_floor_mm)
     # the per-pose error the prediction adds at every working pose was there at the calibration poses
     # too, and the fit absorbed it into the parameters: the sandwich takes the same figure (issue #33)
     cov = _posterior_cov(
-        model, fit_data, values, params, scale, pose_shared_rms_mm=max(unmod, params.repeatability_rms_mm)
+        fit.model,
+        fit.data,
+        fit.values,
+        params,
+        fit.scale,
+        pose_shared_rms_mm=max(unmod, params.repeatability_rms_mm),
     )
     t_p = time.perf_counter()
     inflation, split = (
-        _farthest_split_inflation(model, fit_data, values, params, fle, unmod)
+        _farthest_split_inflation(fit.model, fit.data, fit.values, params, fle, unmod)
         if params.farthest_split
         else (1.0, ())
     )
     prediction, volume_doc = _working_prediction(
-        model,
-        values,
+        fit.model,
+        fit.values,
         cov * inflation,
-        fit_data,
+        fit.data,
         pts,
         params,
         scan_volume,
@@ -358,50 +471,7 @@ def calibrate(
     )
     volume_doc["farthest_split"] = {"poses": [int(i) for i in split], "variance_inflation": inflation}
     timings["prediction_s"] = time.perf_counter() - t_p
-    if (
-        not prediction.max_mm <= params.max_predicted_error_mm
-    ):  # NaN (a covariance the poses cannot bound) refuses too
-        raise NotIdentifiableError(
-            _prediction_refusal(prediction, params, fit_data.joints_rad, chain.joint_names)
-        )
-    t2 = time.perf_counter()
-    nan = np.full(len(poses), np.nan)
-    lopo, lopo_rms = _leave_one_out(model, data, values, used, params) if params.leave_one_out else (nan, nan)
-    timings["leave_one_out_s"] = time.perf_counter() - t2
-    y, x, cal_chain = model.unpack(values)
-    return CalibrationResult(
-        image_from_robot=y,
-        tool0_from_phantom=x,
-        chain=cal_chain,
-        parameters=model.params,
-        values=values,
-        std_errors=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
-        rank=rank,
-        condition_number=cond,
-        singular_values=s,
-        dropped=dropped,
-        pose_names=tuple(p.name for p in poses),
-        used=used,
-        pose_rms_mm=rms,
-        pose_max_mm=mx,
-        sphere_residuals_mm=tuple(per),
-        sphere_indices=tuple(np.asarray(p.sphere_indices, dtype=np.int64) for p in poses),
-        outliers=tuple(poses[int(i)].name for i in np.flatnonzero(~used)),
-        lopo_pose_mean_mm=lopo,
-        lopo_pose_rms_mm=lopo_rms,
-        timings_s=timings,
-        fit_rms_mm=float(np.sqrt(np.mean(r**2) * 3.0)),
-        fle_rms_mm=fle,
-        registration_tre_rms_mm=reg_tre,
-        estimator=params.estimator,
-        prior_scale=scale,
-        cv_scores=cv,
-        posterior_cov=cov,
-        unmodelled_rms_mm=unmod,
-        prediction=prediction,
-        working_volume=volume_doc,
-        target_rms_mm=params.target_rms_mm,
-    )
+    return _Predicted(fle, reg_tre, unmod, cov, prediction, volume_doc)
 
 
 def match_pose(

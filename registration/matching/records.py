@@ -13,7 +13,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.errors import (
     ConfigError,
-    OarmRegError,
     RegistrationError,
 )
 from registration.matching.correspondence import (
@@ -41,12 +40,6 @@ MAX_PRIOR_TOLERANCE_DEG: Final = 45.0
 PRIOR_ROTATION_TOL: Final = 1e-3
 """An orientation prior is a rotation if RᵀR = I and det R = 1 within this: a matrix written with 4
 decimals (a hand-typed prior) passes, a scaled or sheared one does not."""
-
-
-class PointSetError(OarmRegError):
-    """A point set passed to the registration has the wrong shape or non-finite values."""
-
-    title = "Invalid point set"
 
 
 class PriorMismatchError(RegistrationError):
@@ -233,18 +226,6 @@ class RegistrationResult:
 def params_dict(params: RegistrationParams) -> dict[str, Any]:
     """The parameters as a plain dict (for provenance)."""
     return asdict(params)
-
-
-def _as_points(a: ArrayLike, name: str) -> F64:
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise PointSetError(
-            f"{name}: expected an (N, 3) array of sphere centres in mm, got shape {arr.shape}"
-        )
-    if not np.all(np.isfinite(arr)):
-        bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
-        raise PointSetError(f"{name}: rows {bad[:5].tolist()} contain NaN or infinite values")
-    return arr
 
 
 def _as_rotation(prior: ArrayLike) -> F64:

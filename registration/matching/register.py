@@ -59,15 +59,13 @@ from registration.matching.quality import (
 )
 from registration.matching.records import (
     MAX_PRIOR_TOLERANCE_DEG,
-    PointSetError,
     QualityFigures,
     RegistrationInputs,
     RegistrationParams,
     RegistrationResult,
-    _as_points,
     _as_rotation,
 )
-from registration.matching.rigid import rotation_difference_deg
+from registration.matching.rigid import PointSetError, as_points, rotation_difference_deg
 from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)
@@ -116,13 +114,13 @@ def validate_inputs(
     ConfigError (prior not a rotation, tolerance not below 45°).
     """
     p = params
-    robot = _as_points(robot_mm, "robot points")
-    image = _as_points(image_mm, "image points")
+    robot = as_points(robot_mm, "robot points")
+    image = as_points(image_mm, "image points")
     n, m = len(robot), len(image)
     targets = (
         np.empty((0, 3))
         if targets_robot_mm is None
-        else _as_points(np.reshape(targets_robot_mm, (-1, 3)), "targets")
+        else as_points(np.reshape(targets_robot_mm, (-1, 3)), "targets")
     )
     check_configuration(
         robot,

@@ -21,7 +21,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.errors import DegenerateConfigurationError
+from registration.errors import DegenerateConfigurationError, OarmRegError
 
 log = logging.getLogger(__name__)
 
@@ -31,13 +31,24 @@ MIN_POINTS: Final = 3
 """A rigid fit needs at least three non-collinear point pairs."""
 
 
-def _as_points(points: ArrayLike, name: str) -> F64:
-    a = np.asarray(points, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name}: expected an (N, 3) array of points in mm, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains NaN or infinite coordinates")
-    return a
+class PointSetError(OarmRegError):
+    """A point set passed to the registration has the wrong shape or non-finite values."""
+
+    title = "Invalid point set"
+
+
+def as_points(a: ArrayLike, name: str) -> F64:
+    """``a`` as an (N, 3) float64 array of finite points (mm); :class:`PointSetError` naming ``name``
+    and the bad shape or rows otherwise.  The one point-set check of the registration."""
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise PointSetError(
+            f"{name}: expected an (N, 3) array of sphere centres in mm, got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
+        raise PointSetError(f"{name}: rows {bad[:5].tolist()} contain NaN or infinite values")
+    return arr
 
 
 def fit_rigid(
@@ -63,14 +74,16 @@ def fit_rigid(
 
     Raises
     ------
+    PointSetError
+        A point set is not (N, 3) or has non-finite values.
     ValueError
-        Shapes differ, fewer than 3 pairs, non-finite values or bad weights
-        (programming errors: callers validate user data first).
+        Shapes differ, fewer than 3 pairs or bad weights (programming errors: callers validate user
+        data first).
     DegenerateConfigurationError
         All source or target points coincide (rotation undetermined).
     """
-    p = _as_points(source_mm, "source_mm")
-    q = _as_points(target_mm, "target_mm")
+    p = as_points(source_mm, "source_mm")
+    q = as_points(target_mm, "target_mm")
     if p.shape != q.shape:
         raise ValueError(f"fit_rigid: source has {len(p)} points, target {len(q)}; they must be paired")
     if len(p) < MIN_POINTS:

@@ -23,10 +23,8 @@ from scipy.spatial import cKDTree
 
 from registration.errors import TooFewSpheresError
 from registration.matching.icp import unique_pairs
-from registration.matching.records import (
-    RegistrationParams,
-    _as_points,
-)
+from registration.matching.records import RegistrationParams
+from registration.matching.rigid import as_points
 from registration.model.frames import as_transform
 
 F64 = NDArray[np.float64]
@@ -118,8 +116,8 @@ def verify_registration(
         Fewer than ``params.min_matched`` spheres lie within the gate of their prediction.
     """
     t = as_transform(image_from_robot, "image_from_robot")
-    robot = _as_points(robot_mm, "robot points")
-    image = _as_points(image_mm, "image points")
+    robot = as_points(robot_mm, "robot points")
+    image = as_points(image_mm, "image points")
     gate = params.verify_gate_mm if gate_mm is None else float(gate_mm)
     predicted = robot @ t[:3, :3].T + t[:3, 3]
     if len(image) == 0:

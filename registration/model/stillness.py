@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 DEFAULT_MAX_DEVIATION_RAD = 0.0005
 """≈ 0.029°.  At the TX60's 670 mm reach an angular error of 0.0005 rad moves the flange by
@@ -166,6 +166,53 @@ def assess_stillness(
     ValueError
         Shapes disagree, times decrease, or a parameter is not positive.
     """
+    t, q = _validated(t_s, joints_rad, window_s, max_gap_s, max_deviation_rad, period_s)
+    start = window_end_t_s - window_s
+    inside = (t >= start) & (t <= window_end_t_s)
+    unusable = _unusable_window(q[inside], window_s)
+    if unusable is not None:
+        return unusable
+    w = _window(t[inside], q[inside], start, window_end_t_s, window_s, max_gap_s)
+    refusal = (
+        _moved_by_deviation(w, max_deviation_rad)
+        or _moved_by_report(w, in_motion_t_s)
+        or _watched_late(w, watched_from_t_s)
+        or _reconnected(w, sessions, inside)
+    )
+    if refusal is not None:
+        return refusal
+    if period_s is not None:
+        return _streamed_coverage(w, period_s, max_gap_s)
+    return _polled_coverage(w, max_gap_s)
+
+
+@dataclass(frozen=True)
+class _Window:
+    """The samples inside the window and what every step reads of them."""
+
+    start_t_s: float
+    end_t_s: float
+    window_s: float
+    n: int
+    deviation_rad: float
+    per_joint_rad: NDArray[np.float64]
+    edges_t_s: NDArray[np.float64]
+    """The window start, the sample times inside, the window end."""
+    gaps_s: NDArray[np.float64]
+    worst_gap_s: float
+    covered_s: float
+    """The span of the gaps no longer than ``max_gap_s``."""
+
+
+def _validated(
+    t_s: ArrayLike,
+    joints_rad: ArrayLike,
+    window_s: float,
+    max_gap_s: float,
+    max_deviation_rad: float,
+    period_s: float | None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The times and joints as arrays; ValueError for shapes, order or parameters out of range."""
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
     q = np.asarray(joints_rad, dtype=np.float64)
     if q.ndim != 2 or q.shape[0] != t.size:
@@ -176,85 +223,128 @@ def assess_stillness(
         raise ValueError("t_s must be non-decreasing")
     if period_s is not None and not (period_s > 0 and math.isfinite(period_s)):
         raise ValueError(f"period_s must be a positive number of seconds, got {period_s}")
-    start = window_end_t_s - window_s
-    inside = (t >= start) & (t <= window_end_t_s)
-    n = int(inside.sum())
+    return t, q
+
+
+def _unusable_window(qw: NDArray[np.float64], window_s: float) -> StillnessResult | None:
+    """``incomplete`` when the window holds no samples or non-finite ones; else None."""
+    n = int(qw.shape[0])
     if n == 0:
         return StillnessResult(
             False, math.nan, 0.0, 0,
             f"joint history incomplete: no joint samples in the {window_s:g} s window", VERDICT_INCOMPLETE,
         )  # fmt: skip
-    tw, qw = t[inside], q[inside]
     if not np.all(np.isfinite(qw)):
         return StillnessResult(
             False, math.nan, 0.0, n, "joint history incomplete: non-finite joint values in the window",
             VERDICT_INCOMPLETE,
         )  # fmt: skip
-    q_end = qw[-1]
-    per_joint = np.max(np.abs(qw - q_end), axis=0)
-    deviation = float(np.max(per_joint))
+    return None
+
+
+def _window(
+    tw: NDArray[np.float64],
+    qw: NDArray[np.float64],
+    start: float,
+    window_end_t_s: float,
+    window_s: float,
+    max_gap_s: float,
+) -> _Window:
+    """The deviation from the window-end pose and the receive gaps, window edges included."""
+    per_joint = np.max(np.abs(qw - qw[-1]), axis=0)
     edges = np.concatenate(([start], tw, [window_end_t_s]))
     gaps = np.diff(edges)
-    worst_gap = float(gaps.max())
-    if deviation > max_deviation_rad:
-        j = int(np.argmax(per_joint))
-        return StillnessResult(
-            False, deviation, float(np.sum(gaps[gaps <= max_gap_s])), n,
-            f"robot moved: joint {j + 1} deviated {math.degrees(deviation):.4f}° "
-            f"({deviation:.6f} rad > {max_deviation_rad:g} rad) during the {window_s:g} s window",
-            VERDICT_MOVED, worst_gap,
-        )  # fmt: skip
+    return _Window(
+        start, window_end_t_s, window_s, int(tw.size), float(np.max(per_joint)), per_joint, edges, gaps,
+        float(gaps.max()), float(np.sum(gaps[gaps <= max_gap_s])),
+    )  # fmt: skip
+
+
+def _moved_by_deviation(w: _Window, max_deviation_rad: float) -> StillnessResult | None:
+    """``moved`` when a joint left the window-end pose by more than the limit."""
+    if not w.deviation_rad > max_deviation_rad:
+        return None
+    j = int(np.argmax(w.per_joint_rad))
+    return StillnessResult(
+        False, w.deviation_rad, w.covered_s, w.n,
+        f"robot moved: joint {j + 1} deviated {math.degrees(w.deviation_rad):.4f}° "
+        f"({w.deviation_rad:.6f} rad > {max_deviation_rad:g} rad) during the {w.window_s:g} s window",
+        VERDICT_MOVED, w.worst_gap_s,
+    )  # fmt: skip
+
+
+def _moved_by_report(w: _Window, in_motion_t_s: ArrayLike | None) -> StillnessResult | None:
+    """``moved`` when the controller reported ``in_motion`` = TRUE inside the window."""
     reported = np.asarray([] if in_motion_t_s is None else in_motion_t_s, dtype=np.float64).reshape(-1)
-    reported = reported[(reported >= start) & (reported <= window_end_t_s)]
-    if reported.size:
+    reported = reported[(reported >= w.start_t_s) & (reported <= w.end_t_s)]
+    if not reported.size:
+        return None
+    return StillnessResult(
+        False, w.deviation_rad, w.covered_s, w.n,
+        f"robot moved: the controller reported in_motion at t={reported[0] - w.start_t_s:.3f} s into the "
+        f"{w.window_s:g} s window ({reported.size} status report(s) in the window) while the joints "
+        f"deviated {w.deviation_rad:.6f} rad at most",
+        VERDICT_MOVED, w.worst_gap_s,
+    )  # fmt: skip
+
+
+def _watched_late(w: _Window, watched_from_t_s: float | None) -> StillnessResult | None:
+    """``incomplete`` when the window began before the link session connected."""
+    if watched_from_t_s is None or not watched_from_t_s > w.start_t_s:
+        return None
+    return StillnessResult(
+        False, w.deviation_rad, max(0.0, w.end_t_s - watched_from_t_s), w.n,
+        f"joint history incomplete: the {w.window_s:g} s window began "
+        f"{watched_from_t_s - w.start_t_s:.3f} s before the robot link connected, so nobody watched the "
+        "robot then",
+        VERDICT_INCOMPLETE, w.worst_gap_s,
+    )  # fmt: skip
+
+
+def _reconnected(w: _Window, sessions: ArrayLike | None, inside: NDArray[np.bool_]) -> StillnessResult | None:
+    """``incomplete`` when the window's samples came over more than one link session."""
+    if sessions is None:
+        return None
+    sw = np.asarray(sessions).reshape(-1)
+    if sw.size != inside.size:
+        raise ValueError(f"sessions must have shape ({inside.size},), got {sw.shape}")
+    n_sessions = len(set(sw[inside].tolist()))
+    if n_sessions <= 1:
+        return None
+    return StillnessResult(
+        False, w.deviation_rad, 0.0, w.n,
+        f"joint history incomplete: the robot link reconnected {n_sessions - 1} time(s) inside the "
+        f"{w.window_s:g} s window, so frames may be lost",
+        VERDICT_INCOMPLETE, w.worst_gap_s,
+    )  # fmt: skip
+
+
+def _streamed_coverage(w: _Window, period_s: float, max_gap_s: float) -> StillnessResult:
+    """A streamed link: ``still`` unless more than ``max_gap_s`` worth of frames are missing."""
+    missing = w.window_s / period_s - w.n
+    covered = min(w.window_s, w.n * period_s)
+    if missing * period_s > max_gap_s:
         return StillnessResult(
-            False, deviation, float(np.sum(gaps[gaps <= max_gap_s])), n,
-            f"robot moved: the controller reported in_motion at t={reported[0] - start:.3f} s into the "
-            f"{window_s:g} s window ({reported.size} status report(s) in the window) while the joints "
-            f"deviated {deviation:.6f} rad at most",
-            VERDICT_MOVED, worst_gap,
+            False, w.deviation_rad, covered, w.n,
+            f"joint history incomplete: {w.n} joint frames in the {w.window_s:g} s window where the stream's "
+            f"measured period ({period_s * 1e3:.1f} ms) gives {w.window_s / period_s:.0f}; "
+            f"{missing * period_s:.3f} s of frames are missing (> {max_gap_s:g} s), the longest receive "
+            f"gap is {w.worst_gap_s:.3f} s: the controller stopped sending",
+            VERDICT_INCOMPLETE, w.worst_gap_s, missing,
         )  # fmt: skip
-    if watched_from_t_s is not None and watched_from_t_s > start:
+    return StillnessResult(True, w.deviation_rad, covered, w.n, "", VERDICT_STILL, w.worst_gap_s, missing)
+
+
+def _polled_coverage(w: _Window, max_gap_s: float) -> StillnessResult:
+    """A polled link: ``still`` unless a receive gap (window edges included) exceeds ``max_gap_s``."""
+    covered = w.covered_s
+    if w.worst_gap_s > max_gap_s:
+        i = int(np.argmax(w.gaps_s))
         return StillnessResult(
-            False, deviation, max(0.0, window_end_t_s - watched_from_t_s), n,
-            f"joint history incomplete: the {window_s:g} s window began "
-            f"{watched_from_t_s - start:.3f} s before the robot link connected, so nobody watched the "
-            "robot then",
-            VERDICT_INCOMPLETE, worst_gap,
-        )  # fmt: skip
-    if sessions is not None:
-        sw = np.asarray(sessions).reshape(-1)
-        if sw.size != t.size:
-            raise ValueError(f"sessions must have shape ({t.size},), got {sw.shape}")
-        n_sessions = len(set(sw[inside].tolist()))
-        if n_sessions > 1:
-            return StillnessResult(
-                False, deviation, 0.0, n,
-                f"joint history incomplete: the robot link reconnected {n_sessions - 1} time(s) inside the "
-                f"{window_s:g} s window, so frames may be lost",
-                VERDICT_INCOMPLETE, worst_gap,
-            )  # fmt: skip
-    if period_s is not None:
-        missing = window_s / period_s - n
-        covered = min(window_s, n * period_s)
-        if missing * period_s > max_gap_s:
-            return StillnessResult(
-                False, deviation, covered, n,
-                f"joint history incomplete: {n} joint frames in the {window_s:g} s window where the stream's "
-                f"measured period ({period_s * 1e3:.1f} ms) gives {window_s / period_s:.0f}; "
-                f"{missing * period_s:.3f} s of frames are missing (> {max_gap_s:g} s), the longest receive "
-                f"gap is {worst_gap:.3f} s: the controller stopped sending",
-                VERDICT_INCOMPLETE, worst_gap, missing,
-            )  # fmt: skip
-        return StillnessResult(True, deviation, covered, n, "", VERDICT_STILL, worst_gap, missing)
-    covered = float(np.sum(gaps[gaps <= max_gap_s]))
-    if worst_gap > max_gap_s:
-        i = int(np.argmax(gaps))
-        return StillnessResult(
-            False, deviation, covered, n,
-            f"joint history incomplete: a {worst_gap:.3f} s gap (> {max_gap_s:g} s) at "
-            f"{edges[i] - start:.3f} s into the {window_s:g} s window: "
+            False, w.deviation_rad, covered, w.n,
+            f"joint history incomplete: a {w.worst_gap_s:.3f} s gap (> {max_gap_s:g} s) at "
+            f"{w.edges_t_s[i] - w.start_t_s:.3f} s into the {w.window_s:g} s window: "
             "the link did not watch the whole window",
-            VERDICT_INCOMPLETE, worst_gap,
+            VERDICT_INCOMPLETE, w.worst_gap_s,
         )  # fmt: skip
-    return StillnessResult(True, deviation, covered, n, "", VERDICT_STILL, worst_gap)
+    return StillnessResult(True, w.deviation_rad, covered, w.n, "", VERDICT_STILL, w.worst_gap_s)

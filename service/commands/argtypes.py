@@ -38,13 +38,6 @@ def positive_float(text: str) -> float:
     return value
 
 
-def nonnegative_float(text: str) -> float:
-    value = _number(text, float)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text}")
-    return value
-
-
 def positive_int(text: str) -> int:
     value = int(_number(text, int))
     if value <= 0:

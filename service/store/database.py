@@ -82,15 +82,6 @@ class Database:
         """None while the database file is the one opened; else what happened and what to do."""
         return self._conn.watch.check()
 
-    def backup_to(self, target: Path) -> None:
-        """Copy the database to ``target`` with the SQLite online backup API (consistent while serving)."""
-        dest = sqlite3.connect(target)
-        try:
-            with self._conn.lock:
-                self._conn.raw.backup(dest)
-        finally:
-            dest.close()
-
     @property
     def schema_version(self) -> int:
         with self._conn.lock:

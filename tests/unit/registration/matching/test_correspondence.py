@@ -23,14 +23,13 @@ from registration.matching.correspondence import (
     same_pose,
 )
 from registration.matching.records import (
-    PointSetError,
     PriorMismatchError,
     RegistrationParams,
 )
 from registration.matching.register import (
     register_points,
 )
-from registration.matching.rigid import rotation_difference_deg
+from registration.matching.rigid import PointSetError, rotation_difference_deg
 from registration.matching.verification import verify_registration
 from registration.model import frames
 from registration.model.phantom import Phantom

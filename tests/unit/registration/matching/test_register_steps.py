@@ -37,7 +37,6 @@ from registration.matching.hypotheses import (
 )
 from registration.matching.icp import IcpResult
 from registration.matching.records import (
-    PointSetError,
     PriorMismatchError,
     RegistrationInputs,
     RegistrationParams,
@@ -47,6 +46,7 @@ from registration.matching.register import (
     register_points,
     validate_inputs,
 )
+from registration.matching.rigid import PointSetError
 from registration.model import frames
 from registration.model.phantom import Phantom
 

@@ -10,7 +10,13 @@ from scipy.spatial.transform import Rotation
 from registration.errors import DegenerateConfigurationError, MirroredInputError
 from registration.matching.icp import icp, unique_pairs
 from registration.matching.prereg import PreregistrationError, preregister
-from registration.matching.rigid import fit_rigid, fit_rigid_batch, nearest_rotation, rotation_difference_deg
+from registration.matching.rigid import (
+    PointSetError,
+    fit_rigid,
+    fit_rigid_batch,
+    nearest_rotation,
+    rotation_difference_deg,
+)
 from registration.model import frames
 
 F64 = NDArray[np.float64]
@@ -81,11 +87,17 @@ def test_fit_rigid_rejects_too_few_points() -> None:
         fit_rigid(_cloud(1, 2), _cloud(1, 2))
 
 
-def test_fit_rigid_rejects_nan() -> None:
+def test_fit_rigid_rejects_nan_with_the_typed_point_set_error() -> None:
+    """The registration's one point-set check (a 4xx problem, not a 500): it names the rows."""
     a = _cloud(1, 5)
     a[2, 1] = np.nan
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(PointSetError, match=r"source_mm: rows \[2\] contain NaN"):
         fit_rigid(a, _cloud(2, 5))
+
+
+def test_fit_rigid_rejects_a_point_set_that_is_not_n_by_3_with_the_typed_error() -> None:
+    with pytest.raises(PointSetError, match=r"target_mm: expected an \(N, 3\) array .* got shape \(5, 2\)"):
+        fit_rigid(_cloud(1, 5), _cloud(2, 5)[:, :2])
 
 
 def test_fit_rigid_rejects_bad_weights() -> None:
