@@ -86,7 +86,9 @@ def create_app(
     settings : Settings
         From :func:`service.settings.load_settings`.
     robot_link : RobotLink, optional
-        Default: ``drivers.base.open_link(settings.robot.link_url)`` (not connected until start-up).
+        Default: :func:`drivers.factory.open_link` on ``settings.robot.link_url``, or a
+        :class:`drivers.link_process.ProcessLink` when ``robot.link_process`` is set (``_open_link``;
+        not connected until start-up).
     phantom, robot_model : optional
         Pre-loaded :class:`registration.model.phantom.Phantom` /
         :class:`registration.model.kinematics.RobotModel`.

@@ -3,10 +3,13 @@
 
 Each call runs on a worker thread (the API awaits it with ``anyio.to_thread``) under one
 lock, so concurrent calls run one after the other and never interleave their writes.
-Every outcome is stored: a refusal (robot moved, robot link down, too few spheres,
-ambiguous, FRE over the gate, bad scan) becomes a ``refused`` registration with the
-reason, the exception is re-raised (the API answers problem details) and the previous
-current registration stays current.
+Every outcome of ``register`` for a scan that exists is stored: a refusal (robot moved, joint
+history incomplete, robot link down, too few spheres, ambiguous, FRE over the gate, bad scan, a
+superseded scan, a scan that changed while it was registered, or a bug — an ``InternalError``,
+answered 500) becomes a ``refused`` registration with its reason, problem title and HTTP status;
+:meth:`Orchestrator.register` returns it as a :class:`RegistrationRefusal` (it is not raised; the
+API answers problem details from it) and the previous current registration stays current.  Nothing
+to register (no such scan, no complete scan) raises and stores nothing.
 
 Which registration may be current is a rule (docs/safety.md, "Which registration may be current"):
 a verification that fails its gate, or cannot be computed because the error is beyond what matching
