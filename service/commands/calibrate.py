@@ -35,7 +35,11 @@ URDF_FILE = "robot.urdf"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
-    run_p = sub.add_parser("run", help="calibrate from the scans listed in POSES.json")
+    _add_run_arguments(sub.add_parser("run", help="calibrate from the scans listed in POSES.json"))
+    _add_plan_arguments(sub.add_parser("plan", help="propose calibration poses from one registration"))
+
+
+def _add_run_arguments(run_p: argparse.ArgumentParser) -> None:
     run_p.add_argument("poses", type=Path, metavar="POSES.json")
     run_p.add_argument(
         "--out",
@@ -86,7 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--config", type=Path, default=None, help="service TOML ([calibration] target_rms_mm to compare with)"
     )
     add_method_argument(run_p)
-    plan_p = sub.add_parser("plan", help="propose calibration poses from one registration")
+
+
+def _add_plan_arguments(plan_p: argparse.ArgumentParser) -> None:
     plan_p.add_argument("--registration", type=Path, required=True, metavar="REG.json")
     plan_p.add_argument(
         "--n",
@@ -471,12 +477,10 @@ def _pose_set_joints(path: Path, model: Any) -> Any:
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    import numpy as np
 
-    from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses, predict_plan
+    from registration.calibration.planner import PlannerParams, plan_poses, predict_plan
     from registration.calibration.urdf import read_chain
     from registration.io.points import _load_json, read_registration, write_json
-    from registration.model import frames
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom
     from registration.model.phantom import load_phantom
     from service.settings import load_settings
@@ -503,35 +507,7 @@ def run_plan(args: argparse.Namespace) -> int:
     chain = read_chain(model.urdf_path)
     q0 = model.check_joints(joints)
     pts = load_phantom(args.phantom).centres_phantom_mm
-    geometry = reg_doc.get("series_geometry")
-    if geometry is not None:
-        from registration.imaging.scan_geometry import SeriesGeometry
-
-        base = SeriesGeometry.from_dict(geometry).scan_volume()
-        source = f"series_geometry of {args.registration}"
-    else:
-        base = ScanVolume(
-            centre_image_mm=tuple(frames.apply(y @ chain.robot_from_tool0(q0) @ rod, np.zeros(3)).tolist())
-        )
-        source = "the phantom centre at the registration (REG.json has no series_geometry)"
-        if not args.volume_centre_mm:
-            sys.stderr.write(
-                f"warning: {args.registration} has no series_geometry (written by `oarmreg register` from a "
-                "DICOM series): the volume is assumed centred on the phantom; give --volume-centre-mm or "
-                "re-register the scan\n"
-            )
-    if args.volume_centre_mm:
-        c = [float(v) for v in args.volume_centre_mm.split(",")]
-        if len(c) != 3:
-            raise _config_error(f"--volume-centre-mm {args.volume_centre_mm!r}: expected X,Y,Z in mm")
-        base = ScanVolume((c[0], c[1], c[2]), base.fov_radius_mm, base.half_length_mm, base.axis_image)
-        source = "--volume-centre-mm"
-    volume = ScanVolume(
-        base.centre_image_mm,
-        args.fov_radius_mm if args.fov_radius_mm is not None else base.fov_radius_mm,
-        args.half_length_mm if args.half_length_mm is not None else base.half_length_mm,
-        base.axis_image,
-    )
+    volume, source = _plan_volume(args, reg_doc, y @ chain.robot_from_tool0(q0) @ rod)
     params = PlannerParams(
         n_poses=args.n, target_rms_mm=cal_settings.target_rms_mm, max_poses=cal_settings.max_poses
     )
@@ -594,6 +570,46 @@ def run_plan(args: argparse.Namespace) -> int:
         + f"written: {args.json}\n"
     )
     return 0
+
+
+def _plan_volume(
+    args: argparse.Namespace, reg_doc: dict[str, Any], image_from_phantom: Any
+) -> tuple[Any, str]:
+    """The scan volume the plan must keep every sphere in, and where it came from: REG.json's
+    series_geometry, else the phantom centre at the registration; the flags override each part."""
+    import numpy as np
+
+    from registration.calibration.planner import ScanVolume
+    from registration.model import frames
+
+    geometry = reg_doc.get("series_geometry")
+    if geometry is not None:
+        from registration.imaging.scan_geometry import SeriesGeometry
+
+        base = SeriesGeometry.from_dict(geometry).scan_volume()
+        source = f"series_geometry of {args.registration}"
+    else:
+        base = ScanVolume(centre_image_mm=tuple(frames.apply(image_from_phantom, np.zeros(3)).tolist()))
+        source = "the phantom centre at the registration (REG.json has no series_geometry)"
+        if not args.volume_centre_mm:
+            sys.stderr.write(
+                f"warning: {args.registration} has no series_geometry (written by `oarmreg register` from a "
+                "DICOM series): the volume is assumed centred on the phantom; give --volume-centre-mm or "
+                "re-register the scan\n"
+            )
+    if args.volume_centre_mm:
+        c = [float(v) for v in args.volume_centre_mm.split(",")]
+        if len(c) != 3:
+            raise _config_error(f"--volume-centre-mm {args.volume_centre_mm!r}: expected X,Y,Z in mm")
+        base = ScanVolume((c[0], c[1], c[2]), base.fov_radius_mm, base.half_length_mm, base.axis_image)
+        source = "--volume-centre-mm"
+    volume = ScanVolume(
+        base.centre_image_mm,
+        args.fov_radius_mm if args.fov_radius_mm is not None else base.fov_radius_mm,
+        args.half_length_mm if args.half_length_mm is not None else base.half_length_mm,
+        base.axis_image,
+    )
+    return volume, source
 
 
 def _keep_out_boxes(specs: list[str]) -> list[Any]:

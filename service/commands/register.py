@@ -256,13 +256,8 @@ def run(args: argparse.Namespace) -> int:
     from registration import __version__
     from registration.errors import OarmRegError
     from registration.io.points import read_points, read_targets, write_json
-    from registration.matching.records import (
-        RegistrationParams,
-        params_dict,
-    )
-    from registration.matching.register import (
-        register_points,
-    )
+    from registration.matching.records import params_dict
+    from registration.matching.register import register_points
     from registration.model.phantom import load_phantom
     from service.settings import load_settings
 
@@ -289,16 +284,7 @@ def run(args: argparse.Namespace) -> int:
             provenance["robot_points_sha256"] = sha256_of(args.robot_points)
         image = load_image_points(args, provenance, timings)
         quality = load_settings(args.config).quality
-        overrides: dict[str, Any] = {
-            "min_matched": quality.min_matched_spheres,
-            "min_runner_up_margin": quality.min_symmetry_margin,
-            "max_fre_mm": quality.max_fre_mm,
-        }  # as service.orchestrator.pipeline_params
-        if args.max_fre_mm is not None:
-            overrides["max_fre_mm"] = args.max_fre_mm
-        if args.min_margin is not None:
-            overrides["min_runner_up_margin"] = args.min_margin
-        params = RegistrationParams(**overrides)
+        params = registration_params(args, quality)
         phantom = None
         if args.phantom and args.phantom.lower() != "none":
             phantom = load_phantom(args.phantom)
@@ -349,6 +335,23 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "sro", None) is not None:
         sys.stdout.write(f"written: {args.sro} (DICOM Spatial Registration)\n")
     return 0
+
+
+def registration_params(args: argparse.Namespace, quality: Any) -> Any:
+    """The gates of ``[quality]`` (as :func:`service.orchestrator.pipeline_params`), the flags
+    overriding them."""
+    from registration.matching.records import RegistrationParams
+
+    overrides: dict[str, Any] = {
+        "min_matched": quality.min_matched_spheres,
+        "min_runner_up_margin": quality.min_symmetry_margin,
+        "max_fre_mm": quality.max_fre_mm,
+    }
+    if args.max_fre_mm is not None:
+        overrides["max_fre_mm"] = args.max_fre_mm
+    if args.min_margin is not None:
+        overrides["min_runner_up_margin"] = args.min_margin
+    return RegistrationParams(**overrides)
 
 
 def default_targets(robot_mm: Any, phantom: Any, distance_mm: float) -> tuple[Any, str]:

@@ -90,6 +90,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--unsigned", action="store_true", help="unsigned pixels, RescaleIntercept -1024")
     parser.add_argument("--bits-stored", type=int, choices=(12, 16), default=16)
     parser.add_argument("--orientation", choices=sorted(ORIENTATIONS), default="axial")
+    _add_robot_pose_arguments(parser)
+    parser.add_argument(
+        "--png",
+        type=output_file,
+        default=None,
+        help="render the slice cutting most spheres: FILE stem + _bone/_soft/_zoom_bone + _window.png",
+    )
+
+
+def _add_robot_pose_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--joints``, ``--pose-index``, ``--placement`` and their companions: the phantom posed by joint
+    angles through the simulated true cell (calibration from the CLI)."""
     cal = parser.add_argument_group(
         "robot poses (calibration from the CLI, docs/calibration.md)",
         "pose the phantom by joint angles through a simulated TRUE cell (mocks/cell.py: joint origins, "
@@ -130,12 +142,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="POSES.json",
         help="with --joints: add this scan (scan_dir relative to the file, reported joints) to a "
         "`calibrate run` POSES.json, created if missing",
-    )
-    parser.add_argument(
-        "--png",
-        type=output_file,
-        default=None,
-        help="render the slice cutting most spheres: FILE stem + _bone/_soft/_zoom_bone + _window.png",
     )
 
 
