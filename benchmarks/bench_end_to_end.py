@@ -63,7 +63,7 @@ MATCH_TRUTH_MM = 1.25
 """A detection within one sphere radius of a truth centre is that sphere."""
 
 Q_HOME_RAD = (0.0, 0.0, math.pi / 2, 0.0, math.pi / 4, 0.0)
-"""The demo's first pose (service/commands/demo.py Q1_RAD)."""
+"""The demo's first pose (service/cli/commands/demo.py Q1_RAD)."""
 Q_SPREAD_DEG = (30.0, 20.0, 20.0, 30.0, 25.0, 90.0)
 """Uniform ± spread of each joint around :data:`Q_HOME_RAD`: a TX60 holding the phantom out in
 front of it, wrist well away from its limits and from the J5 = 0 singularity."""

@@ -6,7 +6,7 @@ ratio to the floor's time.  Times are the thread's CPU time (``time.thread_time`
 on a shared machine a long run is sliced by the scheduler, and the CPU time is what the event loop
 spends; on an idle machine the two agree.  The last column is how long one CRC of that size
 holds the event loop with the new code: the listener's default limits are 4 KiB (STATUS),
-1 KiB (queries) and 64 KiB (anything else), at most 1 MiB by setting (``service/igtl/server.py``).
+1 KiB (queries) and 64 KiB (anything else), at most 1 MiB by setting (``service/navigation/igtl/server.py``).
 The pure-Python CRC is measured up to 1 MiB (64 MiB would take 10 s or more a run); its 64 MiB
 figure is extrapolated from the 1 MiB one.
 
@@ -24,7 +24,7 @@ from collections.abc import Callable
 from typing import Any
 
 from benchmarks.common import print_table
-from service.igtl import wire
+from service.navigation.igtl import wire
 
 SIZES = (1024, 64 * 1024, 1024 * 1024, 64 * 1024 * 1024)
 PY_MAX = 1024 * 1024

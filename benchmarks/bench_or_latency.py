@@ -3,7 +3,7 @@
 One simulated O-arm scan of the phantom (``--preset``, default ``oarm``: 512 × 512 × 192) is
 written once; each run re-sends it under new Series / SOP Instance UIDs with pynetdicom's SCU
 (:mod:`mocks.oarm.cstore`) to a running service (real uvicorn, mock simple_message robot
-holding still, DICOM SCP + OpenIGTLink on port 0, ``service.auto_register = true``).  Times are
+holding still, DICOM SCP + OpenIGTLink on port 0, ``service.registrations.auto_register = true``).  Times are
 ``time.perf_counter()`` in this process: the SCU's release confirmation, the service's
 ``scan_arrived`` and ``registration_done`` events (its event bus, in-process), and the moment
 pyigtl's ``OpenIGTLinkClient`` returns the ``RobotToImage`` of the new registration (pyigtl
@@ -79,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     with tempfile.TemporaryDirectory(prefix="bench-or-") as tmp:

@@ -169,8 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
     from mocks.robot.robot import HOME_RAD, ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:

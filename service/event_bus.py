@@ -1,4 +1,4 @@
-"""The in-process event bus behind ``GET /events`` (:mod:`service.api.events`).
+"""The in-process event bus behind ``GET /events`` (:mod:`service.http.api.events`).
 
 Events are the typed classes of :mod:`service.events`; :meth:`EventBus.publish` takes one, is
 callable from any thread, serialises it once (:meth:`service.events.Event.payload`) and hands it to
@@ -9,7 +9,7 @@ No listener can break the bus: one that raises is logged with the event and coun
 publisher never sees the exception.  A listener bound with ``safety=True`` carries a safety duty
 (telling navigation about a new or refused registration): while its last call failed,
 :meth:`EventBus.failing_safety_listeners` names it and ``GET /ready`` answers 503
-(:mod:`service.health`); its next successful call clears that.
+(:mod:`service.http.health`); its next successful call clears that.
 """
 
 from __future__ import annotations

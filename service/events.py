@@ -6,7 +6,7 @@ string.  A producer builds the event it means (``bus.publish(RegistrationDone(..
 receives that typed object.  Payload fields are typed (record ids, states, reasons); none is a
 free-form ``dict``.
 
-Wire format (``GET /events``, :mod:`service.api.events`): ``event: <name>`` and, as ``data``, the
+Wire format (``GET /events``, :mod:`service.http.api.events`): ``event: <name>`` and, as ``data``, the
 JSON object of :meth:`Event.payload`: the fields in declaration order, tuples as lists; a field
 named in ``omitted_when_none`` is left out while it is None; a :class:`Reopening` is written as its
 three fields in place.  Navigation clients parse these bytes, so a field's name, order and presence
@@ -61,7 +61,7 @@ Publish = Callable[[Event], None]
 """``publish(event)``, thread-safe: :meth:`service.event_bus.EventBus.publish`."""
 
 
-# ---- scans (service.intake, service.scan_lifecycle, service.retention) ------------------------
+# ---- scans (service.intake.recording, service.intake.scan_lifecycle, service.intake.retention) ---
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class Reopening:
 
 @dataclass(frozen=True, kw_only=True)
 class _ScanRecorded(Event):
-    """A series was recorded (:class:`service.intake.Intake`): its scan and the joints' verdict."""
+    """A series was recorded (:class:`service.intake.recording.Intake`): its scan and the joints' verdict."""
 
     scan_id: int
     series_uid: str
@@ -112,7 +112,7 @@ class ScanInvalid(_ScanRecorded):
 
 @dataclass(frozen=True, kw_only=True)
 class _ScanContentChanged(Event):
-    """A judged series' content changed (:meth:`service.scan_lifecycle.ScanLifecycle.changing`)."""
+    """A judged series' content changed (:meth:`service.intake.scan_lifecycle.ScanLifecycle.changing`)."""
 
     scan_id: int
     series_uid: str
@@ -154,7 +154,7 @@ class ScanFilesDeleted(Event):
     reason: str
 
 
-# ---- registrations and verifications (service.orchestrator) -----------------------------------
+# ---- registrations and verifications (service.registrations.orchestrator) ---
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -186,7 +186,8 @@ class RegistrationWithdrawn(Event):
     """Registrations withdrawn: made from a scan that was reopened (incomplete when registered) or
     changed, or (``verification_scan_id`` set) the current one, whose verification failed its gate
     or could not be computed (docs/safety.md).  With ``was_current`` nothing is current any more:
-    every push channel says INVALID (:attr:`service.orchestrator.Orchestrator.current` is None)."""
+    every push channel says INVALID (:attr:`service.registrations.orchestrator.Orchestrator.current` is
+    None)."""
 
     name: ClassVar[str] = "registration_withdrawn"
     registration_ids: tuple[int, ...]
@@ -226,7 +227,7 @@ class VerificationDone(Event):
     passed: bool
 
 
-# ---- the robot link (service.capture) ---------------------------------------------------------
+# ---- the robot link (service.registrations.capture) ---
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -239,7 +240,7 @@ class LinkState(Event):
     reason: str
 
 
-# ---- operating-room interfaces (service.intake_scp, service.igtl.publisher) -------------------
+# ---- operating-room interfaces (service.intake.intake_scp, service.navigation.igtl.publisher) ---
 
 ReleaseOutcome = Literal["unchanged", "refused", "invalid", "complete", "reopened", "reopened_invalid"]
 
@@ -273,7 +274,7 @@ class DicomRefused(Event):
 
     name: ClassVar[str] = "dicom_refused"
     kind: str
-    """``peer``, ``calling_ae``, ``context``, ``dataset``, ``disk`` (service.dicom_scp.ScpRefusal)."""
+    """``peer``, ``calling_ae``, ``context``, ``dataset``, ``disk`` (service.intake.dicom_scp.ScpRefusal)."""
     reason: str
     calling_ae: str
     peer: str
@@ -309,7 +310,7 @@ class IgtlClientHeaderVersion(_IgtlClientEvent):
     name: ClassVar[str] = "igtl_client_header_version"
 
 
-# ---- calibration sessions (service.calibration_jobs, service.orchestrator) --------------------
+# ---- calibration sessions (service.registrations.calibration_jobs, service.registrations.orchestrator) ---
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -385,7 +386,7 @@ class RegistrationRetired(Event):
     reason: str
 
 
-# ---- archiving a registration's SRO to the PACS (service.pacs) --------------------------------
+# ---- archiving a registration's SRO to the PACS (service.navigation.pacs) --------------------------------
 
 
 @dataclass(frozen=True, kw_only=True)

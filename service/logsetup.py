@@ -1,6 +1,6 @@
 """Logging set-up for the ``oarmreg`` command line: text or one JSON object per line.
 
-The library parts never configure logging; :func:`service.cli.main` calls :func:`configure` once,
+The library parts never configure logging; :func:`service.cli.main.main` calls :func:`configure` once,
 and ``oarmreg serve`` may lower or raise the level to the ``[log] level`` setting.
 """
 
@@ -37,7 +37,7 @@ class JsonFormatter(logging.Formatter):
 
 SECRET_QUERY_PARAMS = ("ticket",)
 """Query parameters whose values never reach a log: the single-use ``GET /events?ticket=`` (a
-bearer credential while it lives; :mod:`service.tickets`)."""
+bearer credential while it lives; :mod:`service.http.tickets`)."""
 _SECRET_QUERY = re.compile(r"([?&](?:" + "|".join(SECRET_QUERY_PARAMS) + r")=)[^&#\s]*")
 REDACTED = "<redacted>"
 ACCESS_LOGGER = "uvicorn.access"

@@ -1,7 +1,7 @@
 """The service's stored records: frozen dataclasses, one definition each.
 
 The stores (:mod:`service.store`) read and write them; the API models
-(:mod:`service.api.models`) are built from them with
+(:mod:`service.http.api.models`) are built from them with
 ``Model.model_validate(record, from_attributes=True)``.  Lists of numbers are tuples
 so a record is immutable; JSON columns are decoded into these types once, in the
 store.
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from registration.errors import OarmRegError
 
 ScanStatus = Literal["receiving", "complete", "reopened", "replaced", "invalid"]
-"""A scan's state (:mod:`service.scan_lifecycle`, docs/safety.md "Scan lifecycle"); only ``complete``
+"""A scan's state (:mod:`service.intake.scan_lifecycle`, docs/safety.md "Scan lifecycle"); only ``complete``
 can be registered, verified or calibrated with."""
 RegistrationStatus = Literal["accepted", "refused", "retired", "withdrawn"]
 
@@ -105,7 +105,7 @@ def stillness_verdict(value: str) -> StillnessVerdict:
 class JointSnapshot:
     """The joints captured at a scan's arrival and the stillness verdict over the window before it.
 
-    ``verdict`` is the one source of truth for the gate (:func:`service.scan_checks.check_capture`);
+    ``verdict`` is the one source of truth for the gate (:func:`service.intake.scan_checks.check_capture`);
     ``stillness_reason`` is for people and is never parsed.  ``joints_rad`` is None when no joint
     sample was available (link down, pre-existing series).
     """

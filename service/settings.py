@@ -1,7 +1,7 @@
 """Service settings: defaults < TOML file < environment (``OARMREG_``) < CLI flags.
 
 One :class:`Settings` object is built in ``main`` (``oarmreg serve`` / ``demo``)
-by :func:`load_settings` and passed down to :func:`service.app.create_app`;
+by :func:`load_settings` and passed down to :func:`service.http.app.create_app`;
 nothing here is built at import time.
 
 * TOML: ``configs/oarmreg.toml`` documents every key with its unit and origin.
@@ -185,7 +185,7 @@ class WatcherSettings(_Section):
 
 
 class RetentionSettings(_Section):
-    """Deleting old intake scans (``service.retention``); both limits off by default."""
+    """Deleting old intake scans (``service.intake.retention``); both limits off by default."""
 
     max_age_days: float | None = Field(default=None, gt=0, le=36500)
     max_disk_mb: float | None = Field(default=None, gt=0)
@@ -238,7 +238,7 @@ class ApiSettings(_Section):
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
-    # --- connection bounds (issue #32; service.http_limits).  Connections held open at once; one
+    # --- connection bounds (issue #32; service.http.limits).  Connections held open at once; one
     # more closes the oldest idle one (no request in progress), so /health and the page keep
     # answering while a peer floods the port.  256: a browser opens at most 6 per host (Chromium's
     # per-host limit) and an SSE stream holds one, so ~40 browser tabs plus the navigation clients.
@@ -249,7 +249,7 @@ class ApiSettings(_Section):
     # milliseconds; Apache's mod_reqtimeout allows 20 s for the first header bytes; 10 s frees an idle
     # peer's descriptor within seconds.
     first_request_timeout_s: float = Field(default=10.0, gt=0, le=300)
-    # --- failed authentications, throttled per client address (service.security.AuthThrottle)
+    # --- failed authentications, throttled per client address (service.http.security.AuthThrottle)
     # wrong credentials answered 401 before the address is throttled: the status page calls 7 API
     # paths when it loads with one token, so one mistyped token must not lock its user out at once
     auth_failures_before_throttle: int = Field(default=10, ge=1, le=1000)
@@ -290,7 +290,7 @@ def _check_networks(values: tuple[str, ...]) -> tuple[str, ...]:
 
 
 class DicomSettings(_Section):
-    """DICOM Storage SCP (C-STORE from the O-arm), :mod:`service.dicom_scp`."""
+    """DICOM Storage SCP (C-STORE from the O-arm), :mod:`service.intake.dicom_scp`."""
 
     enabled: bool = False
     host: str = "127.0.0.1"
@@ -298,7 +298,7 @@ class DicomSettings(_Section):
     port: int = Field(default=11112, ge=0, le=65535)
     allowed_calling_ae_titles: tuple[str, ...] = ()
     allowed_peer_addresses: tuple[str, ...] = ()
-    # --- bounds (service.dicom_scp.StorageScp reads them from here)
+    # --- bounds (service.intake.dicom_scp.StorageScp reads them from here)
     # association negotiation / release, s (pynetdicom's ARTIM timer; its default 30 s let 30 silent
     # sockets hold every slot for ~30 s)
     acse_timeout_s: float = Field(default=10.0, gt=0, le=3600)
@@ -347,7 +347,7 @@ under ~4 ms."""
 
 
 class IgtlSettings(_Section):
-    """OpenIGTLink server (``RobotToImage``, ``ToolToImage``), :mod:`service.igtl.server`."""
+    """OpenIGTLink server (``RobotToImage``, ``ToolToImage``), :mod:`service.navigation.igtl.server`."""
 
     enabled: bool = False
     host: str = "127.0.0.1"
@@ -446,7 +446,7 @@ class LogSettings(_Section):
 
 class PacsSettings(_Section):
     """Archive each accepted registration's Spatial Registration object to a PACS by C-STORE
-    (:mod:`service.pacs`).  Off while ``host`` is empty."""
+    (:mod:`service.navigation.pacs`).  Off while ``host`` is empty."""
 
     host: str = ""
     port: int = Field(default=104, ge=1, le=65535)
@@ -497,7 +497,7 @@ class ServiceSection(_Section):
 
 
 class HealthSettings(_Section):
-    """When ``GET /status`` (and ``GET /ready``) turn unhealthy (service.health, docs/safety.md)."""
+    """When ``GET /status`` (and ``GET /ready``) turn unhealthy (service.http.health, docs/safety.md)."""
 
     # the robot link down or stale this long (s) is a problem.  Longer than one reconnect (back-off
     # capped at 0.5 s plus a connect, docs/robot-link.md), so a controller that blips is not a problem;
@@ -506,7 +506,7 @@ class HealthSettings(_Section):
 
 
 class QaSettings(_Section):
-    """The QA drift rule (:mod:`service.qa_drift`, docs/operations.md "QA drift")."""
+    """The QA drift rule (:mod:`service.registrations.qa_drift`, docs/operations.md "QA drift")."""
 
     # the last N QA checks (verifications at a QA protocol's pose) under the active calibration the
     # rule looks at.  3: one protocol run of three poses, or three weekly runs of one; fewer than N

@@ -101,7 +101,7 @@ def no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
 
 @pytest.fixture(autouse=True)
 def no_stale_log_handlers() -> Iterator[None]:
-    """``service.cli.main`` (called in-process by many tests) puts a ``StreamHandler`` on the root
+    """``service.cli.main.main`` (called in-process by many tests) puts a ``StreamHandler`` on the root
     logger bound to the ``sys.stderr`` of that moment, pytest's capture, which is closed after the
     test: a later log line from a thread of a longer-lived fixture then prints "Logging error".
     Remove the plain stream handlers a test added and put the root level back."""

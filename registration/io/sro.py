@@ -13,7 +13,8 @@ Frame of Reference UID.  Here the Registered RCS is the scan's, so
 
 * item 1: the scan's Frame of Reference with the identity (and its images referenced);
 * item 2: the robot base frame's Frame of Reference UID (minted once per installation,
-  :func:`service.robot_frame.robot_frame_uid`) with ``image_from_robot @ ROBOT_NATIVE_FROM_DICOM``.
+  :func:`service.registrations.robot_frame.robot_frame_uid`) with ``image_from_robot @
+  ROBOT_NATIVE_FROM_DICOM``.
 
 The robot frame's DICOM coordinates (one convention, docs/slicer.md "The registration in
 Slicer: one convention").  The robot base frame is not a patient frame, so the REG object

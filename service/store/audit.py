@@ -1,7 +1,7 @@
 """The ``audit_log`` table: who registered, verified, activated or deleted what.
 
 ``principal`` names the credential, never the credential itself: ``token:<12 hex of SHA-256>``
-(:func:`service.security.token_principal`) or ``none-loopback-only``.  ``detail`` holds the
+(:func:`service.http.security.token_principal`) or ``none-loopback-only``.  ``detail`` holds the
 outcome's title or reason as the API gave it (no patient identifiers: the API never carries any).
 """
 

@@ -30,7 +30,7 @@
     every scan folder the retention policy deleted, with its size and why.
 ``scan_files``, ``scan_changes`` (7)
     the SHA-256 and size of every stored instance of a scan; every state change of a scan and why
-    (:mod:`service.scan_lifecycle`); ``verifications`` / ``calibrations`` gain ``withdrawn_at`` /
+    (:mod:`service.intake.scan_lifecycle`); ``verifications`` / ``calibrations`` gain ``withdrawn_at`` /
     ``withdrawn_reason``.
 ``qa_protocols``, ``qa_checks``
     named sets of verification poses; which verification was taken at which pose of which protocol.
@@ -266,7 +266,7 @@ SCAN_LIFECYCLE_MIGRATION = """
     ALTER TABLE calibrations ADD COLUMN withdrawn_at TEXT;
     ALTER TABLE calibrations ADD COLUMN withdrawn_reason TEXT NOT NULL DEFAULT ''
 """
-"""One scan lifecycle for both intakes (:mod:`service.scan_lifecycle`).  ``scans.status``
+"""One scan lifecycle for both intakes (:mod:`service.intake.scan_lifecycle`).  ``scans.status``
 takes ``receiving`` / ``reopened`` / ``replaced``: SQLite cannot widen a CHECK in place, so the table
 is rebuilt (foreign keys off for this migration only, checked with ``PRAGMA foreign_key_check``
 before the commit).  ``scan_files``: the SHA-256 of every stored instance of a scan;
@@ -294,7 +294,7 @@ PACS_EXPORTS_MIGRATION = """
     );
     CREATE INDEX pacs_exports_due ON pacs_exports (state, next_attempt_unix_s);
 """
-"""The PACS archive queue, one row per accepted registration (service.pacs).  A row stays
+"""The PACS archive queue, one row per accepted registration (service.navigation.pacs).  A row stays
 ``pending`` while it is being sent, so a service killed mid-send sends it again after restart."""
 MIGRATIONS = (*MIGRATIONS, PACS_EXPORTS_MIGRATION)
 

@@ -102,7 +102,8 @@ class ScanStore:
     def record(
         self, scan: NewScan, *, files: dict[str, tuple[str, int]] | None = None, why: str = ""
     ) -> tuple[int, str | None]:
-        """Write the verdict on a series (:class:`service.scan_lifecycle.ScanLifecycle`): insert its row
+        """Write the verdict on a series (:class:`service.intake.scan_lifecycle.ScanLifecycle`): insert its
+        row
         or replace every column of it (same id), its joint snapshot and, when given, its instances'
         hashes (``name → (sha256, bytes)``); a state change is logged in ``scan_changes`` with ``why``
         (the record's reason when empty).  Returns ``(scan_id, previous status or None)``."""

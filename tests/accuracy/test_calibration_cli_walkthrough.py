@@ -19,7 +19,7 @@ from tests.helpers.paths import REPO
 
 DOC = REPO / "docs" / "calibration.md"
 SMALL_SCAN = "--preset small --rows 200 --columns 200 --slices 120 --views 120"
-"""The scan ``oarmreg demo --calibrate`` uses (service/commands/demo_calibrate.py CAL_PRESET)."""
+"""The scan ``oarmreg demo --calibrate`` uses (service/cli/commands/demo_calibrate.py CAL_PRESET)."""
 FORCED_POSES = 6
 """``calibrate plan --n``: the least it takes."""
 

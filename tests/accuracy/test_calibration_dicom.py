@@ -34,7 +34,7 @@ from registration.calibration.urdf import read_chain
 from registration.matching.register import register_points
 from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
-from service.cli import main
+from service.cli.main import main
 
 F64 = NDArray[np.float64]
 START_JOINTS_RAD = np.array([0.2, -0.15, 1.75, 0.3, 0.6, -0.9])

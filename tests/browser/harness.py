@@ -125,8 +125,8 @@ class Service:
 def running_service(root: Path, world: World, **settings_kw: Any) -> Iterator[Service]:
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     watch, data = root / "watch", root / "data"

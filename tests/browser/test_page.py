@@ -44,7 +44,7 @@ def nav_ui() -> Iterator[Any]:
     from starlette.responses import HTMLResponse, Response
     from starlette.routing import Route
 
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
 
     page = HTMLResponse('<!doctype html><title>nav ui</title><script src="/nav.js"></script>')
     script = (Path(__file__).with_name("nav_ui.js")).read_text()

@@ -67,8 +67,8 @@ def in_process_service(root: Path, phantom: Any, model: Any, **kw: Any) -> Itera
     """Mock simple-message controller + the app under uvicorn in a thread, robot still at Q1."""
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     watch, data = root / "watch", root / "data"

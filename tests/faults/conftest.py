@@ -55,8 +55,8 @@ def serve(
     settings: Any, *, start_watcher: bool = False, app_hook: Any = None, **kw: Any
 ) -> Iterator[Running]:
     """The real app on a free loopback port; ``app_hook(app)`` may add routes before it starts."""
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
 
     app = create_app(settings, start_watcher=start_watcher, **kw)
     if app_hook is not None:

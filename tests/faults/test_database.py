@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from registration.errors import ConfigError
-from service.error_map import EXIT_CONFIG, EXIT_USAGE
+from service.http.error_map import EXIT_CONFIG, EXIT_USAGE
 from service.records import NewScan
 from service.store import Database
 from tests.faults.conftest import JSON, REPO_ROOT, fault_settings, mock_robot, serve
@@ -154,7 +154,7 @@ def test_database_deleted_while_running_is_reported_and_rescued(tmp_path: Path) 
     rescued = sorted(settings.db_path.parent.glob("oarmreg.sqlite3.recovered-*"))
     assert len(rescued) == 1 and str(rescued[0]) in problem
     assert not settings.db_path.exists()
-    from service.cli import main
+    from service.cli.main import main
 
     assert main(["restore", str(rescued[0]), "--data", str(settings.data_dir)]) == 0
     db = Database.open(settings.db_path)
@@ -178,7 +178,7 @@ def test_database_replaced_while_running_is_reported(tmp_path: Path) -> None:
 def test_backup_while_serving_restore_refused_until_stopped(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     settings = fault_settings(tmp_path)
     make_db(settings.db_path)
@@ -206,7 +206,7 @@ def test_backup_while_serving_restore_refused_until_stopped(
 
 
 def test_damaged_backup_is_refused(tmp_path: Path) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     settings = fault_settings(tmp_path)
     make_db(settings.db_path, 3)
@@ -232,7 +232,7 @@ def test_damaged_backup_is_refused(tmp_path: Path) -> None:
     ],
 )
 def test_register_flags_are_checked(capsys: pytest.CaptureFixture[str], args: list[str], flag: str) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     with pytest.raises(SystemExit) as e:
         main(["register", "--image-points", "x.json", "--robot-points", "y.json", *args])

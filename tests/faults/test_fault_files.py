@@ -70,7 +70,7 @@ def test_fifo_in_the_watch_folder_never_stops_the_watcher(svc: Svc, tmp_path: Pa
 
 
 def test_detect_refuses_a_fifo_and_dev_without_opening_them(tmp_path: Path) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     fifo = tmp_path / "CT.dcm"
     os.mkfifo(fifo)
@@ -79,7 +79,7 @@ def test_detect_refuses_a_fifo_and_dev_without_opening_them(tmp_path: Path) -> N
 
 
 def test_watcher_health_is_stopped_when_its_thread_is_gone(tmp_path: Path) -> None:
-    from service.watcher import SeriesWatcher
+    from service.intake.watcher import SeriesWatcher
 
     w = SeriesWatcher(tmp_path / "w", on_series=lambda a: None, use_polling_only=True)
     assert w.state()["health"] == "stopped" and w.state()["running"] is False
@@ -94,7 +94,7 @@ def test_watcher_health_is_stopped_when_its_thread_is_gone(tmp_path: Path) -> No
 def test_watcher_reports_stalled_while_one_folder_blocks_it(tmp_path: Path) -> None:
     import threading
 
-    from service.watcher import SeriesWatcher
+    from service.intake.watcher import SeriesWatcher
 
     release = threading.Event()
     entered = threading.Event()
@@ -246,8 +246,8 @@ def test_a_phantom_file_that_is_not_a_regular_file_is_refused_unread(tmp_path: P
 
     from registration.errors import PhantomDefinitionError
     from registration.model.phantom import load_phantom
-    from service.cli import main
-    from service.error_map import EXIT_CONFIG
+    from service.cli.main import main
+    from service.http.error_map import EXIT_CONFIG
 
     path = {"fifo": tmp_path / "phantom.toml", "folder": tmp_path, "device": Path("/dev/zero")}[kind]
     if kind == "fifo":

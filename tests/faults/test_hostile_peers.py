@@ -378,7 +378,7 @@ def test_associations_refused_for_want_of_slots_are_a_problem_until_one_is_relea
 
 def test_serve_refuses_maxima_that_cannot_fit_the_descriptor_limit(tmp_path: Path) -> None:
     """``serve`` in a forked child whose hard ``RLIMIT_NOFILE`` is 1024 (this process's imports reused)."""
-    from service.cli import main
+    from service.cli.main import main
 
     cfg, err = tmp_path / "oarmreg.toml", tmp_path / "stderr"
     write_config(cfg, {

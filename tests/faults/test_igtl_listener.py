@@ -25,7 +25,7 @@ import httpx
 import psutil
 import pytest
 
-from service.igtl import wire
+from service.navigation.igtl import wire
 from tests.faults._service import wait_for
 
 TOKEN = secrets.token_urlsafe(24)
@@ -47,8 +47,8 @@ class Serve:
 
 @pytest.fixture(scope="module")
 def serve(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Serve, int]]:
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     root = tmp_path_factory.mktemp("igtl-limits")

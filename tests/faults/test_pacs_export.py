@@ -177,7 +177,7 @@ def test_out_of_resources_is_retried_and_a_permanent_error_stops(tmp_path: Path)
     B.2.3) twice, then "recovers": sent on the third attempt.  0xA900 (data set does not match the
     SOP class, permanent): failed after one attempt, naming the status.  The real exporter and SCU
     against a pynetdicom Storage SCP on loopback."""
-    from service.pacs.exporter import PacsExporter
+    from service.navigation.pacs.exporter import PacsExporter
     from service.settings import PacsSettings
     from service.store import Database
 

@@ -31,8 +31,8 @@ def _lifespan_once(app: Any) -> None:
 
 def test_a_start_up_failing_half_way_stops_what_had_started(tmp_path: Path, phantom: Any) -> None:
     from registration.model.kinematics import RobotModel
-    from service.app import create_app
-    from service.dicom_scp import DicomScpConfigError
+    from service.http.app import create_app
+    from service.intake.dicom_scp import DicomScpConfigError
 
     model = RobotModel.load("tx60")
     with socket.socket() as taken:
@@ -50,7 +50,7 @@ def test_a_start_up_failing_half_way_stops_what_had_started(tmp_path: Path, phan
         assert not hasattr(app.state, "ctx")
 
     # the same folder starts again (the lock and the database were released) and serves
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
 
     again = create_app(fault_settings(tmp_path), phantom=phantom, robot_model=model)
     with serve_in_thread(again) as server, httpx.Client(base_url=server.base_url, headers=AUTH) as client:

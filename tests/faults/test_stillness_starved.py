@@ -43,8 +43,8 @@ def _service(root: Path, kind: str) -> Iterator[Svc]:
     from mocks.robot.runner import run_mock_controller
     from registration.model.kinematics import RobotModel
     from registration.model.phantom import load_phantom
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import DEFAULT_PHANTOM_FILE, load_settings
     from tests.faults.conftest import wait_link_connected
 

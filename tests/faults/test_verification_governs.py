@@ -109,7 +109,8 @@ def _registered(svc: Svc, world: World, for_uid: str = "") -> dict[str, Any]:
 
 
 class IgtlWatch:
-    """A plain OpenIGTLink client (socket + :mod:`service.igtl.wire`, the decoder the demo shares with
+    """A plain OpenIGTLink client (socket + :mod:`service.navigation.igtl.wire`, the decoder the demo shares
+    with
     pyigtl: tests/integration/test_or_integration.py) that records every message on a thread."""
 
     def __init__(self, port: int) -> None:
@@ -129,7 +130,7 @@ class IgtlWatch:
         return buf
 
     def _read(self) -> None:
-        from service.igtl import wire
+        from service.navigation.igtl import wire
 
         with contextlib.suppress(OSError, EOFError):
             while True:
@@ -164,7 +165,7 @@ def _problem(r: Any, status: int) -> dict[str, Any]:
 
 @pytest.mark.parametrize("shift_mm", [2.0, 10.0])
 def test_a_failed_verification_withdraws_the_registration(svc: Svc, world: World, shift_mm: float) -> None:
-    from service.igtl import wire
+    from service.navigation.igtl import wire
 
     reg = _registered(svc, world)
     displaced = _export(svc, world.scan2, Q2, shift_mm=shift_mm)

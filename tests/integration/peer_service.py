@@ -72,8 +72,8 @@ def running_service(root: Path, phantom: Any, **overrides: Any) -> Iterator[Peer
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
     from registration.model.kinematics import RobotModel
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     model = RobotModel.load("tx60")

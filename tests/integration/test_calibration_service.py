@@ -102,8 +102,8 @@ def session(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[
     from registration.calibration.planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
     from registration.calibration.urdf import read_chain
     from registration.model.kinematics import RobotModel
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
     from service.settings import load_settings
 
     root = tmp_path_factory.mktemp("calsvc")

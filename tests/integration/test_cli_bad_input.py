@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import build_parser, join_negative_lists, main
-from service.error_map import EXIT_CONFIG, EXIT_FILES, EXIT_INPUT, EXIT_USAGE
+from service.cli.main import build_parser, join_negative_lists, main
+from service.http.error_map import EXIT_CONFIG, EXIT_FILES, EXIT_INPUT, EXIT_USAGE
 
 
 def _one_line_error(capsys: pytest.CaptureFixture[str]) -> str:
@@ -54,7 +54,7 @@ def test_simulate_refuses_a_non_empty_folder(tmp_path: Path, capsys: pytest.Capt
 
 
 def test_replace_clears_an_earlier_series(tmp_path: Path) -> None:
-    from service.commands.simulate import clear_output_folder
+    from service.cli.commands.simulate import clear_output_folder
 
     for name in ("CT_001_0001.dcm", "CT_001_0002.dcm", "truth.json"):
         (tmp_path / name).write_text("old")

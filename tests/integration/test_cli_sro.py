@@ -11,7 +11,7 @@ import pytest
 
 from registration.io.points import write_json
 from registration.model.frames import apply, transform_from_xyz_rpy
-from service.cli import main
+from service.cli.main import main
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
 ROBOT_FROM_PHANTOM = transform_from_xyz_rpy([500.0, 40.0, 300.0], [0.0, 0.0, 30.0])
@@ -37,7 +37,7 @@ def test_register_writes_an_sro_with_the_stored_robot_frame_uid(
     scan_dir: Path, phantom: Any, tmp_path: Path
 ) -> None:
     from registration.io.sro import image_from_robot_of
-    from service.robot_frame import robot_frame_uid
+    from service.registrations.robot_frame import robot_frame_uid
 
     data, sro, js = tmp_path / "data", tmp_path / "reg.dcm", tmp_path / "reg.json"
     argv = [

@@ -29,7 +29,7 @@ from pydicom.uid import (
 from pynetdicom import AE
 
 from drivers.dicom_scu import associate
-from service.dicom_scp import (
+from service.intake.dicom_scp import (
     STATUS_DATASET_MISMATCH,
     STATUS_OUT_OF_RESOURCES,
     DicomScpConfigError,
@@ -81,7 +81,7 @@ class Recorder:
 @pytest.fixture(scope="module")
 def simulated_series(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small simulated O-arm series (mocks/oarm through the CLI), .dcm files only."""
-    from service.cli import main
+    from service.cli.main import main
 
     out = tmp_path_factory.mktemp("sim")
     assert main(["simulate", "--out", str(out), "--preset", "small", "--slices", "24"]) == 0

@@ -1,6 +1,6 @@
 """OpenIGTLink header-version negotiation per client (issue #23), over loopback sockets.
 
-The rule (service/igtl/server.py): version 1 headers without metadata until a client has sent a
+The rule (service/navigation/igtl/server.py): version 1 headers without metadata until a client has sent a
 well-formed version-2 message, then version 2 with metadata; a client that never writes keeps
 version 1; a malformed version-2 header drops only that client; a bad CRC is ignored.
 """
@@ -18,8 +18,8 @@ import pyigtl
 import pytest
 from polling import wait_until
 
-from service.igtl import wire
-from service.igtl.server import (
+from service.navigation.igtl import wire
+from service.navigation.igtl.server import (
     RAS_FROM_LPS,
     IgtlServer,
     IgtlStateSource,

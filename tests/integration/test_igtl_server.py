@@ -24,8 +24,8 @@ from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 from registration.model.kinematics import RobotModel
-from service.igtl import wire
-from service.igtl.server import (
+from service.navigation.igtl import wire
+from service.navigation.igtl.server import (
     RAS_FROM_LPS,
     IgtlConfigError,
     IgtlServer,

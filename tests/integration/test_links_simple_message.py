@@ -252,7 +252,7 @@ def test_cli_robot_joints_json_and_points(capsys: pytest.CaptureFixture[str]) ->
 
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
     from registration.model.phantom import load_phantom
-    from service.cli import main
+    from service.cli.main import main
 
     q = [math.radians(d) for d in Q_DEG]
     with run_mock_controller("simple-message", ScriptedRobot(q)) as mock:
@@ -271,7 +271,7 @@ def test_cli_robot_joints_json_and_points(capsys: pytest.CaptureFixture[str]) ->
 
 
 def test_cli_refuses_unreachable_controller(capsys: pytest.CaptureFixture[str]) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -14,13 +14,14 @@ from polling import poll_until, wait_until
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification  # type: ignore[attr-defined]
 
-from service.dicom_scp import StorageScp
-from service.igtl.server import IgtlServer, IgtlStateSource, RegistrationState
+from service.intake.dicom_scp import StorageScp
+from service.navigation.igtl.server import IgtlServer, IgtlStateSource, RegistrationState
 from service.settings import load_settings
 
 
 @pytest.mark.parametrize(
-    ("module", "name"), [("service.dicom_scp", "DicomScpConfig"), ("service.igtl.server", "IgtlServerConfig")]
+    ("module", "name"),
+    [("service.intake.dicom_scp", "DicomScpConfig"), ("service.navigation.igtl.server", "IgtlServerConfig")],
 )
 def test_no_second_config_class(module: str, name: str) -> None:
     assert not hasattr(importlib.import_module(module), name)

@@ -29,7 +29,7 @@ TOKEN = make_token()
 
 
 def _cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    from service.cli import main
+    from service.cli.main import main
 
     rc = main(argv)
     out = capsys.readouterr()
@@ -155,7 +155,7 @@ def test_config_check_and_serve_exit_3_on_a_non_finite_or_absurd_setting(
     ],
 )
 def test_verbosity_is_accepted_before_and_after_the_subcommand(argv: list[str], level: int) -> None:
-    from service.cli import build_parser, log_level_of
+    from service.cli.main import build_parser, log_level_of
 
     args = build_parser().parse_args(argv)
     default = logging.INFO if args.command == "serve" else logging.WARNING
@@ -210,7 +210,7 @@ def test_ports_in_use_are_reported_in_one_line_each(
 def test_the_start_up_line_names_every_listener_and_the_data_folder(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="service.app")
+    caplog.set_level(logging.INFO, logger="service.http.app")
     with mock_robot() as mock:
         settings = fault_settings(tmp_path, mock.url, **{"dicom.enabled": True, "dicom.port": 0,
                                                           "igtl.enabled": True, "igtl.port": 0})  # fmt: skip
@@ -236,10 +236,10 @@ def test_refused_standard_contexts_are_debug_and_still_counted(
     from pynetdicom import AE
 
     from drivers.dicom_scu import associate
-    from service.dicom_scp import ScpCallbacks, StorageScp
+    from service.intake.dicom_scp import ScpCallbacks, StorageScp
     from service.settings import DicomSettings
 
-    caplog.set_level(logging.DEBUG, logger="service.dicom_scp")
+    caplog.set_level(logging.DEBUG, logger="service.intake.dicom_scp")
     with StorageScp(DicomSettings(port=0), tmp_path, ScpCallbacks(None, None, None)) as scp:
         for contexts in ((CTImageStorage, MRImageStorage, UltrasoundImageStorage), (MRImageStorage,)):
             ae = AE(ae_title="OARM")

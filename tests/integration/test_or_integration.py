@@ -119,10 +119,10 @@ def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Serv
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
     from registration.model.kinematics import RobotModel
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
+    from service.http.tls import uvicorn_ssl_options
     from service.settings import load_settings
-    from service.tls import uvicorn_ssl_options
 
     root = tmp_path_factory.mktemp("or")
     ca, cert, key = make_tls(root)
@@ -405,13 +405,13 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
 
 
 def test_own_decoder_and_pyigtl_agree_on_the_wire(svc: Service, current: Current) -> None:
-    """The demo's fallback (plain socket + service.igtl.wire) reads what pyigtl reads."""
-    from service.igtl.probe import _receive_raw, receive_transform
+    """The demo's fallback (plain socket + service.navigation.igtl.wire) reads what pyigtl reads."""
+    from service.navigation.igtl.probe import _receive_raw, receive_transform
 
     rid = str(current.registration["id"])
     a = receive_transform("127.0.0.1", svc.igtl_port, "RobotToImage", registration_id=rid)
     b = _receive_raw("127.0.0.1", svc.igtl_port, "RobotToImage", rid, 10.0)
-    assert a.via.startswith("pyigtl") and b.via.startswith("service.igtl.wire")
+    assert a.via.startswith("pyigtl") and b.via.startswith("service.navigation.igtl.wire")
     np.testing.assert_array_equal(a.matrix, b.matrix)
     assert a.metadata["RegistrationId"] == b.metadata["RegistrationId"] == rid
 
@@ -422,7 +422,7 @@ def test_own_decoder_and_pyigtl_agree_on_the_wire(svc: Service, current: Current
 @pytest.mark.skipif(DCIODVFY is None, reason="dicom3tools dciodvfy not installed")
 def test_sro_from_the_api_has_no_dciodvfy_errors(svc: Service, current: Current, tmp_path: Path) -> None:
     from registration.io.sro import image_from_robot_of
-    from service.robot_frame import robot_frame_uid
+    from service.registrations.robot_frame import robot_frame_uid
 
     reg = current.registration
     r = svc.client.get(f"/registrations/{reg['id']}/dicom")

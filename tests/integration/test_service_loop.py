@@ -85,7 +85,7 @@ class Service:
     n_exports: int = 0
     baseline_scan_id: int | None = None
     ctx: Any = None
-    """The app's :class:`service.context.ServiceContext` (its event bus)."""
+    """The app's :class:`service.http.context.ServiceContext` (its event bus)."""
 
     def export(
         self, scan: Any, name: str, *, series_uid: str | None = None, drop_slice: int | None = None
@@ -144,8 +144,8 @@ def make_settings(watch: Path, data: Path, link_url: str, **kw: Any) -> Any:
 def svc(tmp_path_factory: pytest.TempPathFactory, world: World) -> Iterator[Service]:
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
 
     root = tmp_path_factory.mktemp("svc")
     watch, data = root / "watch", root / "data"
@@ -474,8 +474,8 @@ def test_restart_restores_current_registration(
 ) -> None:
     import sqlite3
 
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
 
     cur = svc.client.get("/registration/current").json()
     assert cur["id"] == baseline.registration["id"]
@@ -517,8 +517,8 @@ def _dead_port() -> int:
 
 
 def test_link_down_is_refused_and_visible(tmp_path: Path, world: World) -> None:
-    from service.app import create_app
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
 
     watch, data = tmp_path / "watch", tmp_path / "data"
     settings = make_settings(watch, data, f"simple-message://127.0.0.1:{_dead_port()}")

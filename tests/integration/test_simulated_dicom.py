@@ -255,7 +255,7 @@ def test_other_orientations_give_the_same_lps_centres(
 
 
 def test_cli_writes_a_series_and_truth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     rc = main(
         [

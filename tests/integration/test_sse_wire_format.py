@@ -30,9 +30,9 @@ N_EVENTS = 4
 def served_bus() -> Iterator[tuple[httpx.Client, object]]:
     import asyncio
 
-    from service.api.events import router
-    from service.commands.serve import serve_in_thread
+    from service.cli.commands.serve import serve_in_thread
     from service.event_bus import EventBus
+    from service.http.api.events import router
 
     bus = EventBus()
 

@@ -133,7 +133,7 @@ def test_verifications_list_is_paginated(svc: Running) -> None:
 
 
 def test_every_page_file_is_package_data() -> None:
-    """The wheel carries the page: each file under service/web/static is in a listed (data) package
+    """The wheel carries the page: each file under service/http/web/static is in a listed (data) package
     and matches that package's package-data glob."""
     tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     static = REPO / "service" / "web" / "static"

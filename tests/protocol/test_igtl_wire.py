@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.igtl import wire
+from service.navigation.igtl import wire
 
 M = np.array(
     [

@@ -22,7 +22,7 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
 
 def _commands() -> dict[str, argparse.ArgumentParser]:
     """``"calibrate plan"`` → its parser, for every command and sub-command."""
-    from service.cli import build_parser
+    from service.cli.main import build_parser
 
     out: dict[str, argparse.ArgumentParser] = {}
 

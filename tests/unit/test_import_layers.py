@@ -4,8 +4,8 @@
   ``drivers/`` imports neither ``service`` nor ``registration``.
 * No import cycle among the modules of ``service/`` or of ``drivers/``, counting imports inside
   functions and ``TYPE_CHECKING`` blocks too: a lazy import hides a cycle, it does not remove it.
-* ``service/api/*`` never imports ``service.app`` (the routes get the context from
-  :mod:`service.context`).
+* ``service/http/api/*`` never imports ``service.http.app`` (the routes get the context from
+  :mod:`service.http.context`).
 * Production code imports ``mocks`` only in the commands that exist to run mocks
   (:data:`MOCK_COMMANDS`); ``mocks`` itself never imports ``service``.
 * ``from pkg import name`` runs ``pkg/__init__.py`` and reads ``name`` from it, so it counts as an
@@ -25,10 +25,10 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("registration", "drivers", "service", "mocks")
 MOCK_COMMANDS = frozenset(
     {
-        "service.commands.demo",
-        "service.commands.demo_calibrate",
-        "service.commands.simulate",
-        "service.commands.mock",
+        "service.cli.commands.demo",
+        "service.cli.commands.demo_calibrate",
+        "service.cli.commands.simulate",
+        "service.cli.commands.mock",
     }
 )
 """The only production modules that may import ``mocks``: the commands that run the mocks."""
@@ -138,7 +138,7 @@ def test_lower_layers_do_not_import_upper_ones(pkg: str, forbidden: tuple[str, .
 
 def test_api_does_not_import_the_app() -> None:
     g = graph()
-    bad = sorted(m for m in in_package(g, "service.api") if "service.app" in g[m])
+    bad = sorted(m for m in in_package(g, "service.http.api") if "service.http.app" in g[m])
     assert bad == []
 
 

@@ -1,4 +1,4 @@
-"""The failed-authentication throttle (service.security.AuthThrottle) on a controlled clock:
+"""The failed-authentication throttle (service.http.security.AuthThrottle) on a controlled clock:
 allowance, doubling lock-outs capped at api.auth_lockout_max_s, one audit entry per burst, a burst
 forgotten after api.auth_failure_memory_s, addresses independent."""
 
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from service.security import AuthThrottle, Refusal
+from service.http.security import AuthThrottle, Refusal
 from service.settings import load_settings
 from service.store import Database
 from tests.helpers.tokens import make_token

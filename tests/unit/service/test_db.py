@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from registration.errors import ConfigError
-from service.api.models import registration_out, scan_out, verification_out
+from service.http.api.models import registration_out, scan_out, verification_out
 from service.records import (
     JointSnapshot,
     NewScan,

@@ -28,8 +28,8 @@ NOT_FOR_DETECT = (
     "matplotlib",
     "httpx",
     "watchdog",
-    "service.app",
-    "service.orchestrator",
+    "service.http.app",
+    "service.registrations.orchestrator",
     "service.settings",
     "scipy.optimize",
     "scipy.ndimage",
@@ -39,7 +39,7 @@ NOT_FOR_DETECT = (
 
 PROBE = """
 import contextlib, io, json, sys
-from service.cli import main
+from service.cli.main import main
 with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
     code = main(["detect", sys.argv[1]])
 print(json.dumps({"code": code, "modules": sorted(sys.modules)}))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from registration.detection.estimators import ESTIMATOR_MODULES, METHODS
-from service.cli import build_parser
+from service.cli.main import build_parser
 from service.settings import DetectionSettings, load_settings
 
 

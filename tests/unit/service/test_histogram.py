@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-import service.histogram as histogram
+import service.registrations.histogram as histogram
 from tests.helpers.figures import assert_inside, capture_figures
 
 

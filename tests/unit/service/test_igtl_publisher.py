@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from registration.model.kinematics import RobotModel
-from service.igtl.publisher import IgtlPublisher
-from service.igtl.server import registration_messages, tool_messages
+from service.navigation.igtl.publisher import IgtlPublisher
+from service.navigation.igtl.server import registration_messages, tool_messages
 from service.records import RegistrationRecord
 from service.settings import IgtlSettings
 

@@ -62,7 +62,7 @@ def test_non_loopback_api_needs_token_and_tls_unless_insecure_is_allowed(tmp_pat
 
 
 def test_unloadable_certificate_fails_at_start_up(tmp_path: Path) -> None:
-    from service.tls import TlsConfigError, uvicorn_ssl_options
+    from service.http.tls import TlsConfigError, uvicorn_ssl_options
 
     cert, key = tmp_path / "c.pem", tmp_path / "k.pem"
     cert.write_text("not a certificate")
@@ -76,7 +76,7 @@ def test_unloadable_certificate_fails_at_start_up(tmp_path: Path) -> None:
 def test_tool0_from_tcp_and_serve_flags() -> None:
     import argparse
 
-    from service.commands.serve import add_arguments, settings_from_args
+    from service.cli.commands.serve import add_arguments, settings_from_args
 
     p = argparse.ArgumentParser()
     add_arguments(p)

@@ -1,4 +1,4 @@
-"""The QA drift rule (service.qa_drift), on its own."""
+"""The QA drift rule (service.registrations.qa_drift), on its own."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 from hypothesis import given
 from hypothesis import strategies as st
 
-from service.qa_drift import drift
+from service.registrations.qa_drift import drift
 
 RULE = {"window": 3, "limit_mm": 0.5, "rise_mm": 0.2}
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from service.events import Event, ScanFilesDeleted
+from service.intake.retention import PROTECTORS, protected_scan_ids, run_retention
 from service.records import NewScan, RegistrationRecord
-from service.retention import PROTECTORS, protected_scan_ids, run_retention
 from service.store import Database
 
 IDENTITY = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from service.intake.retention import quota_problem, run_retention
+from service.intake.scan_lifecycle import OfferTally, diff, hash_files, rehash
 from service.records import NewScan, RegistrationRecord
-from service.retention import quota_problem, run_retention
-from service.scan_lifecycle import OfferTally, diff, hash_files, rehash
 from service.store import Database
 from service.store.integrity import APPLICATION_ID
 from service.store.migrations import MIGRATIONS, SCAN_LIFECYCLE_MIGRATION, split_sql

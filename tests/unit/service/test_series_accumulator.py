@@ -1,4 +1,4 @@
-"""Decode-on-arrival (service.series_accumulator): the assembled volume is the loader's, whatever the
+"""Decode-on-arrival (service.intake.series_accumulator): the assembled volume is the loader's, whatever the
 arrival order, worker count, growth or replacements; a slice the loader refuses is refused the same.
 
 Small real series from ``dicom_factory`` (16 x 16 slices); the reference is
@@ -14,11 +14,11 @@ import numpy as np
 import pydicom
 import pytest
 
-import service.series_accumulator as acc_mod
+import service.intake.series_accumulator as acc_mod
 from registration.dicom import InconsistentImageSizeError, load_series
 from registration.imaging.volume import Volume
-from service.series_accumulator import SeriesAccumulator
-from service.sro_export import scan_instances_from_files
+from service.intake.series_accumulator import SeriesAccumulator
+from service.navigation.sro_export import scan_instances_from_files
 from tests.helpers.dicom_factory import ramp_volume, write_series
 
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from registration.errors import ConfigError
-from service.cli import main
+from service.cli.main import main
 from service.settings import load_settings
 from service.token_strength import MIN_TOKEN_BITS, MIN_TOKEN_CHARS, estimated_bits, token_problem
 

@@ -1,4 +1,4 @@
-"""service/watcher.py on tiny pydicom-written series, driven tick by tick (no thread, no sleeps),
+"""service/intake/watcher.py on tiny pydicom-written series, driven tick by tick (no thread, no sleeps),
 plus one run of the real thread with OS events."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.watcher import SeriesArrival, SeriesWatcher, snapshot_dir
+from service.intake.watcher import SeriesArrival, SeriesWatcher, snapshot_dir
 from tests.helpers.dicom_factory import ramp_volume, write_series
 
 QUIET_S = 1.0
@@ -127,7 +127,7 @@ def test_junk_folder_is_reported_invalid(tmp_path: Path, caplog: pytest.LogCaptu
     (j / "broken.dcm").write_bytes(b"DICM" * 10)
     series(watch / "good", series_uid="1.2.3.30")
     (watch / "good" / "thumbs.db").write_bytes(b"\x01\x02")
-    with caplog.at_level("INFO", logger="service.watcher"):
+    with caplog.at_level("INFO", logger="service.intake.watcher"):
         w.tick(10.0)
         w.tick(11.5)
     by_uid = {a.series_uid: a for a in sink.arrivals}
@@ -241,7 +241,7 @@ def test_watchdogs_stop_race_is_debug_and_other_watchdog_errors_stay_errors(
     while any other ERROR of that logger still is."""
     import logging
 
-    from service.watcher import WATCHDOG_STOP_RACE
+    from service.intake.watcher import WATCHDOG_STOP_RACE
 
     w, _, _ = make(tmp_path)
     w.start()

@@ -31,7 +31,7 @@ CHAIN = read_chain(RobotModel.load("tx60").urdf_path)
 ROD = default_tool0_from_phantom()
 PTS = load_phantom(CONFIGS / "phantoms" / "bai2018_cube.toml").centres_phantom_mm
 HOME_RAD = (0.0, 0.0, math.pi / 2, 0.0, math.pi / 4, 0.0)
-"""``oarmreg demo``'s first pose (service/commands/demo.py Q1_RAD)."""
+"""``oarmreg demo``'s first pose (service/cli/commands/demo.py Q1_RAD)."""
 BENCH_START_RAD = (0.2, -0.15, 1.75, 0.3, 0.6, -0.9)
 """The calibration benches' and the render test's first pose."""
 CRASHED_FROM_RAD = (

@@ -55,7 +55,7 @@ def test_several_loadable_series_refused_on_the_command_line_unless_named(tmp_pa
 def test_cli_detect_refuses_a_folder_of_two_scans_with_exit_4(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from service.cli import main
+    from service.cli.main import main
 
     _series(tmp_path / "a", UID_SCAN, 6)
     _series(tmp_path / "b", UID_OTHER, 7)

@@ -20,8 +20,8 @@ from registration.io.points import (
 )
 from registration.model import frames
 from registration.model.phantom import Phantom
-from service.cli import main
-from service.error_map import EXIT_REFUSED
+from service.cli.main import main
+from service.http.error_map import EXIT_REFUSED
 from tests.helpers.documents import REGISTRATION_DOC_KEYS
 
 PTS = [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 20.0, 0.0], [0.0, 0.0, 30.0]]
@@ -221,7 +221,7 @@ def test_cli_needs_exactly_one_image_source(phantom: Phantom, tmp_path: Path) ->
 
 
 def test_cli_prior_rotation_parsing(phantom: Phantom, tmp_path: Path) -> None:
-    from service.commands.register import parse_prereg, parse_prior
+    from service.cli.commands.register import parse_prereg, parse_prior
 
     np.testing.assert_allclose(parse_prior("0,0,90"), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     p = write_json(tmp_path / "prior.json", {"rotation": np.eye(3).tolist()})

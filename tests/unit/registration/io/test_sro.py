@@ -21,7 +21,7 @@ from registration.io.sro import (
     build_spatial_registration,
     image_from_robot_of,
 )
-from service.robot_frame import RobotFrameUidError, robot_frame_uid
+from service.registrations.robot_frame import RobotFrameUidError, robot_frame_uid
 
 ROBOT_FOR = "1.2.826.0.1.3680043.8.498.1"
 WHEN = datetime(2026, 3, 4, 5, 6, 7, 890000)
@@ -154,7 +154,7 @@ def test_slicerrt_reads_the_same_transform_as_igtl_robot_to_image(
     object places a robot point where OpenIGTLink's ``RobotToImage`` does; the old REG (the matrix
     ``image_from_robot`` as is) put it up to 2·|(x, y)| away (825 mm in the report)."""
     from registration.model.frames import transform_from_xyz_rpy
-    from service.igtl.server import RAS_FROM_LPS
+    from service.navigation.igtl.server import RAS_FROM_LPS
     from tests.helpers.slicerrt_sro import slicerrt_transform_to_parent
 
     image_from_robot = transform_from_xyz_rpy(list(xyz), list(rpy))

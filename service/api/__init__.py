@@ -1,1 +1,0 @@
-"""HTTP API: one router per resource, assembled by :func:`service.app.create_app`."""

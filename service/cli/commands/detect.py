@@ -1,0 +1,174 @@
+"""``oarmreg detect``: find the phantom's metal spheres in a DICOM series.
+
+Prints a table (index, centre LPS mm, radius, slices, score) and the rejected
+candidates with their reasons; ``--overlay PNG`` draws both on the scan
+(:mod:`service.registrations.overlay`); ``--json OUT`` writes::
+
+    {"series_uid": ..., "frame": "image", "method": ...,
+     "spheres": [{"center_mm": [x, y, z], "radius_mm": r, "n_slices": k, "score": s}, ...],
+     "rejected": [{"center_mm": [x, y, z], "reason": ...}, ...]}
+
+The centre estimator and sphere size are the phantom file's (``--phantom``, default the built-in
+Bai 2018 cube), chosen as the service chooses them, unless ``--method`` / ``--sphere-diameter``
+say otherwise.
+
+Exit codes: 0 success (even with no sphere found: the table says so), 4 bad
+input (unreadable / inconsistent series or phantom file, see :mod:`registration.errors`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from registration.detection.estimators import METHODS
+from registration.io.resources import default_phantom
+from service.cli.commands.argtypes import output_file, positive_float
+
+if TYPE_CHECKING:
+    from registration.detection import DetectionParams
+    from registration.model.phantom import Phantom
+
+DEFAULT_PHANTOM = default_phantom()
+
+HELP = "detect the calibration spheres in an O-arm DICOM series (centres in LPS mm)"
+
+
+def add_method_argument(parser: argparse.ArgumentParser) -> None:
+    """``--method``, the same for every command that detects: an override of the estimator only."""
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default=None,
+        help="centre estimator instead of the phantom material's (registration.detection."
+        "METHOD_FOR_MATERIAL), keeping the material's other detection settings: subvoxel (3-D "
+        "intensity-weighted centroid), paper (per-slice Pythagorean depth, Bai 2018), model (a blurred, "
+        "saturated ball fitted to the raw voxels), core (saturated core of an opaque sphere: tungsten "
+        "carbide) or rays (outline of a streaked sphere: steel, titanium)",
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "dicom_dir", metavar="DICOM_DIR", type=Path, help="folder (or DICOMDIR) holding the series"
+    )
+    parser.add_argument(
+        "--json", dest="json_out", metavar="OUT", type=output_file, help="write the result as JSON"
+    )
+    parser.add_argument(
+        "--overlay",
+        metavar="PNG",
+        type=output_file,
+        help="draw the detected centres and the rejected candidates (with their reasons) on a "
+        "maximum-intensity projection of the scan",
+    )
+    parser.add_argument(
+        "--phantom",
+        type=Path,
+        default=DEFAULT_PHANTOM,
+        help="phantom TOML: its sphere material chooses the centre estimator and its sphere "
+        "diameter the expected size, as the service does (default: %(default)s)",
+    )
+    add_method_argument(parser)
+    parser.add_argument(
+        "--sphere-diameter",
+        metavar="MM",
+        type=positive_float,
+        default=None,
+        help="sphere diameter in mm instead of the phantom's",
+    )
+    parser.add_argument("--no-mar", action="store_true", help="skip the polar metal artefact reduction")
+    parser.add_argument("--series-uid", metavar="UID", default=None, help="pick this SeriesInstanceUID")
+
+
+def detection_params_for_phantom(
+    phantom: Phantom | str | Path | None, *, method: str | None = None, **overrides: object
+) -> DetectionParams:
+    """The detection settings every command uses: the phantom's sphere material and diameter
+    through :func:`registration.detection.params_for_spheres`, as the service chooses them.
+
+    ``phantom`` is a loaded phantom or its TOML path; None or ``"none"`` means the built-in
+    phantom.  ``method`` (a ``--method`` flag) replaces only the centre estimator and keeps the
+    material's other settings; ``overrides`` are other
+    :class:`~registration.detection.DetectionParams` fields.
+    """
+    from registration.detection import params_for_spheres
+    from registration.model.phantom import Phantom, load_phantom
+
+    if not isinstance(phantom, Phantom):
+        phantom = load_phantom(
+            DEFAULT_PHANTOM if phantom is None or str(phantom).lower() == "none" else phantom
+        )
+    if method is not None:
+        overrides["method"] = method
+    return params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm, **overrides)
+
+
+def sphere_fit_columns(radius_mm: float, n_slices: int, score: float) -> tuple[str, str, str]:
+    """The table's radius, slices and score, or ``-`` where the estimator did not measure them
+    (a NaN radius; no circle slices, whose fraction the score is)."""
+    import math
+
+    radius = f"{radius_mm:.3f}" if math.isfinite(radius_mm) else "-"
+    if n_slices <= 0:
+        return radius, "-", "-"
+    return radius, str(n_slices), f"{score:.2f}" if math.isfinite(score) else "-"
+
+
+def run(args: argparse.Namespace) -> int:
+    from registration.detection import detect_spheres
+    from registration.dicom import load_series
+
+    overrides: dict[str, object] = {}
+    if args.sphere_diameter is not None:
+        overrides["sphere_diameter_mm"] = args.sphere_diameter
+    if args.no_mar:
+        overrides["use_mar"] = False
+    params = detection_params_for_phantom(args.phantom, method=args.method, **overrides)
+
+    volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
+    result = detect_spheres(volume, params)
+
+    if args.json_out is not None:
+        doc = result.to_dict(series_uid=volume.series_uid)
+        args.json_out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json_out.with_name(f".{args.json_out.name}.part")
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
+        tmp.replace(args.json_out)
+    if args.overlay is not None:
+        from service.registrations.overlay import write_detection_overlay
+
+        write_detection_overlay(volume, result, args.overlay)
+    out = sys.stdout
+    out.write(
+        f"series {volume.series_uid}: {len(result.spheres)} sphere(s), method {result.method}, "
+        f"MAR {'on' if params.use_mar else 'off'}, {result.timings_s.get('total_s', 0.0):.3f} s\n"
+    )
+    out.write(
+        f"{'#':>3}  {'x (L) mm':>10} {'y (P) mm':>10} {'z (S) mm':>10}  "
+        f"{'radius mm':>9}  {'slices':>6}  {'score':>5}\n"
+    )
+    unknown = False
+    for n, s in enumerate(result.spheres):
+        x, y, z = (float(v) for v in s.center_image_mm)
+        radius, slices, score = sphere_fit_columns(s.radius_mm, s.n_slices, s.score)
+        unknown |= "-" in (radius.strip(), slices.strip(), score.strip())
+        out.write(f"{n:>3}  {x:>10.3f} {y:>10.3f} {z:>10.3f}  {radius:>9}  {slices:>6}  {score:>5}\n")
+    if unknown:
+        out.write(
+            f"  (-: not measured by the {result.method} estimator, which fits no circle per slice; "
+            "its centres are the result)\n"
+        )
+    if result.rejections:
+        out.write(f"rejected {len(result.rejections)} candidate(s):\n")
+        for r in result.rejections:
+            x, y, z = r.center_image_mm
+            out.write(f"  ({x:.1f}, {y:.1f}, {z:.1f}) mm: {r.reason}\n")
+    if args.json_out is not None:
+        out.write(f"wrote {args.json_out}\n")
+    if args.overlay is not None:
+        out.write(f"wrote {args.overlay}\n")
+    return 0

@@ -1,5 +1,0 @@
-"""OpenIGTLink push of the registration and the live tool pose.
-
-:mod:`service.igtl.wire` is the pure wire format; :mod:`service.igtl.server` the asyncio
-server that fans transforms out to any number of clients.
-"""

@@ -1,0 +1,157 @@
+"""Both intakes' verdict: a series arrived → snapshot the joints, record the scan (its state, its
+instances' hashes), cache its volume, publish the event (:mod:`service.intake.scan_lifecycle`), store the
+instance UIDs its Spatial Registration object will reference."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from service.events import Publish, Reopening, ScanArrived, ScanInvalid
+from service.intake.scan_lifecycle import ContentChange, ScanLifecycle, diff, hash_files
+from service.intake.volume_cache import VolumeCache
+from service.intake.watcher import SeriesArrival
+from service.navigation.sro_export import scan_instances_from_files
+from service.records import JointSnapshot, NewScan, ScanGeometry, matrix4
+from service.store import Database
+
+log = logging.getLogger(__name__)
+
+
+class SnapshotSource(Protocol):
+    """What the intake needs of :class:`service.registrations.capture.Capture`."""
+
+    def snapshot(
+        self, first_seen_t_s: float, last_change_t_s: float, *, preexisting: bool = False
+    ) -> JointSnapshot: ...
+
+
+def new_scan(arrival: SeriesArrival, snapshot: JointSnapshot) -> NewScan:
+    """The scan record of a (non-duplicate) arrival: status, joint snapshot, slice counts and geometry."""
+    base = NewScan(
+        series_uid=arrival.series_uid,
+        folder=str(arrival.folder),
+        status="invalid" if arrival.error else "complete",
+        reason=arrival.error,
+        n_files=arrival.n_files,
+        snapshot=snapshot,
+        arrived_at=arrival.first_seen_at.isoformat(),
+    )
+    vol = arrival.volume
+    if vol is None:
+        return base
+    n_slices, rows, columns = (int(v) for v in vol.shape)
+    return replace(
+        base,
+        frame_of_reference_uid=str(vol.frame_of_reference_uid or ""),
+        n_slices=n_slices,
+        rows=rows,
+        columns=columns,
+        geometry=ScanGeometry(
+            image_from_voxel=matrix4(np.asarray(vol.image_from_voxel, dtype=float).tolist()),
+            spacing_mm=tuple(float(v) for v in vol.spacing_mm),
+            shape_kji=(n_slices, rows, columns),
+        ),
+    )
+
+
+class Intake:
+    """The verdict on a delivered series, for both intakes: ``SeriesWatcher``'s ``on_series`` callback
+    (watcher thread) and the C-STORE path's release (a worker thread).  One rule set
+    (:mod:`service.intake.scan_lifecycle`): the arrival's ``error`` is the failed completeness rule (the
+    loader's, or the C-STORE offer tally's); a series recorded before whose content changed is first
+    moved to ``reopened`` / ``replaced`` (withdrawing what was made from it), then recorded
+    ``complete`` or ``invalid`` with its instances' hashes."""
+
+    def __init__(
+        self,
+        db: Database,
+        capture: SnapshotSource,
+        volumes: VolumeCache,
+        publish: Publish,
+        withdraw: Callable[[int, str], object] | None = None,
+        lifecycle: ScanLifecycle | None = None,
+    ) -> None:
+        self.db = db
+        self.capture = capture
+        self.volumes = volumes
+        self.publish = publish
+        self.withdraw = withdraw
+        """``withdraw(scan_id, reason)``:
+        :meth:`service.registrations.orchestrator.Orchestrator.withdraw_scan`."""
+        self.lifecycle = lifecycle or ScanLifecycle(db, volumes, publish, withdraw)
+
+    def __call__(self, arrival: SeriesArrival) -> None:
+        """Record the arrival; a readable, valid series also has its instance UIDs stored (what its
+        Spatial Registration object references, :func:`store_instances`)."""
+        self._record(arrival)
+        if arrival.volume is not None and not arrival.error and not arrival.duplicate:
+            meta = arrival.volume.meta
+            files = [Path(f) for f in meta.get("files", ())]
+            store_instances(self.db, arrival.series_uid, files, sop_uids=meta.get("sop_uids"))
+
+    def _record(self, arrival: SeriesArrival) -> None:
+        uid = arrival.series_uid
+        if arrival.duplicate:
+            self.db.scans.upsert(NewScan(series_uid=uid, folder=str(arrival.folder), status="complete"))
+            return
+        snap = self.capture.snapshot(
+            arrival.first_seen_t_s, arrival.last_change_t_s, preexisting=arrival.preexisting
+        )
+        scan = new_scan(arrival, snap)
+        files = arrival.files
+        if files is None:
+            files = (
+                hash_files(Path(f) for f in arrival.volume.meta.get("files", ())) if arrival.volume else {}
+            )
+        prev = self.db.scans.by_series_uid(uid)
+        source = "dicom" if arrival.source == "dicom" else "folder"
+        previous_slices = 0 if prev is None else prev.n_slices
+        if prev is not None and prev.status in ("complete", "invalid"):
+            # a series judged before: what differs (the folder path sees a change only now)
+            change = arrival.change or diff(self.db.scans.files(prev.id), files)
+            if prev.status == "complete" and not change.changed and not arrival.error:
+                self.db.scans.upsert(NewScan(series_uid=uid, folder=str(arrival.folder), status="complete"))
+                return
+            if not change.changed:  # a re-check without a named change (a refusal, an unreadable file)
+                change = (
+                    ContentChange(replaced=("(unreadable or refused instances)",))
+                    if arrival.error
+                    else change
+                )
+            self.lifecycle.changing(
+                prev, change, f"{source}: {arrival.folder}", n_slices=None if arrival.error else scan.n_slices
+            )
+        scan_id, before = self.db.scans.record(scan, files=files)
+        self.volumes.discard(uid)
+        if arrival.volume is not None and not arrival.error:
+            self.volumes.put(uid, arrival.volume)
+        reopening = Reopening(before, previous_slices) if before in ("reopened", "replaced") else None
+        folder = str(arrival.folder)
+        if arrival.error:
+            self.publish(ScanInvalid(scan_id=scan_id, series_uid=uid, folder=folder, still=snap.still,
+                                     link_state=snap.link_state, source=source, reopening=reopening,
+                                     reason=arrival.error))  # fmt: skip
+        else:
+            self.publish(ScanArrived(scan_id=scan_id, series_uid=uid, folder=folder, still=snap.still,
+                                     link_state=snap.link_state, source=source, reopening=reopening,
+                                     n_slices=scan.n_slices))  # fmt: skip
+
+
+def store_instances(
+    db: Database, series_uid: str, files: list[Path], *, sop_uids: Sequence[tuple[str, str]] | None = None
+) -> None:
+    """Record what an SRO references of the series (logged, never raised: the scan is stored).
+
+    ``sop_uids``: (SOP Instance UID, SOP Class UID) per slice when the C-STORE header pass read them
+    (:mod:`service.intake.series_accumulator`), so only one file is read again.
+    """
+    try:
+        db.scan_instances.put(scan_instances_from_files(series_uid, files, sop_uids=sop_uids))
+    except Exception:
+        log.exception("series %s: could not store its instance UIDs; its SRO will be unavailable", series_uid)
