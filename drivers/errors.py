@@ -3,7 +3,7 @@
 ``drivers`` may not import ``registration`` (design.md §2), so this family has
 its own base.  Like :class:`registration.errors.OarmRegError` it carries only a
 ``title``; the service maps both families to HTTP status and exit code in one
-table (:mod:`service.http.error_map`).
+table (:mod:`service.error_map`).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Every failure a user can cause is one of these, with a message that says what
 was expected, what was found and what to try.  These errors know nothing of
 HTTP or exit codes: the service maps each family to an HTTP status (problem
-details, RFC 9457) and a CLI exit code in one table, :mod:`service.http.error_map`.
+details, RFC 9457) and a CLI exit code in one table, :mod:`service.error_map`.
 Robot-link errors live in :mod:`drivers.errors` (``drivers`` may not import
 this package).
 """

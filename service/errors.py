@@ -1,4 +1,4 @@
-"""The service's own errors (their HTTP status and exit code: :mod:`service.http.error_map`)."""
+"""The service's own errors (their HTTP status and exit code: :mod:`service.error_map`)."""
 
 from __future__ import annotations
 

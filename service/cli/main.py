@@ -1,7 +1,7 @@
 """The ``oarmreg`` command line.
 
 ``main(argv=None) -> int`` is callable from tests.  Exit codes: see
-:mod:`service.http.error_map` (0 ok, 2 usage, 3 configuration, 4 input data,
+:mod:`service.error_map` (0 ok, 2 usage, 3 configuration, 4 input data,
 5 robot link, 6 registration refused, 7 accuracy gate, 8 file system) and docs/cli.md.
 Every failure is one line on stderr: the project's typed errors by their family; an ``OSError``
 (a path that cannot be read or written) exit 8; a ``ValueError`` from parsing a file (JSON and
@@ -21,7 +21,7 @@ from typing import NoReturn
 
 from registration import __version__
 from service.cli.commands.argtypes import UsageError
-from service.http.error_map import EXIT_FILES, EXIT_INPUT, EXIT_USAGE, FAMILIES, exit_code_of, title_of
+from service.error_map import EXIT_FILES, EXIT_INPUT, EXIT_USAGE, FAMILIES, exit_code_of, title_of
 
 log = logging.getLogger(__name__)
 

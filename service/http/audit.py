@@ -21,8 +21,8 @@ from contextlib import contextmanager
 
 from drivers.errors import RobotLinkError
 from registration.errors import OarmRegError
+from service.error_map import title_of
 from service.http.context import ServiceContext
-from service.http.error_map import title_of
 from service.store.audit import AuditAction
 
 log = logging.getLogger(__name__)

@@ -8,17 +8,18 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
+from registration.errors import OarmRegError
 from service.events import Publish, Reopening, ScanArrived, ScanInvalid
 from service.intake.scan_lifecycle import ContentChange, ScanLifecycle, diff, hash_files
 from service.intake.volume_cache import VolumeCache
 from service.intake.watcher import SeriesArrival
-from service.navigation.sro_export import scan_instances_from_files
 from service.records import JointSnapshot, NewScan, ScanGeometry, matrix4
 from service.store import Database
+from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
 
 log = logging.getLogger(__name__)
 
@@ -155,3 +156,45 @@ def store_instances(
         db.scan_instances.put(scan_instances_from_files(series_uid, files, sop_uids=sop_uids))
     except Exception:
         log.exception("series %s: could not store its instance UIDs; its SRO will be unavailable", series_uid)
+
+
+def scan_instances_from_files(
+    series_uid: str, files: list[Path], *, sop_uids: Sequence[tuple[str, str]] | None = None
+) -> ScanInstances:
+    """Read the headers an SRO needs from the series' files (slice order kept, multi-frame deduplicated).
+
+    ``sop_uids``: the (SOP Instance UID, SOP Class UID) of each slice in slice order when the header
+    pass already read them (:mod:`service.intake.series_accumulator`); then only the first file is read, for
+    the patient / study attributes (a 192-slice series: 1 file read instead of 192).
+    """
+    from pydicom import dcmread
+
+    tags = [
+        "SOPClassUID",
+        "SOPInstanceUID",
+        "StudyInstanceUID",
+        "FrameOfReferenceUID",
+        *SRO_PATIENT_STUDY_KEYS,
+    ]
+    seen: dict[str, str] = {}
+    first: Any = None
+    if sop_uids is not None:
+        for inst, cls in sop_uids:
+            seen.setdefault(inst, cls)
+        files = files[:1]
+    for f in dict.fromkeys(files):
+        ds = dcmread(f, stop_before_pixels=True, specific_tags=tags)
+        first = first if first is not None else ds
+        if sop_uids is None:
+            seen.setdefault(str(ds.SOPInstanceUID), str(ds.SOPClassUID))
+    if first is None:
+        raise OarmRegError(f"series {series_uid}: no files to read the instance UIDs from")
+    attrs = {k: str(first.get(k, "")) for k in SRO_PATIENT_STUDY_KEYS if k in first}
+    return ScanInstances(
+        series_uid=series_uid,
+        study_uid=str(first.get("StudyInstanceUID", "")),
+        frame_of_reference_uid=str(first.get("FrameOfReferenceUID", "")),
+        sop_class_uids=tuple(seen.values()),
+        sop_instance_uids=tuple(seen),
+        attributes=attrs,
+    )

@@ -9,19 +9,16 @@ registration twice gives the same object.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from datetime import datetime
 from io import BytesIO
-from pathlib import Path
-from typing import Any
 
 from pydicom.dataset import Dataset
 from pydicom.uid import generate_uid
 
 from registration import __version__
-from registration.errors import OarmRegError, RegistrationError
+from registration.errors import RegistrationError
 from service.records import RegistrationRecord
-from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
+from service.store.scan_instances import ScanInstances
 
 
 class SroUnavailableError(RegistrationError):
@@ -93,45 +90,3 @@ def to_bytes(ds: Dataset) -> bytes:
     buf = BytesIO()
     ds.save_as(buf, enforce_file_format=True)
     return buf.getvalue()
-
-
-def scan_instances_from_files(
-    series_uid: str, files: list[Path], *, sop_uids: Sequence[tuple[str, str]] | None = None
-) -> ScanInstances:
-    """Read the headers an SRO needs from the series' files (slice order kept, multi-frame deduplicated).
-
-    ``sop_uids``: the (SOP Instance UID, SOP Class UID) of each slice in slice order when the header
-    pass already read them (:mod:`service.intake.series_accumulator`); then only the first file is read, for
-    the patient / study attributes (a 192-slice series: 1 file read instead of 192).
-    """
-    from pydicom import dcmread
-
-    tags = [
-        "SOPClassUID",
-        "SOPInstanceUID",
-        "StudyInstanceUID",
-        "FrameOfReferenceUID",
-        *SRO_PATIENT_STUDY_KEYS,
-    ]
-    seen: dict[str, str] = {}
-    first: Any = None
-    if sop_uids is not None:
-        for inst, cls in sop_uids:
-            seen.setdefault(inst, cls)
-        files = files[:1]
-    for f in dict.fromkeys(files):
-        ds = dcmread(f, stop_before_pixels=True, specific_tags=tags)
-        first = first if first is not None else ds
-        if sop_uids is None:
-            seen.setdefault(str(ds.SOPInstanceUID), str(ds.SOPClassUID))
-    if first is None:
-        raise OarmRegError(f"series {series_uid}: no files to read the instance UIDs from")
-    attrs = {k: str(first.get(k, "")) for k in SRO_PATIENT_STUDY_KEYS if k in first}
-    return ScanInstances(
-        series_uid=series_uid,
-        study_uid=str(first.get("StudyInstanceUID", "")),
-        frame_of_reference_uid=str(first.get("FrameOfReferenceUID", "")),
-        sop_class_uids=tuple(seen.values()),
-        sop_instance_uids=tuple(seen),
-        attributes=attrs,
-    )

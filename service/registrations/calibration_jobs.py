@@ -46,6 +46,7 @@ from registration.calibration.urdf import read_chain, write_calibrated_urdf
 from registration.errors import OarmRegError, RegistrationError
 from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
 from registration.model.phantom import Phantom
+from service.error_map import http_status_of, title_of
 from service.errors import InternalError, NotFoundError
 from service.events import (
     CalibrationActivated,
@@ -56,7 +57,6 @@ from service.events import (
     Publish,
     RegistrationRetired,
 )
-from service.http.error_map import http_status_of, title_of
 from service.intake.scan_checks import check_capture
 from service.intake.volume_cache import VolumeCache
 from service.records import ScanRecord
@@ -97,8 +97,6 @@ class CalibrationRequest:
     def params(self, target_rms_mm: float | None = None) -> CalibrationParams:
         """``target_rms_mm``: the planner's target the result is compared with
         (``calibration.target_rms_mm``)."""
-        from service.cli.commands.calibrate import calibration_params
-
         p: CalibrationParams = calibration_params(
             parameter_set=self.parameter_set,
             drop_weak=self.drop_weak,
@@ -505,3 +503,34 @@ def _request_json(req: CalibrationRequest) -> dict[str, Any]:
         "drop_weak": req.drop_weak,
         "max_condition": req.max_condition,
     }
+
+
+def calibration_params(
+    *,
+    parameter_set: str = "full",
+    drop_weak: bool = False,
+    max_condition: float | None = None,
+    estimator: str | None = None,
+    max_predicted_error_mm: float | None = None,
+    target_rms_mm: float | None = None,
+) -> Any:
+    """The one mapping from the CLI flags / the service's request fields to ``CalibrationParams``:
+    ``oarmreg calibrate run``, ``POST /calibrations`` and ``oarmreg demo --calibrate`` all pass
+    through here, so their defaults are :class:`registration.calibration.solver.CalibrationParams`'s."""
+    from registration.calibration.records import (
+        CalibrationParams,
+    )
+
+    extra: dict[str, Any] = {}
+    if estimator is not None:
+        extra["estimator"] = estimator
+    if max_predicted_error_mm is not None:
+        extra["max_predicted_error_mm"] = max_predicted_error_mm
+    if target_rms_mm is not None:
+        extra["target_rms_mm"] = target_rms_mm
+    return CalibrationParams(
+        parameter_set=parameter_set,  # type: ignore[arg-type]
+        max_condition=max_condition,
+        on_weak="drop" if drop_weak else "refuse",
+        **extra,
+    )

@@ -46,6 +46,7 @@ from registration.matching.verification import verify_registration
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
 from registration.pipeline import PipelineParams, locate_spheres, register_scan
+from service.error_map import http_status_of, title_of
 from service.errors import (
     InternalError,
     NoCurrentRegistrationError,
@@ -65,7 +66,6 @@ from service.events import (
     RegistrationWithdrawn,
     VerificationDone,
 )
-from service.http.error_map import http_status_of, title_of
 from service.intake.scan_checks import check_capture
 from service.intake.volume_cache import VolumeCache
 from service.records import (

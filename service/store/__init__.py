@@ -6,6 +6,9 @@
 (:class:`~service.store.verifications.VerificationStore`), all sharing one connection and lock
 (:class:`~service.store.base.Connection`).  They read and write the records of
 :mod:`service.records`.
+
+Enters: the records of :mod:`service.records` from every room.
+Leaves: the same records read back; the SQLite file in ``data_dir``, migrated and integrity-checked.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from registration.errors import ConfigError
-from service.http.error_map import EXIT_CONFIG, EXIT_USAGE
+from service.error_map import EXIT_CONFIG, EXIT_USAGE
 from service.records import NewScan
 from service.store import Database
 from tests.faults.conftest import JSON, REPO_ROOT, fault_settings, mock_robot, serve

@@ -247,7 +247,7 @@ def test_a_phantom_file_that_is_not_a_regular_file_is_refused_unread(tmp_path: P
     from registration.errors import PhantomDefinitionError
     from registration.model.phantom import load_phantom
     from service.cli.main import main
-    from service.http.error_map import EXIT_CONFIG
+    from service.error_map import EXIT_CONFIG
 
     path = {"fifo": tmp_path / "phantom.toml", "folder": tmp_path, "device": Path("/dev/zero")}[kind]
     if kind == "fifo":

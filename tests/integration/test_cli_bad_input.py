@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from service.cli.main import build_parser, join_negative_lists, main
-from service.http.error_map import EXIT_CONFIG, EXIT_FILES, EXIT_INPUT, EXIT_USAGE
+from service.error_map import EXIT_CONFIG, EXIT_FILES, EXIT_INPUT, EXIT_USAGE
 
 
 def _one_line_error(capsys: pytest.CaptureFixture[str]) -> str:

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from mocks.oarm.dicom_export import write_dicom_series
 from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
 from service.cli.main import main
-from service.http.error_map import EXIT_INPUT
+from service.error_map import EXIT_INPUT
 
 MATCH_MM = 0.5
 """A detection within this of a truth centre is that sphere (spheres are ≥ 15 mm apart)."""
@@ -94,7 +94,7 @@ def test_detect_uses_the_phantom_materials_method_as_the_service_does(export, tm
 
 
 def test_detect_refuses_a_bad_phantom_file_with_the_config_exit_code(export, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
-    from service.http.error_map import EXIT_CONFIG
+    from service.error_map import EXIT_CONFIG
 
     folder, _ = export
     bad = tmp_path / "bad.toml"

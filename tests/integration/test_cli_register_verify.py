@@ -17,7 +17,7 @@ import pytest
 from registration.io.points import write_json, write_points
 from registration.model.frames import apply, transform_from_xyz_rpy
 from service.cli.main import main
-from service.http.error_map import EXIT_ACCURACY, EXIT_CONFIG, EXIT_INPUT, EXIT_OK, EXIT_USAGE
+from service.error_map import EXIT_ACCURACY, EXIT_CONFIG, EXIT_INPUT, EXIT_OK, EXIT_USAGE
 
 IMAGE_FROM_ROBOT = transform_from_xyz_rpy([-35.0, -420.0, 310.0], [180.0, 0.0, 90.0])
 ROBOT_FROM_PHANTOM = transform_from_xyz_rpy([500.0, 40.0, 300.0], [0.0, 0.0, 30.0])

@@ -6,6 +6,10 @@
   functions and ``TYPE_CHECKING`` blocks too: a lazy import hides a cycle, it does not remove it.
 * ``service/http/api/*`` never imports ``service.http.app`` (the routes get the context from
   :mod:`service.http.context`).
+* ``service/`` is rooms along the data's way (design.md §2): a room imports only the shared top
+  level and the rooms before it in :data:`SERVICE_ROOMS`; the shared top level imports no room; the
+  top level holds at most :data:`MAX_TOP_LEVEL_MODULES` modules and every room's ``__init__`` says
+  what enters it and what leaves it.
 * Production code imports ``mocks`` only in the commands that exist to run mocks
   (:data:`MOCK_COMMANDS`); ``mocks`` itself never imports ``service``.
 * ``from pkg import name`` runs ``pkg/__init__.py`` and reads ``name`` from it, so it counts as an
@@ -32,6 +36,12 @@ MOCK_COMMANDS = frozenset(
     }
 )
 """The only production modules that may import ``mocks``: the commands that run the mocks."""
+
+
+SERVICE_ROOMS = ("store", "intake", "registrations", "navigation", "http", "cli")
+"""The rooms of ``service/`` in the order of the data's way: each may import the ones before it."""
+MAX_TOP_LEVEL_MODULES = 12
+"""Issue #35: ``service/`` has at most 12 top-level modules (``__init__`` included)."""
 
 
 def module_name(path: Path) -> str:
@@ -153,3 +163,54 @@ def test_production_code_imports_mocks_only_in_the_mock_commands() -> None:
         if dep == "mocks" or dep.startswith("mocks.")
     )
     assert bad == []
+
+
+def room_of(module: str) -> str | None:
+    """``service.intake.watcher`` -> ``intake``; a module of the shared top level -> ``""``."""
+    parts = module.split(".")
+    if parts[0] != "service":
+        return None
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in SERVICE_ROOMS) else ""
+
+
+def room_violations(g: dict[str, set[str]]) -> list[str]:
+    rank = {room: i for i, room in enumerate(SERVICE_ROOMS)}
+    bad = []
+    for m, deps in g.items():
+        src = room_of(m)
+        if src is None:
+            continue
+        for dep in deps:
+            dst = room_of(dep)
+            if dst is None or dst == src or dst == "":
+                continue
+            if src == "" or rank[dst] > rank[src]:
+                bad.append(f"{m} ({src or 'top level'}) imports {dep} ({dst})")
+    return sorted(bad)
+
+
+def test_the_room_checker_finds_an_upward_import() -> None:
+    g = {
+        "service.intake.watcher": {"service.store.base", "service.events"},
+        "service.store.base": {"service.intake.watcher"},
+        "service.events": {"service.http.app"},
+        "service.http.app": set(),
+    }
+    assert room_violations(g) == [
+        "service.events (top level) imports service.http.app (http)",
+        "service.store.base (store) imports service.intake.watcher (intake)",
+    ]
+
+
+def test_service_rooms_import_only_the_rooms_before_them() -> None:
+    assert room_violations(graph()) == []
+
+
+def test_service_top_level_is_small_and_every_room_says_what_enters_and_leaves() -> None:
+    top = sorted(p.name for p in (ROOT / "service").glob("*.py"))
+    assert len(top) <= MAX_TOP_LEVEL_MODULES, top
+    rooms = sorted(p.name for p in (ROOT / "service").iterdir() if (p / "__init__.py").is_file())
+    assert sorted(SERVICE_ROOMS) == rooms
+    for room in SERVICE_ROOMS:
+        doc = ast.get_docstring(ast.parse((ROOT / "service" / room / "__init__.py").read_text()))
+        assert doc and "Enters:" in doc and "Leaves:" in doc, f"service/{room}/__init__.py: {doc!r}"

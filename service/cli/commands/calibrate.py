@@ -233,37 +233,6 @@ def _detect_pose(scan_dir: Path, joints: list[float], name: str, ctx: dict[str, 
     )
 
 
-def calibration_params(
-    *,
-    parameter_set: str = "full",
-    drop_weak: bool = False,
-    max_condition: float | None = None,
-    estimator: str | None = None,
-    max_predicted_error_mm: float | None = None,
-    target_rms_mm: float | None = None,
-) -> Any:
-    """The one mapping from the CLI flags / the service's request fields to ``CalibrationParams``:
-    ``oarmreg calibrate run``, ``POST /calibrations`` and ``oarmreg demo --calibrate`` all pass
-    through here, so their defaults are :class:`registration.calibration.solver.CalibrationParams`'s."""
-    from registration.calibration.records import (
-        CalibrationParams,
-    )
-
-    extra: dict[str, Any] = {}
-    if estimator is not None:
-        extra["estimator"] = estimator
-    if max_predicted_error_mm is not None:
-        extra["max_predicted_error_mm"] = max_predicted_error_mm
-    if target_rms_mm is not None:
-        extra["target_rms_mm"] = target_rms_mm
-    return CalibrationParams(
-        parameter_set=parameter_set,  # type: ignore[arg-type]
-        max_condition=max_condition,
-        on_weak="drop" if drop_weak else "refuse",
-        **extra,
-    )
-
-
 def config_hash(*parts: bytes) -> str:
     h = hashlib.sha256()
     for p in parts:
@@ -287,6 +256,7 @@ def run_calibration(args: argparse.Namespace) -> int:
     phantom = load_phantom(args.phantom)
     rod = default_tool0_from_phantom()
     from service.cli.commands.detect import detection_params_for_phantom
+    from service.registrations.calibration_jobs import calibration_params
 
     detection = detection_params_for_phantom(phantom, method=args.method)
     ctx: dict[str, Any] = {"model": model, "rod": rod, "phantom": phantom, "detection": detection}

@@ -397,7 +397,8 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     from registration.dicom import list_series
     from registration.errors import PointsFileError
     from registration.io.sro import build_spatial_registration
-    from service.navigation.sro_export import ct_headers, scan_instances_from_files
+    from service.intake.recording import scan_instances_from_files
+    from service.navigation.sro_export import ct_headers
     from service.registrations.robot_frame import _UID_RE, RobotFrameUidError, robot_frame_uid
 
     if args.dicom_dir is None:

@@ -1,7 +1,7 @@
 """Problem details (RFC 9457, ``application/problem+json``) for every error.
 
 One handler maps both exception families (:class:`registration.errors.OarmRegError`,
-:class:`drivers.errors.RobotLinkError`) through :mod:`service.http.error_map`; request
+:class:`drivers.errors.RobotLinkError`) through :mod:`service.error_map`; request
 validation errors become 422 with the offending fields; unknown routes 404; bugs 500.
 """
 
@@ -16,7 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.http.error_map import FAMILIES, classify, exit_code_of, title_of
+from service.error_map import FAMILIES, classify, exit_code_of, title_of
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def problem_for(
     request: Request, exc: Exception, *, registration_id: int | None = None, calibration_id: int | None = None
 ) -> JSONResponse:
     """The problem-details answer for ``exc`` (status, title and exit code from
-    :mod:`service.http.error_map`),
+    :mod:`service.error_map`),
     naming the stored record it refers to when there is one."""
     entry = classify(exc)
     status = entry.http_status if entry is not None and entry.http_status >= 400 else 422

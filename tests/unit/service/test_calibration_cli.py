@@ -13,7 +13,7 @@ from registration.calibration.planner import ScanVolume
 from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from service.cli.main import main
-from service.http.error_map import EXIT_INPUT, EXIT_OK
+from service.error_map import EXIT_INPUT, EXIT_OK
 from service.settings import CalibrationSettings
 
 START_JOINTS_RAD = [0.2, -0.15, 1.75, 0.3, 0.6, -0.9]

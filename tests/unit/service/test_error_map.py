@@ -1,4 +1,4 @@
-"""The one table from error families to HTTP status, exit code and title (service/http/error_map.py),
+"""The one table from error families to HTTP status, exit code and title (service/error_map.py),
 tested on its own: until now only the API and CLI integration tests reached it."""
 
 from __future__ import annotations

@@ -17,8 +17,8 @@ import pytest
 import service.intake.series_accumulator as acc_mod
 from registration.dicom import InconsistentImageSizeError, load_series
 from registration.imaging.volume import Volume
+from service.intake.recording import scan_instances_from_files
 from service.intake.series_accumulator import SeriesAccumulator
-from service.navigation.sro_export import scan_instances_from_files
 from tests.helpers.dicom_factory import ramp_volume, write_series
 
 

@@ -32,7 +32,7 @@ from registration.dicom import (
     read_series_headers,
 )
 from registration.errors import DicomSeriesError
-from service.http.error_map import EXIT_INPUT, exit_code_of
+from service.error_map import EXIT_INPUT, exit_code_of
 from tests.helpers.dicom_factory import ct_dataset, ramp_volume, write_series
 
 N = 6  # slices per test series

@@ -21,7 +21,7 @@ from registration.io.points import (
 from registration.model import frames
 from registration.model.phantom import Phantom
 from service.cli.main import main
-from service.http.error_map import EXIT_REFUSED
+from service.error_map import EXIT_REFUSED
 from tests.helpers.documents import REGISTRATION_DOC_KEYS
 
 PTS = [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 20.0, 0.0], [0.0, 0.0, 30.0]]
