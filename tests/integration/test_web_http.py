@@ -136,7 +136,7 @@ def test_every_page_file_is_package_data() -> None:
     """The wheel carries the page: each file under service/http/web/static is in a listed (data) package
     and matches that package's package-data glob."""
     tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    static = REPO / "service" / "web" / "static"
+    static = REPO / "service" / "http" / "web" / "static"
     files = [p.relative_to(REPO) for p in static.rglob("*") if p.is_file()]
     assert len(files) >= 8
     missing = []
