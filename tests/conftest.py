@@ -125,3 +125,11 @@ def phantom(phantom_path: Path):  # type: ignore[no-untyped-def]
     from registration.model.phantom import load_phantom
 
     return load_phantom(phantom_path)
+
+
+@pytest.fixture(scope="session")
+def ref_client(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The reference OpenIGTLink library's client (tests/helpers/igtl_ref.py), built once per session."""
+    from tests.helpers.igtl_ref import build_ref_client
+
+    return build_ref_client(tmp_path_factory.mktemp("igtl-ref"))

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import subprocess
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +25,7 @@ import pytest
 
 from registration.model.frames import invert, transform_from_xyz_rpy
 from tests.faults._service import DEADLINE_S, Q1, Events, Svc, in_process_service
+from tests.helpers.igtl_ref import needs_ref_client
 
 Q2 = (*Q1[:5], Q1[5] + 0.3)
 """The verification pose: J6 turned 0.3 rad (the phantom spins about its own axis)."""
@@ -163,8 +166,11 @@ def _problem(r: Any, status: int) -> dict[str, Any]:
     return r.json()  # type: ignore[no-any-return]
 
 
+@needs_ref_client
 @pytest.mark.parametrize("shift_mm", [2.0, 10.0])
-def test_a_failed_verification_withdraws_the_registration(svc: Svc, world: World, shift_mm: float) -> None:
+def test_a_failed_verification_withdraws_the_registration(
+    svc: Svc, world: World, shift_mm: float, ref_client: Path
+) -> None:
     from service.navigation.igtl import wire
 
     reg = _registered(svc, world)
@@ -183,6 +189,16 @@ def test_a_failed_verification_withdraws_the_registration(svc: Svc, world: World
         assert code != 1 and "withdrawn" in text, (code, text)
         n_after = igtl.messages.index(status)
         after = [(m.header.type, m.header.device_name) for m in igtl.messages[n_after:]]
+        # Slicer's query (OpenIGTLinkIO's GET_TRANS, sent by the reference library) gets a STATUS
+        # naming the withdrawal, never a matrix
+        ref = subprocess.run(
+            [str(ref_client), "127.0.0.1", str(_igtl_port(svc)), "query", "RobotToImage"],
+            capture_output=True, text=True, timeout=DEADLINE_S,
+        )  # fmt: skip
+        assert ref.returncode == 0, f"reference client exit {ref.returncode}:\n{ref.stdout}\n{ref.stderr}"
+        assert "TRANSFORM RobotToImage" not in ref.stdout, ref.stdout
+        answer = next(ln for ln in ref.stdout.splitlines() if ln.startswith("STATUS RobotToImage "))
+        assert "crc=ok" in answer and " code=1 " not in answer and "withdrawn" in answer, answer
         assert ("TRANSFORM", "RobotToImage") not in after, "a RobotToImage matrix after the withdrawal"
     finally:
         igtl.close()

@@ -9,7 +9,6 @@ Before issue #23 the service sent version 2 from the first byte and this client 
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,31 +19,14 @@ import numpy as np
 import pytest
 
 from service.events import IgtlClientHeaderVersion
+from tests.helpers.igtl_ref import needs_ref_client
 from tests.integration.peer_service import PeerService, running_service, send_files, simulated_series
 
 REPO = Path(__file__).resolve().parents[2]
-SOURCE = REPO / "tests" / "peers" / "igtl_ref_client.cxx"
-INCLUDE = Path("/usr/include/openigtlink")
-GXX = shutil.which("g++")
 RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 CLIENT_TIMEOUT_S = 30.0
 
-pytestmark = pytest.mark.skipif(
-    GXX is None or not (INCLUDE / "igtlTransformMessage.h").is_file(),
-    reason="g++ or libopenigtlink-dev not installed (.ci/run installs them)",
-)
-
-
-@pytest.fixture(scope="session")
-def ref_client(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The C++ client, built once per session into a temp folder."""
-    assert GXX is not None
-    exe = tmp_path_factory.mktemp("igtl-ref") / "igtl_ref_client"
-    subprocess.run(
-        [GXX, "-O1", "-std=c++11", f"-I{INCLUDE}", str(SOURCE), "-lOpenIGTLink", "-o", str(exe)],
-        check=True, capture_output=True, timeout=120,
-    )  # fmt: skip
-    return exe
+pytestmark = needs_ref_client
 
 
 @dataclass(frozen=True)

@@ -19,11 +19,11 @@
 //     V<version> <type> <device> crc=<ok|bad> body=<n> [meta <key>=<value>;...]
 // Exit status: 0 done, 2 connection / read failure, 3 protocol surprise.
 //
-//   igtl_ref_client HOST PORT query
+//   igtl_ref_client HOST PORT query [DEVICE]
 //
 // Query mode (issue #31): sends, as version 1 with the library's own classes, GET_TRANS for
-// ToolToImage (igtl::GetTransformMessage), GET_STATUS (device "RefClient"), GET_CAPABIL and
-// GET_POINT for PhantomSpheres, then reads until it has seen a TRANSFORM ToolToImage, a STATUS
+// DEVICE (default ToolToImage; igtl::GetTransformMessage), GET_STATUS (device "RefClient"), GET_CAPABIL and
+// GET_POINT for PhantomSpheres, then reads until it has seen a TRANSFORM (or a STATUS) for DEVICE, a STATUS
 // RefClient, a CAPABILITY and a POINT, each unpacked by the library with its CRC check:
 //     TRANSFORM <device> crc=<ok|bad>
 //     STATUS <device> crc=<ok|bad> code=<C> name=<error name> text=<status string>
@@ -187,9 +187,9 @@ static int receive_into(igtl::ClientSocket::Pointer& socket, igtl::MessageHeader
   return (msg->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;  // 1: CRC ok
 }
 
-static int query(igtl::ClientSocket::Pointer& socket) {
+static int query(igtl::ClientSocket::Pointer& socket, const std::string& trans_device) {
   igtl::GetTransformMessage::Pointer get_trans = igtl::GetTransformMessage::New();
-  get_trans->SetDeviceName("ToolToImage");
+  get_trans->SetDeviceName(trans_device.c_str());
   igtl::GetStatusMessage::Pointer get_status = igtl::GetStatusMessage::New();
   get_status->SetDeviceName("RefClient");
   igtl::GetCapabilityMessage::Pointer get_capabil = igtl::GetCapabilityMessage::New();
@@ -217,14 +217,15 @@ static int query(igtl::ClientSocket::Pointer& socket) {
       igtl::TransformMessage::Pointer m = igtl::TransformMessage::New();
       c = receive_into<igtl::TransformMessage>(socket, header, m);
       std::printf("TRANSFORM %s crc=%s\n", dev.c_str(), c == 1 ? "ok" : "bad");
-      got_transform = got_transform || dev == "ToolToImage";
+      got_transform = got_transform || dev == trans_device;
     } else if (type == "STATUS") {
       igtl::StatusMessage::Pointer m = igtl::StatusMessage::New();
       c = receive_into<igtl::StatusMessage>(socket, header, m);
       std::printf("STATUS %s crc=%s code=%d name=%s text=%s\n", dev.c_str(), c == 1 ? "ok" : "bad",
                   m->GetCode(), m->GetErrorName(), m->GetStatusString());
       got_status = got_status || dev == "RefClient";
-      got_transform = got_transform || dev == "ToolToImage";  // an invalid device is answered by STATUS
+      got_transform = got_transform || dev == trans_device;  // an invalid device is answered by STATUS
+      got_point = got_point || dev == "PhantomSpheres";    // so is a POINT list with no registration
     } else if (type == "CAPABILITY") {
       igtl::CapabilityMessage::Pointer m = igtl::CapabilityMessage::New();
       c = receive_into<igtl::CapabilityMessage>(socket, header, m);
@@ -258,20 +259,20 @@ static int query(igtl::ClientSocket::Pointer& socket) {
 }
 
 int main(int argc, char* argv[]) {
-  if (argc == 4 && std::strcmp(argv[3], "query") == 0) {
+  if ((argc == 4 || argc == 5) && std::strcmp(argv[3], "query") == 0) {
     igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
     if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0) {
       std::printf("CONNECT_FAILED\n");
       return 2;
     }
     socket->SetReceiveTimeout(10000);
-    int rc = query(socket);
+    int rc = query(socket, argc == 5 ? argv[4] : "ToolToImage");
     std::fflush(stdout);
     socket->CloseSocket();
     return rc;
   }
   if (argc != 5) {
-    std::fprintf(stderr, "usage: %s HOST PORT N_V1 N_V2 | %s HOST PORT query\n", argv[0], argv[0]);
+    std::fprintf(stderr, "usage: %s HOST PORT N_V1 N_V2 | %s HOST PORT query [DEVICE]\n", argv[0], argv[0]);
     return 2;
   }
   igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
