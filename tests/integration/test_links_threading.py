@@ -91,7 +91,10 @@ def test_blocked_caller_loop_leaves_no_gap(kind: str, block: Callable[[float], N
     gaps = np.diff(t[blocked])
     inside = int(np.count_nonzero((t >= t_block) & (t <= t_unblock)))
     assert gaps.max() <= MAX_GAP_S, f"largest gap {gaps.max():.3f} s"
-    assert inside >= 0.8 * (t_unblock - t_block) / FRAME_PERIOD_S, f"{inside} frames while blocked"
+    # the reader runs on its own thread: a reader blocked with the caller's loop would stamp ~0 frames
+    # inside the block; half the 50 Hz rate separates that from a loaded machine's jitter (80 % failed
+    # once in CI at 38 of 50 with the Modbus poller, while no gap exceeded MAX_GAP_S)
+    assert inside >= 0.5 * (t_unblock - t_block) / FRAME_PERIOD_S, f"{inside} frames while blocked"
     res = assess_stillness(
         t[blocked], np.tile(Q, (int(blocked.sum()), 1)), window_end_t_s=t_unblock,
         window_s=t_unblock - t_block, max_deviation_rad=0.0005, max_gap_s=MAX_GAP_S,
