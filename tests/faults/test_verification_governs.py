@@ -242,6 +242,26 @@ def test_a_failed_verification_withdraws_the_registration(
     assert svc.client.get("/registration/current").status_code == 409
 
 
+@needs_ref_client
+def test_a_client_switching_to_version_2_gets_the_metadata_at_once(
+    svc: Svc, world: World, ref_client: Path
+) -> None:
+    """Issue #31 item 4, read by the reference library as Slicer connects: it reads version 1, then
+    sends a version-2 STATUS (SlicerOpenIGTLink's first message) and must get ``RobotToImage`` with
+    its metadata at once. This service's push period is 60 s and the client gives up after 10 s
+    without a message for it, so only the switch itself can send it (before: the next periodic
+    push, 16.8 s later in the report)."""
+    reg = _registered(svc, world)
+    proc = subprocess.run(
+        [str(ref_client), "127.0.0.1", str(_igtl_port(svc)), "1", "1"],  # 1 RobotToImage v1, then 1 v2
+        capture_output=True, text=True, timeout=DEADLINE_S,
+    )  # fmt: skip
+    assert proc.returncode == 0, f"reference client exit {proc.returncode}:\n{proc.stdout}\n{proc.stderr}"
+    v2 = [ln for ln in proc.stdout.splitlines() if ln.startswith("V2 TRANSFORM RobotToImage ")]
+    assert v2 and "crc=ok" in v2[0], proc.stdout
+    assert "TransformStatus=OK" in v2[0] and f"RegistrationId={reg['id']}" in v2[0], v2[0]
+
+
 def test_a_passing_verification_at_a_moved_pose_keeps_the_registration_current_and_first_the_chain_figure(
     svc: Svc, world: World
 ) -> None:
