@@ -6,4 +6,7 @@ the favicon and the Swagger UI shell at ``/docs``; these are the only public pat
 ``/health`` (:data:`service.http.security.PUBLIC_PATHS`).  :mod:`service.http.web.headers` adds the
 Content-Security-Policy (``default-src 'self'``) to every answer, and :func:`service.http.web.cors`
 installs Starlette's CORSMiddleware for the origins listed in ``api.allowed_origins``.
+
+Enters: browser requests for ``/``, ``/static/*`` and ``/docs``.
+Leaves: the page, its assets and the Swagger UI shell, with their security headers.
 """
