@@ -25,7 +25,7 @@ import ipaddress
 import json
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -107,6 +107,19 @@ class _Section(BaseModel):
                 limit = f"{MAX_SETTING_MAGNITUDE:g}"
                 raise ValueError(f"{x!r} is not a usable value (|value| must be <= {limit})")
         return v
+
+
+_S = TypeVar("_S", bound=BaseModel)
+
+
+def as_enabled(section: _S, error: type[ConfigError]) -> _S:
+    """``section`` validated again as an enabled one, as a listener that is starting needs it (its
+    allow-list rule applies to any listener, enabled in the TOML or not); a refusal raises ``error``
+    with the settings' own message."""
+    try:
+        return type(section).model_validate({**section.model_dump(), "enabled": True})
+    except ValidationError as e:
+        raise error("; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())) from None
 
 
 class Tool0FromPhantom(_Section):

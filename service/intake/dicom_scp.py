@@ -76,6 +76,7 @@ from pynetdicom.utils import make_target
 from registration.errors import ConfigError
 from service.intake.scan_lifecycle import OfferTally
 from service.netaddr import in_networks, parse_networks
+from service.settings import as_enabled
 
 if TYPE_CHECKING:
     from service.settings import DicomSettings
@@ -123,20 +124,6 @@ class DicomScpConfigError(ConfigError):
     """The DICOM Storage SCP configuration is unsafe or invalid."""
 
     title = "Invalid DICOM SCP configuration"
-
-
-def serving_settings(settings: DicomSettings) -> DicomSettings:
-    """``[dicom]`` as a listening SCP needs it: validated by :class:`service.settings.DicomSettings`
-    as an enabled section (its allow-list rule applies to any SCP that listens), raising
-    :class:`DicomScpConfigError` with the settings' own message."""
-    from pydantic import ValidationError
-
-    try:
-        return type(settings).model_validate({**settings.model_dump(), "enabled": True})
-    except ValidationError as e:
-        raise DicomScpConfigError(
-            "; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
-        ) from None
 
 
 @dataclass(frozen=True)
@@ -359,7 +346,7 @@ class StorageScp:
     Parameters
     ----------
     config : DicomSettings
-        The ``[dicom]`` section (validated again as an enabled one: see :func:`serving_settings`).
+        The ``[dicom]`` section (validated again as an enabled one: :func:`service.settings.as_enabled`).
     intake_dir : Path
         Root of ``<Study>/<Series>/<SOP>.dcm``; created if missing.
     callbacks : ScpCallbacks
@@ -375,7 +362,7 @@ class StorageScp:
         *,
         write: Writer = os.write,
     ) -> None:
-        self.config = config = serving_settings(config)
+        self.config = config = as_enabled(config, DicomScpConfigError)
         self.intake_dir = Path(intake_dir)
         self.write_failure: str | None = None
         """Why the last instance could not be written (ENOSPC, EIO…); None once one is stored again."""

@@ -81,6 +81,7 @@ import numpy.typing as npt
 from registration.errors import ConfigError
 from service.navigation.igtl import wire
 from service.netaddr import in_networks, is_loopback, parse_networks
+from service.settings import as_enabled
 
 if TYPE_CHECKING:
     from service.settings import IgtlSettings
@@ -189,20 +190,6 @@ REGISTRATION_DEVICE = "RobotToImage"
 TOOL_DEVICE = "ToolToImage"
 POINTS_DEVICE = "PhantomSpheres"
 TRANSFORM_DEVICES: tuple[str, str] = (REGISTRATION_DEVICE, TOOL_DEVICE)
-
-
-def serving_settings(settings: IgtlSettings) -> IgtlSettings:
-    """``[igtl]`` as a running server needs it: validated by :class:`service.settings.IgtlSettings`
-    as an enabled section (its allow-list rule applies to any server that listens), raising
-    :class:`IgtlConfigError` with the settings' own message."""
-    from pydantic import ValidationError
-
-    try:
-        return type(settings).model_validate({**settings.model_dump(), "enabled": True})
-    except ValidationError as e:
-        raise IgtlConfigError(
-            "; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
-        ) from None
 
 
 def max_body_bytes(settings: IgtlSettings, msg_type: str) -> int:
@@ -514,7 +501,7 @@ class IgtlServer:
         *,
         on_client: Callable[[str, str, int, int], None] | None = None,
     ) -> None:
-        self.config = serving_settings(config)
+        self.config = as_enabled(config, IgtlConfigError)
         self.source = source
         self.on_client = on_client
         """``on_client(event, peer, n_clients, header_version)`` on the loop; event ``connected`` /
