@@ -14,8 +14,8 @@ from service.intake.retention import quota_problem, run_retention
 from service.intake.scan_lifecycle import OfferTally, diff, hash_files, rehash
 from service.records import NewScan, RegistrationRecord
 from service.store import Database
-from service.store.integrity import APPLICATION_ID
-from service.store.migrations import MIGRATIONS, SCAN_LIFECYCLE_MIGRATION, split_sql
+from service.store.migrations import MIGRATIONS, SCAN_LIFECYCLE_MIGRATION
+from tests.helpers.old_schema import database_before
 
 IDENTITY = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
@@ -23,15 +23,7 @@ IDENTITY = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0
 def _schema_before_issue_19(path: Path) -> None:
     """A database as the release before issue 19 left it: one scan with its joint snapshot, an
     accepted registration of it, current."""
-    n = MIGRATIONS.index(SCAN_LIFECYCLE_MIGRATION)
-    c = sqlite3.connect(path, isolation_level=None)
-    c.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-    c.execute("PRAGMA foreign_keys=ON")
-    for script in MIGRATIONS[:n]:
-        for stmt in split_sql(script):
-            c.execute(stmt)
-    c.execute(f"PRAGMA user_version = {n}")
-    c.execute(f"UPDATE oarmreg_identity SET schema_version = {n}")
+    c = database_before(path, SCAN_LIFECYCLE_MIGRATION)
     c.execute(
         "INSERT INTO scans (id, series_uid, folder, arrived_at, status, updated_at, reopened_count) "
         "VALUES (1, '1.2.3', '/w/a', '2026-01-01', 'complete', '2026-01-01', 2)"

@@ -14,8 +14,8 @@ from registration.errors import JointHistoryIncompleteError, RobotMovedError
 from service.intake.scan_checks import check_capture
 from service.records import JointSnapshot, NewScan, StillnessVerdict, stillness_verdict
 from service.store import Database
-from service.store.integrity import APPLICATION_ID
-from service.store.migrations import MIGRATIONS, STILLNESS_VERDICT_MIGRATION, split_sql
+from service.store.migrations import MIGRATIONS, STILLNESS_VERDICT_MIGRATION
+from tests.helpers.old_schema import database_before
 
 JOINTS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
 MOVED_TEXT = "robot moved: joint 2 deviated 0.0573° (0.001000 rad > 0.0002 rad) during the 2 s window"
@@ -70,15 +70,7 @@ def test_the_gate_decides_by_the_stored_verdict_not_the_reason_text(
 
 def _schema_9_with_old_snapshots(path: Path) -> None:
     """A database as schema 9 left it: four scans whose snapshots carry only ``still`` and the reason."""
-    n = MIGRATIONS.index(STILLNESS_VERDICT_MIGRATION)
-    c = sqlite3.connect(path, isolation_level=None)
-    c.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-    c.execute("PRAGMA foreign_keys=ON")
-    for script in MIGRATIONS[:n]:
-        for stmt in split_sql(script):
-            c.execute(stmt)
-    c.execute(f"PRAGMA user_version = {n}")
-    c.execute(f"UPDATE oarmreg_identity SET schema_version = {n}")
+    c = database_before(path, STILLNESS_VERDICT_MIGRATION)
     rows = [
         (1, 1, ""),
         (2, 0, MOVED_TEXT),
