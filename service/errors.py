@@ -367,7 +367,7 @@ class IgtlPeerError(ListenerError):
     """An OpenIGTLink peer broke a listener limit or the framing: its connection is closed (message =
     why; ``counter`` = the server counter it increments)."""
 
-    title = "OpenIGTLink peer closed"
+    title = "OpenIGTLink peer broke a limit"
 
     def __init__(self, counter: str, why: str) -> None:
         super().__init__(why)
