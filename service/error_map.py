@@ -94,12 +94,12 @@ def title_of(exc: BaseException) -> str:
 
 
 def http_status_of(exc: BaseException) -> int:
-    """The HTTP status of a user-caused error (422 for one not in the table)."""
+    """The HTTP status of a user-caused error (422 for an error that is not ours)."""
     entry = classify(exc)
     return entry.http_status if entry is not None else 422
 
 
 def exit_code_of(exc: BaseException) -> int:
-    """The CLI exit code of a user-caused error (:data:`EXIT_INPUT` for one not in the table)."""
+    """The CLI exit code of a user-caused error (:data:`EXIT_INPUT` for an error that is not ours)."""
     entry = classify(exc)
     return entry.exit_code if entry is not None else EXIT_INPUT
