@@ -200,3 +200,35 @@ def test_every_exit_code_is_documented_in_the_module_and_docs_cli() -> None:
     assert codes == in_docstring == in_docs, (codes, in_docstring, in_docs)
     answers = [em.classify(c.__new__(c)) for c in SERVICE_ERRORS] + list(em.ERROR_MAP.values())
     assert all(a is not None and a.exit_code in codes for a in answers)
+
+
+def test_the_problem_types_clients_see_are_the_class_names() -> None:
+    """The gate's refusals kept the ``type`` they had when the gate built them by hand, and a route's
+    401/503 now carries the same ``type`` as the gate's (not ``auth`` / ``database-gone``)."""
+    from service.http.api.problems import problem_kind
+
+    kinds = {
+        problem_kind(cls("x"))
+        for cls in (
+            svc.HostNotAllowedError,
+            svc.OriginNotAllowedError,
+            svc.UnauthorizedError,
+            svc.ReadOnlyTokenError,
+            svc.UnsupportedMediaTypeError,
+            svc.BadRequestError,
+            svc.BodyTooLargeError,
+            svc.DatabaseUnavailableError,
+        )
+    }
+    kinds.add(problem_kind(svc.AuthThrottledError("x", retry_after_s=1)))
+    assert kinds == {
+        "host-not-allowed",
+        "origin-not-allowed",
+        "unauthorized",
+        "read-only-token",
+        "unsupported-media-type",
+        "bad-request",
+        "body-too-large",
+        "database-unavailable",
+        "auth-throttled",
+    }
