@@ -28,7 +28,9 @@ byte is read (so a 10 MB body without a token costs nothing):
    are buffered here and replayed to the app.
 6. Mutating requests while the database is unusable (file deleted or replaced) → 503.
 
-Every refusal is problem details (RFC 9457).  A refusal that leaves body bytes unread carries
+Every refusal is problem details (RFC 9457): a class of :mod:`service.errors` that states its status
+and title (``HostNotAllowedError``, ``UnauthorizedError``, ...), answered through
+:mod:`service.error_map` as the routes' errors are.  A refusal that leaves body bytes unread carries
 ``Connection: close`` so the rest of the body is never parsed.  The gate also guards against bugs:
 an exception escaping the app becomes a 500 problem without internals and ``Connection: close``
 (the connection ends cleanly instead of being reset on the next request).
