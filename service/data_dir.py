@@ -22,7 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO
 
-from registration.errors import ConfigError
+from service.errors import ServeLockError
 
 log = logging.getLogger(__name__)
 
@@ -31,12 +31,6 @@ UMASK = 0o077
 """Files 0600, folders 0700: only the service's user reads patient data."""
 FILE_MODE = 0o600
 DIR_MODE = 0o700
-
-
-class ServeLockError(ConfigError):
-    """Another ``serve`` holds the data folder (exit 3)."""
-
-    title = "Data folder in use"
 
 
 def serve_lock_path(data_dir: Path) -> Path:

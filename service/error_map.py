@@ -1,10 +1,11 @@
-"""The one table from error families to HTTP status, CLI exit code and default title.
+"""How an error is answered: HTTP status and CLI exit code, read from the nearest class that states them.
 
-``registration`` and ``drivers`` raise errors that know nothing of HTTP or exit codes; the
-service's problem-details handler (:mod:`service.http.api.problems`) and the CLI
-(:mod:`service.cli.main`) both look them up here.  A class is matched by its nearest ancestor in
-:data:`ERROR_MAP`; an exception's own ``title`` attribute, where its class sets one, wins over
-the family's.
+A class states them once, in one of two places: a service error in its own body (``http_status``,
+``exit_code``: :mod:`service.errors`); a family of ``registration`` or ``drivers``, which know
+nothing of HTTP or exit codes, in :data:`ERROR_MAP`.  :func:`classify` walks the class's MRO and
+takes the first that states them; a title is the nearest class's ``title`` (an instance may set
+its own).  The problem-details handler (:mod:`service.http.api.problems`), the HTTP gate
+(:mod:`service.http.security`) and the CLI (:mod:`service.cli.main`) all answer through here.
 
 Exit codes (documented in docs/cli.md, "Exit codes"):
 
@@ -27,25 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drivers.errors import LinkConfigError, RobotLinkError
-from registration.errors import (
-    AccuracyGateError,
-    ConfigError,
-    JointHistoryIncompleteError,
-    OarmRegError,
-    RegistrationError,
-    RobotMovedError,
-)
-from service.errors import (
-    AuthError,
-    DatabaseGoneError,
-    InternalError,
-    NoScanError,
-    NotFoundError,
-    PacsExportError,
-    QaProtocolError,
-    QaProtocolNameTakenError,
-    StorageFullError,
-)
+from registration.errors import AccuracyGateError, ConfigError, OarmRegError, RegistrationError
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -60,63 +43,63 @@ EXIT_FILES = 8
 
 @dataclass(frozen=True)
 class ErrorClass:
-    """How one error family is answered."""
+    """How one error class is answered (its title is the class's own ``title``)."""
 
     http_status: int
     exit_code: int
-    title: str
 
 
-ERROR_MAP: dict[type, ErrorClass] = {
-    OarmRegError: ErrorClass(422, EXIT_INPUT, "Invalid input"),
-    ConfigError: ErrorClass(422, EXIT_CONFIG, "Configuration error"),
-    RegistrationError: ErrorClass(409, EXIT_REFUSED, "Registration refused"),
-    AccuracyGateError: ErrorClass(409, EXIT_ACCURACY, "Accuracy gate failed"),
-    NotFoundError: ErrorClass(404, EXIT_INPUT, "Not found"),
-    NoScanError: ErrorClass(409, EXIT_INPUT, "No complete scan"),
-    InternalError: ErrorClass(500, EXIT_INPUT, "Internal error"),
-    AuthError: ErrorClass(401, EXIT_USAGE, "Unauthorized"),
-    DatabaseGoneError: ErrorClass(503, EXIT_CONFIG, "Database unavailable"),
-    RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK, "Robot link error"),
-    LinkConfigError: ErrorClass(422, EXIT_CONFIG, "Invalid robot link configuration"),
-    StorageFullError: ErrorClass(507, EXIT_CONFIG, "Data folder full"),
-    # stillness (docs/safety.md, "Stillness and health"): two refusals, never one for the other
-    RobotMovedError: ErrorClass(409, EXIT_REFUSED, "Robot moved during the scan"),
-    JointHistoryIncompleteError: ErrorClass(409, EXIT_REFUSED, "Joint history incomplete"),
-    PacsExportError: ErrorClass(409, EXIT_CONFIG, "PACS export not possible"),
-    QaProtocolError: ErrorClass(422, EXIT_INPUT, "QA protocol problem"),
-    QaProtocolNameTakenError: ErrorClass(409, EXIT_INPUT, "QA protocol name taken"),
+ERROR_MAP: dict[type[Exception], ErrorClass] = {
+    OarmRegError: ErrorClass(422, EXIT_INPUT),
+    ConfigError: ErrorClass(422, EXIT_CONFIG),
+    RegistrationError: ErrorClass(409, EXIT_REFUSED),
+    AccuracyGateError: ErrorClass(409, EXIT_ACCURACY),
+    RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK),
+    LinkConfigError: ErrorClass(422, EXIT_CONFIG),
 }
+"""The families of ``registration`` and ``drivers``; a service error states its own
+(:mod:`service.errors`)."""
 
 FAMILIES: tuple[type[Exception], ...] = (OarmRegError, RobotLinkError)
 """The roots: every error a user can cause derives from one of these."""
 
 
+def stated_by(cls: type) -> ErrorClass | None:
+    """What ``cls`` itself states: its own ``http_status`` and ``exit_code``, or its row, or None."""
+    own = vars(cls)
+    if "http_status" in own:
+        return ErrorClass(own["http_status"], own["exit_code"])
+    return ERROR_MAP.get(cls)
+
+
 def classify(exc: BaseException) -> ErrorClass | None:
-    """The entry of the nearest ancestor of ``type(exc)`` in :data:`ERROR_MAP`, or None (not ours)."""
+    """What the nearest class of ``type(exc)``'s MRO states (:func:`stated_by`), or None (not ours)."""
     for cls in type(exc).__mro__:
-        entry = ERROR_MAP.get(cls)
+        entry = stated_by(cls)
         if entry is not None:
             return entry
     return None
 
 
 def title_of(exc: BaseException) -> str:
-    """The exception's own ``title`` if its class sets one, else its family's."""
+    """The exception's own ``title`` if it or its class sets one, else the nearest ancestor's."""
     own = getattr(exc, "title", None)
     if isinstance(own, str) and own:
         return own
-    entry = classify(exc)
-    return entry.title if entry is not None else "Error"
+    for cls in type(exc).__mro__:
+        title = vars(cls).get("title")
+        if isinstance(title, str) and title:
+            return title
+    return "Error"
 
 
 def http_status_of(exc: BaseException) -> int:
-    """The HTTP status of a user-caused error (422 for one not in the table)."""
+    """The HTTP status of a user-caused error (422 for an error that is not ours)."""
     entry = classify(exc)
     return entry.http_status if entry is not None else 422
 
 
 def exit_code_of(exc: BaseException) -> int:
-    """The CLI exit code of a user-caused error (:data:`EXIT_INPUT` for one not in the table)."""
+    """The CLI exit code of a user-caused error (:data:`EXIT_INPUT` for an error that is not ours)."""
     entry = classify(exc)
     return entry.exit_code if entry is not None else EXIT_INPUT

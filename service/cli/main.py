@@ -20,7 +20,6 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from registration import __version__
-from service.cli.commands.argtypes import UsageError
 from service.error_map import EXIT_FILES, EXIT_INPUT, EXIT_USAGE, FAMILIES, exit_code_of, title_of
 
 log = logging.getLogger(__name__)
@@ -154,8 +153,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args._run(args))
     except FAMILIES as e:
         return _one_line(args.command, title_of(e), e, exit_code_of(e))
-    except UsageError as e:
-        return _one_line(args.command, "Usage error", e, EXIT_USAGE)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do

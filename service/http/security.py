@@ -28,7 +28,9 @@ byte is read (so a 10 MB body without a token costs nothing):
    are buffered here and replayed to the app.
 6. Mutating requests while the database is unusable (file deleted or replaced) → 503.
 
-Every refusal is problem details (RFC 9457).  A refusal that leaves body bytes unread carries
+Every refusal is problem details (RFC 9457): a class of :mod:`service.errors` that states its status
+and title (``HostNotAllowedError``, ``UnauthorizedError``, ...), answered through
+:mod:`service.error_map` as the routes' errors are.  A refusal that leaves body bytes unread carries
 ``Connection: close`` so the rest of the body is never parsed.  The gate also guards against bugs:
 an exception escaping the app becomes a 500 problem without internals and ``Connection: close``
 (the connection ends cleanly instead of being reset on the next request).
@@ -49,6 +51,20 @@ from urllib.parse import parse_qs
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from registration.errors import OarmRegError
+from service.error_map import http_status_of, title_of
+from service.errors import (
+    AuthThrottledError,
+    BadRequestError,
+    BodyTooLargeError,
+    DatabaseUnavailableError,
+    HostNotAllowedError,
+    OriginNotAllowedError,
+    ReadOnlyTokenError,
+    UnauthorizedError,
+    UnsupportedMediaTypeError,
+)
+from service.http.api.problems import problem_kind
 from service.logsetup import install_redaction
 
 if TYPE_CHECKING:
@@ -78,20 +94,6 @@ PRINCIPAL_NO_AUTH = "none-loopback-only"
 def token_principal(token: str) -> str:
     """Who presented ``token``, for the audit log: ``token:`` + 12 hex of its SHA-256 (never the token)."""
     return "token:" + hashlib.sha256(token.encode()).hexdigest()[:12]
-
-
-class Refusal(Exception):
-    """A request the gate does not admit (answered as problem details)."""
-
-    def __init__(
-        self, status: int, title: str, detail: str, kind: str, headers: tuple[tuple[bytes, bytes], ...] = ()
-    ) -> None:
-        super().__init__(detail)
-        self.status = status
-        self.title = title
-        self.detail = detail
-        self.kind = kind
-        self.headers = headers
 
 
 def _header(scope: Scope, name: bytes) -> str | None:
@@ -137,21 +139,20 @@ def allowed_origins(settings: Settings, hosts: frozenset[str]) -> frozenset[str]
 
 
 def check_host_origin(settings: Settings, scope: Scope) -> None:
-    """Steps 1–2 (Host, Origin); raise :class:`Refusal`."""
+    """Steps 1–2 (Host, Origin); raise :class:`HostNotAllowedError` or :class:`OriginNotAllowedError`."""
     hosts = allowed_hosts(settings, scope)
     host = (_header(scope, b"host") or "").strip().lower()
     if host not in hosts:
-        raise Refusal(
-            400, "Host not allowed", f"Host header {host[:100]!r} is not one this service answers to "
-            f"({', '.join(sorted(hosts))}); add the name the clients use to api.allowed_hosts",
-            "host-not-allowed",
-        )  # fmt: skip
+        raise HostNotAllowedError(
+            f"Host header {host[:100]!r} is not one this service answers to "
+            f"({', '.join(sorted(hosts))}); add the name the clients use to api.allowed_hosts"
+        )
     origin = _header(scope, b"origin")
     if origin is not None and origin.strip().lower().rstrip("/") not in allowed_origins(settings, hosts):
-        raise Refusal(
-            403, "Origin not allowed", f"cross-origin request from {origin[:100]!r} refused; a browser UI "
-            "served from another origin must be listed in api.allowed_origins", "origin-not-allowed",
-        )  # fmt: skip
+        raise OriginNotAllowedError(
+            f"cross-origin request from {origin[:100]!r} refused; a browser UI served from another "
+            "origin must be listed in api.allowed_origins"
+        )
 
 
 def is_public(scope: Scope) -> bool:
@@ -191,8 +192,8 @@ def client_address(scope: Scope) -> str:
 
 
 def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | None = None) -> str | None:
-    """Step 3: the request's principal (None for public paths); raise :class:`Refusal` (401, or 429
-    while ``throttle`` holds the client's address after repeated failures)."""
+    """Step 3: the request's principal (None for public paths); raise :class:`UnauthorizedError`, or
+    :class:`AuthThrottledError` while ``throttle`` holds the client's address after repeated failures."""
     settings = ctx.settings
     if is_public(scope):
         return None
@@ -208,16 +209,18 @@ def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | Non
             return principal
         if throttle is not None:
             throttle.failed(ctx, address)
-        raise _unauthorized("the Bearer token does not match the service's api_token")
+        raise UnauthorizedError("the Bearer token does not match the service's api_token")
     if scope["path"] == EVENTS_PATH and scope["method"] == "GET":
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
         tickets = query.get("ticket")
         if tickets:
             principal = ctx.tickets.redeem(tickets[0])
             if principal is None:
-                raise _unauthorized("the event ticket is unknown, used or expired; POST /events/ticket again")
+                raise UnauthorizedError(
+                    "the event ticket is unknown, used or expired; POST /events/ticket again"
+                )
             return principal
-    raise _unauthorized(
+    raise UnauthorizedError(
         "missing 'Authorization: Bearer <token>' header (GET /events also takes ?ticket= from "
         "POST /events/ticket); the API token is set in api_token"
     )
@@ -318,18 +321,12 @@ class AuthThrottle:
             log.error("audit: could not record the auth throttle of %s (%s)", address, type(e).__name__)
 
 
-def _throttled(retry_after_s: float) -> Refusal:
+def _throttled(retry_after_s: float) -> AuthThrottledError:
     wait_s = max(1, math.ceil(retry_after_s))
-    return Refusal(
-        429, "Too many failed authentications", f"too many wrong tokens from this address; try again in "
-        f"{wait_s} s (failed authentications are throttled per address: api.auth_failures_before_throttle, "
-        "api.auth_lockout_max_s)", "auth-throttled", ((b"retry-after", str(wait_s).encode()),),
-    )  # fmt: skip
-
-
-def _unauthorized(detail: str) -> Refusal:
-    return Refusal(
-        401, "Unauthorized", detail, "unauthorized", ((b"www-authenticate", b'Bearer realm="oarmreg"'),)
+    return AuthThrottledError(
+        f"too many wrong tokens from this address; try again in {wait_s} s (failed authentications are "
+        "throttled per address: api.auth_failures_before_throttle, api.auth_lockout_max_s)",
+        retry_after_s=wait_s,
     )
 
 
@@ -341,27 +338,27 @@ def check_content(settings: Settings, scope: Scope) -> int | None:
     if scope["method"] in MUTATING_METHODS:
         ctype = (_header(scope, b"content-type") or "").split(";", 1)[0].strip().lower()
         if ctype != "application/json":
-            raise Refusal(
-                415, "Unsupported media type", f"{scope['method']} needs 'Content-Type: application/json' "
-                f"(bodiless requests too); got {ctype[:60] or 'none'!r}", "unsupported-media-type",
-            )  # fmt: skip
+            raise UnsupportedMediaTypeError(
+                f"{scope['method']} needs 'Content-Type: application/json' (bodiless requests too); "
+                f"got {ctype[:60] or 'none'!r}"
+            )
     raw = _header(scope, b"content-length")
     if raw is None:
         return None
     if not raw.strip().isdigit() or len(raw.strip()) > 19:
-        raise Refusal(400, "Bad request", f"Content-Length {raw[:30]!r} is not a byte count", "bad-request")
+        raise BadRequestError(f"Content-Length {raw[:30]!r} is not a byte count")
     length = int(raw)
     if length > settings.api.max_body_bytes:
         raise _too_large(settings, f"Content-Length {length}")
     return length
 
 
-def _too_large(settings: Settings, what: str) -> Refusal:
+def _too_large(settings: Settings, what: str) -> BodyTooLargeError:
     limit = settings.api.max_body_bytes
-    return Refusal(
-        413, "Request body too large", f"{what} exceeds api.max_body_bytes ({limit} bytes); the largest "
-        "legitimate request (POST /register with 1000 targets) is well below it", "body-too-large",
-    )  # fmt: skip
+    return BodyTooLargeError(
+        f"{what} exceeds api.max_body_bytes ({limit} bytes); the largest legitimate request "
+        "(POST /register with 1000 targets) is well below it"
+    )
 
 
 async def read_body(settings: Settings, receive: Receive) -> tuple[bytes, list[Message]]:
@@ -426,16 +423,17 @@ class SecurityGate:
         path = str(scope["path"])[:200]
         try:
             receive = await self._admit(ctx, scope, receive)
-        except Refusal as r:
+        except OarmRegError as e:
+            headers = getattr(e, "headers", {})
             await send_problem(
                 send,
-                r.status,
-                r.title,
-                r.detail,
+                http_status_of(e),
+                title_of(e),
+                str(e),
                 path,
-                kind=r.kind,
+                kind=problem_kind(e),
                 close=_has_body(scope),
-                headers=r.headers,
+                headers=tuple((k.lower().encode(), v.encode()) for k, v in headers.items()),
             )
             return
         await self._guarded(scope, receive, send, path)
@@ -451,15 +449,15 @@ class SecurityGate:
                 and scope["method"] in MUTATING_METHODS
                 and scope["path"] not in READONLY_POSTS
             ):
-                raise Refusal(
-                    403, "Read-only token", "this token (api_readonly_token) can read everything but "
-                    "change nothing; use the operator's api_token", "read-only-token",
-                )  # fmt: skip
+                raise ReadOnlyTokenError(
+                    "this token (api_readonly_token) can read everything but change nothing; use the "
+                    "operator's api_token"
+                )
         declared = check_content(settings, scope)
         if scope["method"] in MUTATING_METHODS:
             problem = ctx.db.health_problem()
             if problem is not None:
-                raise Refusal(503, "Database unavailable", problem, "database-unavailable")
+                raise DatabaseUnavailableError(problem)
         if declared == 0 or not _has_body(scope):
             return receive
         body, extra = await read_body(settings, receive)

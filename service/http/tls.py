@@ -10,14 +10,8 @@ from __future__ import annotations
 import ssl
 from typing import Any
 
-from registration.errors import ConfigError
+from service.errors import TlsConfigError
 from service.settings import Settings
-
-
-class TlsConfigError(ConfigError):
-    """The TLS certificate / key cannot be used."""
-
-    title = "Invalid TLS configuration"
 
 
 def uvicorn_ssl_options(settings: Settings) -> dict[str, Any]:

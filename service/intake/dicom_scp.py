@@ -73,7 +73,7 @@ from pynetdicom.dimse_primitives import C_STORE
 from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAssociationServer
 from pynetdicom.utils import make_target
 
-from registration.errors import ConfigError
+from service.errors import DicomScpConfigError, InstanceNotStoredError
 from service.intake.scan_lifecycle import OfferTally
 from service.netaddr import in_networks, parse_networks
 from service.settings import as_enabled
@@ -114,16 +114,6 @@ _REQUIRED: dict[str, tuple[str, ...]] = {
 }  # fmt: skip
 """Type-1 attributes of the CT Image / Enhanced CT Image IODs (PS3.3 A.3, A.38) that the
 loader needs; a dataset lacking one does not match its SOP class."""
-
-
-class _NotStored(Exception):
-    """The instance was received but must not be stored (the service could not record the change)."""
-
-
-class DicomScpConfigError(ConfigError):
-    """The DICOM Storage SCP configuration is unsafe or invalid."""
-
-    title = "Invalid DICOM SCP configuration"
 
 
 @dataclass(frozen=True)
@@ -591,7 +581,7 @@ class StorageScp:
             )
             self._tally_failed(state, target.parent, f"0x{STATUS_OUT_OF_RESOURCES:04X} {reason}")
             return STATUS_OUT_OF_RESOURCES
-        except _NotStored as e:
+        except InstanceNotStoredError as e:
             reason = f"{sop} not stored: {e}"
             self._refuse(
                 ScpRefusal("disk", reason, state.calling_ae, state.peer, sop, STATUS_OUT_OF_RESOURCES)
@@ -687,7 +677,7 @@ class StorageScp:
                 hook(target, outcome)
             except Exception as e:
                 log.exception("DICOM SCP: before_replace failed for %s", target)
-                raise _NotStored(
+                raise InstanceNotStoredError(
                     f"the change of series {target.parent.name} could not be recorded ({e}); nothing was "
                     "replaced"
                 ) from e

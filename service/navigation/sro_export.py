@@ -16,15 +16,9 @@ from pydicom.dataset import Dataset
 from pydicom.uid import generate_uid
 
 from registration import __version__
-from registration.errors import RegistrationError
+from service.errors import SroUnavailableError
 from service.records import RegistrationRecord
 from service.store.scan_instances import ScanInstances
-
-
-class SroUnavailableError(RegistrationError):
-    """No Spatial Registration object: the registration was refused, or its scan's headers were not stored."""
-
-    title = "Spatial Registration object unavailable"
 
 
 def ct_headers(inst: ScanInstances) -> list[Dataset]:

@@ -43,11 +43,18 @@ from registration.calibration.solver import (
     match_pose,
 )
 from registration.calibration.urdf import read_chain, write_calibrated_urdf
-from registration.errors import OarmRegError, RegistrationError
+from registration.errors import OarmRegError
 from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
 from registration.model.phantom import Phantom
 from service.error_map import http_status_of, title_of
-from service.errors import InternalError, NotFoundError
+from service.errors import (
+    CalibrationBusyError,
+    CalibrationNotUsableError,
+    CalibrationRefusedError,
+    CalibrationStoppedError,
+    InternalError,
+    NotFoundError,
+)
 from service.events import (
     CalibrationActivated,
     CalibrationDone,
@@ -69,18 +76,6 @@ from service.store.calibrations import Activation, CalibrationRecord
 log = logging.getLogger(__name__)
 
 URDF_FILE = "robot.urdf"
-
-
-class CalibrationBusyError(RegistrationError):
-    title = "A calibration is already running"
-
-
-class CalibrationNotUsableError(RegistrationError):
-    title = "Calibration cannot be activated"
-
-
-class CalibrationStoppedError(RegistrationError):
-    title = "Calibration interrupted"
 
 
 @dataclass(frozen=True)
@@ -173,8 +168,6 @@ class CalibrationJobs:
                 if s is None:
                     raise NotFoundError(f"scan {sid} does not exist; GET /scans lists the recorded scans")
                 scans.append(s)
-            if len(set(req.scan_ids)) != len(req.scan_ids):
-                raise _Refusal(req, scans, "each scan may appear once in a calibration")
             return scans
         n = int(req.last or 0)
         complete = [s for s in self.db.scans.list(limit=max(n, 1) * 4 + 50) if s.status == "complete"]
@@ -194,11 +187,11 @@ class CalibrationJobs:
         with self._lock:
             if self.running:
                 raise CalibrationBusyError("a calibration is already running; wait for calibration_done")
+            scans = self._resolve(req)
             try:
-                scans = self._resolve(req)
-                self._check(req, scans)
-            except _Refusal as r:
-                return self._store_refusal(r.req, r.scans, r.error)
+                self._check(scans)
+            except OarmRegError as e:
+                return self._store_refusal(req, scans, e)
             draft = self._draft(req, scans, "running")
             cal_id = self.db.calibrations.insert(draft)
             self._stop.clear()
@@ -213,10 +206,15 @@ class CalibrationJobs:
         assert stored is not None
         return stored
 
-    def _check(self, req: CalibrationRequest, scans: list[ScanRecord]) -> None:
+    @staticmethod
+    def _check(scans: list[ScanRecord]) -> None:
+        """Refuse (:class:`CalibrationRefusedError`, or the session check's error) a scan named twice,
+        an incomplete scan or scans from different placements."""
+        if len({s.id for s in scans}) != len(scans):
+            raise CalibrationRefusedError("each scan may appear once in a calibration")
         bad = [f"scan {s.id} ({s.status}: {s.reason})" for s in scans if s.status != "complete"]
         if bad:
-            raise _Refusal(req, scans, f"calibration scans must be complete; {', '.join(bad)}")
+            raise CalibrationRefusedError(f"calibration scans must be complete; {', '.join(bad)}")
         stubs = [
             MatchedPose(
                 name=f"scan {s.id}",
@@ -228,10 +226,7 @@ class CalibrationJobs:
             )
             for s in scans
         ]
-        try:
-            check_session(stubs, MIN_POSES)
-        except OarmRegError as e:
-            raise _Refusal(req, scans, e) from None
+        check_session(stubs, MIN_POSES)
 
     def _draft(self, req: CalibrationRequest, scans: list[ScanRecord], status: Any) -> CalibrationRecord:
         fors = sorted({s.frame_of_reference_uid for s in scans})
@@ -249,9 +244,8 @@ class CalibrationJobs:
         )
 
     def _store_refusal(
-        self, req: CalibrationRequest, scans: list[ScanRecord], e: str | OarmRegError
+        self, req: CalibrationRequest, scans: list[ScanRecord], err: OarmRegError
     ) -> CalibrationRefusal:
-        err = e if isinstance(e, OarmRegError) else CalibrationRefusedError(e)
         rec = dataclasses.replace(
             self._draft(req, scans, "refused"),
             reason=str(err),
@@ -474,10 +468,6 @@ class CalibrationJobs:
         return out, act
 
 
-class CalibrationRefusedError(RegistrationError):
-    title = "Calibration refused"
-
-
 @dataclass(frozen=True)
 class CalibrationRefusal:
     """A calibration request refused at once: why, and the id of the ``refused`` record stored.
@@ -485,14 +475,6 @@ class CalibrationRefusal:
 
     calibration_id: int
     error: OarmRegError
-
-
-class _Refusal(Exception):
-    """Internal: a request refused before the worker starts (stored by :meth:`CalibrationJobs.start`)."""
-
-    def __init__(self, req: CalibrationRequest, scans: list[ScanRecord], error: str | OarmRegError) -> None:
-        super().__init__(str(error))
-        self.req, self.scans, self.error = req, scans, error
 
 
 def _request_json(req: CalibrationRequest) -> dict[str, Any]:

@@ -18,18 +18,12 @@ from pathlib import Path
 
 from pydicom.uid import generate_uid
 
-from registration.errors import ConfigError
+from service.errors import RobotFrameUidError
 
 log = logging.getLogger(__name__)
 
 FILE_NAME = "robot_frame_of_reference_uid.txt"
 _UID_RE = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
-
-
-class RobotFrameUidError(ConfigError):
-    """The stored robot Frame of Reference UID is unreadable or malformed."""
-
-    title = "Invalid robot frame of reference UID file"
 
 
 def _read(path: Path) -> str:

@@ -62,14 +62,14 @@ class Connection:
         ------
         StorageFullError
             The disk holding the database is full (``SQLITE_FULL``, ``ENOSPC``); rolled back.
-        DatabaseGoneError
+        DatabaseUnavailableError
             The database file was deleted or replaced since it was opened (nothing is written).
         """
         problem = self.watch.check()
         if problem is not None:
-            from service.errors import DatabaseGoneError
+            from service.errors import DatabaseUnavailableError
 
-            raise DatabaseGoneError(problem)
+            raise DatabaseUnavailableError(problem)
         with self.lock:
             try:
                 self.raw.execute("BEGIN IMMEDIATE")

@@ -31,8 +31,8 @@ def _lifespan_once(app: Any) -> None:
 
 def test_a_start_up_failing_half_way_stops_what_had_started(tmp_path: Path, phantom: Any) -> None:
     from registration.model.kinematics import RobotModel
+    from service.errors import DicomScpConfigError
     from service.http.app import create_app
-    from service.intake.dicom_scp import DicomScpConfigError
 
     model = RobotModel.load("tx60")
     with socket.socket() as taken:

@@ -24,10 +24,10 @@ from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 from registration.model.kinematics import RobotModel
+from service.errors import IgtlConfigError
 from service.navigation.igtl import wire
 from service.navigation.igtl.server import (
     RAS_FROM_LPS,
-    IgtlConfigError,
     IgtlServer,
     IgtlStateSource,
     JointView,

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service.errors import IgtlWireError
 from service.navigation.igtl import wire
 
 M = np.array(
@@ -89,19 +90,19 @@ def test_pyigtl_decodes_our_message() -> None:
 def test_crc_mismatch_refused() -> None:
     raw = bytearray(wire.pack_transform(M, "RobotToImage", timestamp_s=T_S))
     raw[-1] ^= 0x01
-    with pytest.raises(wire.IgtlWireError, match="CRC64 mismatch"):
+    with pytest.raises(IgtlWireError, match="CRC64 mismatch"):
         wire.unpack_message(bytes(raw))
 
 
 def test_device_name_longer_than_20_bytes_refused_not_truncated() -> None:
-    with pytest.raises(wire.IgtlWireError, match="20"):
+    with pytest.raises(IgtlWireError, match="20"):
         wire.pack_transform(M, "CTImageToRobotBaseFrameVeryLong", timestamp_s=T_S)
 
 
 def test_non_finite_matrix_refused() -> None:
     bad = M.copy()
     bad[0, 3] = np.nan
-    with pytest.raises(wire.IgtlWireError, match="finite"):
+    with pytest.raises(IgtlWireError, match="finite"):
         wire.pack_transform_content(bad)
 
 
@@ -113,7 +114,7 @@ def test_timestamp_fraction_round_trip() -> None:
 def test_oversized_body_refused() -> None:
     raw = bytearray(wire.pack_transform(M, "RobotToImage", timestamp_s=T_S, header_version=1))
     raw[42:50] = (wire.MAX_BODY_SIZE + 1).to_bytes(8, "big")
-    with pytest.raises(wire.IgtlWireError, match="BODY_SIZE"):
+    with pytest.raises(IgtlWireError, match="BODY_SIZE"):
         wire.unpack_header(bytes(raw[:58]))
 
 

@@ -15,10 +15,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 
-class UsageError(Exception):
-    """A combination of flags the command cannot run with, found in ``run`` (exit 2, one line)."""
-
-
 def _number(text: str, kind: type[float] | type[int]) -> float:
     try:
         value = kind(text)

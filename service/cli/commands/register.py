@@ -12,7 +12,6 @@ from typing import Any
 
 from registration.io.resources import default_phantom
 from service.cli.commands.argtypes import (
-    UsageError,
     float_below,
     output_file,
     positive_float,
@@ -20,6 +19,7 @@ from service.cli.commands.argtypes import (
     renamed,
 )
 from service.cli.commands.detect import add_method_argument
+from service.errors import UsageError
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
 
@@ -397,9 +397,10 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     from registration.dicom import list_series
     from registration.errors import PointsFileError
     from registration.io.sro import build_spatial_registration
+    from service.errors import RobotFrameUidError
     from service.intake.recording import scan_instances_from_files
     from service.navigation.sro_export import ct_headers
-    from service.registrations.robot_frame import _UID_RE, RobotFrameUidError, robot_frame_uid
+    from service.registrations.robot_frame import _UID_RE, robot_frame_uid
 
     if args.dicom_dir is None:
         raise PointsFileError("--sro needs DICOM_DIR: the Spatial Registration object references the scan")

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from registration.io.resources import default_phantom
-from service.cli.commands.argtypes import UsageError, output_dir, output_file, positive_float, positive_int
+from service.cli.commands.argtypes import output_dir, output_file, positive_float, positive_int
+from service.errors import UsageError
 
 HELP = "simulate an O-arm scan of the calibration phantom; write a DICOM CT series and truth.json"
 

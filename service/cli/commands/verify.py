@@ -15,7 +15,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from registration.errors import AccuracyGateError
 from service.cli.commands.argtypes import output_file, positive_float, renamed
 from service.cli.commands.register import (
     add_common_image_arguments,
@@ -23,13 +22,7 @@ from service.cli.commands.register import (
     sha256_of,
     write_refusal,
 )
-
-
-class VerificationFailedError(AccuracyGateError):
-    """The verification's largest error is over the pass/fail limit (exit 7)."""
-
-    title = "Verification failed"
-
+from service.errors import VerificationFailedError
 
 HELP = "verify a registration on a second scan: predicted vs. detected sphere centres, errors and histogram"
 

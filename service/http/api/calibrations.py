@@ -10,8 +10,7 @@ from fastapi import APIRouter, Body, Query, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from registration.errors import RegistrationError
-from service.errors import NotFoundError
+from service.errors import ActivationRetiresCurrentError, NotFoundError
 from service.http.api.deps import CtxDep, Offset, RecordId
 from service.http.api.models import DbId
 from service.http.api.problems import problem_for, problem_responses
@@ -212,10 +211,6 @@ class ActivateRequest(BaseModel):
         description="Activate although a registration is current (it is retired: navigation loses it "
         "until the next /register).  Without it, activation while one is current answers 409.",
     )
-
-
-class ActivationRetiresCurrentError(RegistrationError):
-    title = "Activation would retire the current registration"
 
 
 @router.post(

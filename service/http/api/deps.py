@@ -6,11 +6,9 @@ from typing import Annotated
 
 from fastapi import Depends, Path, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import SecretStr
 
-from service.errors import AuthError
+from service.errors import UnauthorizedError
 from service.http.context import ServiceContext
-from service.http.security import token_matches
 
 
 async def get_ctx(request: Request) -> ServiceContext:
@@ -21,15 +19,6 @@ async def get_ctx(request: Request) -> ServiceContext:
 CtxDep = Annotated[ServiceContext, Depends(get_ctx)]
 
 _bearer = HTTPBearer(auto_error=False, description="API token (settings: api_token / OARMREG_API_TOKEN)")
-
-
-def token_ok(settings_token: SecretStr | None, presented: str | None) -> bool:
-    """True if ``presented`` (the Bearer credentials) matches the API token
-    (:func:`service.http.security.token_matches`, constant time); always True when no token is
-    configured (loopback only)."""
-    if settings_token is None:
-        return True
-    return presented is not None and token_matches(settings_token.get_secret_value(), presented)
 
 
 async def require_token(
@@ -43,14 +32,18 @@ async def require_token(
     request that somehow bypassed the gate (defence in depth).
     """
     if getattr(request.state, "principal", None) is None:
-        raise AuthError("missing 'Authorization: Bearer <token>' header; the API token is set in api_token")
+        raise UnauthorizedError(
+            "missing 'Authorization: Bearer <token>' header; the API token is set in api_token"
+        )
 
 
 async def get_principal(request: Request) -> str:
     """Who is asking, for the audit log (``token:<hash>``, never the token)."""
     principal = getattr(request.state, "principal", None)
     if not isinstance(principal, str):
-        raise AuthError("missing 'Authorization: Bearer <token>' header; the API token is set in api_token")
+        raise UnauthorizedError(
+            "missing 'Authorization: Bearer <token>' header; the API token is set in api_token"
+        )
     return principal
 
 

@@ -29,8 +29,10 @@ INTERNAL_DETAIL = (
 """The detail of every 500: no exception text, which can quote row contents or paths."""
 
 
-def _kebab(name: str) -> str:
-    name = re.sub(r"Error$", "", name) or name
+def problem_kind(exc: BaseException) -> str:
+    """The last part of the problem ``type`` of ``exc``: its class name in kebab case without ``Error``
+    (``UnauthorizedError`` → ``unauthorized``), the same from the gate and from the routes."""
+    name = re.sub(r"Error$", "", type(exc).__name__) or type(exc).__name__
     return re.sub(r"(?<!^)(?=[A-Z])", "-", name).lower()
 
 
@@ -72,7 +74,7 @@ def problem_for(
         title_of(exc),
         detail,
         request.url.path,
-        type_=TYPE_PREFIX + _kebab(type(exc).__name__),
+        type_=TYPE_PREFIX + problem_kind(exc),
         headers=headers,
         exit_code=exit_code_of(exc),
         registration_id=registration_id,

@@ -18,14 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from service.errors import IgtlProbeError
 from service.navigation.igtl import wire
 
 HELLO_DEVICE = "OarmregProbe"
 """Device name of the version-2 message the probe sends at connect."""
-
-
-class IgtlProbeError(wire.IgtlWireError):
-    """No matching TRANSFORM arrived in time."""
 
 
 @dataclass(frozen=True)

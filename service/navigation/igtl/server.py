@@ -78,7 +78,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from registration.errors import ConfigError
+from service.errors import IgtlConfigError, IgtlCrcError, IgtlPeerError, IgtlWireError
 from service.navigation.igtl import wire
 from service.netaddr import in_networks, is_loopback, parse_networks
 from service.settings import as_enabled
@@ -95,12 +95,6 @@ RAS_FROM_LPS: F64 = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 DEFAULT_PORT = 18944
 """The OpenIGTLink / PLUS convention (research §3.3)."""
-
-
-class IgtlConfigError(ConfigError):
-    """The OpenIGTLink server configuration is unsafe or invalid."""
-
-    title = "Invalid OpenIGTLink server configuration"
 
 
 # --------------------------------------------------------------------------- state source
@@ -350,14 +344,6 @@ def service_status(state: RegistrationState, tool: list[_Out]) -> tuple[int, str
 # --------------------------------------------------------------------------- clients
 
 
-class _PeerError(Exception):
-    """The peer broke a listener limit or the framing: close its connection (message = why)."""
-
-    def __init__(self, counter: str, why: str) -> None:
-        super().__init__(why)
-        self.counter = counter
-
-
 class _Client:
     """One connected peer: a bounded queue drained by its own writer task."""
 
@@ -429,21 +415,21 @@ class _Client:
             async with asyncio.timeout(cfg.stall_timeout_s):
                 head = wire.unpack_header(first + await self.reader.readexactly(wire.HEADER_SIZE - 1))
                 if head.version not in (1, 2):
-                    raise wire.IgtlWireError(f"header version {head.version} (this server reads 1 and 2)")
+                    raise IgtlWireError(f"header version {head.version} (this server reads 1 and 2)")
                 limit = max_body_bytes(cfg, head.type)
                 if head.body_size > limit:
-                    raise _PeerError(
+                    raise IgtlPeerError(
                         "oversize",
                         f"announced a {head.body_size}-byte {head.type!r} body, over the {limit}-byte "
                         "limit for that type",
                     )
                 return head, await self.reader.readexactly(head.body_size)
         except TimeoutError:
-            raise _PeerError(
+            raise IgtlPeerError(
                 "stalled", f"sent part of a message and nothing more for {cfg.stall_timeout_s:g} s"
             ) from None
-        except wire.IgtlWireError as e:
-            raise _PeerError("bad_headers", f"sent a bad header ({e})") from None
+        except IgtlWireError as e:
+            raise IgtlPeerError("bad_headers", f"sent a bad header ({e})") from None
 
     async def read_loop(self) -> None:
         """Read what the client sends (header version 1 or 2), switch it to version 2 after its
@@ -453,12 +439,12 @@ class _Client:
                 head, body = await self._read_message()
                 try:
                     msg = wire.unpack_body(head, body)
-                except wire.IgtlCrcError as e:
+                except IgtlCrcError as e:
                     self.server.counters["bad_crc"] += 1
                     log.warning("OpenIGTLink client %s: %s; message ignored", self.peer, e)
                     continue
-                except wire.IgtlWireError as e:
-                    raise _PeerError("bad_headers", f"sent a malformed version-2 body ({e})") from None
+                except IgtlWireError as e:
+                    raise IgtlPeerError("bad_headers", f"sent a malformed version-2 body ({e})") from None
                 del msg
                 if head.version == 2 and self.header_version < 2:
                     self.header_version = 2
@@ -468,7 +454,7 @@ class _Client:
                 self.server._answer(self, head.type, head.device_name)
         except (asyncio.IncompleteReadError, ConnectionError, OSError):
             pass
-        except _PeerError as e:
+        except IgtlPeerError as e:
             self.server.counters[e.counter] += 1
             log.warning("OpenIGTLink client %s %s; closing the connection", self.peer, e)
         finally:

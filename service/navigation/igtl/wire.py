@@ -35,6 +35,8 @@ import crcmod  # type: ignore[import-untyped]
 import numpy as np
 import numpy.typing as npt
 
+from service.errors import IgtlCrcError, IgtlWireError
+
 F64 = npt.NDArray[np.float64]
 
 HEADER_SIZE = 58
@@ -56,14 +58,6 @@ _META_ITEM = struct.Struct(">HHI")
 # 0x42F0E1EBA9EA3693, MSB first (not reflected), initial value 0, no final XOR.
 CRC64_POLY = 0x42F0E1EBA9EA3693
 _MASK64 = (1 << 64) - 1
-
-
-class IgtlWireError(ValueError):
-    """A message could not be encoded or decoded (bad size, CRC, name too long...)."""
-
-
-class IgtlCrcError(IgtlWireError):
-    """The body's CRC64 differs from the header's (the framing itself is intact)."""
 
 
 def _crc_table() -> tuple[int, ...]:

@@ -9,7 +9,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from service.http.security import AuthThrottle, Refusal
+from service.errors import AuthThrottledError
+from service.http.security import AuthThrottle
 from service.settings import load_settings
 from service.store import Database
 from tests.helpers.tokens import make_token
@@ -28,10 +29,8 @@ def _attempt(throttle: AuthThrottle, ctx: SimpleNamespace, address: str) -> int 
     try:
         throttle.check(ctx.settings.api, address)
         throttle.failed(ctx, address)  # type: ignore[arg-type]
-    except Refusal as r:
-        if r.status == 429:
-            return int(dict(r.headers)[b"retry-after"])
-        raise
+    except AuthThrottledError as r:
+        return int(r.headers["Retry-After"])
     return None
 
 

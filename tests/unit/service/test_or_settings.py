@@ -62,7 +62,8 @@ def test_non_loopback_api_needs_token_and_tls_unless_insecure_is_allowed(tmp_pat
 
 
 def test_unloadable_certificate_fails_at_start_up(tmp_path: Path) -> None:
-    from service.http.tls import TlsConfigError, uvicorn_ssl_options
+    from service.errors import TlsConfigError
+    from service.http.tls import uvicorn_ssl_options
 
     cert, key = tmp_path / "c.pem", tmp_path / "k.pem"
     cert.write_text("not a certificate")

@@ -21,7 +21,8 @@ from registration.io.sro import (
     build_spatial_registration,
     image_from_robot_of,
 )
-from service.registrations.robot_frame import RobotFrameUidError, robot_frame_uid
+from service.errors import RobotFrameUidError
+from service.registrations.robot_frame import robot_frame_uid
 
 ROBOT_FOR = "1.2.826.0.1.3680043.8.498.1"
 WHEN = datetime(2026, 3, 4, 5, 6, 7, 890000)
