@@ -260,19 +260,6 @@ class SimulatedPose:
     detect_s: float
 
 
-def set_frame_of_reference(folder: Path, uid: str) -> None:
-    """Rewrite FrameOfReferenceUID (0020,0052) of every ``.dcm`` in ``folder``: one O-arm placement.
-
-    The exporter draws a new UID per series; scans of one calibration session share theirs.
-    """
-    import pydicom
-
-    for path in sorted(Path(folder).glob("*.dcm")):
-        ds = pydicom.dcmread(path)
-        ds.FrameOfReferenceUID = uid
-        ds.save_as(path)
-
-
 def simulate_pose_scan(
     cell: Cell,
     image_from_robot: ArrayLike,
@@ -297,8 +284,9 @@ def simulate_pose_scan(
     truth = cell.image_from_phantom_true(image_from_robot, joints_rad, rng)
     reported = cell.reported_joints(joints_rad, rng)
     scan = simulate_scan(phantom, truth, settings)
-    export = write_dicom_series(scan, out_dir, write_truth=False)
-    set_frame_of_reference(out_dir, frame_of_reference_uid)
+    export = write_dicom_series(
+        scan, out_dir, write_truth=False, frame_of_reference_uid=frame_of_reference_uid
+    )
     t0 = time.perf_counter()
     volume = load_series(out_dir)
     # the estimator and size the service chooses for this phantom

@@ -82,6 +82,7 @@ def write_dicom_series(
     series_number: int = 1,
     acquisition_time: dt.datetime | None = None,
     images_in_acquisition: int | bool = False,
+    frame_of_reference_uid: str | None = None,
 ) -> ExportResult:
     """Write ``scan`` to ``out_dir`` as one CT Image Storage file per slice.
 
@@ -110,6 +111,9 @@ def write_dicom_series(
         Write ImagesInAcquisition (0020,1002) in every slice: ``True`` the number of slices written,
         an int that count (announce more than are written to simulate an unfinished export); the
         default ``False`` leaves it out, as many exports do (both branches of the loader's count rule).
+    frame_of_reference_uid : str, optional
+        FrameOfReferenceUID (0020,0052): one per O-arm placement, so scans of one calibration session
+        share it (:func:`mocks.oarm.placement.placement_frame_of_reference_uid`); a new one if omitted.
 
     Raises
     ------
@@ -124,7 +128,7 @@ def write_dicom_series(
     out.mkdir(parents=True, exist_ok=True)
     series_uid = str(series_uid or generate_uid())
     study_uid = str(study_uid or generate_uid())
-    for_uid = str(generate_uid())
+    for_uid = str(frame_of_reference_uid or generate_uid())
     when = acquisition_time or dt.datetime.now()
     n = scan.hu.shape[0]
     series = _Series(

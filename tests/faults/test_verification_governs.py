@@ -81,7 +81,6 @@ def svc(tmp_path_factory: pytest.TempPathFactory, world: World) -> Iterator[Svc]
 def _export(svc: Svc, scan: Any, q: tuple[float, ...], *, shift_mm: float = 0.0, for_uid: str = "") -> Any:
     """Hold the robot at ``q``, export ``scan`` (its image shifted ``shift_mm`` along x, its
     FrameOfReferenceUID set when given) into the watch folder; the scan record once complete."""
-    from mocks.cell import set_frame_of_reference
     from mocks.oarm.dicom_export import write_dicom_series
 
     if not np.allclose(svc.robot.joints_rad_at(), q, atol=1e-9):
@@ -93,9 +92,8 @@ def _export(svc: Svc, scan: Any, q: tuple[float, ...], *, shift_mm: float = 0.0,
         scan = replace(scan, image_from_voxel=moved)
     svc.n += 1
     staging = svc.watch.parent / f"staging-{svc.n}"
-    uid = str(write_dicom_series(scan, staging, write_truth=False).series_uid)
-    if for_uid:
-        set_frame_of_reference(staging, for_uid)
+    exported = write_dicom_series(scan, staging, write_truth=False, frame_of_reference_uid=for_uid or None)
+    uid = str(exported.series_uid)
     staging.rename(svc.watch / f"scan-{svc.n}")
     return svc.scan_where(
         lambda s: s["series_uid"] == uid and s["status"] == "complete" and s["joints"] is not None,

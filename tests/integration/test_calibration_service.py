@@ -55,12 +55,10 @@ class Session:
 
 
 def _export(scan: Any, watch: Path, name: str, for_uid: str) -> str:
-    from mocks.cell import set_frame_of_reference
     from mocks.oarm.dicom_export import write_dicom_series
 
     staging = watch.parent / f"staging-{name}"
-    res = write_dicom_series(scan, staging, write_truth=False)
-    set_frame_of_reference(staging, for_uid)
+    res = write_dicom_series(scan, staging, write_truth=False, frame_of_reference_uid=for_uid)
     staging.rename(watch / name)
     return str(res.series_uid)
 

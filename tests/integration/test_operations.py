@@ -162,6 +162,34 @@ def test_verbosity_is_accepted_before_and_after_the_subcommand(argv: list[str], 
     assert log_level_of(args, default)[0] == level
 
 
+def test_the_verbosity_help_says_what_the_flags_do() -> None:
+    """Issue 34, item 5: ``-v``'s help states each level, and those are the levels the flags give
+    (the help once said "serve logs at info by default" while ``serve -v`` gave debug, unstated)."""
+    import re
+
+    from service.cli.main import build_parser, log_level_of
+
+    parser = build_parser()
+    action = next(a for a in parser._actions if "--verbose" in a.option_strings)
+    text = " ".join((action.help or "").lower().split())
+    stated = {
+        "default": re.search(r"(\w+) by default", text),
+        "-v": re.search(r"-v (\w+),", text),
+        "-vv": re.search(r"-vv (\w+)", text),
+        "serve -v": re.search(r"serve -v is (\w+)", text),
+    }
+    missing = [k for k, m in stated.items() if m is None]
+    assert not missing, f"the -v help does not state the level for {missing}: {text!r}"
+    cases = {"default": ["detect", "x"], "-v": ["detect", "x", "-v"], "-vv": ["detect", "x", "-vv"],
+             "serve -v": ["serve", "-v"]}  # fmt: skip
+    for key, argv in cases.items():
+        args = parser.parse_args(argv)
+        default = logging.INFO if args.command == "serve" else logging.WARNING
+        level = log_level_of(args, default)[0]
+        m = stated[key]
+        assert m is not None and logging.getLevelName(level).lower() == m.group(1), (key, text)
+
+
 def test_json_log_lines(capsys: pytest.CaptureFixture[str], root_logging: None) -> None:
     from service.logsetup import configure
 

@@ -127,6 +127,18 @@ def test_series_files_are_valid_ct_image_storage(series: tuple[Path, Any], steel
     assert np.allclose(truth["spheres_image_mm"], steel.spheres_image_mm)
 
 
+def test_a_placement_frame_of_reference_is_written_once_into_every_file_and_the_truth(
+    steel: SimulatedScan, tmp_path: Path
+) -> None:
+    """Scans of one O-arm placement share a FrameOfReferenceUID, written with the slices (not by
+    reading and rewriting every file afterwards, which doubled the export time) and in truth.json."""
+    uid = "1.2.826.0.1.3680043.8.498.4242"
+    res = write_dicom_series(steel, tmp_path, frame_of_reference_uid=uid)
+    assert res.frame_of_reference_uid == uid
+    assert {pydicom.dcmread(p, stop_before_pixels=True).FrameOfReferenceUID for p in res.paths} == {uid}
+    assert json.loads((tmp_path / "truth.json").read_text())["frame_of_reference_uid"] == uid
+
+
 def test_geometry_round_trip_is_exact(series: tuple[Path, Any], steel: SimulatedScan) -> None:
     out, _ = series
     vol, a, _ = _read_series(out)

@@ -67,7 +67,6 @@ def _acq() -> Any:
 
 def _scan_at(d: Any, h: DemoHooks, q: Any, y_true: Any, name: str, for_uid: str, rng: Any) -> dict[str, Any]:
     """Move, scan through the true cell, export with ``for_uid``, wait until the service records it."""
-    from mocks.cell import set_frame_of_reference
     from mocks.oarm.dicom_export import write_dicom_series
     from mocks.oarm.simulator import simulate_scan
 
@@ -75,8 +74,7 @@ def _scan_at(d: Any, h: DemoHooks, q: Any, y_true: Any, name: str, for_uid: str,
     scan = simulate_scan(d.phantom, d.cell.image_from_phantom_true(y_true, q, rng), _acq())
     h.wait_still(d.client, d.robot)
     staging = d.out / "oarm-outbox" / name
-    exp = write_dicom_series(scan, staging, write_truth=False)
-    set_frame_of_reference(staging, for_uid)
+    exp = write_dicom_series(scan, staging, write_truth=False, frame_of_reference_uid=for_uid)
     staging.rename(d.watch / name)
     return h.wait_scan(d.client, exp.series_uid, 120.0)
 

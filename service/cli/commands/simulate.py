@@ -326,24 +326,27 @@ def run(args: argparse.Namespace) -> int:
 
         scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
         err.write("\n")
-    res = write_dicom_series(
-        scan, args.out, reverse_order=args.reverse_order, unsigned=args.unsigned, bits_stored=args.bits_stored
-    )
-    out = sys.stdout
-    for_uid = res.frame_of_reference_uid
+    for_uid: str | None = None
     if args.placement is not None or placement is not None:
-        from mocks.cell import set_frame_of_reference
         from mocks.oarm.placement import placement_frame_of_reference_uid
 
         for_uid = placement_frame_of_reference_uid(args.placement or "bench")
-        set_frame_of_reference(Path(args.out), for_uid)
+    res = write_dicom_series(
+        scan,
+        args.out,
+        reverse_order=args.reverse_order,
+        unsigned=args.unsigned,
+        bits_stored=args.bits_stored,
+        frame_of_reference_uid=for_uid,
+    )
+    out = sys.stdout
     if placement is not None and reported is not None:
         write_joints(Path(args.out), reported, args.robot, placement.name, args.poses)
         out.write(f"joints (as the controller reports them): {Path(args.out) / 'joints.json'}\n")
         if args.poses is not None:
             out.write(f"added to {args.poses}\n")
     out.write(f"series {res.series_uid}: {len(res.paths)} files in {Path(args.out).resolve()}\n")
-    out.write(f"frame of reference: {for_uid}\n")
+    out.write(f"frame of reference: {res.frame_of_reference_uid}\n")
     out.write(f"truth: {res.truth_path}\n")
     out.write(
         f"spheres fully imaged: {len(scan.sphere_indices)} of {phantom.n_spheres} "
