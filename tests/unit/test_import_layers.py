@@ -1,7 +1,8 @@
 """Layering of the packages, checked on the source (``ast``), not by importing anything.
 
 * ``registration/`` is pure: it imports neither ``service`` nor ``drivers`` (design.md §2);
-  ``drivers/`` imports neither ``service`` nor ``registration``.
+  ``drivers/`` imports neither ``service`` nor ``registration``; ``dicomnet/`` (the DICOM networking
+  the service, the mocks and the test peers share) imports no other package of the project.
 * No import cycle among the modules of ``service/`` or of ``drivers/``, counting imports inside
   functions and ``TYPE_CHECKING`` blocks too: a lazy import hides a cycle, it does not remove it.
 * ``service/http/api/*`` never imports ``service.http.app`` (the routes get the context from
@@ -29,7 +30,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("registration", "drivers", "service", "mocks")
+PACKAGES = ("registration", "drivers", "dicomnet", "service", "mocks")
 MOCK_COMMANDS = frozenset(
     {
         "service.cli.commands.demo",
@@ -164,7 +165,7 @@ def test_from_package_import_counts_as_importing_the_package(tmp_path: Path) -> 
     assert find_cycle(g, known) is None
 
 
-@pytest.mark.parametrize("pkg", ["service", "drivers", "registration", "mocks"])
+@pytest.mark.parametrize("pkg", ["service", "drivers", "dicomnet", "registration", "mocks"])
 def test_no_import_cycle(pkg: str) -> None:
     g = graph()
     cycle = find_cycle(g, set(in_package(g, pkg)))
@@ -174,8 +175,9 @@ def test_no_import_cycle(pkg: str) -> None:
 @pytest.mark.parametrize(
     ("pkg", "forbidden"),
     [
-        ("registration", ("service", "drivers", "mocks")),
-        ("drivers", ("service", "registration", "mocks")),
+        ("registration", ("service", "drivers", "dicomnet", "mocks")),
+        ("drivers", ("service", "registration", "mocks", "dicomnet")),
+        ("dicomnet", ("service", "registration", "drivers", "mocks")),
         ("mocks", ("service",)),
     ],
 )
@@ -200,7 +202,7 @@ def test_production_code_imports_mocks_only_in_the_mock_commands() -> None:
     g = graph()
     bad = sorted(
         f"{m} imports {dep}"
-        for pkg in ("service", "drivers", "registration")
+        for pkg in ("service", "drivers", "dicomnet", "registration")
         for m in in_package(g, pkg)
         if m not in MOCK_COMMANDS
         for dep in g[m]
