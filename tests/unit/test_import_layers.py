@@ -24,6 +24,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -112,6 +113,7 @@ def private_imports(path: Path, module: str, known: set[str]) -> list[str]:
     return sorted(out)
 
 
+@functools.cache  # parsed once per run: the tests only read it
 def graph() -> dict[str, set[str]]:
     mods = all_modules()
     known = set(mods)
