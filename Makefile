@@ -19,12 +19,12 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/oarmreg demo --out demo-output
 
-# mypy settings (--strict for the four packages and the benchmarks, the pydantic plugin):
+# mypy settings (--strict for the five packages and the benchmarks, the pydantic plugin):
 # pyproject.toml [tool.mypy].
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy registration drivers service mocks benchmarks
+	$(BIN)/mypy registration drivers dicomnet service mocks benchmarks
 
 # Build the wheel by docs/operations.md's install recipe, install it into a fresh venv in a temporary
 # root, check the copied TOML, run simulate + detect from it (part of `make test` too).
@@ -43,9 +43,9 @@ test: lint
 test-fast: lint
 	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not slow"
 
-# Line coverage of the four packages over the whole suite (not in .ci/run: the tracer is slow).
+# Line coverage of the five packages over the whole suite (not in .ci/run: the tracer is slow).
 coverage: $(STAMP)
-	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -q --cov=registration --cov=drivers --cov=service --cov=mocks --cov-report=term:skip-covered
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -q --cov=registration --cov=drivers --cov=dicomnet --cov=service --cov=mocks --cov-report=term:skip-covered
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

@@ -60,7 +60,7 @@ def send(folder: Path, port: int) -> None:
         return
     from pynetdicom import AE
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     ae = AE(ae_title="BENCH")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])

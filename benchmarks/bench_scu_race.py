@@ -1,8 +1,8 @@
-"""pynetdicom's SCU reactor race: responses lost with and without :mod:`drivers.dicom_scu`.
+"""pynetdicom's SCU reactor race: responses lost with and without :mod:`dicomnet.scu`.
 
 A pynetdicom SCP answers C-ECHOs on loopback. A pynetdicom SCU sends ``--n`` of them, 200 per
 association, while ``--busy`` processes spin on the CPU, first through plain ``AE.associate`` and
-then through :func:`drivers.dicom_scu.associate`. Every request that comes back without a status
+then through :func:`dicomnet.scu.associate`. Every request that comes back without a status
 counts as lost: the reactor took its response, or the association was already aborted after such a
 loss. Python's thread switch interval is set to 1 µs so the race window comes up often. The
 counts depend on the machine and its load. Run it again when pynetdicom is upgraded: a plain count
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--n", type=int, default=20000, help="C-ECHOs per variant")
     p.add_argument("--busy", type=int, default=3, help="CPU-spinning processes beside the SCU")
     a = p.parse_args(argv)
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     sys.setswitchinterval(1e-6)
     spinners = [mp.Process(target=_spin, daemon=True) for _ in range(a.busy)]
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rows = [
             ("plain AE.associate", lost_echoes(a.n, lambda ae, h, port: ae.associate(h, port))),
-            ("drivers.dicom_scu.associate", lost_echoes(a.n, associate)),
+            ("dicomnet.scu.associate", lost_echoes(a.n, associate)),
         ]
     finally:
         for s in spinners:

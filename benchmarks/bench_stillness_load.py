@@ -124,7 +124,7 @@ def send_series(folder: Path, port: int, errors: list[str], sent: list[Path]) ->
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian
     from pynetdicom import AE
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     ae = AE(ae_title="BENCH")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])

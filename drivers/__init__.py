@@ -1,5 +1,5 @@
-"""I/O with the Stäubli controller: one link interface, one module per protocol; and
-:mod:`drivers.dicom_scu`, the pynetdicom SCU association the PACS export and the mock O-arm share.
+"""I/O with the Stäubli controller: one link interface, one module per protocol.
 
-May import only the standard library, pymodbus, pyserial and pynetdicom (design.md §2).
+May import only the standard library, pymodbus and pyserial (design.md §2).  The DICOM client that
+used to live here is :mod:`dicomnet.scu` (issue #35).
 """

@@ -52,7 +52,7 @@ def send_series(
     )
     from pynetdicom import AE
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     ae = AE(ae_title=calling_ae)
     for sop in (CTImageStorage, EnhancedCTImageStorage):

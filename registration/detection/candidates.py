@@ -60,7 +60,7 @@ _GROUP_CELL_VOXELS: Final = (4, 8, 8)
 """(k, j, i) size of the coarse cells used to group threshold hits: ~3.3 mm, far below the 15 mm pitch."""
 
 
-def _group_hits(flat: NDArray[np.intp], shape: tuple[int, int, int]) -> list[tuple[slice, slice, slice]]:
+def group_hits(flat: NDArray[np.intp], shape: tuple[int, int, int]) -> list[tuple[slice, slice, slice]]:
     """Bounding boxes (k, j, i slices) of clusters of threshold hits, via a coarse cell grid."""
     k, j, i = np.unravel_index(flat, shape)
     ck, cj, ci = _GROUP_CELL_VOXELS
@@ -98,7 +98,7 @@ def _expand(
 
 
 @dataclass
-class _Blob:
+class Blob:
     """A connected above-threshold component (internal)."""
 
     box: tuple[slice, slice, slice]  # in the full volume, (k, j, i)
@@ -118,12 +118,12 @@ def find_blobs(
     threshold_hu: float,
     spacing: F64,
     crop_margin_mm: float,
-) -> list[_Blob]:
+) -> list[Blob]:
     """Connected (26-neighbour) above-threshold components inside each group's crop, measured and
     sorted by (k, j, i) of their bounding box."""
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     margin = tuple(math.ceil(crop_margin_mm / s) + 1 for s in (spacing[2], spacing[1], spacing[0]))
-    blobs: list[_Blob] = []
+    blobs: list[Blob] = []
     for box in boxes:
         crop_box = _expand(box, (margin[0], margin[1], margin[2]), shape)
         crop = vox[crop_box]
@@ -152,7 +152,7 @@ def _measure_component(
     sl: tuple[slice, ...],
     crop_box: tuple[slice, slice, slice],
     spacing: F64,
-) -> _Blob:
+) -> Blob:
     kk, jj, ii = np.nonzero(sub)
     off = (
         crop_box[0].start + sl[0].start,
@@ -164,7 +164,7 @@ def _measure_component(
         slice(off[1], off[1] + sub.shape[1]),
         slice(off[2], off[2] + sub.shape[2]),
     )
-    return _Blob(
+    return Blob(
         box=full_box,
         n_voxels=int(sub.sum()),
         peak_hu=float(crop[sl][sub].max()),
@@ -188,8 +188,8 @@ bloom edge by up to a voxel, and the circle finder needs the 2000 → 500 HU edg
 
 
 def split_blob(
-    vox: NDArray[Any], b: _Blob, threshold_hu: float, spacing: F64, params: DetectionParams
-) -> list[_Blob]:
+    vox: NDArray[Any], b: Blob, threshold_hu: float, spacing: F64, params: DetectionParams
+) -> list[Blob]:
     """The sphere-core components of an oversized blob: its metal mask opened by an ellipsoid.
 
     The opening (radius ``split_core_fraction`` × the nominal radius, per axis in voxels) removes

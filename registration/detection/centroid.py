@@ -1,7 +1,7 @@
 """Step 3 of the detection: the sub-voxel centroid of a sphere on the raw volume, and its axial profile.
 
 Every sphere is first located by an intensity-weighted 3-D centroid of the raw voxels above the
-local background + a margin inside a ball (:func:`_subvoxel_centre`, iterated); the background
+local background + a margin inside a ball (:func:`subvoxel_centre`, iterated); the background
 is a plane fitted through a shell outside the ball, so a sphere on the phantom face is weighted
 over its own signal.  The centroid is the ``subvoxel`` estimator's answer and every other
 estimator's start.  Its slice coordinate is refined by a quadratic through the per-slice sums of
@@ -34,7 +34,7 @@ LINEAR_BACKGROUND_MIN_VOXELS: Final = 20
 shell (a sphere in a corner of the volume) gets the constant median."""
 
 
-def _support_mask(
+def support_mask(
     lo_ijk: NDArray[np.int_],
     hi_ijk: NDArray[np.int_],
     support: Support,
@@ -54,7 +54,7 @@ def _support_mask(
 
 
 @dataclass(frozen=True, eq=False)
-class _BallWeights:
+class BallWeights:
     """Centroid weights of the voxels in the ball around a centre (internal).
 
     ``w`` (k, j, i) crop of weights (0 outside the ball / support), ``ijk`` the crop's index
@@ -69,9 +69,9 @@ class _BallWeights:
     saturated: bool = False
 
 
-def _ball_weights(
+def ball_weights(
     vox: NDArray[Any], centre_ijk: F64, spacing: F64, params: DetectionParams, support: Support | None
-) -> _BallWeights:
+) -> BallWeights:
     """Weights of the voxels within ``radius + bloom`` mm of ``centre_ijk`` for the centroid.
 
     The weight is ``min(HU − background, cap) − margin`` (≥ 0).  The background is, per
@@ -110,12 +110,12 @@ def _ball_weights(
     s_peak = cap if saturated else (float(signal[ball].max()) if ball.any() else peak - bg)
     margin = max(params.centroid_margin_hu, params.centroid_margin_fraction * s_peak)
     if support is not None:
-        ball = ball & _support_mask(lo, hi, support)
+        ball = ball & support_mask(lo, hi, support)
     w = np.where(ball, np.clip(np.minimum(signal, cap) - margin, 0.0, None), 0.0)
-    return _BallWeights(w, (ii, jj, kk), bg, peak, bool(saturated))
+    return BallWeights(w, (ii, jj, kk), bg, peak, bool(saturated))
 
 
-def _subvoxel_centre(
+def subvoxel_centre(
     vox: NDArray[Any],
     start_ijk: F64,
     spacing: F64,
@@ -134,7 +134,7 @@ def _subvoxel_centre(
     centre = start_ijk.astype(np.float64).copy()
     bg = peak = math.nan
     for _ in range(max(1, params.centroid_iterations)):
-        bw = _ball_weights(vox, centre, spacing, params, support)
+        bw = ball_weights(vox, centre, spacing, params, support)
         bg, peak = bw.bg_hu, bw.peak_hu
         total = float(bw.w.sum())
         if total <= 0.0:
@@ -147,7 +147,7 @@ AXIAL_PROFILE_MIN_SLICES: Final = 3
 """A quadratic in z has 3 coefficients: fewer profile slices cannot place its vertex."""
 
 
-def axial_profile_position(bw: _BallWeights, min_fraction: float) -> float | None:
+def axial_profile_position(bw: BallWeights, min_fraction: float) -> float | None:
     """The slice index (continuous k) of the vertex of a quadratic fitted to the per-slice weight sums.
 
     A sphere thresholded at a level is the level's iso-surface, a ball of some radius R_t: its
@@ -187,6 +187,6 @@ def axial_profile_centre(
     of the centroid weights around it (unchanged where the profile does not give one)."""
     cp = replace(params, centroid_margin_fraction=params.axial_profile_margin_fraction)
     k = axial_profile_position(
-        _ball_weights(vox, centre_ijk, spacing, cp, support), params.axial_profile_min_fraction
+        ball_weights(vox, centre_ijk, spacing, cp, support), params.axial_profile_min_fraction
     )
     return centre_ijk if k is None else np.array([centre_ijk[0], centre_ijk[1], k])

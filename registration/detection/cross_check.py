@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.detection.candidates import Support
-from registration.detection.centroid import _support_mask
+from registration.detection.centroid import support_mask
 from registration.detection.params import DetectionParams
 from registration.detection.timing import StageTimer
 from registration.imaging.circles import CircleParams, find_circles
@@ -28,7 +28,7 @@ F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class _SliceCircle:
+class SliceCircle:
     i: float  # column, full-volume index
     j: float  # row
     k: int  # slice
@@ -45,7 +45,7 @@ def slice_circles(
     support: Support | None = None,
     *,
     mar_every_patch: bool = False,
-) -> list[_SliceCircle]:
+) -> list[SliceCircle]:
     """The accepted circle nearest the 3-D centre in each slice of ``k_range`` (MAR as configured).
 
     With ``mar_every_patch`` (the estimator measures from the circles, ``paper``: Bai 2018) and
@@ -60,11 +60,11 @@ def slice_circles(
     r_app_px = (params.radius_mm + params.bloom_mm) / pixel_mm
     mar_first = params.use_mar and mar_every_patch
 
-    def circle(patch: NDArray[np.float32], k: int) -> _SliceCircle | None:
+    def circle(patch: NDArray[np.float32], k: int) -> SliceCircle | None:
         with timer.stage("circles_s"):
             return _circle_near(patch, k, (i0, j0), (ci, cj), r_app_px, pixel_mm, params.circles)
 
-    circles: list[_SliceCircle] = []
+    circles: list[SliceCircle] = []
     for k in k_range:
         patch = np.asarray(vox[k, j0:j1, i0:i1], dtype=np.float32)
         if support is not None:
@@ -86,7 +86,7 @@ def _flatten_outside(
     ``floor_hu`` (the circle window's floor, so they map to 0 before Canny)."""
     lo = np.array([origin_ji[1], origin_ji[0], k])
     hi = lo + np.array([patch.shape[1], patch.shape[0], 1])
-    inside = _support_mask(lo, hi, support)[0]
+    inside = support_mask(lo, hi, support)[0]
     return np.where(inside, patch, np.minimum(patch, np.float32(floor_hu)))
 
 
@@ -98,9 +98,9 @@ def _circle_near(
     max_offset_px: float,
     pixel_mm: float,
     circle_params: CircleParams,
-) -> _SliceCircle | None:
+) -> SliceCircle | None:
     """The accepted circle of slice ``k``'s patch nearest the 3-D centre, within ``max_offset_px``."""
-    best: _SliceCircle | None = None
+    best: SliceCircle | None = None
     best_d = math.inf
     for c in find_circles(patch, pixel_mm, circle_params):
         if not c.accepted:
@@ -110,11 +110,11 @@ def _circle_near(
         d = math.hypot(i - centre_ij[0], j - centre_ij[1])
         if d <= max_offset_px and d < best_d:
             best_d = d
-            best = _SliceCircle(i, j, k, c.radius_px * pixel_mm)
+            best = SliceCircle(i, j, k, c.radius_px * pixel_mm)
     return best
 
 
-def _fit_radius(circles: list[_SliceCircle], dz_mm: float) -> tuple[float, float]:
+def fit_radius(circles: list[SliceCircle], dz_mm: float) -> tuple[float, float]:
     """Least-squares sphere from per-slice radii: r_i² + z_i² = c + 2·z0·z_i (image-side.md §3.2).
 
     Returns (R mm, z0 mm) with z measured as ``k · dz_mm``; NaN if < 2 distinct slices.
@@ -130,7 +130,7 @@ def _fit_radius(circles: list[_SliceCircle], dz_mm: float) -> tuple[float, float
 
 
 def sphere_score(
-    circles: list[_SliceCircle], centre_sv: F64, spacing: F64, n_slices: int, radius_mm: float
+    circles: list[SliceCircle], centre_sv: F64, spacing: F64, n_slices: int, radius_mm: float
 ) -> float:
     """Fraction of the blob's slices with a circle × (1 − in-plane circle/centre disagreement / radius)."""
     if not circles:

@@ -25,11 +25,11 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.detection.candidates import _Blob, _group_hits, find_blobs, split_blob, threshold_hits
-from registration.detection.centroid import _ball_weights, _subvoxel_centre
-from registration.detection.cross_check import _fit_radius, slice_circles, sphere_score
+from registration.detection.candidates import Blob, find_blobs, group_hits, split_blob, threshold_hits
+from registration.detection.centroid import ball_weights, subvoxel_centre
+from registration.detection.cross_check import fit_radius, slice_circles, sphere_score
 from registration.detection.estimators.base import CentreEstimator, MeasuredSphere, centre_estimator
-from registration.detection.fov import _circular_fov_radius_mm, edge_reject_reason, fov_reject_reason
+from registration.detection.fov import circular_fov_radius_mm, edge_reject_reason, fov_reject_reason
 from registration.detection.params import DetectionParams
 from registration.detection.records import DetectedSphere, DetectionResult, Rejection
 from registration.detection.refine import edge_refined_centre
@@ -38,9 +38,9 @@ from registration.detection.rejections import (
     NO_CIRCLE_REASON,
     OVERSIZED_REASONS,
     SizeLimits,
-    _separate,
     blob_reject_reason,
     core_axis_ratio,
+    separate,
 )
 from registration.detection.timing import TIMED_STAGES, StageTimer
 from registration.errors import DetectionError
@@ -80,7 +80,7 @@ class _Scan:
 
 
 def _measure_sphere(
-    b: _Blob, scan: _Scan, limits: SizeLimits, params: DetectionParams, timer: StageTimer
+    b: Blob, scan: _Scan, limits: SizeLimits, params: DetectionParams, timer: StageTimer
 ) -> DetectedSphere | str:
     """The sphere a blob is, or the reason it is rejected."""
     reason = blob_reject_reason(b, limits, params)
@@ -89,11 +89,11 @@ def _measure_sphere(
     vox, spacing, r = scan.volume.voxels, scan.spacing, params.radius_mm
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     with timer.stage("centres_s"):
-        centre_sv, bg, peak = _subvoxel_centre(vox, b.centroid_voxel, spacing, params, b.support)
+        centre_sv, bg, peak = subvoxel_centre(vox, b.centroid_voxel, spacing, params, b.support)
         centre_sv, reason = edge_refined_centre(
             vox, centre_sv, spacing, params, scan.fov_radius_mm, b.support
         )
-        bw_sv = _ball_weights(vox, centre_sv, spacing, params, None)
+        bw_sv = ball_weights(vox, centre_sv, spacing, params, None)
         ratio = core_axis_ratio(bw_sv, spacing)
     if reason is None and ratio > MAX_CORE_AXIS_RATIO:
         reason = (
@@ -125,7 +125,7 @@ def _measure_sphere(
             f"{len(circles)} slice(s) with a circular cross-section (need {params.min_circle_slices}): "
             + NO_CIRCLE_REASON
         )
-    radius_fit, _ = _fit_radius(circles, scan.dz_mm)
+    radius_fit, _ = fit_radius(circles, scan.dz_mm)
     saturation_hu = bw_sv.peak_hu if bw_sv.saturated else math.inf
     sphere = MeasuredSphere(
         vox,
@@ -161,8 +161,8 @@ def _measure_sphere(
 
 
 def _measure_blob(
-    b: _Blob, scan: _Scan, limits: SizeLimits, params: DetectionParams, threshold_hu: float, timer: StageTimer
-) -> list[tuple[_Blob, DetectedSphere | str]]:
+    b: Blob, scan: _Scan, limits: SizeLimits, params: DetectionParams, threshold_hu: float, timer: StageTimer
+) -> list[tuple[Blob, DetectedSphere | str]]:
     """(blob, sphere or rejection reason) for a blob, or for each sphere core of an oversized one.
 
     A blob too large for one sphere is split (:func:`split_blob`); if none of its cores is
@@ -220,7 +220,7 @@ def detect_spheres(volume: Volume, params: DetectionParams = DEFAULT_PARAMS) -> 
     with timer.stage("threshold_s"):
         flat, thr_cast = threshold_hits(vox, params.candidate_threshold_hu)
     with timer.stage("group_s"):
-        boxes = _group_hits(flat, volume.shape) if len(flat) else []
+        boxes = group_hits(flat, volume.shape) if len(flat) else []
     with timer.stage("components_s"):
         blobs = find_blobs(vox, boxes, thr_cast, spacing, params.crop_margin_mm)
     scan = _Scan(
@@ -228,7 +228,7 @@ def detect_spheres(volume: Volume, params: DetectionParams = DEFAULT_PARAMS) -> 
         spacing,
         pixel_mm=float(0.5 * (spacing[0] + spacing[1])),
         dz_mm=float(spacing[2]),
-        fov_radius_mm=_circular_fov_radius_mm(vox, spacing),
+        fov_radius_mm=circular_fov_radius_mm(vox, spacing),
         estimator=centre_estimator(params.method),
     )
     limits = SizeLimits.of(params, spacing)
@@ -243,7 +243,7 @@ def detect_spheres(volume: Volume, params: DetectionParams = DEFAULT_PARAMS) -> 
             else:
                 where = volume.voxel_to_image(part.centroid_voxel)
                 rejections.append(Rejection((float(where[0]), float(where[1]), float(where[2])), found))
-    spheres, crowded = _separate(spheres, params.min_separation_mm, metal_voxels)
+    spheres, crowded = separate(spheres, params.min_separation_mm, metal_voxels)
     rejections.extend(crowded)
     timings = dict(timer.seconds)
     timings["total_s"] = time.perf_counter() - t_start

@@ -1,7 +1,7 @@
 """Where the imaged region ends: the circular field of view, the volume's edges, and the spheres they cut.
 
 Scanners pad the voxels outside the reconstruction's FOV circle with one constant; the circle is
-found from that padding (:func:`_circular_fov_radius_mm`).  A sphere whose nominal ball crosses
+found from that padding (:func:`circular_fov_radius_mm`).  A sphere whose nominal ball crosses
 the volume's edge or the FOV circle is refused (:func:`edge_reject_reason`,
 :func:`fov_reject_reason`): it is not fully imaged, and the registration needs whole spheres.
 
@@ -202,7 +202,7 @@ fraction of its voxels holds the padding value.  Air inside the FOV clipped to t
 scattered (noise about −1000 HU crosses −1024 in a fraction of the voxels, not in 99 %)."""
 
 
-def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
+def circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
     """Radius of the reconstruction's circular field of view (centred on the matrix), or None.
 
     Scanners (and the simulator) fill the voxels outside the FOV circle with one constant (the
@@ -243,7 +243,7 @@ def _circular_fov_radius_mm(vox: NDArray[Any], spacing: F64) -> float | None:
     return float(r_mm[image].max()) if image.any() else 0.0
 
 
-def _boundaries(
+def boundaries(
     centre_ijk: F64, shape: tuple[int, int, int], spacing: F64, fov_radius_mm: float | None
 ) -> list[tuple[str, F64, float, float]]:
     """(name, unit direction (i, j, k) in mm space, edge position along it mm, voxel step mm) of
@@ -268,13 +268,13 @@ def _boundaries(
     return out
 
 
-def _near_edge(
+def near_imaged_edge(
     centre_ijk: F64, shape: tuple[int, int, int], spacing: F64, fov_radius_mm: float | None, reach_mm: float
 ) -> bool:
-    """Whether an edge of the imaged region (:func:`_boundaries`) is within ``reach_mm`` of the centre."""
+    """Whether an edge of the imaged region (:func:`boundaries`) is within ``reach_mm`` of the centre."""
     return any(
         edge_mm - float(u @ (centre_ijk * spacing)) <= reach_mm
-        for _, u, edge_mm, _ in _boundaries(centre_ijk, shape, spacing, fov_radius_mm)
+        for _, u, edge_mm, _ in boundaries(centre_ijk, shape, spacing, fov_radius_mm)
     )
 
 

@@ -16,8 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.detection.candidates import Support
-from registration.detection.centroid import _ball_weights
-from registration.detection.fov import DataRegion, _boundaries, plateau_reaches_edge
+from registration.detection.centroid import ball_weights
+from registration.detection.fov import DataRegion, boundaries, plateau_reaches_edge
 from registration.detection.params import DetectionParams
 
 F64 = NDArray[np.float64]
@@ -73,7 +73,7 @@ def edge_refined_centre(
     centre = centre_ijk.astype(np.float64).copy()
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
     region = DataRegion(shape, spacing, fov_radius_mm)
-    for name, u, edge_mm, step_mm in _boundaries(centre, shape, spacing, fov_radius_mm):
+    for name, u, edge_mm, step_mm in boundaries(centre, shape, spacing, fov_radius_mm):
         t_c = float(u @ (centre * spacing))
         if edge_mm - t_c > r_ball + step_mm:
             continue
@@ -95,7 +95,7 @@ def edge_refined_centre(
                 "of its peak where the image ends (the sphere is cut, or whole but too close to the "
                 "edge to be located)"
             )
-        bw = _ball_weights(vox, centre, spacing, params, support)
+        bw = ball_weights(vox, centre, spacing, params, support)
         t = sum(float(u[a] * spacing[a]) * bw.ijk[a] for a in range(3))
         w, t_all = np.broadcast_arrays(bw.w, t)
         c = _symmetric_position(w.ravel(), t_all.ravel(), t_c, edge_mm, step_mm, r_ball)

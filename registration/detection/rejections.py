@@ -4,7 +4,7 @@ A blob is refused by size and brightness before any centre is measured (:func:`b
 a rod, bone, a streak crossing; an oversized or sparse blob is split first), by the shape of its
 centroid weights after (:func:`core_axis_ratio`: a streak line), and at the end of two reported
 centres closer than the phantom allows the fragment or the weaker one is dropped
-(:func:`_separate`).  Every refusal is kept with its reason in ``DetectionResult.rejections``:
+(:func:`separate`).  Every refusal is kept with its reason in ``DetectionResult.rejections``:
 a false refusal is a defect too, so each must say why.  The cuts by the volume and FOV edges are
 in :mod:`.fov` and :mod:`.refine`.
 """
@@ -18,8 +18,8 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.detection.candidates import _Blob
-from registration.detection.centroid import _BallWeights
+from registration.detection.candidates import Blob
+from registration.detection.centroid import BallWeights
 from registration.detection.params import DetectionParams
 from registration.detection.records import DetectedSphere, Rejection
 
@@ -57,7 +57,7 @@ OVERSIZED_REASONS: Final = ("elongated or oversized metal", "blob volume", "spar
 """Reasons of :func:`blob_reject_reason` that a split into sphere cores may resolve."""
 
 
-def blob_reject_reason(b: _Blob, limits: SizeLimits, params: DetectionParams) -> str | None:
+def blob_reject_reason(b: Blob, limits: SizeLimits, params: DetectionParams) -> str | None:
     """Why a blob is not a sphere by size or brightness (rod, wrong size, bone, streak), or None."""
     size = " × ".join(f"{e:.1f}" for e in b.extent_mm)
     n_sl = b.box[0].stop - b.box[0].start
@@ -98,7 +98,7 @@ tungsten carbide with streaks, titanium): ≤ 2.5; a bright cone-beam streak lin
 size and peak tests: 8.2."""
 
 
-def core_axis_ratio(bw: _BallWeights, spacing: F64) -> float:
+def core_axis_ratio(bw: BallWeights, spacing: F64) -> float:
     """Axis ratio of the weights ``bw`` in mm (inf if they are all zero or degenerate)."""
     total = float(bw.w.sum())
     if total <= 0.0:
@@ -119,7 +119,7 @@ tungsten-carbide spheres held 21–31 voxels, ≤ 0.27 of the sphere's 116–122
 one sphere held 118 and 165, 0.72)."""
 
 
-def _separate(
+def separate(
     spheres: list[DetectedSphere], min_separation_mm: float, metal_voxels: list[int] | None = None
 ) -> tuple[list[DetectedSphere], list[Rejection]]:
     """Spheres at least ``min_separation_mm`` apart and a rejection for each one dropped.

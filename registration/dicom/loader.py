@@ -74,7 +74,7 @@ def load_series(path: str | Path, *, series_uid: str | None = None, unique: bool
     chosen_uid, geometry = select_series(root, groups, skipped, series_uid, unique=unique)
     voxels = read_voxels(geometry.slices, chosen_uid)
     first = geometry.slices[0]
-    meta = _volume_meta(root, geometry, skipped)
+    meta = volume_meta(root, geometry, skipped)
     log.info(
         "loaded series %s: %d slices of %dx%d, spacing %.4f mm, %s, %d file(s) skipped",
         chosen_uid,
@@ -114,7 +114,7 @@ def read_series_headers(path: str | Path) -> FolderScan:
     return FolderScan(root=root, series=tuple(summaries), skipped=tuple(skipped))
 
 
-def _volume_meta(root: Path, geometry: SeriesGeometry, skipped: Sequence[SkippedFile]) -> dict[str, Any]:
+def volume_meta(root: Path, geometry: SeriesGeometry, skipped: Sequence[SkippedFile]) -> dict[str, Any]:
     """:attr:`Volume.meta` of a loaded series (see :func:`load_series`)."""
     first = geometry.slices[0]
     return {

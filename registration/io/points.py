@@ -31,7 +31,7 @@ MAX_ABS_COORD_MM: Final = 1.0e5
 """Coordinates beyond 100 m are not millimetres of an operating room."""
 
 
-def _load_json(path: str | Path) -> Any:
+def read_json(path: str | Path) -> Any:
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -87,7 +87,7 @@ def read_points(path: str | Path, *, min_points: int = 3) -> F64:
     within 1 of the origin while more than 3 points are given) is refused.
     """
     p = Path(path)
-    arr = _points_from(_load_json(p), "spheres_mm", p, min_points=min_points)
+    arr = _points_from(read_json(p), "spheres_mm", p, min_points=min_points)
     if len(arr) > 3:
         extent = float(np.max(np.ptp(arr, axis=0)))
         if extent == 0.0:
@@ -112,7 +112,7 @@ def read_targets(path: str | Path) -> F64:
     ``POST /register``) is refused, naming the new key.
     """
     p = Path(path)
-    obj = _load_json(p)
+    obj = read_json(p)
     if isinstance(obj, dict) and "targets_mm" in obj and "targets_robot_mm" not in obj:
         raise PointsFileError(
             f'{p}: "targets_mm" was renamed "targets_robot_mm" (robot frame, mm); rename the key '
@@ -135,7 +135,7 @@ def read_registration(path: str | Path) -> F64:
         Unreadable, a recorded refusal, missing key or not a rigid 4 × 4.
     """
     p = Path(path)
-    obj = _load_json(p)
+    obj = read_json(p)
     if not isinstance(obj, dict):
         raise PointsFileError(f"{p}: expected a registration JSON object, found {type(obj).__name__}")
     if obj.get("refused"):

@@ -98,7 +98,7 @@ def _twins(best: F64, robot_mm: F64, phantom: Phantom | None) -> list[tuple[str,
 
 
 @dataclass
-class _Candidate:
+class Candidate:
     """A pose in the competition: refined by ICP, or only counted (cannot threaten the best)."""
 
     source: str
@@ -108,12 +108,12 @@ class _Candidate:
     result: IcpResult | None = None
 
 
-def _key(c: _Candidate) -> tuple[int, float]:
+def _key(c: Candidate) -> tuple[int, float]:
     return (c.n_matched, -c.rms_mm)
 
 
-def _refined(source: str, res: IcpResult) -> _Candidate:
-    return _Candidate(source, res.image_from_robot, res.n_matched, res.rms_mm, res)
+def _refined(source: str, res: IcpResult) -> Candidate:
+    return Candidate(source, res.image_from_robot, res.n_matched, res.rms_mm, res)
 
 
 def _quick_count(t: F64, robot_mm: F64, tree: cKDTree, gate_mm: float) -> tuple[int, float]:
@@ -168,8 +168,8 @@ def _best_mirrored(robot_mm: F64, image_mm: F64, p: RegistrationParams) -> int:
 class CandidatePool:
     """Every pose that competed, and the best of them (None if no consistent triple exists)."""
 
-    best: _Candidate | None
-    pool: list[_Candidate]
+    best: Candidate | None
+    pool: list[Candidate]
     hyps_all: list[Hypothesis]
     """Hypotheses of any orientation (the mirror check and the prior refusal look at them)."""
     hyps: list[Hypothesis]
@@ -185,7 +185,7 @@ def within_prior(t: F64, prior: F64 | None, tolerance_deg: float) -> bool:
 
 
 def _competitors(
-    best: _Candidate,
+    best: Candidate,
     hyps: list[Hypothesis],
     skip_first: bool,
     inp: RegistrationInputs,
@@ -209,21 +209,21 @@ def _competitors(
 
 
 def _compete(
-    best: _Candidate,
+    best: Candidate,
     others: list[tuple[str, F64, int, float]],
     inp: RegistrationInputs,
     tree: cKDTree,
     p: RegistrationParams,
     *,
     best_is_fixed: bool,
-) -> tuple[_Candidate, list[_Candidate]]:
+) -> tuple[Candidate, list[Candidate]]:
     """Refine the poses that threaten ``best`` by ICP, count the rest; return (best, the competitors).
 
     A pose is refined only if it comes within ``threat_margin_factor × min_runner_up_margin`` of the
     best (at most ``max_runner_ups + max_refined_twins`` of them).  ``best_is_fixed``: the named
     pre-registration marks define the pose, the others only compete as runner-ups.
     """
-    pool: list[_Candidate] = []
+    pool: list[Candidate] = []
     n_refined = 0
     for name, t_o, n_o, rms_o in others:
         threat = n_o + p.threat_margin_factor * p.min_runner_up_margin >= best.n_matched
@@ -231,7 +231,7 @@ def _compete(
             n_refined += 1
             cand = _refined(name, _refine(inp.robot, inp.image, tree, t_o, p))
         else:
-            cand = _Candidate(name, t_o, n_o, rms_o)
+            cand = Candidate(name, t_o, n_o, rms_o)
         pool.append(cand)
         if not best_is_fixed and _key(cand) > _key(best):
             best = cand
@@ -251,7 +251,7 @@ def candidate_pool(
     Raises DegenerateConfigurationError (coplanar marks) from the pre-registration.
     """
     prereg: PreregResult | None = None
-    pool: list[_Candidate] = []
+    pool: list[Candidate] = []
     prior = inp.prior
     if inp.prereg_pairs is not None:
         t0 = time.perf_counter()
@@ -271,7 +271,7 @@ def candidate_pool(
     timings["correspondence_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    best: _Candidate | None = None
+    best: Candidate | None = None
     if prereg is not None:
         best = pool[0]
     elif hyps:
@@ -323,7 +323,7 @@ def check_mirror(inp: RegistrationInputs, cands: CandidatePool, tree: cKDTree, p
 
 def check_enough_matched(
     inp: RegistrationInputs, cands: CandidatePool, p: RegistrationParams
-) -> tuple[_Candidate, IcpResult]:
+) -> tuple[Candidate, IcpResult]:
     """Step 4: the best pose must be ICP-refined and match ``min_matched`` spheres.
 
     Raises PriorMismatchError (a pose outside the prior would have matched) or TooFewSpheresError.
@@ -356,7 +356,7 @@ class RunnerUp:
     """The best pose against the best *distinct* runner-up, both counted at the fixed gate."""
 
     n_best: int
-    candidate: _Candidate | None
+    candidate: Candidate | None
     n_matched: int
     rotation_deg: float | None
 
@@ -366,7 +366,7 @@ class RunnerUp:
 
 
 def find_runner_up(
-    best: _Candidate, pool: Sequence[_Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
+    best: Candidate, pool: Sequence[Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
 ) -> RunnerUp:
     """The best pose of ``pool`` that is distinct from ``best`` (same_pose), by count at the fixed gate.
 
@@ -376,7 +376,7 @@ def find_runner_up(
     t_best = best.image_from_robot
     n_best = _quick_count(t_best, robot, tree, p.hypothesis_gate_mm)[0]
     centroid = robot.mean(axis=0)
-    runner: _Candidate | None = None
+    runner: Candidate | None = None
     runner_key: tuple[int, float] = (-1, 0.0)
     for c in pool:
         if c is best or same_pose(
@@ -391,13 +391,13 @@ def find_runner_up(
 
 
 def exhaustive_candidates(
-    best: _Candidate,
-    pool: Sequence[_Candidate],
+    best: Candidate,
+    pool: Sequence[Candidate],
     inp: RegistrationInputs,
     prior: F64 | None,
     tree: cKDTree,
     p: RegistrationParams,
-) -> list[_Candidate]:
+) -> list[Candidate]:
     """Step 5a: runner-up poses from the exhaustive triple search, for subsets and small sets.
 
     Runs when the image has at most ``exhaustive_runner_up_max_points`` detections, or fewer
@@ -426,10 +426,10 @@ def exhaustive_candidates(
         tree=tree,
     )
     hyps = [h for h in hyps if within_prior(h.image_from_robot, prior, inp.prior_tolerance_deg)]
-    out: list[_Candidate] = []
+    out: list[Candidate] = []
     for k, h in enumerate(hyps):
         name = f"exhaustive search pose {k}"
-        out.append(_Candidate(name, h.image_from_robot, h.n_inliers, h.rms_mm))
+        out.append(Candidate(name, h.image_from_robot, h.n_inliers, h.rms_mm))
         threat = h.n_inliers + p.threat_margin_factor * p.min_runner_up_margin >= best.n_matched
         if threat and k < p.max_runner_ups:
             res = _refine(inp.robot, inp.image, tree, h.image_from_robot, p)
@@ -448,7 +448,7 @@ def _pose_text(t: F64, robot: F64) -> str:
 
 
 def check_runner_up(
-    best: _Candidate, pool: Sequence[_Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
+    best: Candidate, pool: Sequence[Candidate], robot: F64, tree: cKDTree, p: RegistrationParams
 ) -> RunnerUp:
     """Step 5: the best pose must beat the best distinct runner-up by ``min_runner_up_margin``.
 

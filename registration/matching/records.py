@@ -228,7 +228,7 @@ def params_dict(params: RegistrationParams) -> dict[str, Any]:
     return asdict(params)
 
 
-def _as_rotation(prior: ArrayLike) -> F64:
+def as_rotation(prior: ArrayLike) -> F64:
     m = np.asarray(prior, dtype=np.float64)
     if m.shape == (4, 4):
         m = m[:3, :3]

@@ -42,9 +42,9 @@ from registration.errors import (
     TooFewSpheresError,
 )
 from registration.matching.hypotheses import (
+    Candidate,
     CandidatePool,
     RunnerUp,
-    _Candidate,
     candidate_pool,
     check_enough_matched,
     check_mirror,
@@ -63,7 +63,7 @@ from registration.matching.records import (
     RegistrationInputs,
     RegistrationParams,
     RegistrationResult,
-    _as_rotation,
+    as_rotation,
 )
 from registration.matching.rigid import PointSetError, as_points, rotation_difference_deg
 from registration.model.phantom import Phantom
@@ -133,7 +133,7 @@ def validate_inputs(
             f"{m} sphere(s) detected, {n} expected: a registration needs at least {p.min_matched} matched "
             "spheres. Check that the phantom is inside the scanned volume and the detection threshold"
         )
-    prior = None if orientation_prior is None else _as_rotation(orientation_prior)
+    prior = None if orientation_prior is None else as_rotation(orientation_prior)
     if not 0.0 < prior_tolerance_deg < MAX_PRIOR_TOLERANCE_DEG:
         raise ConfigError(
             f"orientation prior tolerance must be in (0, {MAX_PRIOR_TOLERANCE_DEG:g})°, got "
@@ -179,7 +179,7 @@ def quality_figures(
 def _result(
     inp: RegistrationInputs,
     cands: CandidatePool,
-    best: _Candidate,
+    best: Candidate,
     r: IcpResult,
     ru: RunnerUp,
     q: QualityFigures,

@@ -259,9 +259,7 @@ async def _start_core(inputs: ServiceInputs, db: Database, stack: contextlib.Asy
     capture = Capture(inputs.robot_link, settings, publish)
     await capture.start()
     stack.push_async_callback(capture.stop)
-    intake = Intake(
-        db, capture, inputs.volumes, publish, withdraw=orchestrator.withdraw_scan, lifecycle=lifecycle
-    )
+    intake = Intake(db, capture, inputs.volumes, publish, lifecycle)
     return _Core(db, orchestrator, calibrations, lifecycle, capture, intake, intake_dir)
 
 

@@ -34,6 +34,10 @@ disk); ``on_instance_stored(path, outcome)`` after each instance is on disk;
 ``on_series_settled`` (used instead of ``on_series_released`` when set) adds the association's
 :class:`~service.intake.scan_lifecycle.OfferTally` of the series (offered, stored, refused and why).
 
+It listens through :func:`dicomnet.server.start_server` (pynetdicom's transport with ``poll`` instead
+of ``select`` and failed ``accept`` calls reported): what is generic pynetdicom lives in
+:mod:`dicomnet`, what the intake stores and refuses lives here.
+
 Security: loopback by default.  A non-loopback bind needs at least one allow-list (calling
 AE titles and/or peer addresses); DICOM has no authentication here (no TLS configured).
 """
@@ -45,9 +49,6 @@ import errno
 import logging
 import os
 import re
-import select
-import socket
-import ssl
 import threading
 import time
 import uuid
@@ -70,9 +71,8 @@ from pydicom.uid import (
 from pynetdicom import AE, evt
 from pynetdicom import _config as _pn_config
 from pynetdicom.dimse_primitives import C_STORE
-from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAssociationServer
-from pynetdicom.utils import make_target
 
+from dicomnet.server import AssociationServer, start_server
 from service.errors import DicomScpConfigError, InstanceNotStoredError
 from service.intake.scan_lifecycle import OfferTally
 from service.netaddr import in_networks, parse_networks
@@ -246,77 +246,6 @@ def _fsync_dir(d: Path) -> None:
         os.close(fd)
 
 
-# --------------------------------------------------------------------------- descriptors above 1024
-
-
-class PollAssociationSocket(AssociationSocket):
-    """pynetdicom's association socket whose :attr:`ready` asks ``poll`` instead of ``select``.
-
-    pynetdicom 3.0 checks for incoming data with ``select.select([sock], [], [], 0)``, which raises
-    ``ValueError`` for a descriptor >= 1024 (FD_SETSIZE); pynetdicom takes that for a closed
-    connection, so once the process holds more than 1024 descriptors (idle peers on the other
-    listeners) every new association was aborted before its A-ASSOCIATE-RQ was read, silently
-    (issue #32).  ``poll`` has no such limit; the answer is otherwise the same (readable, hung up or
-    in error all mean "read now").  pynetdicom has no switch for this.  The listener itself uses
-    ``socketserver``'s ``PollSelector`` already.
-    """
-
-    on_transport_error: Callable[[str], None] | None = None
-    """Called (with the reason) when ``poll`` fails on an open socket: an internal failure, not a peer
-    that closed."""
-
-    @property
-    def ready(self) -> bool:
-        sock = self.socket
-        if sock is None or self._is_connected is False:
-            return False
-        fd = sock.fileno()
-        try:
-            if fd < 0:
-                raise OSError(errno.EBADF, "socket closed")
-            poller = select.poll()
-            poller.register(fd, select.POLLIN | select.POLLPRI)
-            ready = bool(poller.poll(0))
-        except (OSError, ValueError) as e:
-            if fd >= 0 and self.on_transport_error is not None:
-                self.on_transport_error(f"poll on descriptor {fd} failed ({e})")
-            self.event_queue.put("Evt17")  # Evt17: transport connection closed (as pynetdicom does)
-            return False
-        if isinstance(sock, ssl.SSLSocket):  # buffered TLS data that poll cannot see (pynetdicom #528)
-            return ready or bool(sock.pending())
-        return ready
-
-
-class _PollRequestHandler(RequestHandler):
-    """pynetdicom's request handler, its association on a :class:`PollAssociationSocket`."""
-
-    def _create_association(self) -> Any:
-        assoc = super()._create_association()
-        sock = assoc.dul.socket
-        if type(sock) is AssociationSocket:  # the same object and state, only ``ready`` differs
-            sock.__class__ = PollAssociationSocket
-            cast(PollAssociationSocket, sock).on_transport_error = getattr(
-                self.server, "on_transport_error", None
-            )
-        return assoc
-
-
-class _Server(ThreadedAssociationServer):
-    """pynetdicom's threaded server whose failed ``accept`` is reported (``socketserver`` drops it
-    silently; EMFILE when the process is out of descriptors)."""
-
-    on_accept_error: Callable[[OSError], None] | None = None
-    on_transport_error: Callable[[str], None] | None = None
-
-    def get_request(self) -> tuple[socket.socket, tuple[str, int]]:
-        try:
-            return super().get_request()
-        except OSError as e:
-            if self.on_accept_error is not None and e.errno not in (errno.EAGAIN, errno.EWOULDBLOCK):
-                self.on_accept_error(e)
-            raise
-
-
 # --------------------------------------------------------------------------- the SCP
 
 
@@ -362,7 +291,7 @@ class StorageScp:
         self._allowed_aets = {a.strip() for a in config.allowed_calling_ae_titles}
         self._lock = threading.Lock()
         self._assocs: dict[int, _AssocState] = {}
-        self._server: Any = None
+        self._server: AssociationServer | None = None
         self.counters: dict[str, int] = {
             "stored": 0, "duplicates": 0, "replaced": 0, "refused": 0, "echoes": 0,
             "released": 0, "aborted": 0, "bytes": 0,
@@ -411,7 +340,10 @@ class StorageScp:
         ]
         handlers.append((evt.EVT_REJECTED, self._on_rejected))
         try:
-            self._server = self._start_server(ae, handlers)
+            self._server = start_server(
+                ae, (c.host, c.port), handlers, "oarmreg-dicom-accept",
+                on_accept_error=self._on_accept_error, on_transport_error=self._on_transport_error,
+            )  # fmt: skip
         except OSError as e:
             raise DicomScpConfigError(
                 f"cannot listen for DICOM on {self.config.host}:{self.config.port} ({e}); "
@@ -419,22 +351,6 @@ class StorageScp:
             ) from None
         log.info("DICOM Storage SCP %s on %s:%d → %s", self.config.ae_title, self.config.host,
                  self.port, self.intake_dir)  # fmt: skip
-
-    def _start_server(self, ae: AE, handlers: list[Any]) -> _Server:
-        """``ae.start_server(block=False)`` with :class:`_Server` and :class:`_PollRequestHandler`
-        (pynetdicom's own non-blocking start, which takes neither)."""
-        server = cast(_Server, ae.make_server(
-            (self.config.host, self.config.port), evt_handlers=handlers, server_class=_Server,
-            request_handler=_PollRequestHandler,
-        ))  # fmt: skip
-        server.on_accept_error = self._on_accept_error
-        server.on_transport_error = self._on_transport_error
-        thread = threading.Thread(
-            target=make_target(server.serve_forever), name="oarmreg-dicom-accept", daemon=True
-        )
-        thread.start()
-        ae._servers.append(server)  # as start_server does: server.shutdown() removes it there
-        return server
 
     def stop(self) -> None:
         if self._server is not None:

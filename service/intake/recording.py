@@ -5,7 +5,7 @@ instance UIDs its Spatial Registration object will reference."""
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -75,17 +75,15 @@ class Intake:
         capture: SnapshotSource,
         volumes: VolumeCache,
         publish: Publish,
-        withdraw: Callable[[int, str], object] | None = None,
-        lifecycle: ScanLifecycle | None = None,
+        lifecycle: ScanLifecycle,
     ) -> None:
         self.db = db
         self.capture = capture
         self.volumes = volumes
         self.publish = publish
-        self.withdraw = withdraw
-        """``withdraw(scan_id, reason)``:
-        :meth:`service.registrations.orchestrator.Orchestrator.withdraw_scan`."""
-        self.lifecycle = lifecycle or ScanLifecycle(db, volumes, publish, withdraw)
+        self.lifecycle = lifecycle
+        """Moves a changed series to ``reopened`` / ``replaced`` and withdraws what was made from it
+        (its ``withdraw`` is :meth:`service.registrations.orchestrator.Orchestrator.withdraw_scan`)."""
 
     def __call__(self, arrival: SeriesArrival) -> None:
         """Record the arrival; a readable, valid series also has its instance UIDs stored (what its

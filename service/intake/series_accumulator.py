@@ -178,7 +178,7 @@ class SeriesAccumulator:
 def _stack(root: Path, series_uid: str, decoded: dict[Path, _Decoded], array: NDArray[Any]) -> Volume:
     """Check the geometry of every slice; the frames in slice order (a view when already in order)."""
     from registration.dicom import check_series_geometry
-    from registration.dicom.loader import _volume_meta  # the loader's own meta, key for key
+    from registration.dicom.loader import volume_meta  # the loader's own meta, key for key
 
     row_of: dict[tuple[Path, int], int] = {}
     headers = []
@@ -197,7 +197,7 @@ def _stack(root: Path, series_uid: str, decoded: dict[Path, _Decoded], array: ND
     voxels.flags.writeable = False  # rows are written once; nothing downstream may change them
     first = geometry.slices[0]
     meta: dict[str, Any] = {
-        **_volume_meta(root, geometry, ()),
+        **volume_meta(root, geometry, ()),
         "decoded_on_arrival": True,
         "sop_uids": tuple((h.sop_instance_uid, h.sop_class_uid) for h in geometry.slices),
     }

@@ -23,12 +23,12 @@ from service.errors import RobotFrameUidError
 log = logging.getLogger(__name__)
 
 FILE_NAME = "robot_frame_of_reference_uid.txt"
-_UID_RE = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
+UID_RE = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
 
 
 def _read(path: Path) -> str:
     uid = path.read_text(encoding="ascii").strip()
-    if not (_UID_RE.match(uid) and len(uid) <= 64):
+    if not (UID_RE.match(uid) and len(uid) <= 64):
         raise RobotFrameUidError(
             f"{path} holds {uid[:80]!r}, not a DICOM UID; restore it from a backup (registrations "
             "already archived name the old UID) or delete it to mint a new one"

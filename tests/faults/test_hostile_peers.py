@@ -342,7 +342,7 @@ def test_associations_refused_for_want_of_slots_are_a_problem_until_one_is_relea
 ) -> None:
     from pynetdicom import AE
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     echoscu = shutil.which("echoscu")
     assert echoscu is not None

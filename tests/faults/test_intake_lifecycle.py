@@ -36,7 +36,7 @@ from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 from pynetdicom import AE
 
-from drivers.dicom_scu import associate
+from dicomnet.scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event, RegistrationWithdrawn, ScanReopened, ScanReplaced
 from tests.faults._service import (

@@ -45,7 +45,7 @@ def _send_pynetdicom(folder: Path, port: int, out: list[list[int]]) -> None:
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian
     from pynetdicom import AE
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     ae = AE(ae_title="OARM_LOAD")
     ae.add_requested_context(CTImageStorage, [ExplicitVRLittleEndian])

@@ -17,7 +17,7 @@ import pydicom
 from pydicom.uid import CTImageStorage
 from pynetdicom import AE
 
-from drivers.dicom_scu import associate
+from dicomnet.scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event
 from tests.helpers.tokens import make_token

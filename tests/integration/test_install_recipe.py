@@ -118,13 +118,14 @@ SMOKE_IMPORTS = """
 import sys
 from pathlib import Path
 
+import dicomnet.scu
 import oarmreg_configs
 import registration
 from registration.io.resources import configs_dir, default_phantom
 from registration.model.kinematics import RobotModel
 
 site = Path(sys.prefix).resolve()
-for mod in (registration, oarmreg_configs):
+for mod in (registration, dicomnet.scu, oarmreg_configs):
     where = Path(mod.__file__).resolve()
     assert where.is_relative_to(site), f"{mod.__name__} imported from {where}, not from the wheel in {site}"
 assert configs_dir().is_relative_to(site), configs_dir()

@@ -263,7 +263,7 @@ def test_refused_standard_contexts_are_debug_and_still_counted(
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, MRImageStorage, UltrasoundImageStorage
     from pynetdicom import AE
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
     from service.intake.dicom_scp import ScpCallbacks, StorageScp
     from service.settings import DicomSettings
 

@@ -26,7 +26,7 @@ import pytest
 from pydicom.uid import CTImageStorage, MRImageStorage, generate_uid
 from pynetdicom import AE
 
-from drivers.dicom_scu import associate
+from dicomnet.scu import associate
 from registration.model.frames import invert, transform_from_xyz_rpy
 from service.events import (
     DicomAssociationAborted,

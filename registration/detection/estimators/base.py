@@ -19,9 +19,9 @@ from numpy.typing import NDArray
 
 from registration.detection.candidates import Support
 from registration.detection.centroid import SATURATION_MIN_VOXELS
-from registration.detection.cross_check import _SliceCircle
+from registration.detection.cross_check import SliceCircle
 from registration.detection.estimators import ESTIMATOR_MODULES, METHODS
-from registration.detection.fov import _near_edge
+from registration.detection.fov import near_imaged_edge
 from registration.detection.params import DetectionParams
 from registration.errors import DetectionError
 
@@ -46,7 +46,7 @@ class MeasuredSphere:
     centre_ijk: F64
     saturation_hu: float
     support: Support | None
-    circles: list[_SliceCircle]
+    circles: list[SliceCircle]
     radius_fit_mm: float
     dz_mm: float
     params: DetectionParams
@@ -59,7 +59,7 @@ class MeasuredSphere:
         vox = self.vox
         shape = (vox.shape[0], vox.shape[1], vox.shape[2])
         reach_mm = p.radius_mm + p.bloom_mm + p.background_shell_mm
-        return _near_edge(self.centre_ijk, shape, self.spacing, self.fov_radius_mm, reach_mm)
+        return near_imaged_edge(self.centre_ijk, shape, self.spacing, self.fov_radius_mm, reach_mm)
 
 
 class CentreEstimator(Protocol[PreparedT]):

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.detection.candidates import Support
-from registration.detection.centroid import LINEAR_BACKGROUND_MIN_VOXELS, _subvoxel_centre
+from registration.detection.centroid import LINEAR_BACKGROUND_MIN_VOXELS, subvoxel_centre
 from registration.detection.estimators.base import MeasuredSphere, SpherePatch, sphere_patch
 from registration.detection.estimators.core_centroid import CoreWeights, core_centroid
 from registration.detection.params import DetectionParams
@@ -50,7 +50,7 @@ def core_edge_centre(
     (``params.core``; on the tungsten-carbide hard-sweep scans better than the default ball and
     margin near an edge)."""
     cp = replace(params, bloom_mm=params.core.bloom_mm, centroid_margin_fraction=params.core.margin_fraction)
-    c, _, _ = _subvoxel_centre(vox, centre_ijk, spacing, cp, support)
+    c, _, _ = subvoxel_centre(vox, centre_ijk, spacing, cp, support)
     c, _ = edge_refined_centre(vox, c, spacing, cp, fov_radius_mm, support)
     return c
 

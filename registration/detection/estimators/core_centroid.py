@@ -14,7 +14,7 @@ the weight of that tail: 0.049 mm.  For steel and titanium, whose edge is not in
 restriction measures worse (0.034 → 0.041 mm), so the method is chosen by sphere material
 (:data:`registration.detection.METHOD_FOR_MATERIAL`), not by default.
 
-The weight of a voxel is the default centroid's (:func:`registration.detection.centroid._ball_weights`),
+The weight of a voxel is the default centroid's (:func:`registration.detection.centroid.ball_weights`),
 ``min(HU − background, cap) − margin`` clipped at 0, with a least-squares plane through a shell
 outside the ball as background and ``cap`` the clipped contrast, times a window that falls from 1
 at the estimate to 0 at the ball's edge (Epanechnikov, ``1 − (d / r_ball)²``), and the estimate

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.detection.cross_check import _SliceCircle
+from registration.detection.cross_check import SliceCircle
 from registration.detection.estimators.base import MeasuredSphere
 
 F64 = NDArray[np.float64]
@@ -25,12 +25,12 @@ F64 = NDArray[np.float64]
 class PaperCircles:
     """What ``paper`` measures from: the slice circles, their fitted radius (mm), the slice spacing (mm)."""
 
-    circles: list[_SliceCircle]
+    circles: list[SliceCircle]
     radius_fit_mm: float
     dz_mm: float
 
 
-def _paper_depth(circles: list[_SliceCircle], radius_mm: float, dz_mm: float) -> float:
+def _paper_depth(circles: list[SliceCircle], radius_mm: float, dz_mm: float) -> float:
     """Pythagorean depth (Bai 2018 §2.2): per slice two depths z_i ± √(R² − r_i²); the radius trend picks one.
 
     Slices before the largest circle (in k) have the centre above them, slices

@@ -174,9 +174,9 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
     from registration.calibration.records import (
         MIN_POSES,
     )
-    from registration.io.points import _load_json
+    from registration.io.points import read_json
 
-    obj = _load_json(path)
+    obj = read_json(path)
     poses = obj.get("poses") if isinstance(obj, dict) else None
     if not isinstance(poses, list) or not poses:
         raise _config_error(
@@ -358,14 +358,14 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
     import numpy as np
 
     from registration.errors import ConfigError
-    from registration.io.points import _load_json
+    from registration.io.points import read_json
     from registration.model.frames import NotRigidError, as_transform
     from registration.model.kinematics import RobotModel
 
     path = Path(caldir) / CALIBRATION_FILE
     if not path.is_file():
         raise ConfigError(f"{caldir}: no {CALIBRATION_FILE}; run `oarmreg calibrate run` to create it")
-    doc = _load_json(path)
+    doc = read_json(path)
     try:
         rod = as_transform(
             np.asarray(doc["tool0_from_phantom"], dtype=np.float64), f"{path}: tool0_from_phantom"
@@ -378,11 +378,11 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
 
 def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
     """Sphere centres (robot frame) for ``oarmreg register --joints [--calibration]``."""
-    from registration.io.points import _load_json
+    from registration.io.points import read_json
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
     from registration.model.phantom import load_phantom
 
-    obj = _load_json(args.joints)
+    obj = read_json(args.joints)
     joints = obj.get("joints_rad") if isinstance(obj, dict) else None
     if not isinstance(joints, list) or not all(_is_number(v) for v in joints):
         raise _config_error(
@@ -421,9 +421,9 @@ def _pose_set_joints(path: Path, model: Any) -> Any:
     ``calibrate run`` POSES.json (the same key beside ``scan_dir``)."""
     import numpy as np
 
-    from registration.io.points import _load_json
+    from registration.io.points import read_json
 
-    obj = _load_json(path)
+    obj = read_json(path)
     poses = obj.get("poses") if isinstance(obj, dict) else None
     if not isinstance(poses, list) or not poses:
         raise _config_error(
@@ -450,7 +450,7 @@ def run_plan(args: argparse.Namespace) -> int:
 
     from registration.calibration.planner import PlannerParams, plan_poses, predict_plan
     from registration.calibration.urdf import read_chain
-    from registration.io.points import _load_json, read_registration, write_json
+    from registration.io.points import read_json, read_registration, write_json
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom
     from registration.model.phantom import load_phantom
     from service.settings import load_settings
@@ -459,9 +459,9 @@ def run_plan(args: argparse.Namespace) -> int:
         raise _config_error(f"--n {args.n}: a calibration needs at least 6 poses")
     cal_settings = load_settings(args.config).calibration
     y = read_registration(args.registration)
-    reg_doc = _load_json(args.registration)
+    reg_doc = read_json(args.registration)
     prov = reg_doc.get("provenance", {}) or {}
-    joints = _load_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
+    joints = read_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
     if not isinstance(joints, list):
         raise _config_error(
             f"{args.registration}: no joints_rad in its provenance; register with "

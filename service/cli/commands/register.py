@@ -204,12 +204,12 @@ def parse_prior(text: str | None) -> Any:
     import numpy as np
 
     from registration.errors import PointsFileError
-    from registration.io.points import _load_json
+    from registration.io.points import read_json
     from registration.model.frames import transform_from_xyz_rpy
 
     path = Path(text)
     if path.suffix.lower() == ".json" or path.is_file():
-        obj = _load_json(path)
+        obj = read_json(path)
         key = "image_from_robot" if isinstance(obj, dict) and "image_from_robot" in obj else "rotation"
         if not isinstance(obj, dict) or key not in obj:
             raise PointsFileError(f'{path}: expected "image_from_robot" (4 × 4) or "rotation" (3 × 3)')
@@ -400,14 +400,14 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
     from service.errors import RobotFrameUidError
     from service.intake.recording import scan_instances_from_files
     from service.navigation.sro_export import ct_headers
-    from service.registrations.robot_frame import _UID_RE, robot_frame_uid
+    from service.registrations.robot_frame import UID_RE, robot_frame_uid
 
     if args.dicom_dir is None:
         raise PointsFileError("--sro needs DICOM_DIR: the Spatial Registration object references the scan")
     uid = args.robot_frame_uid
     if uid is None:
         uid = robot_frame_uid(args.data)  # check_sro_arguments made sure --data is given
-    elif not (_UID_RE.match(uid) and len(uid) <= 64):
+    elif not (UID_RE.match(uid) and len(uid) <= 64):
         raise RobotFrameUidError(f"--robot-frame-uid {uid!r} is not a DICOM UID (digits, dots, ≤ 64 chars)")
     series_uid = str(doc.get("provenance", {}).get("series_uid", ""))
     summary = next(s for s in list_series(args.dicom_dir) if s.series_uid == series_uid)  # headers only

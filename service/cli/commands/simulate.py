@@ -210,11 +210,11 @@ def joints_from_argument(text: str, pose_index: int | None) -> list[float]:
         Not six finite numbers, a missing file, or ``pose_index`` out of range.
     """
     from registration.errors import PointsFileError
-    from registration.io.points import _load_json
+    from registration.io.points import read_json
 
     path = Path(text)
     if path.suffix.lower() == ".json" or path.is_file():
-        obj = _load_json(path)
+        obj = read_json(path)
         where = str(path)
         if pose_index is not None:
             poses = obj.get("poses") if isinstance(obj, dict) else None
@@ -248,12 +248,12 @@ def write_joints(out: Path, joints_rad: list[float], robot: str, placement: str,
     """``out/joints.json`` (what `register --joints` reads) and, with ``poses``, its POSES.json entry."""
     import os
 
-    from registration.io.points import _load_json, write_json
+    from registration.io.points import read_json, write_json
 
     write_json(out / "joints.json", {"joints_rad": joints_rad, "robot_model": robot, "placement": placement})
     if poses is None:
         return
-    doc = _load_json(poses) if poses.is_file() else {"robot_model": robot, "poses": []}
+    doc = read_json(poses) if poses.is_file() else {"robot_model": robot, "poses": []}
     entries = doc.get("poses") if isinstance(doc, dict) else None
     if not isinstance(entries, list):
         from registration.errors import PointsFileError

@@ -82,7 +82,7 @@ def c_store(sro_bytes: bytes, cfg: PacsSettings) -> StoreOutcome:
     """Send one Part-10 SRO to ``cfg``'s PACS in its own association (see the module docstring)."""
     from pynetdicom import AE, evt
 
-    from drivers.dicom_scu import associate
+    from dicomnet.scu import associate
 
     ds = dcmread(BytesIO(sro_bytes))
     ae = AE(ae_title=cfg.calling_ae_title)

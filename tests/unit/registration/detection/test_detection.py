@@ -18,7 +18,7 @@ from registration.detection import (
     DetectionResult,
     detect_spheres,
 )
-from registration.detection.cross_check import _fit_radius, _SliceCircle
+from registration.detection.cross_check import SliceCircle, fit_radius
 from registration.detection.estimators.paper import _paper_depth
 from registration.errors import DetectionError
 from registration.imaging.volume import Volume
@@ -207,11 +207,11 @@ def test_paper_depth_uses_the_radius_trend() -> None:
     """Known answer: sphere R = 1.9 mm at z0 = 10.3 slices, 0.833 mm slices; exact radii per slice."""
     dz, r, z0 = 0.833, 1.9, 10.3
     circles = [
-        _SliceCircle(0.0, 0.0, k, math.sqrt(r * r - ((k - z0) * dz) ** 2))
+        SliceCircle(0.0, 0.0, k, math.sqrt(r * r - ((k - z0) * dz) ** 2))
         for k in (9, 10, 11, 12)
         if abs(k - z0) * dz < r
     ]
-    r_fit, z_fit = _fit_radius(circles, dz)
+    r_fit, z_fit = fit_radius(circles, dz)
     assert abs(r_fit - r) < 1e-9
     assert abs(z_fit / dz - z0) < 1e-9
     assert abs(_paper_depth(circles, r_fit, dz) - z0) < 1e-9

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from registration.detection import (
     DetectionParams,
 )
-from registration.detection.centroid import _BallWeights, axial_profile_position
+from registration.detection.centroid import BallWeights, axial_profile_position
 
 F64 = NDArray[np.float64]
 DZ_MM = 0.833
@@ -44,16 +44,16 @@ def _slice_sums(u_mm: F64, r1_mm: float, ramp_mm: float) -> F64:
     return inside + ramp
 
 
-def _profile(centre_k: float, r1_mm: float, ramp_mm: float, n_slices: int = 15) -> tuple[_BallWeights, F64]:
+def _profile(centre_k: float, r1_mm: float, ramp_mm: float, n_slices: int = 15) -> tuple[BallWeights, F64]:
     """Weights with one voxel per slice holding that slice's sum, and the slices' offsets u (mm)."""
     k = np.arange(n_slices, dtype=np.float64)
     u_mm = (k - centre_k) * DZ_MM
     w = _slice_sums(u_mm, r1_mm, ramp_mm)[:, None, None]
     zero = np.zeros((1, 1, 1))
-    return _BallWeights(w, (zero, zero, k[:, None, None]), 0.0, 1.0), u_mm
+    return BallWeights(w, (zero, zero, k[:, None, None]), 0.0, 1.0), u_mm
 
 
-def _centroid_k(bw: _BallWeights) -> float:
+def _centroid_k(bw: BallWeights) -> float:
     m = bw.w.sum(axis=(1, 2))
     return float((m * bw.ijk[2].ravel()).sum() / m.sum())
 
@@ -96,5 +96,5 @@ def test_too_few_or_cut_profiles_keep_the_centroid() -> None:
     assert axial_profile_position(bw, MIN_FRACTION) is None
     bw, _ = _profile(0.3, 1.4, 0.1)  # the profile runs into the crop's first slice
     assert axial_profile_position(bw, MIN_FRACTION) is None
-    empty = _BallWeights(np.zeros_like(bw.w), bw.ijk, 0.0, 1.0)
+    empty = BallWeights(np.zeros_like(bw.w), bw.ijk, 0.0, 1.0)
     assert axial_profile_position(empty, MIN_FRACTION) is None

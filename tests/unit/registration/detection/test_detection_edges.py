@@ -19,17 +19,17 @@ from registration.detection import (
     DetectionParams,
     detect_spheres,
 )
-from registration.detection.candidates import _Blob, find_blobs
-from registration.detection.centroid import _ball_weights, _subvoxel_centre
-from registration.detection.fov import _circular_fov_radius_mm
+from registration.detection.candidates import Blob, find_blobs
+from registration.detection.centroid import ball_weights, subvoxel_centre
+from registration.detection.fov import circular_fov_radius_mm
 from registration.detection.refine import edge_refined_centre
 from registration.detection.rejections import (
     MAX_CORE_AXIS_RATIO,
     OVERSIZED_REASONS,
     SizeLimits,
-    _separate,
     blob_reject_reason,
     core_axis_ratio,
+    separate,
 )
 from registration.errors import DetectionError
 from registration.imaging.volume import Volume
@@ -48,7 +48,7 @@ def test_sphere_cut_by_the_slab_end_is_rejected_from_its_symmetric_centre(depth_
     truth = np.array([[40.3, 40.6, depth_mm / SPACING[2]]])
     vol = make_volume(truth)
     start = truth[0] + [0.0, 0.0, 1.0]
-    centroid, _, _ = _subvoxel_centre(vol.voxels, start, SP, DetectionParams())
+    centroid, _, _ = subvoxel_centre(vol.voxels, start, SP, DetectionParams())
     _, reason = edge_refined_centre(vol.voxels, centroid, SP, DetectionParams(), None)
     assert reason is not None and "first/last slice" in reason
     assert detect_spheres(vol).spheres == ()
@@ -62,7 +62,7 @@ def test_whole_sphere_next_to_the_slab_end_is_kept(depth_mm: float) -> None:
     truth = np.array([40.3, 40.6, depth_mm / SPACING[2]])
     vol = make_volume(truth[None])
     p = DetectionParams()
-    centroid, _, _ = _subvoxel_centre(vol.voxels, truth + np.array([0.0, 0.0, 1.0]), SP, p)
+    centroid, _, _ = subvoxel_centre(vol.voxels, truth + np.array([0.0, 0.0, 1.0]), SP, p)
     refined, reason = edge_refined_centre(vol.voxels, centroid, SP, p, None)
     assert reason is None
     assert _err_mm(refined, truth) < 0.08
@@ -114,8 +114,8 @@ def test_linear_background_reduces_the_pull_into_the_plastic() -> None:
         face, plain = _face_volume(truth), make_volume(truth[None])
         for model, shifts in pull.items():
             p = DetectionParams(background_model=model)
-            c_face, _, _ = _subvoxel_centre(face.voxels, truth + 0.5, SP, p)
-            c_plain, _, _ = _subvoxel_centre(plain.voxels, truth + 0.5, SP, p)
+            c_face, _, _ = subvoxel_centre(face.voxels, truth + 0.5, SP, p)
+            c_plain, _, _ = subvoxel_centre(plain.voxels, truth + 0.5, SP, p)
             shifts.append(float((c_face[0] - c_plain[0]) * SPACING[0]))
     assert np.mean(pull["constant"]) < -0.02  # the bias the linear model exists to remove
     assert np.mean(np.abs(pull["linear"])) < 0.5 * np.mean(np.abs(pull["constant"]))
@@ -138,7 +138,7 @@ def _sphere(x_mm: float, n_slices: int, score: float) -> DetectedSphere:
 
 def test_separation_keeps_the_sphere_with_more_circle_slices() -> None:
     spheres = [_sphere(0.0, 1, 0.0), _sphere(5.0, 4, 0.9), _sphere(30.0, 0, 0.0)]
-    kept, dropped = _separate(spheres, min_separation_mm=7.5)
+    kept, dropped = separate(spheres, min_separation_mm=7.5)
     assert [s.center_image_mm[0] for s in kept] == [5.0, 30.0]
     assert len(dropped) == 1 and dropped[0].center_image_mm == (0.0, 0.0, 0.0)
     assert "5.0 mm from a sphere" in dropped[0].reason
@@ -146,7 +146,7 @@ def test_separation_keeps_the_sphere_with_more_circle_slices() -> None:
 
 def test_separation_keeps_spheres_one_pitch_apart() -> None:
     spheres = [_sphere(0.0, 3, 0.8), _sphere(15.0, 3, 0.8)]
-    kept, dropped = _separate(spheres, min_separation_mm=7.5)
+    kept, dropped = separate(spheres, min_separation_mm=7.5)
     assert len(kept) == 2 and dropped == []
 
 
@@ -156,12 +156,12 @@ def test_core_axis_ratio_separates_a_sphere_from_a_streak_line() -> None:
     truth = np.array([48.3, 47.6, 20.4])
     p = DetectionParams()
     sphere = make_volume(truth[None]).voxels
-    bw = _ball_weights(sphere, truth, SP, p, None)
+    bw = ball_weights(sphere, truth, SP, p, None)
     assert core_axis_ratio(bw, SP) < 1.5
     line = np.full(SHAPE, 100, dtype=np.int16)
     jj = np.arange(40, 56)
     line[20, jj, jj] = 3071  # a diagonal in-plane line, 9.4 mm long
-    bw_line = _ball_weights(line, np.array([48.0, 48.0, 20.0]), SP, p, None)
+    bw_line = ball_weights(line, np.array([48.0, 48.0, 20.0]), SP, p, None)
     assert core_axis_ratio(bw_line, SP) > 2 * MAX_CORE_AXIS_RATIO
 
 
@@ -172,7 +172,7 @@ def test_sparse_blob_is_sent_to_the_split_and_a_sphere_blob_is_not() -> None:
     p = DetectionParams()
     limits = SizeLimits.of(p, SP)
     box = (slice(20, 22), slice(40, 52), slice(30, 40))
-    fragment = _Blob(box, 19, 3071.0, np.array([35.0, 46.0, 20.5]), np.array([10, 12, 2]) * SP)
+    fragment = Blob(box, 19, 3071.0, np.array([35.0, 46.0, 20.5]), np.array([10, 12, 2]) * SP)
     reason = blob_reject_reason(fragment, limits, p)
     assert reason is not None and reason.startswith("sparse metal")
     assert reason.startswith(OVERSIZED_REASONS)
@@ -188,7 +188,7 @@ def test_separation_keeps_the_sphere_over_a_streak_fragment_of_it() -> None:
     """A split tungsten-carbide core (0 circle slices, 122 metal voxels) and a streak fragment
     5 mm from it (1 circle slice, 21 voxels): the core is the sphere (issue #11, cone-beam)."""
     core, fragment = _sphere(0.0, 0, 0.0), _sphere(5.0, 1, 0.0)
-    kept, dropped = _separate([core, fragment], 7.5, [122, 21])
+    kept, dropped = separate([core, fragment], 7.5, [122, 21])
     assert kept == [core] and len(dropped) == 1 and "more metal" in dropped[0].reason
 
 
@@ -196,7 +196,7 @@ def test_separation_ranks_comparable_candidates_by_circle_slices() -> None:
     """Two candidates of one sphere with comparable metal (118 and 165 voxels): the one with more
     circle slices stays, as before the fragment test."""
     good, other = _sphere(0.0, 4, 0.94), _sphere(0.2, 2, 0.39)
-    kept, _ = _separate([good, other], 7.5, [118, 165])
+    kept, _ = separate([good, other], 7.5, [118, 165])
     assert kept == [good]
 
 
@@ -276,7 +276,7 @@ def test_a_sphere_cut_by_an_fov_smaller_than_the_matrix_is_refused(cut_mm: float
     refused.  Taking the inscribed circle for the FOV, the padding read as image and the sphere
     was reported."""
     vol, _ = _fov_volume(-cut_mm, 0.7, 20.0, 60000.0, 3, fov_fraction=0.85)
-    fov_mm = _circular_fov_radius_mm(vol.voxels, SP)
+    fov_mm = circular_fov_radius_mm(vol.voxels, SP)
     assert fov_mm is not None and abs(fov_mm - 0.85 * SHAPE[1] / 2.0 * SPACING[0]) < SPACING[0]
     result = detect_spheres(vol)
     assert result.spheres == ()

@@ -21,8 +21,8 @@ from registration.detection import (
     DetectionParams,
     StageTimer,
 )
-from registration.detection.candidates import _Blob, _group_hits, find_blobs, threshold_hits
-from registration.detection.cross_check import _SliceCircle, slice_circles, sphere_score
+from registration.detection.candidates import Blob, find_blobs, group_hits, threshold_hits
+from registration.detection.cross_check import SliceCircle, slice_circles, sphere_score
 from registration.detection.detect import _checked_spacing
 from registration.detection.estimators.base import centre_estimator
 from registration.detection.estimators.paper import ESTIMATOR as PAPER
@@ -99,7 +99,7 @@ def test_find_blobs_measures_and_orders_components() -> None:
     vox[1:3, 3:5, 10:14] = 2500
     vox[1, 3, 10] = 3071
     flat, thr = threshold_hits(vox, 2000.0)
-    blobs = find_blobs(vox, _group_hits(flat, (12, 20, 20)), thr, SP, P.crop_margin_mm)
+    blobs = find_blobs(vox, group_hits(flat, (12, 20, 20)), thr, SP, P.crop_margin_mm)
     assert [b.n_voxels for b in blobs] == [16, 12]
     assert [b.peak_hu for b in blobs] == [3071.0, 3000.0]
     np.testing.assert_allclose(blobs[0].centroid_voxel, [11.5, 3.5, 1.5])
@@ -109,8 +109,8 @@ def test_find_blobs_measures_and_orders_components() -> None:
 # ----------------------------------------------------------------------------- reject reasons
 
 
-def _blob(extent_mm: tuple[float, float, float], n_voxels: int, peak_hu: float = 3071.0) -> _Blob:
-    return _Blob((slice(0, 5), slice(0, 5), slice(0, 5)), n_voxels, peak_hu, np.zeros(3), np.array(extent_mm))
+def _blob(extent_mm: tuple[float, float, float], n_voxels: int, peak_hu: float = 3071.0) -> Blob:
+    return Blob((slice(0, 5), slice(0, 5), slice(0, 5)), n_voxels, peak_hu, np.zeros(3), np.array(extent_mm))
 
 
 def test_blob_reject_reasons() -> None:
@@ -220,13 +220,13 @@ def test_slice_circles_find_the_sphere_in_its_slices(
 # ----------------------------------------------------------------------------- centres and score
 
 
-def _circles_of(centre_ijk: F64, radius_mm: float, ks: range, dz_mm: float) -> list[_SliceCircle]:
+def _circles_of(centre_ijk: F64, radius_mm: float, ks: range, dz_mm: float) -> list[SliceCircle]:
     out = []
     for k in ks:
         dz = (k - centre_ijk[2]) * dz_mm
         if abs(dz) < radius_mm:
             out.append(
-                _SliceCircle(float(centre_ijk[0]), float(centre_ijk[1]), k, math.sqrt(radius_mm**2 - dz**2))
+                SliceCircle(float(centre_ijk[0]), float(centre_ijk[1]), k, math.sqrt(radius_mm**2 - dz**2))
             )
     return out
 
@@ -257,7 +257,7 @@ def test_paper_estimator_recovers_an_exact_sphere(i: float, j: float, k: float, 
 
 
 def test_paper_estimator_refuses_a_single_slice() -> None:
-    one = [_SliceCircle(10.0, 10.0, 5, 1.5)]
+    one = [SliceCircle(10.0, 10.0, 5, 1.5)]
     centre, reason = PAPER.estimate(PaperCircles(one, math.nan, 0.8))
     assert centre is None and "needs ≥ 2 slices" in reason
 
@@ -267,7 +267,7 @@ def test_paper_estimator_refuses_a_single_slice() -> None:
 def test_sphere_score(n_circles: int, extra_slices: int, offset_fraction: float) -> None:
     r = 1.25
     centre = np.array([20.0, 20.0, 5.0])
-    circles = [_SliceCircle(20.0 + offset_fraction * r / SP[0], 20.0, k, 1.5) for k in range(n_circles)]
+    circles = [SliceCircle(20.0 + offset_fraction * r / SP[0], 20.0, k, 1.5) for k in range(n_circles)]
     score = sphere_score(circles, centre, SP, n_circles + extra_slices, r)
     expected = n_circles / (n_circles + extra_slices) * max(0.0, 1.0 - offset_fraction)
     assert score == pytest.approx(expected)

@@ -11,7 +11,7 @@ from test_detection import SPACING as GRID_MM
 from test_detection import make_volume
 
 from registration.detection import DetectionParams, detect_spheres
-from registration.detection.centroid import _subvoxel_centre
+from registration.detection.centroid import subvoxel_centre
 from registration.detection.estimators.ray_fit import (
     RayFit,
     RayParams,
@@ -87,7 +87,7 @@ def test_rays_locate_a_clipped_sphere_with_a_bright_streak(
 ) -> None:
     truth = (np.array([24.0, 24.0, 12.0]) + np.asarray(offset)) * SPACING
     vox = _sphere(truth, contrast_hu, sigma_mm, bg_hu, streak_hu, angle)
-    start, _, _ = _subvoxel_centre(
+    start, _, _ = subvoxel_centre(
         vox, truth / SPACING + np.array([0.3, -0.3, 0.2]), SPACING, DetectionParams()
     )
     fit = ray_centre(vox, start, SPACING, RADIUS_MM, SAT_HU, RayParams())
@@ -98,7 +98,7 @@ def test_rays_locate_a_clipped_sphere_with_a_bright_streak(
 def test_the_centroid_follows_the_streak_and_the_rays_do_not() -> None:
     truth = (np.array([24.0, 24.0, 12.0]) + np.array([0.3, 0.6, 0.4])) * SPACING
     vox = _sphere(truth, 1.5e4, 0.3, 100.0, 3.0e3, 0.0)
-    centroid, _, _ = _subvoxel_centre(vox, truth / SPACING, SPACING, DetectionParams())
+    centroid, _, _ = subvoxel_centre(vox, truth / SPACING, SPACING, DetectionParams())
     fit = ray_centre(vox, centroid, SPACING, RADIUS_MM, SAT_HU, RayParams())
     assert fit.centre_ijk is not None, fit.reason
     assert _inplane_error_mm(centroid, truth) > STREAK_MISS_MM

@@ -43,7 +43,7 @@ def test_every_package_and_config_file_is_in_the_wheel_list() -> None:
     tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     on_disk = {
         ".".join(p.parent.relative_to(REPO).parts)
-        for top in ("registration", "drivers", "service", "mocks")
+        for top in ("registration", "drivers", "dicomnet", "service", "mocks")
         for p in (REPO / top).rglob("__init__.py")
     }
     listed = set(tool["packages"])

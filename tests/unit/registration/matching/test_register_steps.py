@@ -25,8 +25,8 @@ from registration.errors import (
 )
 from registration.matching.correspondence import Hypothesis, farthest_point_order
 from registration.matching.hypotheses import (
+    Candidate,
     CandidatePool,
-    _Candidate,
     candidate_pool,
     check_enough_matched,
     check_mirror,
@@ -208,7 +208,7 @@ def test_check_mirror_skips_a_proper_full_match(phantom: Phantom) -> None:
 
 
 def _pool(
-    best: _Candidate | None, hyps_all: list[Hypothesis], hyps: list[Hypothesis], prior: F64 | None
+    best: Candidate | None, hyps_all: list[Hypothesis], hyps: list[Hypothesis], prior: F64 | None
 ) -> CandidatePool:
     return CandidatePool(best, [] if best is None else [best], hyps_all, hyps, None, prior)
 
@@ -217,14 +217,14 @@ def test_check_enough_matched(phantom: Phantom) -> None:
     robot, image, truth = _scene(phantom, np.eye(3), np.zeros(3))
     inp = _inputs(robot, image)
     res = _icp_result(truth, np.zeros(P.min_matched), robot)
-    good = _Candidate("candidate 0", truth, P.min_matched, 0.0, res)
+    good = Candidate("candidate 0", truth, P.min_matched, 0.0, res)
     assert check_enough_matched(inp, _pool(good, [], [], None), P) == (good, res)
     with pytest.raises(TooFewSpheresError, match=r"only 0 sphere\(s\) matched \(28 expected, 28 detected"):
         check_enough_matched(inp, _pool(None, [], [], None), P)
-    weak = _Candidate("candidate 0", truth, P.min_matched - 1, 0.0, res)
+    weak = Candidate("candidate 0", truth, P.min_matched - 1, 0.0, res)
     with pytest.raises(TooFewSpheresError, match=f"only {P.min_matched - 1} sphere"):
         check_enough_matched(inp, _pool(weak, [], [], None), P)
-    counted_only = _Candidate("candidate 0", truth, 20, 0.0, None)  # never refined by ICP
+    counted_only = Candidate("candidate 0", truth, 20, 0.0, None)  # never refined by ICP
     with pytest.raises(TooFewSpheresError):
         check_enough_matched(inp, _pool(counted_only, [], [], None), P)
     top = Hypothesis(truth, 28, 0.0)
@@ -240,11 +240,11 @@ def test_runner_up_of_the_full_grid_is_ambiguous(phantom: Phantom) -> None:
     robot = phantom.holes_phantom_mm.astype(np.float64)
     image = robot.copy()
     tree = cKDTree(image)
-    best = _Candidate("candidate 0", np.eye(4), len(robot), 0.0, None)
-    twin = _Candidate(
+    best = Candidate("candidate 0", np.eye(4), len(robot), 0.0, None)
+    twin = Candidate(
         "phantom symmetry", frames.make_transform(np.diag([-1.0, -1.0, 1.0]), np.zeros(3)), 64, 0.0
     )
-    same = _Candidate("candidate 1", frames.make_transform(np.eye(3), [0.1, 0.0, 0.0]), 64, 0.0)
+    same = Candidate("candidate 1", frames.make_transform(np.eye(3), [0.1, 0.0, 0.0]), 64, 0.0)
     ru = find_runner_up(best, [best, same, twin], robot, tree, P)
     assert ru.candidate is twin and ru.margin == 0 and ru.rotation_deg == pytest.approx(180.0)
     with pytest.raises(AmbiguousMatchError, match=r"phantom symmetry, rotated 180\.0°"):
@@ -255,7 +255,7 @@ def test_runner_up_of_the_full_grid_is_ambiguous(phantom: Phantom) -> None:
 @given(rotation=unit_quaternions, translation=translations)
 def test_runner_up_margin_of_a_clean_scene(phantom: Phantom, rotation: F64, translation: F64) -> None:
     robot, image, truth = _scene(phantom, rotation, translation)
-    best = _Candidate("candidate 0", truth, len(robot), 0.0)
+    best = Candidate("candidate 0", truth, len(robot), 0.0)
     ru = check_runner_up(best, [best], robot, cKDTree(image), P)
     assert (ru.n_best, ru.n_matched, ru.margin, ru.candidate) == (len(robot), 0, len(robot), None)
 
@@ -263,7 +263,7 @@ def test_runner_up_margin_of_a_clean_scene(phantom: Phantom, rotation: F64, tran
 def test_loose_best_without_runner_up_is_refused_not_asserted(phantom: Phantom) -> None:
     robot, image, truth = _scene(phantom, np.eye(3), np.zeros(3))
     far_off = truth @ frames.make_transform(np.eye(3), [0.0, 0.0, 5.0])  # 5 mm: outside the 1.5 mm gate
-    best = _Candidate("candidate 0", far_off, 28, 5.0)
+    best = Candidate("candidate 0", far_off, 28, 5.0)
     with pytest.raises(TooFewWithinGateError, match=r"only 0 lie within 1\.5 mm"):
         check_runner_up(best, [best], robot, cKDTree(image), P)
 
@@ -288,7 +288,7 @@ def test_subset_runner_up_comes_from_the_exhaustive_search(phantom: Phantom) -> 
     assert len(image) == 8
     inp = _inputs(robot, image)
     tree = cKDTree(image)
-    best = _Candidate("candidate 0", truth, 8, 0.03)
+    best = Candidate("candidate 0", truth, 8, 0.03)
     extra = exhaustive_candidates(best, [best], inp, None, tree, P)
     ru = find_runner_up(best, [best, *extra], robot, tree, P)
     assert (ru.n_best, ru.n_matched) == (8, 6) and ru.candidate is not None
@@ -299,7 +299,7 @@ def test_subset_runner_up_comes_from_the_exhaustive_search(phantom: Phantom) -> 
 
 def test_full_scan_skips_the_exhaustive_search(phantom: Phantom) -> None:
     robot, image, truth = _scene(phantom, np.eye(3), np.zeros(3))
-    best = _Candidate("candidate 0", truth, len(robot), 0.0)
+    best = Candidate("candidate 0", truth, len(robot), 0.0)
     assert exhaustive_candidates(best, [best], _inputs(robot, image), None, cKDTree(image), P) == []
 
 

@@ -1,4 +1,4 @@
-"""drivers.dicom_scu: the reactor of an SCU association takes requests, never a response."""
+"""dicomnet.scu: the reactor of an SCU association takes requests, never a response."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pynetdicom import AE
 from pynetdicom.association import Association
 from pynetdicom.dimse_primitives import C_ECHO, C_STORE
 
-from drivers.dicom_scu import keep_responses_for_the_caller
+from dicomnet.scu import keep_responses_for_the_caller
 
 
 def _response() -> C_STORE:

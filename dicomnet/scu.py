@@ -12,8 +12,8 @@ the SCP recorded the association as aborted. The race is known upstream (pynetdi
 :func:`associate` opens the association as ``AE.associate`` does, then lets its reactor take
 only *requests* off the queue. Responses stay queued for the ``send_*`` call waiting on them. An
 SCU association never receives a request, so nothing the reactor should serve is held back.
-Used by the PACS export, the mock O-arm's push and the test peers (here in ``drivers/`` because
-the mocks may import it and ``service/`` may not be imported by them).
+Used by the PACS export, the mock O-arm's push and the test peers; in :mod:`dicomnet` (not in
+``service/``) because the mocks use it and may not import ``service``.  Was ``drivers/dicom_scu.py``.
 """
 
 from __future__ import annotations
