@@ -661,7 +661,7 @@ def workflow(
                     oracle = tb.floor_errors(bed)
                     true_model = tb.score(bed, tb.true_model_predictor(bed))
                     rng = np.random.default_rng(seed * 100_003 + int(scale * 10) * 101 + start * 7 + (n or 0))
-                    meas, pred = [], []
+                    meas, pred, unmod = [], [], []
                     first: F64 | None = None
                     peer: F64 | None = None
                     for d in range(draws):
@@ -672,6 +672,7 @@ def workflow(
                             first, peer = e, tb.score(b, tb.peer_fit(b))
                         meas.append(math.sqrt(float(np.mean(e**2))))
                         pred.append(r.predicted_held_out_rms_mm)
+                        unmod.append(r.unmodelled_rms_mm)
                     assert first is not None and peer is not None
                     m, p = np.array(meas), np.array(pred)
                     ideal = math.sqrt(float(np.mean(m**2)))
@@ -692,6 +693,7 @@ def workflow(
                             _mm(peer),
                             _mm(first),
                             f"{plan.predicted_rms_mm:.3f}",
+                            f"{float(np.median(unmod)):.3f}",
                             f"{float(np.median(p)):.3f}",
                             f"{float(np.median(m)):.3f}",
                             f"{float(np.min(p / m)):.2f}–{float(np.max(p / m)):.2f}",
@@ -710,6 +712,7 @@ def workflow(
             "peer: plain LSQ (48)",
             "defaults",
             "planner predicted RMS",
+            "unmodelled per pose, held-out estimate (median)",
             "calibration predicted RMS (median)",
             "measured RMS (median)",
             "predicted / measured (min–max)",

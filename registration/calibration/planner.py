@@ -323,15 +323,17 @@ def _feasible(
 class _PlanPredictor:
     """The calibration's own prediction (:mod:`registration.calibration.prediction`) for a pose set
     before it is scanned: the same parameters, prior weight (:class:`CalibrationParams` defaults: no
-    prior for ``"ls"``), sandwich for the per-pose unmodelled error (``unmodelled_floor_mm``, which
-    the fit absorbs at its own poses) and additive terms, on noise-free planning data with the
-    detection error ``fle_rms_mm``, over the working volume's poses sampled once."""
+    prior for ``"ls"``), sandwich for the per-pose unmodelled error and additive terms (the
+    registration's TRE at each working pose's spheres), on noise-free planning data with the
+    detection error ``fle_rms_mm``, over the working volume's poses sampled once.  Before any scan
+    the unmodelled error is the prior ``unmodelled_floor_mm``; the calibration replaces it by what
+    its poses' held-out residuals show (``CalibrationParams.unmodelled_source``)."""
 
     jeff: F64  # (W, 3N, P) effective Jacobians at the working poses
     prior: F64
     s2: float
     unmodelled_mm: float
-    registration_tre_mm: float
+    registration_tre_ms: F64  # (W,) mean squared registration TRE at each working pose's spheres
 
     @classmethod
     def build(
@@ -342,9 +344,9 @@ class _PlanPredictor:
             WORKING_POSES,
             WORKING_SEED,
             _effective_jacobians,
+            registration_tre_ms,
         )
         from registration.calibration.records import PRIORS, CalibrationParams
-        from registration.calibration.solver import _registration_tre_rms_mm
 
         cp = CalibrationParams()
         y, x, chain = model.unpack(np.zeros(len(model.params)))
@@ -371,7 +373,7 @@ class _PlanPredictor:
             prior,
             params.fle_rms_mm**2 / 3.0,
             max(cp.unmodelled_floor_mm, cp.repeatability_rms_mm),
-            _registration_tre_rms_mm(params.fle_rms_mm, pts),
+            registration_tre_ms(model, np.zeros(len(model.params)), wq, q_reg, pts, params.fle_rms_mm),
         )
 
     def predict(self, info: F64, shared_info: F64) -> tuple[float, float]:
@@ -382,7 +384,7 @@ class _PlanPredictor:
         n = self.jeff.shape[1] // 3
         chain_ms = np.einsum("wip,pq,wiq->w", self.jeff, cov, self.jeff) / n
         chain_ms = np.where(chain_ms < 0.0, np.inf, chain_ms)
-        per = np.sqrt(chain_ms + 2.0 * self.unmodelled_mm**2 + self.registration_tre_mm**2)
+        per = np.sqrt(chain_ms + 2.0 * self.unmodelled_mm**2 + self.registration_tre_ms)
         return float(np.sqrt(np.mean(per**2))), float(per.max())
 
 

@@ -5,6 +5,7 @@ and the inflation a farthest-poses split measures (docs/calibration.md, "Predict
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
@@ -22,6 +23,7 @@ from registration.calibration.model import (
 from registration.calibration.records import (
     PRIORS,
     CalibrationParams,
+    UnmodelledEstimate,
     WorkingPrediction,
 )
 
@@ -133,8 +135,9 @@ def _effective_jacobians(model: _Model, values: F64, joints_rad: F64, reg_joints
 
 
 def _unmodelled_rms_mm(model: _Model, data: _Data, values: F64, fle_rms_mm: float) -> float:
-    """RMS of the per-pose rigid part of the residuals beyond what FLE leaks into it: errors no
-    geometric model has (repeatability, sag) as seen at the calibration poses."""
+    """RMS of the per-pose rigid part of the residuals beyond what FLE leaks into it, *in sample*:
+    what the fit left of the errors no geometric model has at its own poses (it absorbs most of
+    them, so this is biased low; a diagnostic beside :func:`loo_unmodelled`)."""
     r = _residuals(model, data, values).reshape(-1, 3)
     world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
     ms = []
@@ -149,6 +152,183 @@ def _unmodelled_rms_mm(model: _Model, data: _Data, values: F64, fle_rms_mm: floa
     return math.sqrt(max(float(np.mean(ms)) if ms else 0.0, 0.0))
 
 
+@dataclass(frozen=True)
+class LooMoments:
+    """Per pose i of :func:`loo_unmodelled`: the rigid part of its leave-one-pose-out residual and
+    what the error model expects of it.  E[``q``] = ``a`` FLE² + ``b`` u², Var[``q``] =
+    ``var_fle`` FLE⁴ + ``var_cross`` FLE² u² + ``var_u`` u⁴ (a Gaussian quadratic form)."""
+
+    q: F64
+    a: F64
+    b: F64
+    var_fle: F64
+    var_cross: F64
+    var_u: F64
+
+
+def loo_moments(model: _Model, data: _Data, values: F64, ridge: F64) -> LooMoments:
+    """Leave-one-pose-out residuals of the linearised fit and their expected size, per pose.
+
+    Fitting without pose i moves the estimate by −A₋ᵢ⁻¹ Jᵢᵀ rᵢ (A₋ᵢ = Σ_{k≠i} JₖᵀJₖ + diag(``ridge``),
+    the normal matrix without the pose; exact for a linear model with a quadratic prior), so pose
+    i's held-out residual is r̃ᵢ = rᵢ + Jᵢ A₋ᵢ⁻¹ Jᵢᵀ rᵢ — the block form of PRESS, no refit.  ``q`` is
+    the mean squared rigid part of r̃ᵢ per sphere (3-D): a shared error of the pose (the arm's
+    repeatability, sag the model does not have) is rigid, so the rigid part carries it while the
+    detection noise leaks only 6 of its 3n dimensions into it.
+
+    Under the error model of :func:`sandwich_covariance` (isotropic detection noise FLE² / 3 per
+    component; a shared per-pose translation of u² 3-D at every pose) r̃ᵢ has covariance
+    Σᵢ + Jᵢ A₋ᵢ⁻¹ (Σ_{k≠i} Jₖᵀ Σₖ Jₖ) A₋ᵢ⁻¹ Jᵢᵀ: the pose's own error and the error the other
+    poses leave in the estimate.  It is linear in FLE² and u², which gives ``a`` and ``b``."""
+    jac = _jacobian(model, data, values)
+    r = _residuals(model, data, values)
+    world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
+    k, p = len(data.joints_rad), len(values)
+    sph_rows = [np.flatnonzero(data.pose_of == i) for i in range(k)]
+    comp_rows = [(3 * s[:, None] + np.arange(3)).reshape(-1) for s in sph_rows]
+    js = [jac[c] for c in comp_rows]
+    infos = np.stack([j.T @ j for j in js])
+    sums = np.stack([j.reshape(-1, 3, p).sum(axis=0) for j in js])  # (K, 3, P)
+    shared = np.einsum("kip,kiq->kpq", sums, sums)
+    info_all, shared_all = infos.sum(axis=0), shared.sum(axis=0)
+    out = np.full((6, k), np.nan)
+    for i in range(k):
+        n = len(sph_rows[i])
+        if n < 3:
+            continue
+        a_i = info_all - infos[i] + np.diag(ridge)
+        d = np.sqrt(np.clip(np.diag(a_i), 1e-300, None))
+        try:
+            inv = np.linalg.inv(a_i / np.outer(d, d)) / np.outer(d, d)
+        except np.linalg.LinAlgError:
+            continue
+        ji, ri = js[i], r[comp_rows[i]]
+        rt = ri + ji @ (inv @ (ji.T @ ri))
+        basis, _ = np.linalg.qr(_skew_rows(world[sph_rows[i]]))  # (3n, 6): the pose's rigid motions
+        qj = basis.T @ ji
+        # covariance of r̃ᵢ in the rigid basis, per unit FLE²: (I + Jᵢ A⁻¹ Σ_{k≠i} JₖᵀJₖ A⁻¹ Jᵢᵀ) / 3;
+        # per unit u²: (TTᵀ + Jᵢ A⁻¹ Σ_{k≠i} SₖᵀSₖ A⁻¹ Jᵢᵀ) / 3, T the (3n, 3) shared translation
+        c_fle = (np.eye(6) + qj @ inv @ (info_all - infos[i]) @ inv @ qj.T) / 3.0
+        qt = basis.T @ np.tile(np.eye(3), (n, 1))
+        c_u = (qt @ qt.T + qj @ inv @ (shared_all - shared[i]) @ inv @ qj.T) / 3.0
+        pr = basis.T @ rt
+        out[:, i] = (
+            float(pr @ pr) / n,
+            float(np.trace(c_fle)) / n,
+            float(np.trace(c_u)) / n,
+            2.0 * float(np.sum(c_fle * c_fle)) / n**2,
+            4.0 * float(np.sum(c_fle * c_u)) / n**2,
+            2.0 * float(np.sum(c_u * c_u)) / n**2,
+        )
+    ok = np.all(np.isfinite(out), axis=0)
+    return LooMoments(*(np.asarray(v[ok], dtype=np.float64) for v in out))
+
+
+def loo_unmodelled(m: LooMoments, fle_rms_mm: float, start_mm: float) -> tuple[float, float]:
+    """(û², its standard error) mm² of the per-pose unmodelled error from :func:`loo_moments`:
+    generalised least squares of qᵢ − aᵢ FLE² = bᵢ u² over the poses, each weighted by the inverse
+    of its variance at the current û² (from ``start_mm``², three passes).  The poses are treated
+    as independent (they share the fit: a little optimistic on the standard error).  (nan, nan)
+    without poses."""
+    if not len(m.q):
+        return math.nan, math.nan
+    f2 = fle_rms_mm**2
+    u2 = start_mm**2
+    est, se = math.nan, math.nan
+    for _ in range(3):
+        var = m.var_fle * f2**2 + m.var_cross * f2 * u2 + m.var_u * u2**2
+        w = m.b**2 / np.clip(var, 1e-300, None)
+        est = float(np.sum(m.b / np.clip(var, 1e-300, None) * (m.q - m.a * f2)) / np.sum(w))
+        se = math.sqrt(1.0 / float(np.sum(w)))
+        u2 = max(est, 0.0)
+    return est, se
+
+
+MIN_LOO_POSES: Final = 3
+"""Fewer poses with a held-out residual than this give no estimate of the unmodelled error: the
+prior (``unmodelled_floor_mm``) stands."""
+
+
+def estimate_unmodelled(
+    model: _Model, data: _Data, values: F64, fle_rms_mm: float, params: CalibrationParams
+) -> UnmodelledEstimate:
+    """The per-pose unmodelled error the prediction adds (and the sandwich takes), with its source.
+
+    ``"leave-one-pose-out"`` (default): û² ± se from the session's own held-out residuals
+    (:func:`loo_moments`, :func:`loo_unmodelled`); the prediction takes the upper bound
+    û² + ``unmodelled_se_factor`` · se, so a session whose poses measure it poorly gets a wider
+    figure.  When one standard error alone exceeds the prior (``unmodelled_floor_mm``²) the poses
+    cannot tell it from the prior, and the figure is at least the prior.  Never below the arm's
+    repeatability (``repeatability_rms_mm``): every move lands elsewhere by that much."""
+    in_sample = _unmodelled_rms_mm(model, data, values, fle_rms_mm)
+    floor, rep = params.unmodelled_floor_mm, params.repeatability_rms_mm
+    if params.unmodelled_source == "prior":
+        return UnmodelledEstimate(
+            max(in_sample, floor, rep),
+            "prior",
+            f"asked for (unmodelled_source): max(in-sample rigid residual {in_sample:.4f} mm, "
+            f"prior {floor:g} mm)",
+            in_sample_rms_mm=in_sample,
+        )
+    s2 = max(fle_rms_mm**2 / 3.0, 1e-6)
+    ridge = s2 * LS_PRIOR_WEIGHT / np.array([PRIORS.sigma_posterior(p) for p in model.params]) ** 2
+    if model.prior_weights is not None:
+        ridge = ridge + model.prior_weights**2
+    moments = loo_moments(model, data, values, ridge)
+    est, se = loo_unmodelled(moments, fle_rms_mm, max(rep, in_sample))
+    n = len(moments.q)
+    if n < MIN_LOO_POSES or not (math.isfinite(est) and math.isfinite(se)):
+        return UnmodelledEstimate(
+            max(floor, rep),
+            "prior",
+            f"only {n} poses with a held-out residual (need {MIN_LOO_POSES}): the prior {floor:g} mm",
+            est,
+            se,
+            n,
+            in_sample,
+        )
+    upper = math.sqrt(max(est, 0.0) + params.unmodelled_se_factor * se)
+    said = (
+        f"{n} poses' held-out residuals: û = {math.sqrt(max(est, 0.0)):.4f} mm, "
+        f"standard error of û² {se:.2g} mm², upper bound {upper:.4f} mm"
+    )
+    if math.sqrt(se) > floor:
+        return UnmodelledEstimate(
+            max(upper, floor, rep),
+            "leave-one-pose-out, widened to the prior",
+            f"{said}; one standard error ({math.sqrt(se):.4f} mm) is wider than the prior {floor:g} mm: "
+            "the poses do not measure it, at least the prior",
+            est,
+            se,
+            n,
+            in_sample,
+        )
+    return UnmodelledEstimate(max(upper, rep), "leave-one-pose-out", said, est, se, n, in_sample)
+
+
+def registration_tre_ms(
+    model: _Model,
+    values: F64,
+    working_joints_rad: F64,
+    registration_joints_rad: F64,
+    pts: F64,
+    fle_rms_mm: float,
+) -> F64:
+    """(W,) mean squared TRE over each working pose's spheres of the one-scan registration at
+    ``registration_joints_rad`` (Fitzpatrick 1998 eq. 46, FLE ``fle_rms_mm``): the registration's
+    rotation error grows with the distance from the registration scan's spheres, and a working
+    pose's spheres are up to ~150 mm from them (issue #33: evaluated at the registration scan's own
+    spheres, the term was ⅓ of what the test bed's held-out poses measure)."""
+    from registration.matching.quality import predicted_tre_mm
+
+    q = np.vstack([working_joints_rad, registration_joints_rad[None]])
+    n = len(pts)
+    world = model.predict(values, q, np.tile(pts, (len(q), 1)), np.repeat(np.arange(len(q)), n))
+    world = world.reshape(len(q), n, 3)
+    tre = predicted_tre_mm(fle_rms_mm, world[-1], world[:-1].reshape(-1, 3)).reshape(len(q) - 1, n)
+    return np.asarray(np.mean(tre**2, axis=1), dtype=np.float64)
+
+
 def predict_working_error(
     model: _Model,
     values: F64,
@@ -158,12 +338,13 @@ def predict_working_error(
     pts: F64,
     *,
     unmodelled_rms_mm: float,
-    registration_tre_rms_mm: float,
+    registration_fle_rms_mm: float,
     candidate_joints_rad: F64 | None = None,
 ) -> WorkingPrediction:
     """Posterior covariance propagated through the kinematics to the working poses (after a one-scan
     re-registration at ``registration_joints_rad``), plus √2 × the unmodelled error (at the
-    pose and at the registration pose) and the registration's own TRE, in quadrature."""
+    pose and at the registration pose) and the registration's TRE at the pose's spheres
+    (:func:`registration_tre_ms`), in quadrature."""
     jeff = _effective_jacobians(model, values, working_joints_rad, registration_joints_rad, pts)
     n = len(pts)
     chain_ms = np.einsum("wip,pq,wiq->w", jeff, cov, jeff) / n
@@ -172,7 +353,10 @@ def predict_working_error(
     rounding_ms = 1e-9 * np.einsum("wip,p,wip->w", jeff, np.abs(np.diag(cov)), jeff) / n
     chain_ms = np.where(chain_ms < -rounding_ms, np.inf, np.clip(chain_ms, 0.0, None))
     chain_rms = np.sqrt(chain_ms)
-    per = np.sqrt(chain_ms + 2.0 * unmodelled_rms_mm**2 + registration_tre_rms_mm**2)
+    reg_ms = registration_tre_ms(
+        model, values, working_joints_rad, registration_joints_rad, pts, registration_fle_rms_mm
+    )
+    per = np.sqrt(chain_ms + 2.0 * unmodelled_rms_mm**2 + reg_ms)
     worst = int(np.argmax(per))
     lam, vec = np.linalg.eigh((cov + cov.T) / 2.0)
     lo = vec * np.sqrt(np.clip(lam, 0.0, None))
@@ -194,6 +378,7 @@ def predict_working_error(
         registration_joints_rad,
         per,
         chain_rms,
+        np.sqrt(reg_ms),
         float(np.sqrt(np.mean(per**2))),
         float(per.max()),
         weak,
@@ -260,7 +445,7 @@ def _working_prediction(
     params: CalibrationParams,
     scan_volume: ScanVolume | None,
     unmodelled_rms_mm: float,
-    registration_tre_rms_mm: float,
+    fle_rms_mm: float,
 ) -> tuple[WorkingPrediction, dict[str, Any]]:
     """Sample the working volume (scan volume + margin) with the calibrated model and predict."""
     from registration.calibration.sampling import sample_poses_in_volume
@@ -301,7 +486,7 @@ def _working_prediction(
         q_reg,
         pts,
         unmodelled_rms_mm=unmodelled_rms_mm,
-        registration_tre_rms_mm=registration_tre_rms_mm,
+        registration_fle_rms_mm=fle_rms_mm,
         candidate_joints_rad=inside,
     )
     doc = {

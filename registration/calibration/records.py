@@ -157,11 +157,24 @@ class CalibrationParams:
     target 150 mm from it (the registration's TRE targets) sits up to ~40 mm outside the volume
     when the phantom is at its edge.  The prediction and the refusal are over this volume."""
     unmodelled_floor_mm: float = 0.04
-    """Least RMS per-pose error (mm, 3-D) no geometric model has — compliance/sag, backlash,
-    repeatability — used when the residuals show less (a fit absorbs most of it at its own poses).
-    Origin: Stäubli TX60 repeatability ± 0.02 mm [unverified datasheet value] and non-geometric
-    errors ≈ 10 % of the position error (Klimchik et al., research/calibration.md §1) of the
-    TX60's 0.31 mm nominal error: √(0.02² + 0.031²) ≈ 0.04 mm."""
+    """*Prior* RMS per-pose error (mm, 3-D) no geometric model has — compliance/sag, backlash,
+    repeatability: what the planner assumes before any scan exists, and what the calibration
+    falls back to (or widens to) when its poses cannot measure it (:attr:`unmodelled_source`,
+    docs/calibration.md "Predicted error").  Origin: Stäubli TX60 repeatability ± 0.02 mm
+    [unverified datasheet value] and non-geometric errors ≈ 10 % of the position error (Klimchik
+    et al., research/calibration.md §1) of the TX60's 0.31 mm nominal error:
+    √(0.02² + 0.031²) ≈ 0.04 mm."""
+    unmodelled_source: Literal["leave-one-pose-out", "prior"] = "leave-one-pose-out"
+    """Where the calibration's unmodelled per-pose error comes from: ``"leave-one-pose-out"``
+    measures it on the session's own held-out residuals (:func:`registration.calibration.
+    prediction.loo_unmodelled`: the rigid part of each pose's leave-one-pose-out residual beyond
+    what detection noise and the other poses' errors explain, plus :attr:`unmodelled_se_factor`
+    standard errors; the prior :attr:`unmodelled_floor_mm` where it cannot); ``"prior"`` takes
+    max(in-sample residual, :attr:`unmodelled_floor_mm`) as before issue #33's last step."""
+    unmodelled_se_factor: float = 1.0
+    """Standard errors added to the leave-one-pose-out estimate of u² (mm²): the prediction uses
+    its one-sided 84 % upper bound, so few poses (a wide estimate) widen the prediction instead of
+    shrinking it.  1 is the convention for "one standard error", not tuned on the test bed."""
     repeatability_rms_mm: float = 0.0096
     """Least 3-D RMS of the error every sphere of one scan shares (the arm's repeatability: each
     move lands slightly elsewhere), used in the covariance's sandwich when the residuals show less.
@@ -276,10 +289,14 @@ class CalibrationResult:
     posterior_cov: F64 | None = None
     """(P, P) posterior covariance of ``values`` (rad, mm)."""
     unmodelled_rms_mm: float = float("nan")
+    """The per-pose unmodelled error (mm, 3-D RMS) the prediction used; where it came from is in
+    :attr:`unmodelled`."""
     prediction: WorkingPrediction | None = None
     working_volume: dict[str, Any] | None = None
     target_rms_mm: float = TARGET_RMS_MM
     """The planner's target the prediction is compared with (``CalibrationParams.target_rms_mm``)."""
+    unmodelled: UnmodelledEstimate | None = None
+    """How :attr:`unmodelled_rms_mm` was estimated (source, the held-out figure, its standard error)."""
 
     @property
     def predicted_held_out_rms_mm(self) -> float:
@@ -380,6 +397,7 @@ class CalibrationResult:
                 else [{"prior_scale": k, "mean_sq_mm2": v} for k, v in self.cv_scores.items()]
             ),
             "unmodelled_rms_mm": _finite_or_none(self.unmodelled_rms_mm),
+            "unmodelled": None if self.unmodelled is None else self.unmodelled.to_dict(),
             "working_volume": self.working_volume,
             "predicted_working": (
                 None
@@ -403,6 +421,47 @@ def _finite_or_none(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
+@dataclass(frozen=True)
+class UnmodelledEstimate:
+    """The per-pose error no geometric model has (mm, 3-D RMS), as the prediction uses it, and
+    where it came from (``CalibrationParams.unmodelled_source``; docs/calibration.md)."""
+
+    rms_mm: float
+    """What the prediction used (at least ``CalibrationParams.repeatability_rms_mm``)."""
+    source: Literal["leave-one-pose-out", "leave-one-pose-out, widened to the prior", "prior"]
+    """``"leave-one-pose-out"``: the session's own held-out residuals (upper bound
+    û² + f·se); ``"… widened to the prior"``: they could not pin it better than the prior
+    (one standard error wider than ``unmodelled_floor_mm``), so at least the prior;
+    ``"prior"``: ``unmodelled_floor_mm`` (too few poses, or asked for)."""
+    reason: str
+    """One sentence for the record: the figures behind ``source``."""
+    loo_mm2: float = float("nan")
+    """û² (mm², may be < 0: noise) of :func:`registration.calibration.prediction.loo_unmodelled`."""
+    loo_se_mm2: float = float("nan")
+    """Its standard error (mm²)."""
+    n_poses: int = 0
+    """Poses with a held-out residual behind the estimate."""
+    in_sample_rms_mm: float = float("nan")
+    """The rigid residual the fit leaves at its own poses (biased low: the fit absorbs most of it)."""
+
+    @property
+    def loo_rms_mm(self) -> float:
+        """√max(û², 0): the held-out estimate itself, before the standard error is added."""
+        return math.sqrt(max(self.loo_mm2, 0.0)) if math.isfinite(self.loo_mm2) else float("nan")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "rms_mm": self.rms_mm,
+            "source": self.source,
+            "reason": self.reason,
+            "leave_one_pose_out_rms_mm": _finite_or_none(self.loo_rms_mm),
+            "leave_one_pose_out_mm2": _finite_or_none(self.loo_mm2),
+            "leave_one_pose_out_se_mm2": _finite_or_none(self.loo_se_mm2),
+            "n_poses": self.n_poses,
+            "in_sample_rms_mm": _finite_or_none(self.in_sample_rms_mm),
+        }
+
+
 @dataclass(frozen=True, eq=False)
 class WorkingPrediction:
     """The predicted error over the working volume (mm) and what limits it."""
@@ -414,6 +473,8 @@ class WorkingPrediction:
     """RMS sphere error predicted at each sampled pose (chain posterior + unmodelled + registration)."""
     chain_rms_mm: F64
     """... its part from the calibrated model's posterior alone."""
+    registration_rms_mm: F64
+    """... its part from the one-scan registration's detection error (TRE at the pose's spheres)."""
     rms_mm: float
     max_mm: float
     weak_direction: tuple[tuple[str, float], ...]

@@ -80,8 +80,8 @@ from registration.calibration.model import (
 from registration.calibration.prediction import (
     _farthest_split_inflation,
     _posterior_cov,
-    _unmodelled_rms_mm,
     _working_prediction,
+    estimate_unmodelled,
 )
 from registration.calibration.records import (
     DROP_CONDITION,
@@ -93,6 +93,7 @@ from registration.calibration.records import (
     Parameter,
     SessionMismatchError,
     TooFewPosesError,
+    UnmodelledEstimate,
     WorkingPrediction,
 )
 from registration.calibration.urdf import SerialChain
@@ -334,7 +335,8 @@ def calibrate(
         prior_scale=fit.scale,
         cv_scores=fit.cv,
         posterior_cov=pred.cov,
-        unmodelled_rms_mm=pred.unmod,
+        unmodelled_rms_mm=pred.unmodelled.rms_mm,
+        unmodelled=pred.unmodelled,
         prediction=pred.prediction,
         working_volume=pred.volume_doc,
         target_rms_mm=params.target_rms_mm,
@@ -423,7 +425,7 @@ class _Predicted:
 
     fle: float
     reg_tre: float
-    unmod: float
+    unmodelled: UnmodelledEstimate
     cov: F64
     prediction: WorkingPrediction
     volume_doc: dict[str, Any]
@@ -440,8 +442,8 @@ def _predict(
     """FLE, the unmodelled error, the posterior covariance and the working-volume prediction."""
     fle = _fle_rms_mm(r, len(fit.model.params))
     reg_tre = _registration_tre_rms_mm(fle, pts)
-    shared = _unmodelled_rms_mm(fit.model, fit.data, fit.values, fle)
-    unmod = max(shared, params.unmodelled_floor_mm)
+    unmodelled = estimate_unmodelled(fit.model, fit.data, fit.values, fle, params)
+    unmod = unmodelled.rms_mm
     # the per-pose error the prediction adds at every working pose was there at the calibration poses
     # too, and the fit absorbed it into the parameters: the sandwich takes the same figure (issue #33)
     cov = _posterior_cov(
@@ -467,11 +469,11 @@ def _predict(
         params,
         scan_volume,
         unmod * math.sqrt(inflation),
-        reg_tre,
+        fle,
     )
     volume_doc["farthest_split"] = {"poses": [int(i) for i in split], "variance_inflation": inflation}
     timings["prediction_s"] = time.perf_counter() - t_p
-    return _Predicted(fle, reg_tre, unmod, cov, prediction, volume_doc)
+    return _Predicted(fle, reg_tre, unmodelled, cov, prediction, volume_doc)
 
 
 def match_pose(
