@@ -281,12 +281,12 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
     truth = [frames.apply(cell.image_from_phantom_true(SYNTHETIC_Y, q), pts) for q in held]
     old = _old_calibration(old_ref)
     no_lopo = CalibrationParams(leave_one_out=False)
-    floor_s, _ = median_time_s(lambda: cal_model._initial_estimate(poses, chain, pts), repeats=repeats)
+    floor_s, _ = median_time_s(lambda: cal_model.initial_estimate(poses, chain, pts), repeats=repeats)
     rows: list[tuple[str, Any]] = [
         (f"session: {n_poses} poses × {len(pts)} spheres, FLE {SYNTHETIC_FLE_RMS_MM} mm", ""),
         ("closed-form floor (Shah + rigid fits) median (s)", floor_s),
     ]
-    # module globals _fit reads at call time: TRF's trust-region solver, and scipy's per-component
+    # module globals fit_parameters reads at call time: TRF's trust-region solver, and scipy's per-component
     # soft_l1 in place of the per-sphere one (for comparison only: it depends on the image axes)
     variants: list[tuple[str, Any, dict[str, Any]]] = [
         (f"hand-written LM ({old_ref})", old, {}),
@@ -301,11 +301,11 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
         for k, v in patch.items():
             setattr(mod, k, v)
         res = mod.calibrate(poses, chain, rod, pts, no_lopo)
-        data = mod._stack(poses, pts)
-        y0, x0 = mod._initial_estimate(poses, chain, pts)
-        m = mod._Model(y0, x0, chain, res.parameters)
+        data = mod.stack_observations(poses, pts)
+        y0, x0 = mod.initial_estimate(poses, chain, pts)
+        m = mod.ErrorModel(y0, x0, chain, res.parameters)
         zeros = np.zeros(len(res.parameters))
-        fit_s, _ = median_time_s(partial(mod._fit, m, data, zeros, no_lopo), repeats=repeats)
+        fit_s, _ = median_time_s(partial(mod.fit_parameters, m, data, zeros, no_lopo), repeats=repeats)
         cal_s, _ = median_time_s(partial(mod.calibrate, poses, chain, rod, pts, no_lopo), repeats=repeats)
         err = np.concatenate(
             [
@@ -320,7 +320,7 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
             ]
         )
         rows += [
-            (f"{label}: _fit median (s)", fit_s),
+            (f"{label}: fit_parameters median (s)", fit_s),
             (f"{label}: calibrate without LOPO median (s), budget {SOLVE_BUDGET_S:g} s", cal_s),
             (f"{label}: calibrate / floor", cal_s / floor_s),
             (f"{label}: fit RMS (mm)", res.fit_rms_mm),
@@ -836,10 +836,10 @@ def main(argv: list[str] | None = None) -> int:
     solve_s, _ = median_time_s(lambda: calibrate(s.matched, s.chain, s.rod, pts, no_lopo), repeats=5)
     # floor measured in the same run: one Shah closed form + per-pose rigid fits (no iteration)
     from registration.calibration.model import (
-        _initial_estimate,
+        initial_estimate,
     )
 
-    floor_s, _ = median_time_s(lambda: _initial_estimate(s.matched, s.chain, pts), repeats=5)
+    floor_s, _ = median_time_s(lambda: initial_estimate(s.matched, s.chain, pts), repeats=5)
     r = s.result
     cal, nom = e["calibrated"], e["nominal"]
     cal_rms = math.sqrt(float(np.mean(cal**2)))

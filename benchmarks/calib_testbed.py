@@ -43,12 +43,12 @@ from scipy.optimize import least_squares
 
 from mocks.cell import CellErrorSizes, TrueCell
 from registration.calibration.model import (
-    _Data,
-    _initial_estimate,
-    _Model,
-    _residuals,
-    _stack,
+    ErrorModel,
+    Observations,
+    initial_estimate,
     parameter_candidates,
+    residuals_mm,
+    stack_observations,
 )
 from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses, solve_ik
 from registration.calibration.records import (
@@ -57,7 +57,7 @@ from registration.calibration.records import (
     CalibrationResult,
     MatchedPose,
 )
-from registration.calibration.sampling import _wrist_flip
+from registration.calibration.sampling import wrist_flip
 from registration.calibration.solver import (
     calibrate,
 )
@@ -190,9 +190,7 @@ def random_poses(
         targets.append(frames.make_transform(r0 @ _rand_rotation_tilt(rng, max_tilt_deg), c))
     timg = np.stack(targets)
     trob = frames.invert(y) @ timg @ frames.invert(rod)
-    seeds = np.concatenate(
-        [np.repeat(q0[None], len(trob), 0), np.repeat(_wrist_flip(q0)[None], len(trob), 0)]
-    )
+    seeds = np.concatenate([np.repeat(q0[None], len(trob), 0), np.repeat(wrist_flip(q0)[None], len(trob), 0)])
     q, err = solve_ik(chain, np.concatenate([trob, trob]), seeds)
     lim = math.radians(5.0)
     ok = (err < 1e-4) & np.all((q >= chain.lower_rad + lim) & (q <= chain.upper_rad - lim), axis=1)
@@ -456,10 +454,10 @@ def result_predictor(r: CalibrationResult) -> Predictor:
 def peer_fit(bed: Bed) -> Predictor:
     """Plain least squares over 6 error parameters per joint origin + rod + placement (48)."""
     pts = bed.phantom.centres_phantom_mm
-    data: _Data = _stack(bed.poses, pts)
-    y0, x0 = _initial_estimate(bed.poses, bed.chain, pts)
-    model = _Model(y0, x0, bed.chain, tuple(parameter_candidates(bed.chain)))
-    res = least_squares(lambda v: _residuals(model, data, v), np.zeros(len(model.params)))
+    data: Observations = stack_observations(bed.poses, pts)
+    y0, x0 = initial_estimate(bed.poses, bed.chain, pts)
+    model = ErrorModel(y0, x0, bed.chain, tuple(parameter_candidates(bed.chain)))
+    res = least_squares(lambda v: residuals_mm(model, data, v), np.zeros(len(model.params)))
     _, x, ch = model.unpack(np.asarray(res.x, dtype=np.float64))
     return lambda q: ch.robot_from_tool0(q) @ x
 

@@ -14,10 +14,10 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from registration.calibration.model import (
-    _Data,
-    _jacobian,
-    _Model,
-    _residuals,
+    ErrorModel,
+    Observations,
+    jacobian,
+    residuals_mm,
 )
 from registration.calibration.records import (
     PRIORS,
@@ -93,26 +93,26 @@ def _prior_loss(n_data: int) -> Any:
     return loss
 
 
-def _augmented(model: _Model, data: _Data) -> tuple[Any, Any, Any]:
+def _augmented(model: ErrorModel, data: Observations) -> tuple[Any, Any, Any]:
     """(residuals, Jacobian, loss) of the MAP cost: sphere residuals, then w_j θ_j per prior row."""
     w = model.prior_weights
     if w is None or not np.any(w > 0):
-        return (lambda v: _residuals(model, data, v)), (lambda v: _jacobian(model, data, v)), _sphere_soft_l1
+        return (lambda v: residuals_mm(model, data, v)), (lambda v: jacobian(model, data, v)), _sphere_soft_l1
     rows = np.flatnonzero(w > 0)
     prior_jac = np.zeros((len(rows), len(w)))
     prior_jac[np.arange(len(rows)), rows] = w[rows]
     n_data = 3 * len(data.pose_of)
 
     def fun(v: F64) -> F64:
-        return np.concatenate([_residuals(model, data, v), w[rows] * v[rows]])
+        return np.concatenate([residuals_mm(model, data, v), w[rows] * v[rows]])
 
     def jac(v: F64) -> F64:
-        return np.vstack([_jacobian(model, data, v), prior_jac])
+        return np.vstack([jacobian(model, data, v), prior_jac])
 
     return fun, jac, _prior_loss(n_data)
 
 
-def _fit(model: _Model, data: _Data, x0: F64, params: CalibrationParams) -> F64:
+def fit_parameters(model: ErrorModel, data: Observations, x0: F64, params: CalibrationParams) -> F64:
     """Robust least squares on all sphere residuals: ``scipy.optimize.least_squares`` (TRF) with
     the analytic Jacobian and a soft-L1 loss of scale ``robust_scale_mm`` on each sphere's 3-D
     distance; with ``model.prior_weights`` the MAP cost (prior rows squared)."""
@@ -135,8 +135,10 @@ def _fit(model: _Model, data: _Data, x0: F64, params: CalibrationParams) -> F64:
     return np.asarray(res.x, dtype=np.float64)
 
 
-def _per_pose(model: _Model, data: _Data, values: F64, n_poses: int) -> tuple[F64, F64, list[F64]]:
-    err = np.linalg.norm(_residuals(model, data, values).reshape(-1, 3), axis=1)
+def per_pose_errors_mm(
+    model: ErrorModel, data: Observations, values: F64, n_poses: int
+) -> tuple[F64, F64, list[F64]]:
+    err = np.linalg.norm(residuals_mm(model, data, values).reshape(-1, 3), axis=1)
     per = [err[data.pose_of == i] for i in range(n_poses)]
     rms = np.array([math.sqrt(float(np.mean(e**2))) if e.size else float("nan") for e in per])
     mx = np.array([float(e.max()) if e.size else float("nan") for e in per])
@@ -150,8 +152,8 @@ def _outliers(rms_mm: F64, used: NDArray[np.bool_], params: CalibrationParams) -
     )
 
 
-def _leave_one_out(
-    model: _Model, data: _Data, values: F64, used: NDArray[np.bool_], params: CalibrationParams
+def leave_one_out_errors_mm(
+    model: ErrorModel, data: Observations, values: F64, used: NDArray[np.bool_], params: CalibrationParams
 ) -> tuple[F64, F64]:
     """Mean and RMS sphere prediction error (mm) of each used pose from a fit without it (NaN if unused)."""
     out = np.full(len(used), np.nan)
@@ -160,22 +162,22 @@ def _leave_one_out(
     for k in idx:
         keep = used.copy()
         keep[k] = False
-        v = _fit(model, data.subset(keep), values, params)
+        v = fit_parameters(model, data.subset(keep), values, params)
         one = np.zeros(len(used), dtype=bool)
         one[k] = True
         held = data.subset(one)
-        err = np.linalg.norm(_residuals(model, held, v).reshape(-1, 3), axis=1)
+        err = np.linalg.norm(residuals_mm(model, held, v).reshape(-1, 3), axis=1)
         out[k], out_rms[k] = float(err.mean()), math.sqrt(float(np.mean(err**2)))
     return out, out_rms
 
 
-def _fit_without_outliers(
-    model: _Model, data: _Data, poses: Sequence[MatchedPose], params: CalibrationParams
+def fit_without_outliers(
+    model: ErrorModel, data: Observations, poses: Sequence[MatchedPose], params: CalibrationParams
 ) -> tuple[F64, NDArray[np.bool_], tuple[F64, F64, list[F64]]]:
     """Fit all poses; flag poses whose RMS residual stands out, then refit without them (or refuse)."""
-    values = _fit(model, data, np.zeros(len(model.params)), params)
+    values = fit_parameters(model, data, np.zeros(len(model.params)), params)
     used = np.ones(len(poses), dtype=bool)
-    rms, mx, per = _per_pose(model, data, values, len(poses))
+    rms, mx, per = per_pose_errors_mm(model, data, values, len(poses))
     flagged = _outliers(rms, used, params)
     if flagged.any():
         names = [f"{poses[int(i)].name} (RMS {rms[i]:.3f} mm)" for i in np.flatnonzero(flagged)]
@@ -185,12 +187,12 @@ def _fit_without_outliers(
                 f"sphere match): {', '.join(names)}; median pose RMS {np.median(rms):.3f} mm. Rescan them"
             )
         used = ~flagged
-        values = _fit(model, data.subset(used), values, params)
-        rms, mx, per = _per_pose(model, data, values, len(poses))
+        values = fit_parameters(model, data.subset(used), values, params)
+        rms, mx, per = per_pose_errors_mm(model, data, values, len(poses))
     return values, used, (rms, mx, per)
 
 
-def _prior_weights(model: _Model, params: CalibrationParams, scale: float) -> F64 | None:
+def prior_weights_for(model: ErrorModel, params: CalibrationParams, scale: float) -> F64 | None:
     """σ_d / (s σ_j) per parameter (0 for the flat-prior rod and placement); None for ``"ls"``."""
     if params.estimator == "ls":
         return None
@@ -198,8 +200,8 @@ def _prior_weights(model: _Model, params: CalibrationParams, scale: float) -> F6
     return np.where(np.isfinite(sig), params.data_sd_mm / (scale * np.where(np.isfinite(sig), sig, 1.0)), 0.0)
 
 
-def _cross_validate(
-    model: _Model, data: _Data, x0: F64, params: CalibrationParams
+def cross_validate(
+    model: ErrorModel, data: Observations, x0: F64, params: CalibrationParams
 ) -> tuple[float, dict[float, float]]:
     """Prior scale with the least mean squared sphere error on left-out poses (k-fold over poses).
 
@@ -211,11 +213,11 @@ def _cross_validate(
     folds = [np.arange(n) % k == f for f in range(k)]
     scores: dict[float, float] = {}
     for scale in params.prior_scales:
-        m = model.with_prior(_prior_weights(model, params, scale))
+        m = model.with_prior(prior_weights_for(model, params, scale))
         sq, cnt = 0.0, 0
         for f in folds:
-            v = _fit(m, data.subset(~f), x0, params)
-            r = _residuals(m, data.subset(f), v)
+            v = fit_parameters(m, data.subset(~f), x0, params)
+            r = residuals_mm(m, data.subset(f), v)
             sq += float(r @ r)
             cnt += len(r) // 3
         scores[scale] = sq / max(cnt, 1)

@@ -105,7 +105,7 @@ def _corrections(params: Sequence[Parameter], values: F64) -> dict[str, F64]:
 
 
 @dataclass(frozen=True, eq=False)
-class _Model:
+class ErrorModel:
     """Nominal X, Y, chain and the parameter list: maps a parameter vector to (Y, X, chain)."""
 
     y0: F64
@@ -115,8 +115,8 @@ class _Model:
     prior_weights: F64 | None = None
     """Per parameter σ_d / (s σ_j) of the MAP prior residual (0 = flat prior); None = plain LS."""
 
-    def with_prior(self, weights: F64 | None) -> _Model:
-        return _Model(self.y0, self.x0, self.chain, self.params, weights)
+    def with_prior(self, weights: F64 | None) -> ErrorModel:
+        return ErrorModel(self.y0, self.x0, self.chain, self.params, weights)
 
     def unpack(self, values: F64) -> tuple[F64, F64, SerialChain]:
         c = _corrections(self.params, values)
@@ -141,16 +141,16 @@ class _Model:
 
 
 @dataclass(frozen=True, eq=False)
-class _Data:
+class Observations:
     joints_rad: F64  # (K, n)
     pts_phantom_mm: F64  # (L, 3)
     meas_image_mm: F64  # (L, 3)
     pose_of: I64  # (L,)
 
-    def subset(self, keep: NDArray[np.bool_]) -> _Data:
+    def subset(self, keep: NDArray[np.bool_]) -> Observations:
         new_index = np.cumsum(keep) - 1
         rows = keep[self.pose_of]
-        return _Data(
+        return Observations(
             self.joints_rad[keep],
             self.pts_phantom_mm[rows],
             self.meas_image_mm[rows],
@@ -158,24 +158,25 @@ class _Data:
         )
 
 
-def _residuals(model: _Model, data: _Data, values: F64) -> F64:
+def residuals_mm(model: ErrorModel, data: Observations, values: F64) -> F64:
     pred = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
     return np.asarray((pred - data.meas_image_mm).reshape(-1), dtype=np.float64)
 
 
-def _jacobian_fd(model: _Model, data: _Data, values: F64) -> F64:
+def _jacobian_fd(model: ErrorModel, data: Observations, values: F64) -> F64:
     """Central-difference Jacobian (3L, P) of the residuals (the reference for the analytic one)."""
     cols = []
     for j in range(len(values)):
         step = np.zeros_like(values)
         step[j] = FD_STEP
         cols.append(
-            (_residuals(model, data, values + step) - _residuals(model, data, values - step)) / (2 * FD_STEP)
+            (residuals_mm(model, data, values + step) - residuals_mm(model, data, values - step))
+            / (2 * FD_STEP)
         )
     return np.stack(cols, axis=1)
 
 
-def _frames(model: _Model, values: F64, joints_rad: F64) -> tuple[F64, dict[str, tuple[F64, F64]]]:
+def _frames(model: ErrorModel, values: F64, joints_rad: F64) -> tuple[F64, dict[str, tuple[F64, F64]]]:
     """``image_from_phantom`` (K, 4, 4) and, per group, (R_A (K, 3, 3), o_F (K, 3)).
 
     ``A`` is everything left of the group's correction ``E``; ``F = A · E``.  A rotation
@@ -203,7 +204,7 @@ def _frames(model: _Model, values: F64, joints_rad: F64) -> tuple[F64, dict[str,
     return cur @ e, out
 
 
-def _jacobian(model: _Model, data: _Data, values: F64) -> F64:
+def jacobian(model: ErrorModel, data: Observations, values: F64) -> F64:
     """Analytic Jacobian (3L, P) of the residuals (see :func:`_frames`)."""
     t, frames = _frames(model, values, data.joints_rad)
     tp = t[data.pose_of]
@@ -218,7 +219,7 @@ def _jacobian(model: _Model, data: _Data, values: F64) -> F64:
     return np.asarray(cols.reshape(len(groups), -1).T, dtype=np.float64)
 
 
-def _normalised_svd(jac: F64) -> tuple[F64, F64]:
+def normalised_svd(jac: F64) -> tuple[F64, F64]:
     """Singular values (descending) and right singular vectors (rows) of the column-normalised
     Jacobian, from the eigen-decomposition of its P × P normal matrix (no tall-matrix LAPACK)."""
     norms = np.sqrt(np.einsum("ij,ij->j", jac, jac))
@@ -244,9 +245,9 @@ def minimal_parameter_set(chain: SerialChain, parameter_set: str = "full") -> tu
     lo, hi = np.maximum(chain.lower_rad, -2.0), np.minimum(chain.upper_rad, 2.0)
     q = lo + (hi - lo) * gen.uniform(0.1, 0.9, (24, chain.n_joints))
     pts = np.array([[40.0, 0, 0], [0, 40.0, 0], [0, 0, 40.0], [-30.0, -30.0, -30.0]])
-    data = _Data(q, np.tile(pts, (24, 1)), np.zeros((96, 3)), np.repeat(np.arange(24), 4))
-    model = _Model(np.eye(4), np.eye(4), chain, tuple(cands))
-    jac = _jacobian(model, data, np.zeros(len(cands)))
+    data = Observations(q, np.tile(pts, (24, 1)), np.zeros((96, 3)), np.repeat(np.arange(24), 4))
+    model = ErrorModel(np.eye(4), np.eye(4), chain, tuple(cands))
+    jac = jacobian(model, data, np.zeros(len(cands)))
     jac = jac / np.linalg.norm(jac, axis=0).clip(1e-300)
     basis = np.zeros((jac.shape[0], 0))
     kept: list[Parameter] = []
@@ -289,7 +290,7 @@ def shah_ax_yb(a: Sequence[F64], b: Sequence[F64]) -> tuple[F64, F64]:
     return make_transform(rx, t[:3]), make_transform(ry, t[3:])
 
 
-def _initial_estimate(
+def initial_estimate(
     poses: Sequence[MatchedPose], chain: SerialChain, centres_phantom_mm: F64
 ) -> tuple[F64, F64]:
     """(image_from_robot, tool0_from_phantom) from per-pose rigid fits and Shah with nominal FK."""
@@ -300,14 +301,14 @@ def _initial_estimate(
     return invert(robot_from_image), x
 
 
-def _stack(poses: Sequence[MatchedPose], centres_phantom_mm: F64) -> _Data:
+def stack_observations(poses: Sequence[MatchedPose], centres_phantom_mm: F64) -> Observations:
     for p in poses:
         if len(p.sphere_indices) != len(p.centres_image_mm) or len(p.sphere_indices) < 3:
             raise CalibrationError(
                 f"scan {p.name}: needs ≥ 3 matched spheres paired with centres, "
                 f"got {len(p.sphere_indices)} indices / {len(p.centres_image_mm)} centres"
             )
-    return _Data(
+    return Observations(
         np.stack([np.asarray(p.joints_rad, dtype=np.float64) for p in poses]),
         np.concatenate([centres_phantom_mm[p.sphere_indices] for p in poses]),
         np.concatenate([np.asarray(p.centres_image_mm, dtype=np.float64) for p in poses]),

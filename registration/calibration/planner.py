@@ -35,19 +35,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.calibration.model import (
-    _Data,
-    _jacobian,
-    _Model,
+    ErrorModel,
+    Observations,
+    jacobian,
     minimal_parameter_set,
 )
 from registration.calibration.sampling import (
     IK_ROTATION_WEIGHT_MM,
     IK_TOL_MM,
     ScanVolume,
-    _wrist_flip,
     predicted_centres_image_mm,
     sample_poses_in_volume,
     solve_ik,
+    wrist_flip,
 )
 from registration.calibration.targets import MAX_PLANNED_POSES, TARGET_RMS_MM
 from registration.calibration.urdf import SerialChain, rotation_about
@@ -294,7 +294,7 @@ def _feasible(
     targets_img, tilts = _candidate_targets(y @ chain.robot_from_tool0(q0) @ x, volume, params)
     targets = invert(y) @ targets_img @ invert(x)
     seeds = np.concatenate(
-        [np.repeat(q0[None], len(targets), 0), np.repeat(_wrist_flip(q0)[None], len(targets), 0)]
+        [np.repeat(q0[None], len(targets), 0), np.repeat(wrist_flip(q0)[None], len(targets), 0)]
     )
     q, err = solve_ik(chain, np.concatenate([targets, targets]), seeds)
     tilts = np.concatenate([tilts, tilts])
@@ -337,13 +337,13 @@ class _PlanPredictor:
 
     @classmethod
     def build(
-        cls, model: _Model, pts: F64, q_reg: F64, volume: ScanVolume, params: PlannerParams
+        cls, model: ErrorModel, pts: F64, q_reg: F64, volume: ScanVolume, params: PlannerParams
     ) -> _PlanPredictor:
         from registration.calibration.prediction import (
             LS_PRIOR_WEIGHT,
             WORKING_POSES,
             WORKING_SEED,
-            _effective_jacobians,
+            effective_jacobians,
             registration_tre_ms,
         )
         from registration.calibration.records import PRIORS, CalibrationParams
@@ -369,7 +369,7 @@ class _PlanPredictor:
         if cp.estimator == "ls":
             prior = prior * LS_PRIOR_WEIGHT
         return cls(
-            _effective_jacobians(model, np.zeros(len(model.params)), wq, q_reg, pts),
+            effective_jacobians(model, np.zeros(len(model.params)), wq, q_reg, pts),
             prior,
             params.fle_rms_mm**2 / 3.0,
             max(cp.unmodelled_floor_mm, cp.repeatability_rms_mm),
@@ -388,11 +388,13 @@ class _PlanPredictor:
         return float(np.sqrt(np.mean(per**2))), float(per.max())
 
 
-def _pose_jacobians(model: _Model, pts: F64, q: F64) -> F64:
+def _pose_jacobians(model: ErrorModel, pts: F64, q: F64) -> F64:
     """(C, 3N, P) sphere Jacobians of each pose at the nominal parameters."""
     n = len(pts)
-    data = _Data(q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n))
-    jac = _jacobian(model, data, np.zeros(len(model.params)))
+    data = Observations(
+        q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n)
+    )
+    jac = jacobian(model, data, np.zeros(len(model.params)))
     return np.asarray(jac.reshape(len(q), 3 * n, len(model.params)), dtype=np.float64)
 
 
@@ -443,7 +445,7 @@ def plan_poses(
     least = int(params.n_poses) if params.n_poses is not None else MIN_PLANNED_POSES
     if len(q) < least:
         raise _refuse_too_few(len(q), least, why)
-    model = _Model(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
+    model = ErrorModel(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
     jac = _pose_jacobians(model, pts, q)
     info, shared = _set_sums(jac)
     predictor = _PlanPredictor.build(model, pts, q0, volume, params)
@@ -541,7 +543,7 @@ def predict_plan(
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
     q = np.asarray(joints_rad, dtype=np.float64).reshape(-1, chain.n_joints)
     q_reg = q[0] if registration_joints_rad is None else np.asarray(registration_joints_rad, dtype=np.float64)
-    model = _Model(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
+    model = ErrorModel(y, x, chain, minimal_parameter_set(chain, params.parameter_set))
     info, shared = _set_sums(_pose_jacobians(model, pts, q))
     return _PlanPredictor.build(model, pts, q_reg.reshape(-1), volume, params).predict(
         info.sum(0), shared.sum(0)

@@ -12,13 +12,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.calibration.fit import (
-    _fit,
+    fit_parameters,
 )
 from registration.calibration.model import (
-    _Data,
-    _jacobian,
-    _Model,
-    _residuals,
+    ErrorModel,
+    Observations,
+    jacobian,
+    residuals_mm,
 )
 from registration.calibration.records import (
     PRIORS,
@@ -51,9 +51,9 @@ WORKING_SEED: Final = 20201202
 """Fixed: the working-volume sample is a property of the session, not a random draw per call."""
 
 
-def _posterior_cov(
-    model: _Model,
-    data: _Data,
+def posterior_covariance(
+    model: ErrorModel,
+    data: Observations,
     values: F64,
     params: CalibrationParams,
     scale: float,
@@ -72,10 +72,10 @@ def _posterior_cov(
     one observation of it, not 28: the covariance is the sandwich H⁻¹ (H + E) H⁻¹ with
     E = (u² / 3) Σ_poses SᵢᵀSᵢ / σ̂⁴, Sᵢ the (3, P) sum of pose i's sphere Jacobians and u the
     3-D RMS shared per-pose translation (``pose_shared_rms_mm``, what the residuals show:
-    :func:`_unmodelled_rms_mm`).  Without it the chain part of the prediction was ⅓–½ of the
+    :func:`unmodelled_rms_from_fit_mm`).  Without it the chain part of the prediction was ⅓–½ of the
     measured chain error on random pose sets of the test bed (docs/calibration.md)."""
-    jac = _jacobian(model, data, values)
-    r = _residuals(model, data, values)
+    jac = jacobian(model, data, values)
+    r = residuals_mm(model, data, values)
     s2 = max(float(r @ r) / max(len(r) - len(values), 1), 1e-6)
     sig = np.array([PRIORS.sigma_posterior(p) for p in model.params])
     robot = np.array([p.group not in ("image_from_robot", "tool0_from_phantom") for p in model.params])
@@ -90,7 +90,7 @@ def sandwich_covariance(
     jac: F64, pose_of: NDArray[np.int64], s2: float, prior: F64, pose_shared_rms_mm: float
 ) -> F64:
     """H⁻¹ (H + E) H⁻¹, H = JᵀJ / s2 + diag(prior), E = (u² / 3) Σ_poses SᵢᵀSᵢ / s2²
-    (:func:`_posterior_cov`; the planner calls it on its noise-free planning Jacobian)."""
+    (:func:`posterior_covariance`; the planner calls it on its noise-free planning Jacobian)."""
     per_pose = jac.reshape(-1, 3, jac.shape[1])
     sums = np.stack([per_pose[pose_of == i].sum(axis=0) for i in np.unique(pose_of)])
     return sandwich_from_sums(
@@ -120,13 +120,17 @@ def _skew_rows(p: F64) -> F64:
     return g.reshape(3 * n, 6)
 
 
-def _effective_jacobians(model: _Model, values: F64, joints_rad: F64, reg_joints_rad: F64, pts: F64) -> F64:
+def effective_jacobians(
+    model: ErrorModel, values: F64, joints_rad: F64, reg_joints_rad: F64, pts: F64
+) -> F64:
     """(W, 3N, P) sphere-position Jacobians at ``joints_rad`` after a one-scan re-registration at
     ``reg_joints_rad``: J_q − G_q G_reg⁺ J_reg (the rigid part the registration absorbs removed)."""
     q = np.vstack([joints_rad, reg_joints_rad[None]])
     n = len(pts)
-    data = _Data(q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n))
-    jac = _jacobian(model, data, values).reshape(len(q), 3 * n, len(values))
+    data = Observations(
+        q, np.tile(pts, (len(q), 1)), np.zeros((len(q) * n, 3)), np.repeat(np.arange(len(q)), n)
+    )
+    jac = jacobian(model, data, values).reshape(len(q), 3 * n, len(values))
     world = model.predict(values, q, data.pts_phantom_mm, data.pose_of).reshape(len(q), n, 3)
     g_reg = _skew_rows(world[-1])
     proj = np.linalg.pinv(g_reg) @ jac[-1]  # (6, P)
@@ -134,11 +138,13 @@ def _effective_jacobians(model: _Model, values: F64, joints_rad: F64, reg_joints
     return np.asarray(jac[:-1] - g_q @ proj, dtype=np.float64)
 
 
-def _unmodelled_rms_mm(model: _Model, data: _Data, values: F64, fle_rms_mm: float) -> float:
+def unmodelled_rms_from_fit_mm(
+    model: ErrorModel, data: Observations, values: F64, fle_rms_mm: float
+) -> float:
     """RMS of the per-pose rigid part of the residuals beyond what FLE leaks into it, *in sample*:
     what the fit left of the errors no geometric model has at its own poses (it absorbs most of
     them, so this is biased low; a diagnostic beside :func:`loo_unmodelled`)."""
-    r = _residuals(model, data, values).reshape(-1, 3)
+    r = residuals_mm(model, data, values).reshape(-1, 3)
     world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
     ms = []
     for i in range(len(data.joints_rad)):
@@ -166,7 +172,7 @@ class LooMoments:
     var_u: F64
 
 
-def loo_moments(model: _Model, data: _Data, values: F64, ridge: F64) -> LooMoments:
+def loo_moments(model: ErrorModel, data: Observations, values: F64, ridge: F64) -> LooMoments:
     """Leave-one-pose-out residuals of the linearised fit and their expected size, per pose.
 
     Fitting without pose i moves the estimate by −A₋ᵢ⁻¹ Jᵢᵀ rᵢ (A₋ᵢ = Σ_{k≠i} JₖᵀJₖ + diag(``ridge``),
@@ -180,8 +186,8 @@ def loo_moments(model: _Model, data: _Data, values: F64, ridge: F64) -> LooMomen
     component; a shared per-pose translation of u² 3-D at every pose) r̃ᵢ has covariance
     Σᵢ + Jᵢ A₋ᵢ⁻¹ (Σ_{k≠i} Jₖᵀ Σₖ Jₖ) A₋ᵢ⁻¹ Jᵢᵀ: the pose's own error and the error the other
     poses leave in the estimate.  It is linear in FLE² and u², which gives ``a`` and ``b``."""
-    jac = _jacobian(model, data, values)
-    r = _residuals(model, data, values)
+    jac = jacobian(model, data, values)
+    r = residuals_mm(model, data, values)
     world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
     k, p = len(data.joints_rad), len(values)
     sph_rows = [np.flatnonzero(data.pose_of == i) for i in range(k)]
@@ -250,7 +256,7 @@ prior (``unmodelled_floor_mm``) stands."""
 
 
 def estimate_unmodelled(
-    model: _Model, data: _Data, values: F64, fle_rms_mm: float, params: CalibrationParams
+    model: ErrorModel, data: Observations, values: F64, fle_rms_mm: float, params: CalibrationParams
 ) -> UnmodelledEstimate:
     """The per-pose unmodelled error the prediction adds (and the sandwich takes), with its source.
 
@@ -260,7 +266,7 @@ def estimate_unmodelled(
     figure.  When one standard error alone exceeds the prior (``unmodelled_floor_mm``²) the poses
     cannot tell it from the prior, and the figure is at least the prior.  Never below the arm's
     repeatability (``repeatability_rms_mm``): every move lands elsewhere by that much."""
-    in_sample = _unmodelled_rms_mm(model, data, values, fle_rms_mm)
+    in_sample = unmodelled_rms_from_fit_mm(model, data, values, fle_rms_mm)
     floor, rep = params.unmodelled_floor_mm, params.repeatability_rms_mm
     if params.unmodelled_source == "prior":
         return UnmodelledEstimate(
@@ -307,7 +313,7 @@ def estimate_unmodelled(
 
 
 def registration_tre_ms(
-    model: _Model,
+    model: ErrorModel,
     values: F64,
     working_joints_rad: F64,
     registration_joints_rad: F64,
@@ -330,7 +336,7 @@ def registration_tre_ms(
 
 
 def predict_working_error(
-    model: _Model,
+    model: ErrorModel,
     values: F64,
     cov: F64,
     working_joints_rad: F64,
@@ -345,7 +351,7 @@ def predict_working_error(
     re-registration at ``registration_joints_rad``), plus √2 × the unmodelled error (at the
     pose and at the registration pose) and the registration's TRE at the pose's spheres
     (:func:`registration_tre_ms`), in quadrature."""
-    jeff = _effective_jacobians(model, values, working_joints_rad, registration_joints_rad, pts)
+    jeff = effective_jacobians(model, values, working_joints_rad, registration_joints_rad, pts)
     n = len(pts)
     chain_ms = np.einsum("wip,pq,wiq->w", jeff, cov, jeff) / n
     # A covariance is PSD, so a quadratic form below rounding of its diagonal terms means the
@@ -369,8 +375,10 @@ def predict_working_error(
     exciting = np.zeros((0, len(registration_joints_rad)))
     if candidate_joints_rad is not None and len(candidate_joints_rad):
         c = candidate_joints_rad
-        data = _Data(c, np.tile(pts, (len(c), 1)), np.zeros((len(c) * n, 3)), np.repeat(np.arange(len(c)), n))
-        jc = _jacobian(model, data, values).reshape(len(c), 3 * n, len(values))
+        data = Observations(
+            c, np.tile(pts, (len(c), 1)), np.zeros((len(c) * n, 3)), np.repeat(np.arange(len(c)), n)
+        )
+        jc = jacobian(model, data, values).reshape(len(c), 3 * n, len(values))
         gain = np.linalg.norm(jc @ direction, axis=1)
         exciting = c[np.argsort(-gain)[:3]]
     return WorkingPrediction(
@@ -386,9 +394,9 @@ def predict_working_error(
     )
 
 
-def _farthest_split_inflation(
-    model: _Model,
-    data: _Data,
+def farthest_split_inflation(
+    model: ErrorModel,
+    data: Observations,
     values: F64,
     params: CalibrationParams,
     fle_rms_mm: float,
@@ -405,7 +413,9 @@ def _farthest_split_inflation(
     world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
     pts = data.pts_phantom_mm[data.pose_of == 0]
     q = data.joints_rad
-    full = _Data(q, np.tile(pts, (k, 1)), np.zeros((k * len(pts), 3)), np.repeat(np.arange(k), len(pts)))
+    full = Observations(
+        q, np.tile(pts, (k, 1)), np.zeros((k * len(pts), 3)), np.repeat(np.arange(k), len(pts))
+    )
     w = model.predict(values, q, full.pts_phantom_mm, full.pose_of).reshape(k, len(pts), 3)
     d = np.sqrt(np.mean(np.sum((w[:, None] - w[None]) ** 2, axis=-1), axis=-1))
     np.fill_diagonal(d, np.inf)
@@ -414,12 +424,12 @@ def _farthest_split_inflation(
     held = np.zeros(k, dtype=bool)
     held[list(out)] = True
     train = data.subset(~held)
-    v = _fit(model, train, values, params)
-    cov = _posterior_cov(model, train, v, params, 1.0)
+    v = fit_parameters(model, train, values, params)
+    cov = posterior_covariance(model, train, v, params, 1.0)
     test = data.subset(held)
-    r = _residuals(model, test, v).reshape(-1, 3)
+    r = residuals_mm(model, test, v).reshape(-1, 3)
     obs = float(np.mean(np.sum(r**2, axis=1))) - fle_rms_mm**2
-    jac = _jacobian(model, test, v).reshape(len(r), 3, len(v))
+    jac = jacobian(model, test, v).reshape(len(r), 3, len(v))
     pred = float(np.mean(np.einsum("lip,pq,liq->l", jac, cov, jac))) + unmodelled_rms_mm**2
     if pred <= 0.0:
         return 1.0, out
@@ -436,11 +446,11 @@ def _default_volume(meas_image_mm: F64) -> ScanVolume:
     )
 
 
-def _working_prediction(
-    model: _Model,
+def working_prediction(
+    model: ErrorModel,
     values: F64,
     cov: F64,
-    data: _Data,
+    data: Observations,
     pts: F64,
     params: CalibrationParams,
     scan_volume: ScanVolume | None,

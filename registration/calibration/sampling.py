@@ -139,7 +139,7 @@ def solve_ik(
     return q, err
 
 
-def _wrist_flip(q: F64) -> F64:
+def wrist_flip(q: F64) -> F64:
     f = q.copy()
     f[3] += math.pi if f[3] < 0 else -math.pi
     f[4] = -f[4]
@@ -213,7 +213,7 @@ def sample_poses_in_volume(
     timg[:, :3, :3], timg[:, :3, 3], timg[:, 3, 3] = rots, centres, 1.0
     trob = invert(y) @ timg @ invert(x)
     seeds = np.concatenate(
-        [np.repeat(q0[None], n_candidates, 0), np.repeat(_wrist_flip(q0)[None], n_candidates, 0)]
+        [np.repeat(q0[None], n_candidates, 0), np.repeat(wrist_flip(q0)[None], n_candidates, 0)]
     )
     q, err = solve_ik(chain, np.concatenate([trob, trob]), seeds)
     lim = math.radians(joint_margin_deg)

@@ -60,28 +60,28 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.calibration.fit import (
-    _cross_validate,
-    _fit,
-    _fit_without_outliers,
-    _leave_one_out,
-    _per_pose,
-    _prior_weights,
+    cross_validate,
+    fit_parameters,
+    fit_without_outliers,
+    leave_one_out_errors_mm,
+    per_pose_errors_mm,
+    prior_weights_for,
 )
 from registration.calibration.model import (
-    _Data,
-    _initial_estimate,
-    _jacobian,
-    _Model,
-    _normalised_svd,
-    _residuals,
-    _stack,
+    ErrorModel,
+    Observations,
+    initial_estimate,
+    jacobian,
     minimal_parameter_set,
+    normalised_svd,
+    residuals_mm,
+    stack_observations,
 )
 from registration.calibration.prediction import (
-    _farthest_split_inflation,
-    _posterior_cov,
-    _working_prediction,
     estimate_unmodelled,
+    farthest_split_inflation,
+    posterior_covariance,
+    working_prediction,
 )
 from registration.calibration.records import (
     DROP_CONDITION,
@@ -171,7 +171,7 @@ def _identifiability(
 ) -> tuple[int, float, F64, list[Parameter], list[Parameter]]:
     """(rank, condition number, singular values, main parameters of the weakest direction, all
     parameters by decreasing weight in it)."""
-    s, vt = _normalised_svd(jac)
+    s, vt = normalised_svd(jac)
     rank = int(np.sum(s > rtol * s[0]))
     cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     v = np.abs(vt[-1])
@@ -181,22 +181,22 @@ def _identifiability(
 
 
 def _select_parameters(
-    model: _Model, data: _Data, params: CalibrationParams, names: Sequence[str]
-) -> tuple[_Model, tuple[str, ...], int, float, F64]:
+    model: ErrorModel, data: Observations, params: CalibrationParams, names: Sequence[str]
+) -> tuple[ErrorModel, tuple[str, ...], int, float, F64]:
     """Check identifiability at the start; refuse or drop weak robot parameters."""
     dropped: list[str] = []
     limit = params.max_condition
     if limit is None and params.on_weak == "drop":
         limit = DROP_CONDITION
     while True:
-        jac = _jacobian(model, data, np.zeros(len(model.params)))
+        jac = jacobian(model, data, np.zeros(len(model.params)))
         rank, cond, s, weak, ranked = _identifiability(jac, model.params, params.rank_rtol)
         if limit is None or cond <= limit:
             return model, tuple(dropped), rank, cond, s
         robot_weak = [p for p in ranked if p.group in names]
         if params.on_weak == "drop" and robot_weak:
             dropped.append(robot_weak[0].name)
-            model = _Model(
+            model = ErrorModel(
                 model.y0, model.x0, model.chain, tuple(p for p in model.params if p is not robot_weak[0])
             )
             continue
@@ -216,7 +216,7 @@ def _fle_rms_mm(r: F64, n_params: int) -> float:
     return math.sqrt(3.0 * float(r @ r) / max(len(r) - n_params, 1))
 
 
-def _registration_tre_rms_mm(fle_rms_mm: float, centres_phantom_mm: F64) -> float:
+def registration_tre_rms_for_fle_mm(fle_rms_mm: float, centres_phantom_mm: F64) -> float:
     from registration.matching.quality import predicted_tre_mm
 
     tre = predicted_tre_mm(fle_rms_mm, centres_phantom_mm, centres_phantom_mm)
@@ -287,12 +287,12 @@ def calibrate(
     as_transform(tool0_from_phantom, "tool0_from_phantom")
     check_session(poses, params.min_poses)
     pts = np.asarray(centres_phantom_mm, dtype=np.float64)
-    data = _stack(poses, pts)
+    data = stack_observations(poses, pts)
     model, dropped = _start_model(poses, chain, pts, data, params)
     timings = {"start_s": time.perf_counter() - t0}
     fit = _solve(model, data, poses, params, timings)
-    jac = _jacobian(fit.model, fit.data, fit.values)
-    r = _residuals(fit.model, fit.data, fit.values)
+    jac = jacobian(fit.model, fit.data, fit.values)
+    r = residuals_mm(fit.model, fit.data, fit.values)
     rank, cond, s, weak, _ = _identifiability(jac, fit.model.params, params.rank_rtol)
     _refuse_if_outliers_left_it_weak(poses, fit, cond, weak, params, chain.joint_names)
     pred = _predict(fit, r, pts, params, scan_volume, timings)
@@ -303,7 +303,9 @@ def calibrate(
     t2 = time.perf_counter()
     nan = np.full(len(poses), np.nan)
     lopo, lopo_rms = (
-        _leave_one_out(fit.model, data, fit.values, fit.used, params) if params.leave_one_out else (nan, nan)
+        leave_one_out_errors_mm(fit.model, data, fit.values, fit.used, params)
+        if params.leave_one_out
+        else (nan, nan)
     )
     timings["leave_one_out_s"] = time.perf_counter() - t2
     y, x, cal_chain = fit.model.unpack(fit.values)
@@ -344,27 +346,27 @@ def calibrate(
 
 
 def _start_model(
-    poses: Sequence[MatchedPose], chain: SerialChain, pts: F64, data: _Data, params: CalibrationParams
-) -> tuple[_Model, tuple[str, ...]]:
+    poses: Sequence[MatchedPose], chain: SerialChain, pts: F64, data: Observations, params: CalibrationParams
+) -> tuple[ErrorModel, tuple[str, ...]]:
     """Shah's closed-form start, the identifiable parameter set and the priors at scale 1."""
-    y0, x0 = _initial_estimate(poses, chain, pts)
+    y0, x0 = initial_estimate(poses, chain, pts)
     # MAP puts its priors on the physical joint-origin errors (6 per joint, "all"): on the minimal set
     # the priors would sit on combinations that absorb the redundant errors (misspecified: 1.5 × the
     # LS error on the tuning seeds, measured), so "full" means "all" for the MAP estimator.
     pset = "all" if params.estimator == "map" and params.parameter_set == "full" else params.parameter_set
-    model = _Model(y0, x0, chain, minimal_parameter_set(chain, pset))
+    model = ErrorModel(y0, x0, chain, minimal_parameter_set(chain, pset))
     model, dropped, _, _, _ = _select_parameters(model, data, params, chain.joint_names)
-    return model.with_prior(_prior_weights(model, params, 1.0)), dropped
+    return model.with_prior(prior_weights_for(model, params, 1.0)), dropped
 
 
 @dataclass(frozen=True)
 class _Solved:
     """The robust fit without its outlier poses, at the chosen prior scale."""
 
-    model: _Model
+    model: ErrorModel
     values: F64
     used: NDArray[np.bool_]
-    data: _Data
+    data: Observations
     """The poses kept (``used``)."""
     rms: F64
     mx: F64
@@ -374,28 +376,28 @@ class _Solved:
 
 
 def _solve(
-    model: _Model,
-    data: _Data,
+    model: ErrorModel,
+    data: Observations,
     poses: Sequence[MatchedPose],
     params: CalibrationParams,
     timings: dict[str, float],
 ) -> _Solved:
     """Fit, drop outlier poses, then (MAP) refit at the given or cross-validated prior scale."""
     t1 = time.perf_counter()
-    values, used, (rms, mx, per) = _fit_without_outliers(model, data, poses, params)
+    values, used, (rms, mx, per) = fit_without_outliers(model, data, poses, params)
     fit_data = data.subset(used)
     scale, cv = (float("nan"), None) if params.estimator == "ls" else (float(params.prior_scales[0]), None)
     if params.estimator == "map" and len(params.prior_scales) == 1:
-        model = model.with_prior(_prior_weights(model, params, scale))
-        values = _fit(model, fit_data, values, params)
-        rms, mx, per = _per_pose(model, data, values, len(poses))
+        model = model.with_prior(prior_weights_for(model, params, scale))
+        values = fit_parameters(model, fit_data, values, params)
+        rms, mx, per = per_pose_errors_mm(model, data, values, len(poses))
     if params.estimator == "map" and len(params.prior_scales) > 1:
         t_cv = time.perf_counter()
-        scale, cv = _cross_validate(model, fit_data, values, params)
+        scale, cv = cross_validate(model, fit_data, values, params)
         timings["cross_validation_s"] = time.perf_counter() - t_cv
-        model = model.with_prior(_prior_weights(model, params, scale))
-        values = _fit(model, fit_data, values, params)
-        rms, mx, per = _per_pose(model, data, values, len(poses))
+        model = model.with_prior(prior_weights_for(model, params, scale))
+        values = fit_parameters(model, fit_data, values, params)
+        rms, mx, per = per_pose_errors_mm(model, data, values, len(poses))
     timings["solve_s"] = time.perf_counter() - t1
     return _Solved(model, values, used, fit_data, rms, mx, per, scale, cv)
 
@@ -441,12 +443,12 @@ def _predict(
 ) -> _Predicted:
     """FLE, the unmodelled error, the posterior covariance and the working-volume prediction."""
     fle = _fle_rms_mm(r, len(fit.model.params))
-    reg_tre = _registration_tre_rms_mm(fle, pts)
+    reg_tre = registration_tre_rms_for_fle_mm(fle, pts)
     unmodelled = estimate_unmodelled(fit.model, fit.data, fit.values, fle, params)
     unmod = unmodelled.rms_mm
     # the per-pose error the prediction adds at every working pose was there at the calibration poses
     # too, and the fit absorbed it into the parameters: the sandwich takes the same figure (issue #33)
-    cov = _posterior_cov(
+    cov = posterior_covariance(
         fit.model,
         fit.data,
         fit.values,
@@ -456,11 +458,11 @@ def _predict(
     )
     t_p = time.perf_counter()
     inflation, split = (
-        _farthest_split_inflation(fit.model, fit.data, fit.values, params, fle, unmod)
+        farthest_split_inflation(fit.model, fit.data, fit.values, params, fle, unmod)
         if params.farthest_split
         else (1.0, ())
     )
-    prediction, volume_doc = _working_prediction(
+    prediction, volume_doc = working_prediction(
         fit.model,
         fit.values,
         cov * inflation,

@@ -289,5 +289,4 @@ def test_no_module_imports_another_modules_private_name() -> None:
     mods = all_modules()
     known = set(mods)
     bad = [line for name, path in mods.items() for line in private_imports(path, name, known)]
-    bad = [line for line in bad if not line.startswith("registration.calibration.")]  # TEMPORARY
     assert bad == []

@@ -17,10 +17,10 @@ from numpy.typing import NDArray
 
 from mocks.cell import SPREAD_BASE_JOINTS_RAD, SPREAD_OFFSETS_RAD
 from registration.calibration.model import (
-    _Data,
-    _jacobian,
+    ErrorModel,
+    Observations,
     _jacobian_fd,
-    _Model,
+    jacobian,
     minimal_parameter_set,
     predict_image_mm,
     shah_ax_yb,
@@ -129,12 +129,14 @@ def test_minimal_set_is_the_18_robot_parameters_of_a_6r_arm(nominal: SerialChain
 
 def test_analytic_jacobian_matches_central_differences(nominal: SerialChain, pts: F64) -> None:
     params = minimal_parameter_set(nominal)
-    model = _Model(IMAGE_FROM_ROBOT, default_tool0_from_phantom(), nominal, params)
+    model = ErrorModel(IMAGE_FROM_ROBOT, default_tool0_from_phantom(), nominal, params)
     q = BASE_JOINTS_RAD + POSE_OFFSETS_RAD[:3]
-    data = _Data(q, np.tile(pts, (3, 1)), np.zeros((3 * len(pts), 3)), np.repeat(np.arange(3), len(pts)))
+    data = Observations(
+        q, np.tile(pts, (3, 1)), np.zeros((3 * len(pts), 3)), np.repeat(np.arange(3), len(pts))
+    )
     zero = np.zeros(len(params))
     fd = _jacobian_fd(model, data, zero)
-    assert np.abs(_jacobian(model, data, zero) - fd).max() <= 1e-7 * np.abs(fd).max()
+    assert np.abs(jacobian(model, data, zero) - fd).max() <= 1e-7 * np.abs(fd).max()
 
 
 def test_shah_solves_ax_yb_exactly(nominal: SerialChain) -> None:

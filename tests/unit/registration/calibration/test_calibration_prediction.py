@@ -13,11 +13,11 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from mocks.cell import SPREAD_BASE_JOINTS_RAD, SPREAD_JOINTS_RAD, SPREAD_OFFSETS_RAD
-from registration.calibration.fit import _fit
-from registration.calibration.model import _Model, _residuals, _stack, minimal_parameter_set
+from registration.calibration.fit import fit_parameters
+from registration.calibration.model import ErrorModel, minimal_parameter_set, residuals_mm, stack_observations
 from registration.calibration.prediction import _skew_rows, loo_moments, registration_tre_ms
 from registration.calibration.records import CalibrationParams, MatchedPose
-from registration.calibration.solver import _registration_tre_rms_mm
+from registration.calibration.solver import registration_tre_rms_for_fle_mm
 from registration.calibration.urdf import read_chain
 from registration.matching.rigid import fit_rigid
 from registration.model import frames
@@ -30,8 +30,8 @@ Y = frames.transform_from_xyz_rpy([300.0, -100.0, 500.0], [10.0, 80.0, -30.0])
 FLE_MM = 0.07
 
 
-def _model() -> _Model:
-    return _Model(Y, ROD, CHAIN, minimal_parameter_set(CHAIN))
+def _model() -> ErrorModel:
+    return ErrorModel(Y, ROD, CHAIN, minimal_parameter_set(CHAIN))
 
 
 @settings(max_examples=8, deadline=None)
@@ -66,7 +66,7 @@ def test_the_registration_term_is_what_a_one_scan_registration_leaves_at_the_wor
     assert 0.8 * ms <= predicted <= 1.25 * ms, (predicted, ms)
     # at the registration scan's own spheres the term is the old one; away from them it is larger
     own = float(registration_tre_ms(model, zero, q_reg[None], q_reg, pts, FLE_MM)[0])
-    assert own == pytest.approx(_registration_tre_rms_mm(FLE_MM, pts) ** 2, rel=1e-9)
+    assert own == pytest.approx(registration_tre_rms_for_fle_mm(FLE_MM, pts) ** 2, rel=1e-9)
     gap_mm = float(np.linalg.norm(at_w.mean(axis=0) - at_reg.mean(axis=0)))
     if gap_mm > 100.0:
         assert predicted > 2.0 * own, (predicted, own, gap_mm)
@@ -89,18 +89,18 @@ def test_the_held_out_residuals_are_those_of_refits_without_the_pose(phantom: An
         )
         for i, q in enumerate(joints)
     ]
-    model, data = _model(), _stack(poses, pts)
+    model, data = _model(), stack_observations(poses, pts)
     # plain least squares (the soft-L1 scale ≫ the residuals): the form is exact for it; the solver's
     # robust loss reweights spheres by a few % at these residuals
     params = CalibrationParams(leave_one_out=False, robust_scale_mm=1e3)
-    values = _fit(model, data, np.zeros(len(model.params)), params)
+    values = fit_parameters(model, data, np.zeros(len(model.params)), params)
     q = loo_moments(model, data, values, np.full(len(values), 1e-12)).q
     assert len(q) == len(poses)
     for i in (0, 4, 9):
         out = np.arange(len(poses)) == i
-        v = _fit(model, data.subset(~out), values, params)
+        v = fit_parameters(model, data.subset(~out), values, params)
         held = data.subset(out)
-        r = _residuals(model, held, v)
+        r = residuals_mm(model, held, v)
         g = _skew_rows(model.predict(v, held.joints_rad, held.pts_phantom_mm, held.pose_of))
         rigid = g @ np.linalg.lstsq(g, r, rcond=None)[0]
         exact = float(rigid @ rigid) / len(pts)
