@@ -29,9 +29,10 @@ chosen on).  ``--dicom-session [--seed 1] [--poses 10]``: issue #10's one DICOM 
 
 ``--solve-only``: no simulation or detection; a synthetic 10-pose × 28-sphere session of the same
 true cell (detections = truth + 0.07 mm RMS noise) is calibrated several times and the median solve
-time of ``least_squares`` (this tree) is printed next to the hand-written Levenberg–Marquardt it
-replaced (``registration/calibration/solver.py`` at ``--old-ref``, imported from ``git show``), with the
-error at 20 held-out poses of each, and the closed-form floor measured in the same run.
+time of ``least_squares`` with each trust-region solver and loss is printed, with the error at 20
+held-out poses of each, and the closed-form floor measured in the same run. (The hand-written
+Levenberg–Marquardt these replaced, once compared here from ``git show``, is gone: its module no longer
+stands alone.)
 """
 
 from __future__ import annotations
@@ -235,32 +236,12 @@ SYNTHETIC_JOINTS_RAD = SPREAD_JOINTS_RAD
 SYNTHETIC_FLE_RMS_MM = 0.07
 
 
-def _old_calibration(ref: str) -> Any:
-    """``registration/calibration/solver.py`` at git ``ref`` as a module of its own."""
-    import importlib.util
-    import subprocess
-
-    src = subprocess.run(
-        ["git", "-C", str(REPO), "show", f"{ref}:registration/calibration/solver.py"],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    path = Path(tempfile.mkdtemp(prefix="bench-calib-old-")) / "calibration_old.py"
-    path.write_text(src)
-    spec = importlib.util.spec_from_file_location("calibration_old", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["calibration_old"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: str) -> int:
+def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int) -> int:
     """Median solve time and held-out error of the new and the old solver on one synthetic session."""
     from benchmarks.common import median_time_s, print_table
+    from registration.calibration import fit as cal_fit
     from registration.calibration import model as cal_model
-    from registration.calibration import solver as new
+    from registration.calibration import solver
 
     phantom, model, chain, rod, cell, rng = _true_cell(seed)
     pts = phantom.centres_phantom_mm
@@ -279,7 +260,6 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
     lo, hi = joints.min(axis=0), joints.max(axis=0)
     held = lo + (hi - lo) * rng.uniform(0.1, 0.9, (n_held_out, len(lo)))
     truth = [frames.apply(cell.image_from_phantom_true(SYNTHETIC_Y, q), pts) for q in held]
-    old = _old_calibration(old_ref)
     no_lopo = CalibrationParams(leave_one_out=False)
     floor_s, _ = median_time_s(lambda: cal_model.initial_estimate(poses, chain, pts), repeats=repeats)
     rows: list[tuple[str, Any]] = [
@@ -288,25 +268,22 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
     ]
     # module globals fit_parameters reads at call time: TRF's trust-region solver, and scipy's per-component
     # soft_l1 in place of the per-sphere one (for comparison only: it depends on the image axes)
-    variants: list[tuple[str, Any, dict[str, Any]]] = [
-        (f"hand-written LM ({old_ref})", old, {}),
-        ("least_squares TRF, tr_solver exact", new, {"TR_SOLVER": "exact"}),
-        ("least_squares TRF, tr_solver lsmr", new, {"TR_SOLVER": "lsmr"}),
-        ("least_squares TRF lsmr, per-axis loss='soft_l1'", new, {"_sphere_soft_l1": "soft_l1"}),
+    variants: list[tuple[str, dict[str, Any]]] = [
+        ("least_squares TRF, tr_solver exact", {"TR_SOLVER": "exact"}),
+        ("least_squares TRF, tr_solver lsmr", {"TR_SOLVER": "lsmr"}),
+        ("least_squares TRF lsmr, per-axis loss='soft_l1'", {"_sphere_soft_l1": "soft_l1"}),
     ]
-    saved = {k: getattr(new, k) for _, _, patch in variants for k in patch}
-    for label, mod, patch in variants:
-        for k, v in saved.items():
-            setattr(new, k, v)
-        for k, v in patch.items():
-            setattr(mod, k, v)
-        res = mod.calibrate(poses, chain, rod, pts, no_lopo)
-        data = mod.stack_observations(poses, pts)
-        y0, x0 = mod.initial_estimate(poses, chain, pts)
-        m = mod.ErrorModel(y0, x0, chain, res.parameters)
+    saved = {k: getattr(cal_fit, k) for _, patch in variants for k in patch}
+    for label, patch in variants:
+        for k, v in {**saved, **patch}.items():
+            setattr(cal_fit, k, v)
+        res = solver.calibrate(poses, chain, rod, pts, no_lopo)
+        data = cal_model.stack_observations(poses, pts)
+        y0, x0 = cal_model.initial_estimate(poses, chain, pts)
+        m = cal_model.ErrorModel(y0, x0, chain, res.parameters)
         zeros = np.zeros(len(res.parameters))
-        fit_s, _ = median_time_s(partial(mod.fit_parameters, m, data, zeros, no_lopo), repeats=repeats)
-        cal_s, _ = median_time_s(partial(mod.calibrate, poses, chain, rod, pts, no_lopo), repeats=repeats)
+        fit_s, _ = median_time_s(partial(cal_fit.fit_parameters, m, data, zeros, no_lopo), repeats=repeats)
+        cal_s, _ = median_time_s(partial(solver.calibrate, poses, chain, rod, pts, no_lopo), repeats=repeats)
         err = np.concatenate(
             [
                 np.linalg.norm(
@@ -327,7 +304,7 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
             (f"{label}: held-out mean / max (mm)", f"{float(err.mean()):.4f} / {float(err.max()):.4f}"),
         ]
         if "exact" not in label:  # one run: 10 refits of the slow variant would take half a minute
-            lopo = mod.calibrate(poses, chain, rod, pts, CalibrationParams())
+            lopo = solver.calibrate(poses, chain, rod, pts, CalibrationParams())
             rows.append(
                 (
                     f"{label}: LOPO refits, one run (s); LOPO mean (mm)",
@@ -335,7 +312,7 @@ def solve_only(seed: int, n_poses: int, n_held_out: int, repeats: int, old_ref: 
                 )
             )
     for k, v in saved.items():
-        setattr(new, k, v)
+        setattr(cal_fit, k, v)
     print_table(
         f"Calibration solve only, true cell seed {seed}, {repeats} repeats", ["figure", "value"], rows
     )
@@ -756,7 +733,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--held-out", type=int, default=20)
     ap.add_argument("--solve-only", action="store_true", help="synthetic session, solve timing only")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--old-ref", default="main", help="git ref of the solver compared in --solve-only")
     ap.add_argument(
         "--dicom-session",
         action="store_true",
@@ -817,7 +793,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.solve_only and not args.dicom_session:
         return matrix(seeds, scales, args.poses, args.render_cache, args.zip_scales)
     if args.solve_only:
-        return solve_only(args.seed, args.poses, args.held_out, args.repeats, args.old_ref)
+        return solve_only(args.seed, args.poses, args.held_out, args.repeats)
     err = sys.stderr
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-calib-") as tmp:
