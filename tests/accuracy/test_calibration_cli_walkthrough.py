@@ -4,7 +4,7 @@ the simulated cell (issue 34, item 2; the targets are issue 10's).
 The bash block is extracted from the doc and run in a temporary folder with the ``oarmreg`` of this
 checkout; the only changes are a smaller scan (the ``small`` preset at the demo's calibration size)
 and a forced pose count (``--n 6``, the least the planner takes; the doc keeps the planner's own
-count, 15–18 poses in this volume) so it fits the test budget.  It ends in a registration through
+count, 23–29 poses on the test bed's cells) so it fits the test budget.  It ends in a registration through
 the calibrated model after the O-arm was moved.
 
 The scans come from ``simulate --joints --placement``: a seeded true cell
