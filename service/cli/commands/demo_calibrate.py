@@ -178,9 +178,15 @@ def _report_calibration(cal: dict[str, Any]) -> None:
         f"  fit RMS {cal['fit_rms_mm']:.3f} mm; leave-one-pose-out mean "
         f"{cal['leave_one_pose_out_mean_mm']:.3f} mm"
     )
+    target = cal.get("target_rms_mm")
+    met = (
+        ""
+        if target is None
+        else f" (planner's target {target:g} mm: {'met' if cal.get('target_met') else 'NOT met'})"
+    )
     _out(
         "  predicted error at unseen poses after a one-scan registration: "
-        f"{cal['predicted_held_out_rms_mm']:.3f} mm RMS"
+        f"{cal['predicted_held_out_rms_mm']:.3f} mm RMS{met}"
     )
     if cal["dropped_parameters"]:
         _out(f"  not excited by the poses, dropped: {', '.join(cal['dropped_parameters'])}")
