@@ -29,7 +29,6 @@ import errno
 import os
 import resource
 import select
-import shutil
 import socket
 import struct
 import subprocess
@@ -51,8 +50,9 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers.system_tools import system_tool
 
-STORESCU = shutil.which("storescu")
+STORESCU = system_tool("storescu")
 pytestmark = pytest.mark.skipif(STORESCU is None, reason="dcmtk storescu not installed")
 
 AE_TITLE = "OARMREG"
@@ -344,7 +344,7 @@ def test_associations_refused_for_want_of_slots_are_a_problem_until_one_is_relea
 
     from dicomnet.scu import associate
 
-    echoscu = shutil.which("echoscu")
+    echoscu = system_tool("echoscu")
     assert echoscu is not None
     ae = AE(ae_title="HOLDER")
     ae.add_requested_context("1.2.840.10008.1.1")  # Verification

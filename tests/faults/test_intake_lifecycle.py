@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import shutil
 import socket
 import struct
 import subprocess
@@ -51,12 +50,13 @@ from tests.faults._service import (
     write_config,
 )
 from tests.faults.conftest import closed_by_peer
+from tests.helpers.system_tools import system_tool
 
 E = TypeVar("E", bound=Event)
 
 AE_TITLE = "OARMREG"
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-STORESCU = shutil.which("storescu")
+STORESCU = system_tool("storescu")
 SCP_BOUNDS = {
     "dicom.socket_timeout_s": 1.0,  # a stalled peer is dropped after 1 s here (10 s by default)
     "dicom.acse_timeout_s": 2.0,

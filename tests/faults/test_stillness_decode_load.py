@@ -50,8 +50,9 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers.system_tools import system_tool
 
-STORESCU = shutil.which("storescu")
+STORESCU = system_tool("storescu")
 pytestmark = pytest.mark.skipif(STORESCU is None, reason="dcmtk storescu not installed (.ci/run installs it)")
 
 AE_TITLE = "OARMREG"

@@ -12,7 +12,6 @@ association, one at a time: docs/conformance.md).  Every wait polls with a deadl
 from __future__ import annotations
 
 import contextlib
-import shutil
 import socket
 import subprocess
 import threading
@@ -30,6 +29,7 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers.system_tools import system_tool
 
 N_ASSOCIATIONS = 12
 N_IGTL_CLIENTS = 200
@@ -38,7 +38,7 @@ SIZE_PX = 384
 """12 series x 16 slices of 384 x 384 int16 (~4.7 MB a series, 57 MB in all) decoded as they arrive."""
 WINDOW_S = 1.0
 AE_TITLE = "OARMREG"
-STORESCU = shutil.which("storescu")
+STORESCU = system_tool("storescu")
 
 
 def _send_pynetdicom(folder: Path, port: int, out: list[list[int]]) -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import errno
 import os
-import shutil
 import subprocess
 import threading
 from collections.abc import Iterator
@@ -39,10 +38,11 @@ from service.intake.dicom_scp import (
     atomic_write,
 )
 from service.settings import DicomSettings
+from tests.helpers.system_tools import system_tool
 
 DEADLINE_S = 10.0
-STORESCU = shutil.which("storescu")
-ECHOSCU = shutil.which("echoscu")
+STORESCU = system_tool("storescu")
+ECHOSCU = system_tool("echoscu")
 needs_dcmtk = pytest.mark.skipif(not (STORESCU and ECHOSCU), reason="dcmtk storescu/echoscu not installed")
 
 

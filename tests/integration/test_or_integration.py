@@ -9,7 +9,6 @@ needs (fixtures), so any one passes alone and in any order; every wait polls wit
 
 from __future__ import annotations
 
-import shutil
 import socket
 import ssl
 import subprocess
@@ -37,6 +36,7 @@ from service.events import (
     IgtlClientHeaderVersion,
     RegistrationRefused,
 )
+from tests.helpers.system_tools import system_tool
 from tests.helpers.tokens import make_token
 from tests.integration.polling import wait_for
 
@@ -53,7 +53,7 @@ Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 IMAGE_FROM_PHANTOM_1 = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
 RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 STORESCU, ECHOSCU, DCIODVFY, CURL, OPENSSL = (
-    shutil.which(n) for n in ("storescu", "echoscu", "dciodvfy", "curl", "openssl")
+    system_tool(n) for n in ("storescu", "echoscu", "dciodvfy", "curl", "openssl")
 )
 
 
