@@ -48,7 +48,6 @@ import contextlib
 import errno
 import logging
 import os
-import re
 import threading
 import time
 import uuid
@@ -73,6 +72,7 @@ from pynetdicom import _config as _pn_config
 from pynetdicom.dimse_primitives import C_STORE
 
 from dicomnet.server import AssociationServer, start_server
+from registration.dicom.uids import is_dicom_uid
 from service.errors import DicomScpConfigError, InstanceNotStoredError
 from service.intake.scan_lifecycle import OfferTally
 from service.netaddr import in_networks, parse_networks
@@ -98,9 +98,6 @@ STATUS_OUT_OF_RESOURCES = 0xA700
 STATUS_DATASET_MISMATCH = 0xA900
 STATUS_CANNOT_UNDERSTAND = 0xC210
 
-UID_RE = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
-"""PS3.5 §9.1: digits and dots, no leading zeros; at most 64 characters.  Also makes the UID
-safe as a path component."""
 
 _REQUIRED: dict[str, tuple[str, ...]] = {
     CTImageStorage: (
@@ -549,7 +546,7 @@ class StorageScp:
                 None,
                 None,
             )
-        uids_ok = all(UID_RE.match(u) and len(u) <= 64 for u in (study, series, sop))
+        uids_ok = all(is_dicom_uid(u) for u in (study, series, sop))  # PS3.5 §9.1, and path-safe
         if uids_ok:
             series_dir = self.intake_dir / study / series
         req_cls = str(cast(C_STORE, event.request).AffectedSOPClassUID or "")

@@ -12,23 +12,22 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import re
 import uuid
 from pathlib import Path
 
 from pydicom.uid import generate_uid
 
+from registration.dicom.uids import is_dicom_uid
 from service.errors import RobotFrameUidError
 
 log = logging.getLogger(__name__)
 
 FILE_NAME = "robot_frame_of_reference_uid.txt"
-UID_RE = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
 
 
 def _read(path: Path) -> str:
     uid = path.read_text(encoding="ascii").strip()
-    if not (UID_RE.match(uid) and len(uid) <= 64):
+    if not is_dicom_uid(uid):
         raise RobotFrameUidError(
             f"{path} holds {uid[:80]!r}, not a DICOM UID; restore it from a backup (registrations "
             "already archived name the old UID) or delete it to mint a new one"

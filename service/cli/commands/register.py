@@ -395,19 +395,20 @@ def write_sro(args: argparse.Namespace, doc: dict[str, Any]) -> None:
         ``--robot-frame-uid`` is not a DICOM UID, or the stored one is malformed.
     """
     from registration.dicom import list_series
+    from registration.dicom.uids import is_dicom_uid
     from registration.errors import PointsFileError
     from registration.io.sro import build_spatial_registration
     from service.errors import RobotFrameUidError
     from service.intake.recording import scan_instances_from_files
     from service.navigation.sro_export import ct_headers
-    from service.registrations.robot_frame import UID_RE, robot_frame_uid
+    from service.registrations.robot_frame import robot_frame_uid
 
     if args.dicom_dir is None:
         raise PointsFileError("--sro needs DICOM_DIR: the Spatial Registration object references the scan")
     uid = args.robot_frame_uid
     if uid is None:
         uid = robot_frame_uid(args.data)  # check_sro_arguments made sure --data is given
-    elif not (UID_RE.match(uid) and len(uid) <= 64):
+    elif not is_dicom_uid(uid):
         raise RobotFrameUidError(f"--robot-frame-uid {uid!r} is not a DICOM UID (digits, dots, ≤ 64 chars)")
     series_uid = str(doc.get("provenance", {}).get("series_uid", ""))
     summary = next(s for s in list_series(args.dicom_dir) if s.series_uid == series_uid)  # headers only
