@@ -601,6 +601,11 @@ def band(
     return 0
 
 
+def _share_in_band(ratio: F64, high: float) -> float:
+    """Share of predicted / measured ``ratio`` in [1 / 1.5, ``high``] (below 1 / 1.5: optimistic)."""
+    return float(np.mean((ratio >= 1 / 1.5) & (ratio <= high)))
+
+
 WORKFLOW_COUNTS: tuple[int | None, ...] = (None, 10, 15, 20, 30)
 """Pose counts of ``--workflow``: the planner's own (None) and forced ones (issue #33)."""
 
@@ -656,10 +661,10 @@ def workflow(
                     assert first is not None and peer is not None
                     m, p = np.array(meas), np.array(pred)
                     ideal = math.sqrt(float(np.mean(m**2)))
-                    ideal_in.append(float(np.mean((ideal / m >= 1 / 1.5) & (ideal / m <= 1.5))))
-                    prod_in.append(float(np.mean((p / m >= 1 / 1.5) & (p / m <= 1.5))))
-                    ideal_in_wide.append(float(np.mean((ideal / m >= 1 / 1.5) & (ideal / m <= 2.0))))
-                    prod_in_wide.append(float(np.mean((p / m >= 1 / 1.5) & (p / m <= 2.0))))
+                    ideal_in.append(_share_in_band(ideal / m, 1.5))
+                    prod_in.append(_share_in_band(p / m, 1.5))
+                    ideal_in_wide.append(_share_in_band(ideal / m, 2.0))
+                    prod_in_wide.append(_share_in_band(p / m, 2.0))
                     prod_low.append(float(np.mean(p / m < 1 / 1.5)))
                     prod_high.append(float(np.mean(p / m > 2.0)))
                     if n is None:

@@ -172,6 +172,16 @@ class LooMoments:
     var_u: F64
 
 
+MAX_LOO_FLE_GAIN: Final = 100.0
+"""A pose whose leave-one-pose-out residual would carry more than this many FLE² per sphere (``a`` of
+:class:`LooMoments`) is not predicted by the other poses: they leave the parameters it depends on
+undetermined, the linearised refit extrapolates, and its residual says nothing of the unmodelled
+error.  Measured on the test bed (benchmarks/calib_testbed.py, seeds 1–3, planned poses): ``a`` is
+0.07–0.3 at 10 and more poses, ≤ 5 at 8, and 6·10³–1.5·10⁵ at 6 (every pose's leave-out fit is
+short of data: 6 poses gave û ≈ 190 mm and a false refusal of a calibration that measured 0.05 mm
+at held-out poses)."""
+
+
 def loo_moments(model: ErrorModel, data: Observations, values: F64, ridge: F64) -> LooMoments:
     """Leave-one-pose-out residuals of the linearised fit and their expected size, per pose.
 
@@ -185,7 +195,10 @@ def loo_moments(model: ErrorModel, data: Observations, values: F64, ridge: F64) 
     Under the error model of :func:`sandwich_covariance` (isotropic detection noise FLE² / 3 per
     component; a shared per-pose translation of u² 3-D at every pose) r̃ᵢ has covariance
     Σᵢ + Jᵢ A₋ᵢ⁻¹ (Σ_{k≠i} Jₖᵀ Σₖ Jₖ) A₋ᵢ⁻¹ Jᵢᵀ: the pose's own error and the error the other
-    poses leave in the estimate.  It is linear in FLE² and u², which gives ``a`` and ``b``."""
+    poses leave in the estimate.  It is linear in FLE² and u², which gives ``a`` and ``b``.
+
+    A pose gives no residual when it has fewer than 3 spheres or the other poses do not determine
+    its leave-out fit (A₋ᵢ singular, or ``a`` > :data:`MAX_LOO_FLE_GAIN`)."""
     jac = jacobian(model, data, values)
     r = residuals_mm(model, data, values)
     world = model.predict(values, data.joints_rad, data.pts_phantom_mm, data.pose_of)
@@ -226,7 +239,7 @@ def loo_moments(model: ErrorModel, data: Observations, values: F64, ridge: F64) 
             4.0 * float(np.sum(c_fle * c_u)) / n**2,
             2.0 * float(np.sum(c_u * c_u)) / n**2,
         )
-    ok = np.all(np.isfinite(out), axis=0)
+    ok = np.all(np.isfinite(out), axis=0) & (out[1] <= MAX_LOO_FLE_GAIN)  # nan compares False
     return LooMoments(*(np.asarray(v[ok], dtype=np.float64) for v in out))
 
 
@@ -253,20 +266,6 @@ def loo_unmodelled(m: LooMoments, fle_rms_mm: float, start_mm: float) -> tuple[f
 MIN_LOO_POSES: Final = 3
 """Fewer poses with a held-out residual than this give no estimate of the unmodelled error: the
 prior (``unmodelled_floor_mm``) stands."""
-MAX_LOO_FLE_GAIN: Final = 100.0
-"""A pose whose leave-one-pose-out residual would carry more than this many FLE² per sphere (``a`` of
-:class:`LooMoments`) is not predicted by the other poses: they leave the parameters it depends on
-undetermined, the linearised refit extrapolates, and its residual says nothing of the unmodelled
-error.  Measured on the test bed (benchmarks/calib_testbed.py, seeds 1–3, planned poses): ``a`` is
-0.07–0.3 at 10 and more poses, ≤ 5 at 8, and 6·10³–1.5·10⁵ at 6 (every pose's leave-out fit is
-short of data: 6 poses gave û ≈ 190 mm and a false refusal of a calibration that measured 0.05 mm
-at held-out poses)."""
-
-
-def identified_poses(m: LooMoments) -> LooMoments:
-    """The poses of ``m`` whose leave-one-pose-out fit is determined (``a`` ≤ :data:`MAX_LOO_FLE_GAIN`)."""
-    keep = m.a <= MAX_LOO_FLE_GAIN
-    return LooMoments(m.q[keep], m.a[keep], m.b[keep], m.var_fle[keep], m.var_cross[keep], m.var_u[keep])
 
 
 def estimate_unmodelled(
@@ -294,8 +293,7 @@ def estimate_unmodelled(
     ridge = s2 * LS_PRIOR_WEIGHT / np.array([PRIORS.sigma_posterior(p) for p in model.params]) ** 2
     if model.prior_weights is not None:
         ridge = ridge + model.prior_weights**2
-    all_moments = loo_moments(model, data, values, ridge)
-    moments = identified_poses(all_moments)
+    moments = loo_moments(model, data, values, ridge)
     est, se = loo_unmodelled(moments, fle_rms_mm, max(rep, in_sample))
     n = len(moments.q)
     if n < MIN_LOO_POSES or not (math.isfinite(est) and math.isfinite(se)):
@@ -303,8 +301,7 @@ def estimate_unmodelled(
             max(floor, rep),
             "prior",
             f"only {n} of {len(data.joints_rad)} poses have a held-out residual the other poses determine "
-            f"(need {MIN_LOO_POSES}; {len(all_moments.q) - n} left out: leave-one-pose-out fit short of "
-            f"data): the prior {floor:g} mm",
+            f"(need {MIN_LOO_POSES}): the prior {floor:g} mm",
             est,
             se,
             n,
