@@ -38,7 +38,8 @@ window end, so frames received before the end but not yet handed to the history 
 are counted.  Twice the default ``stillness.max_gap_s``; a stopped stream costs this once."""
 
 PERIOD_HISTORY_S = 60.0
-"""Span of the session's history from which a streamed link's frame period is measured (s)."""
+"""Span of the session's history from which a streamed link's long-run frame period is measured (s),
+frames over span (:func:`registration.model.stillness.stream_period_s`)."""
 
 
 def _on_event_loop() -> bool:
@@ -192,7 +193,7 @@ class Capture:
         The window runs from ``stillness.window_s`` before ``first_seen_t_s`` (the first file of the
         series appeared) to ``last_change_t_s`` (the last file landed), monotonic seconds.
         """
-        from registration.model.stillness import assess_stillness
+        from registration.model.stillness import CATCH_UP_S, assess_stillness
 
         st = self.settings.stillness
         h = self.health()
@@ -221,7 +222,8 @@ class Capture:
         if streamed and wait_past is not None and h["state"] != "down" and not _on_event_loop():
             wait_past(last_change_t_s, LATE_FRAME_WAIT_S)
         samples = link.history(start_t - st.max_gap_s)
-        samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
+        after_s = max(st.max_gap_s, CATCH_UP_S)  # the judge looks for a gap's late frames this far
+        samples = [s for s in samples if s.t_s <= last_change_t_s + after_s]
         if not samples:
             return replace(
                 unknown,
@@ -273,7 +275,7 @@ class Capture:
         return [s.t_s for s in history(start_t_s) if s.t_s <= end_t_s and s.in_motion == 1]
 
     def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
-        """The measured frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
+        """The long-run frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
         from registration.model.stillness import stream_period_s
 
         same = [s.t_s for s in self.link.history(end_t_s - PERIOD_HISTORY_S) if s.session == last.session]
