@@ -172,7 +172,6 @@ class LinkSession:
     ended_t_s: float | None
 
 
-
 SESSIONS_KEPT = 64
 """Sessions remembered by :meth:`BaseLink.sessions` (far more than reconnects in the 120 s history)."""
 

@@ -18,21 +18,21 @@ three verdicts (docs/safety.md, "Stillness and health"):
   first scan after start-up); the link reconnected inside the window; or frames are
   missing.  How "missing" is judged depends on the link:
 
-  - a **streamed** link (simple_message over TCP, serial) delivers late frames
-    intact and in order, so a receive-clock gap inside one unbroken session is not a
-    hole in the robot's history when the frames sent meanwhile follow it.  Only a
-    receive gap longer than ``max_gap_s`` is examined: the frames received from its end
-    until :data:`CATCH_UP_S` later are counted against the frames the controller sends
-    over the gap plus that horizon at the session's long-run rate (:func:`stream_period_s`,
-    frames over span); when more than ``max_gap_s`` worth are missing, the controller
-    stopped sending.  The count runs over a second or so around each long receive gap,
-    never over the whole window, so a rate error of a few per mille costs milliseconds, not
-    the 0.25 s that a count over a 60 s window at the median receive interval lost under
-    load (issue 40).  The controller's own counters are not used: the VAL3 driver sends
-    JOINT_POSITION with sequence number 0 and never JOINT_FEEDBACK (research/staubli-link.md
-    §1.4, §1.7); JOINT_FEEDBACK's ``time`` is a float32 (1 ms resolution lost after ~2.3 h of
-    controller uptime); the serial ``$J`` counter shows lines lost on the wire, not a
-    controller that paused (docs/robot-link.md, "Stillness and the controller's cadence").
+  - a **streamed** link (simple_message over TCP, serial) delivers late frames intact and in
+    order, so a receive-clock gap inside one unbroken session is not a hole in the robot's
+    history when the frames sent meanwhile follow it.  Only a receive gap longer than
+    ``max_gap_s`` is examined: the frames received from its end until :data:`CATCH_UP_S` later
+    (to the first frame past that) are counted against the frames the controller sends over
+    the gap and that horizon at the session's long-run rate (:func:`stream_period_s`, frames
+    over span); when more than ``max_gap_s`` worth are missing, the controller stopped
+    sending.  The count runs over a second or so around each long receive gap, never over the
+    whole window, so a rate error of a few per mille costs milliseconds, not the 0.25 s that a
+    count over a 60 s window at the median receive interval lost under load (issue 40).  The
+    controller's own counters are not used: the VAL3 driver sends JOINT_POSITION with
+    sequence number 0 and never JOINT_FEEDBACK (research/staubli-link.md §1.4, §1.7);
+    JOINT_FEEDBACK's ``time`` is a float32 (1 ms resolution lost after ~2.3 h of controller
+    uptime); the serial ``$J`` counter shows lines lost on the wire, not a controller that
+    paused (docs/robot-link.md, "Stillness and the controller's cadence").
   - a **polled** link (Modbus) has a sample only when its poller ran: no gap between
     receive times (and the window edges) may exceed ``max_gap_s``.
 * ``still``: covered and within the deviation limit.
@@ -367,7 +367,9 @@ def _streamed_coverage(
     missing_s = np.zeros(long_gaps.size)
     for k, i in enumerate(long_gaps):
         a, b = float(starts[i]), float(ends[i])
-        horizon = min(b + catch_up_s, float(t[-1])) if t.size and t[-1] >= b else b
+        # up to the first sample at or past b + catch_up_s, so a late burst stamped just past it counts
+        later = t[t >= b + catch_up_s]
+        horizon = float(later[0]) if later.size else (float(t[-1]) if t.size and t[-1] >= b else b)
         n_after = int(np.count_nonzero((t >= b) & (t <= horizon)))
         missing_s[k] = max(0.0, (horizon - a) - n_after * period_s)
     covered = w.window_s - float(np.sum(np.minimum(missing_s, w.window_s)))
