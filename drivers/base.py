@@ -44,6 +44,8 @@ from types import TracebackType
 from typing import Any, Generic, Protocol, Self, TypeVar, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
 
+import numpy as np
+
 from drivers.errors import LinkConfigError, LinkTimeoutError, ProtocolError, RobotLinkError
 from drivers.loop_thread import LoopThread
 
@@ -189,6 +191,7 @@ class RobotLink(Protocol):
     def status(self) -> RobotStatus | None: ...
     def health(self) -> LinkHealth: ...
     def history(self, since_t_s: float) -> list[JointState]: ...
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]: ...
     def stream(self) -> AsyncIterator[JointState]: ...
     async def __aenter__(self) -> Self: ...
     async def __aexit__(
@@ -197,6 +200,12 @@ class RobotLink(Protocol):
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def float32_half_spacing(value: float) -> float:
+    """Half the float32 spacing at ``value`` (same unit): the most a float32 encoding moves a real of
+    that size (2.4e-7 rad for 4 ≤ |value| < 8 rad, e.g. ±270° = ±4.712 rad)."""
+    return float(np.spacing(np.float32(abs(value)))) / 2.0
 
 
 class _Stamped(Protocol):
@@ -589,6 +598,12 @@ class BaseLink:
         """Block the calling thread until a sample received after ``t_s`` is in the history (True), at
         most ``timeout_s`` (False).  Never call it on an event loop."""
         return self._ring.wait_past(t_s, timeout_s)
+
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
+        """How far each decoded joint may lie from the controller's value by the wire encoding's rounding
+        alone (rad): a value this close beyond a joint limit is at the limit (issue 40).  Each link states
+        its own; the base link has no encoding of its own (0)."""
+        return tuple(0.0 for _ in joints_rad)
 
     def sessions(self) -> list[LinkSession]:
         """The last :data:`SESSIONS_KEPT` transport sessions, oldest first (the last may be open)."""

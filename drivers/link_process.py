@@ -167,6 +167,8 @@ class ProcessLink:
         self.close_timeout_s = CLOSE_TIMEOUT_S
         self._options = options
         self.history_s = probe.history_s
+        self.joint_resolution_rad = probe.joint_resolution_rad
+        """The wire's rounding, as the link in the child states it (the probe is never started)."""
         self._ring: JointRing[JointState] = JointRing(probe.history_s)
         self._lock = threading.Lock()
         self._transport_up = False

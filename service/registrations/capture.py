@@ -73,6 +73,7 @@ class Capture:
         self._connected_since_t_s: float | None = None
         self._bad_since_t_s: float | None = time.monotonic()
         """Since when the reported state has not been ``connected`` (None while it is)."""
+        self._model: Any = None
 
     @property
     def url(self) -> str:
@@ -258,13 +259,39 @@ class Capture:
         return replace(
             unknown,
             verdict=stillness_verdict(res.verdict),
-            joints_rad=tuple(float(v) for v in at.joints_rad),
+            joints_rad=self._at_limits(at.joints_rad),
             joints_received_at=at.received_at.isoformat(),
             max_deviation_rad=float(res.max_deviation_rad),
             covered_s=float(res.covered_s),
             n_samples=int(res.n_samples),
             stillness_reason=str(res.reason),
         )
+
+    def _at_limits(self, joints_rad: tuple[float, ...]) -> tuple[float, ...]:
+        """The joints, each value within the link's wire rounding of a joint limit
+        (``joint_resolution_rad``: float32 over simple_message, the serial text's digits, the Modbus
+        register type) put at that limit: the registration's limit check then sees the limit the arm
+        stands at, not the wire's rounding of it (issue 40).  Values farther out are left for it to
+        refuse."""
+        q = tuple(float(v) for v in joints_rad)
+        resolution = getattr(self.link, "joint_resolution_rad", None)
+        model = self._limits_model()
+        if resolution is None or model is None:
+            return q
+        return tuple(float(v) for v in model.at_limits(q, resolution(q)))
+
+    def _limits_model(self) -> Any:
+        """The configured robot model (for its joint limits), loaded once; None if it cannot be (the
+        registration reports that itself)."""
+        if self._model is None:
+            from registration.errors import ConfigError
+            from registration.model.kinematics import RobotModel
+
+            try:
+                self._model = RobotModel.load(self.settings.robot.model)
+            except ConfigError:
+                self._model = False
+        return self._model or None
 
     def _in_motion_t_s(self, start_t_s: float, end_t_s: float) -> list[float]:
         """Receive times of the controller statuses in ``[start_t_s, end_t_s]`` reporting ``in_motion``
