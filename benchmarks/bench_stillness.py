@@ -2,7 +2,7 @@
 
 Three mock controllers (simple_message, the VAL3 driver's cadence: streaming 1 s after a client
 connects, each message in three writes, STATUS every fifth frame), each in a process of its own
-(``nice -10`` where allowed: it stands for the controller's own hardware), serve one still robot.
+(``nice -10`` where allowed, ``--mock-nice``: it stands for the controller's own hardware), serve one still robot.
 Each is read as the service reads it (:class:`drivers.link_process.ProcessLink`, a child process at
 nice 0) while ``stress-ng --cpu 2`` (or two Python busy loops) at nice 0 fills both cores.  After
 ``--record-s`` of history, ``--judgements`` windows of the default ``stillness.window_s`` (60 s)
@@ -58,17 +58,18 @@ with run_mock_controller("simple-message", robot, period_s=1.0 / {rate}, start_d
 """
 
 
-def _boost() -> None:
-    with contextlib.suppress(OSError):
-        os.nice(MOCK_NICE)
-
-
 @contextlib.contextmanager
-def mock_controller(rate_hz: float) -> Iterator[str]:
-    """A mock controller at ``rate_hz`` in a process of its own; yields its URL (ends on stdin EOF)."""
+def mock_controller(rate_hz: float, nice: int) -> Iterator[str]:
+    """A mock controller at ``rate_hz`` in a process of its own at ``nice`` (where allowed); yields its
+    URL (it ends on stdin EOF)."""
+
+    def boost() -> None:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
+
     proc = subprocess.Popen(
         [sys.executable, "-c", _MOCK.format(rate=rate_hz)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, preexec_fn=_boost,
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, preexec_fn=boost,
     )  # fmt: skip
     try:
         assert proc.stdout is not None
@@ -179,6 +180,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--record-s", type=float, default=115.0, help="history recorded per rate (s, ≤ 120)")
     ap.add_argument("--judgements", type=int, default=20, help="still windows judged per rate")
+    ap.add_argument(
+        "--mock-nice", type=int, default=MOCK_NICE,
+        help="the mock controllers' nice value (0: they compete with the load like the link does)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     from drivers.link_process import ProcessLink
     from service.registrations.capture import Capture
@@ -188,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         settings = load_settings(None, {"watch_dir": Path(tmp) / "w", "data_dir": Path(tmp) / "d"})
         what = stack.enter_context(cpu_load(args.record_s + 60.0))
-        urls = {r: stack.enter_context(mock_controller(r)) for r in RATES_HZ}
+        urls = {r: stack.enter_context(mock_controller(r, args.mock_nice)) for r in RATES_HZ}
         links = {r: ProcessLink(u) for r, u in urls.items()}
         for link in links.values():
             link.start()
@@ -218,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     print_table(
         f"Still robot, default settings (window {settings.stillness.window_s:g} s, max_gap_s "
         f"{settings.stillness.max_gap_s:g} s), load: {what} at nice 0, mock controllers nice "
-        f"{MOCK_NICE if boosted else 0}",
+        f"{args.mock_nice if boosted else 0}",
         ["rate", "frames", "recorded s", "median interval ms", "long-run period ms", "share of 0-s intervals",
          "largest receive gap s", "windows judged", "refused", "refused by the median rule (before)",
          "first refusal"],
