@@ -2,8 +2,8 @@
 
 Three mock controllers (simple_message, the VAL3 driver's cadence: streaming 1 s after a client
 connects, each message in three writes, STATUS every fifth frame), each in a process of its own
-(``nice -10`` where allowed, ``--mock-nice``: it stands for the controller's own hardware), serve one still robot.
-Each is read as the service reads it (:class:`drivers.link_process.ProcessLink`, a child process at
+(``nice -10`` where allowed, ``--mock-nice``: it stands for the controller's own hardware), serve
+one still robot.  Each is read as the service reads it (:class:`drivers.link_process.ProcessLink`, a child process at
 nice 0) while ``stress-ng --cpu 2`` (or two Python busy loops) at nice 0 fills both cores.  After
 ``--record-s`` of history, ``--judgements`` windows of the default ``stillness.window_s`` (60 s)
 whose ends are spread over the last ``record − window`` seconds are judged by the service's own
