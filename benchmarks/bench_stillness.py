@@ -3,11 +3,12 @@
 Three mock controllers (simple_message, the VAL3 driver's cadence: streaming 1 s after a client
 connects, each message in three writes, STATUS every fifth frame), each in a process of its own
 (``nice -10`` where allowed, ``--mock-nice``: it stands for the controller's own hardware), serve
-one still robot.  Each is read as the service reads it (:class:`drivers.link_process.ProcessLink`, a child process at
-nice 0) while ``stress-ng --cpu 2`` (or two Python busy loops) at nice 0 fills both cores.  After
-``--record-s`` of history, ``--judgements`` windows of the default ``stillness.window_s`` (60 s)
-whose ends are spread over the last ``record − window`` seconds are judged by the service's own
-:meth:`service.registrations.capture.Capture.snapshot` with default settings.  The windows overlap
+one still robot.  Each is read as the service reads it (:class:`drivers.link_process.ProcessLink`,
+a child process at nice 0) while ``stress-ng --cpu 2`` (or two Python busy loops) at nice 0 fills
+both cores.  After ``--record-s`` of history, ``--judgements`` windows of the default
+``stillness.window_s`` (60 s) whose ends are spread over the last ``record − window`` seconds are
+judged by the service's own :meth:`service.registrations.capture.Capture.snapshot` with default
+settings.  The windows overlap
 (they come from one recording per rate): they are not independent scans.
 
 The same samples are also judged by the rule before issue 40 (the frame count over the window
@@ -15,7 +16,7 @@ against the median receive interval, ``missing × period > max_gap_s``), for com
 table gives the history's memory at 1 kHz for the full ``history_s`` and the cost of one append,
 against ``deque.append`` (the floor) measured in the same run.
 
-Run: ``.venv/bin/python -m benchmarks.bench_stillness [--record-s 120] [--judgements 20]``
+Run: ``.venv/bin/python -m benchmarks.bench_stillness [--record-s 115] [--judgements 20] [--mock-nice 0]``
 """
 
 from __future__ import annotations
