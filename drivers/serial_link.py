@@ -99,12 +99,21 @@ def format_joint(value_rad: float) -> str:
     return f"{value_rad:.{SIGNIFICANT_DIGITS}g}"
 
 
+VAL3_DECIMALS = 8
+"""Decimals the project's VAL3 program writes (``toString(".8", …)``, docs/val3/publishSerial.pgx)."""
+
+
 def text_rounding_rad(value_rad: float) -> float:
-    """Half a unit in the last of :data:`SIGNIFICANT_DIGITS` digits of ``value_rad``: the most the text
-    encoding moves it (5e-9 rad for 1 ≤ |value| < 10 rad: 127.5° = 2.22529480 on the wire)."""
-    if value_rad == 0 or not math.isfinite(value_rad):
+    """The most the text encoding moves ``value_rad``: half a unit in its last digit, for the coarser of
+    :data:`SIGNIFICANT_DIGITS` significant digits (:func:`format_joint`) and :data:`VAL3_DECIMALS`
+    decimals (the VAL3 program): 5e-9 rad for |value| < 10 rad (127.5° = 2.22529480 on the wire)."""
+    if not math.isfinite(value_rad):
         return 0.0
-    return 0.5 * 10.0 ** (math.floor(math.log10(abs(value_rad))) - (SIGNIFICANT_DIGITS - 1))
+    by_decimals = 0.5 * 10.0**-VAL3_DECIMALS
+    if value_rad == 0:
+        return by_decimals
+    by_digits = 0.5 * 10.0 ** (math.floor(math.log10(abs(value_rad))) - (SIGNIFICANT_DIGITS - 1))
+    return max(by_decimals, by_digits)
 
 
 def encode_joint_line(seq: int, joints_rad: Any) -> bytes:
@@ -232,7 +241,8 @@ class SerialLink(BaseLink):
         self._last_seq: int | None = None
 
     def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
-        """Joints are decimal text of 9 significant digits: half a unit in the last (5e-9 rad at 127.5°)."""
+        """Joints are decimal text (9 significant digits, 8 decimals from the VAL3 program): half a unit in
+        the last digit (5e-9 rad at 127.5°, :func:`text_rounding_rad`)."""
         return tuple(text_rounding_rad(q) for q in joints_rad)
 
     async def _session(self) -> None:
