@@ -115,6 +115,26 @@ def median_rule_refused(
     return bool(missing * period > max_gap_s)
 
 
+PAUSE_S = 0.5
+"""A controller pause cut into each judged window of the recording (nothing sent, nothing late)."""
+
+
+def pause_caught(t_all: np.ndarray, end: float, st: Any) -> tuple[bool, bool]:
+    """The same window with :data:`PAUSE_S` of frames removed from its middle: refused by the judge
+    (as Capture calls it), and by the median rule?"""
+    from registration.model.stillness import assess_stillness, stream_period_s
+
+    mid = end - st.window_s / 2
+    t = t_all[(t_all < mid) | (t_all >= mid + PAUSE_S)]
+    session = t[(t >= end - 60.0) & (t <= end)]
+    q = np.zeros((t.size, 6))
+    res = assess_stillness(
+        t, q, window_end_t_s=end, window_s=st.window_s, max_deviation_rad=st.max_deviation_rad,
+        max_gap_s=st.max_gap_s, period_s=stream_period_s(session),
+    )  # fmt: skip
+    return res.verdict == "incomplete", median_rule_refused(t, session, end - st.window_s, end, st.max_gap_s)
+
+
 def judge_rate(cap: Any, link: Any, n: int, settings: Any) -> dict[str, Any]:
     """``n`` still windows of the default length spread over the recorded history."""
     st = settings.stillness
@@ -123,8 +143,11 @@ def judge_rate(cap: Any, link: Any, n: int, settings: Any) -> dict[str, Any]:
     first, last = float(t_all[0]), float(t_all[-1])
     ends = np.linspace(first + st.window_s + 1.0, last - 1.0, n)
     new_refused: list[str] = []
-    old_refused = 0
+    old_refused = paused_caught = paused_caught_old = 0
     for end in ends:
+        caught_new, caught_old = pause_caught(t_all, float(end), st)
+        paused_caught += caught_new
+        paused_caught_old += caught_old
         snap = cap.snapshot(float(end), float(end))
         if snap.verdict != "still":
             new_refused.append(snap.stillness_reason)
@@ -141,6 +164,8 @@ def judge_rate(cap: Any, link: Any, n: int, settings: Any) -> dict[str, Any]:
         "judged": len(ends),
         "refused": len(new_refused),
         "refused_median_rule": old_refused,
+        "pause_caught": paused_caught,
+        "pause_caught_median_rule": paused_caught_old,
         "first_reason": (new_refused or [""])[0],
     }
 
@@ -218,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((
             f"{r:g} Hz", res["frames"], res["span_s"], res["median_interval_ms"], res["long_run_period_ms"],
             res["zero_intervals"], res["max_gap_s"], res["judged"], res["refused"],
-            res["refused_median_rule"], res["first_reason"][:100],
+            res["refused_median_rule"], f"{res['pause_caught']} / {res['pause_caught_median_rule']}",
+            res["first_reason"][:100],
         ))  # fmt: skip
     boosted = os.geteuid() == 0
     print_table(
@@ -227,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.mock_nice if boosted else 0}",
         ["rate", "frames", "recorded s", "median interval ms", "long-run period ms", "share of 0-s intervals",
          "largest receive gap s", "windows judged", "refused", "refused by the median rule (before)",
-         "first refusal"],
+         f"{PAUSE_S:g} s pause cut in: refused by the judge / by the median rule", "first refusal"],
         rows,
     )  # fmt: skip
     mb, per_us, floor_us = history_cost()
