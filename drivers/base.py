@@ -30,6 +30,7 @@ and may be called from any thread.  :meth:`BaseLink.close` is bounded by
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import itertools
 import logging
@@ -191,6 +192,8 @@ class RobotLink(Protocol):
     def status(self) -> RobotStatus | None: ...
     def health(self) -> LinkHealth: ...
     def history(self, since_t_s: float) -> list[JointState]: ...
+    def history_span_s(self, since_t_s: float) -> float: ...
+    def max_receive_gap_s(self, since_t_s: float) -> float | None: ...
     def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]: ...
     def stream(self) -> AsyncIterator[JointState]: ...
     async def __aenter__(self) -> Self: ...
@@ -234,6 +237,9 @@ class JointRing(Generic[_T]):
             raise ValueError(f"history_s and max_rate_hz must be > 0, got {history_s}, {max_rate_hz}")
         self.history_s = float(history_s)
         self._items: deque[_T] = deque(maxlen=max(1, math.ceil(history_s * max_rate_hz)))
+        self._gaps: deque[tuple[float, float]] = deque()
+        """(receive time of the later sample, gap before it): the sliding-window maximum of the gaps,
+        strictly decreasing, so the largest gap since any time is the first entry at or after it."""
         self._lock = threading.Lock()
         self._appended = threading.Condition(self._lock)
         self._total = 0
@@ -244,11 +250,19 @@ class JointRing(Generic[_T]):
 
     def append(self, state: _T) -> None:
         with self._lock:
-            items = self._items
+            items, gaps = self._items, self._gaps
+            if items:
+                gap = state.t_s - items[-1].t_s
+                while gaps and gaps[-1][1] <= gap:
+                    gaps.pop()
+                gaps.append((state.t_s, gap))
             items.append(state)
             oldest_kept = state.t_s - self.history_s
             while items[0].t_s < oldest_kept:
                 items.popleft()
+            oldest = items[0].t_s
+            while gaps and gaps[0][0] - gaps[0][1] < oldest:
+                gaps.popleft()
             self._total += 1
             self._appended.notify_all()
 
@@ -279,6 +293,23 @@ class JointRing(Generic[_T]):
     def latest(self) -> _T | None:
         with self._lock:
             return self._items[-1] if self._items else None
+
+    def span_s(self, since_t_s: float) -> float:
+        """Time from the first sample at or after ``since_t_s`` to the newest (0 with fewer than two);
+        O(log n), no copy."""
+        with self._lock:
+            items = self._items
+            i = bisect.bisect_left(items, since_t_s, key=lambda x: x.t_s)
+            return items[-1].t_s - items[i].t_s if i < len(items) - 1 else 0.0
+
+    def max_gap_s(self, since_t_s: float) -> float | None:
+        """The largest time between two consecutive samples, both kept, the later received at or after
+        ``since_t_s`` (None: no such pair); O(1) amortised, no copy."""
+        with self._lock:
+            for t_s, gap in self._gaps:
+                if t_s >= since_t_s:
+                    return gap
+            return None
 
     def since(self, since_t_s: float) -> list[_T]:
         """Samples with ``t_s >= since_t_s``, oldest first."""
@@ -574,6 +605,14 @@ class BaseLink:
     def history(self, since_t_s: float) -> list[JointState]:
         """Samples received at or after ``since_t_s`` (``time.monotonic()`` seconds), oldest first."""
         return self._ring.since(since_t_s)
+
+    def history_span_s(self, since_t_s: float) -> float:
+        """Span of the history from ``since_t_s`` (:meth:`JointRing.span_s`), without copying it."""
+        return self._ring.span_s(since_t_s)
+
+    def max_receive_gap_s(self, since_t_s: float) -> float | None:
+        """Largest receive gap ending at or after ``since_t_s`` (:meth:`JointRing.max_gap_s`)."""
+        return self._ring.max_gap_s(since_t_s)
 
     def status_history(self, since_t_s: float) -> list[RobotStatus]:
         """Controller statuses received at or after ``since_t_s`` (monotonic s), oldest first: the

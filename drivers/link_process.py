@@ -248,6 +248,12 @@ class ProcessLink:
     def history(self, since_t_s: float) -> list[JointState]:
         return self._ring.since(since_t_s)
 
+    def history_span_s(self, since_t_s: float) -> float:
+        return self._ring.span_s(since_t_s)
+
+    def max_receive_gap_s(self, since_t_s: float) -> float | None:
+        return self._ring.max_gap_s(since_t_s)
+
     def wait_past(self, t_s: float, timeout_s: float) -> bool:
         return self._ring.wait_past(t_s, timeout_s)
 

@@ -7,9 +7,12 @@ so every scan of a fast controller was refused.
 
 from __future__ import annotations
 
+import itertools
 from datetime import UTC, datetime
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.base import HISTORY_S, MAX_RATE_HZ, JointRing, JointState
 from drivers.simple_message import SimpleMessageLink
@@ -55,3 +58,24 @@ def test_every_link_keeps_the_history_span_whatever_its_documented_rate() -> Non
     assert fast.history_s == HISTORY_S
     with pytest.raises(ValueError, match="history_s"):
         JointRing(0.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    gaps_ms=st.lists(st.integers(0, 400), min_size=1, max_size=300),
+    history_s=st.floats(0.5, 5.0),
+    since_s=st.floats(0.0, 40.0),
+)
+def test_span_and_largest_gap_match_the_samples_without_copying(
+    gaps_ms: list[int], history_s: float, since_s: float
+) -> None:
+    ring: JointRing[JointState] = JointRing(history_s)
+    t = 0.0
+    for g in gaps_ms:
+        t += g / 1000.0
+        ring.append(JointState((0.0,) * 6, t, NOW, "x"))
+    kept = [s.t_s for s in ring.since(-1.0)]
+    pairs = [(b, b - a) for a, b in itertools.pairwise(kept) if b >= since_s]
+    assert ring.max_gap_s(since_s) == (max(g for _, g in pairs) if pairs else None)
+    after = [x for x in kept if x >= since_s]
+    assert ring.span_s(since_s) == pytest.approx(after[-1] - after[0] if len(after) > 1 else 0.0)
