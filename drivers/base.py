@@ -237,9 +237,10 @@ class JointRing(Generic[_T]):
             raise ValueError(f"history_s and max_rate_hz must be > 0, got {history_s}, {max_rate_hz}")
         self.history_s = float(history_s)
         self._items: deque[_T] = deque(maxlen=max(1, math.ceil(history_s * max_rate_hz)))
-        self._gaps: deque[tuple[float, float]] = deque()
-        """(receive time of the later sample, gap before it): the sliding-window maximum of the gaps,
-        strictly decreasing, so the largest gap since any time is the first entry at or after it."""
+        self._gaps: deque[tuple[float, float, float]] = deque()
+        """(receive time of the later sample, gap before it, receive time of the earlier): the
+        sliding-window maximum of the gaps, decreasing, so the largest gap since any time is the first
+        entry at or after it."""
         self._lock = threading.Lock()
         self._appended = threading.Condition(self._lock)
         self._total = 0
@@ -255,13 +256,13 @@ class JointRing(Generic[_T]):
                 gap = state.t_s - items[-1].t_s
                 while gaps and gaps[-1][1] <= gap:
                     gaps.pop()
-                gaps.append((state.t_s, gap))
+                gaps.append((state.t_s, gap, items[-1].t_s))
             items.append(state)
             oldest_kept = state.t_s - self.history_s
             while items[0].t_s < oldest_kept:
                 items.popleft()
             oldest = items[0].t_s
-            while gaps and gaps[0][0] - gaps[0][1] < oldest:
+            while gaps and gaps[0][2] < oldest:
                 gaps.popleft()
             self._total += 1
             self._appended.notify_all()
@@ -306,7 +307,7 @@ class JointRing(Generic[_T]):
         """The largest time between two consecutive samples, both kept, the later received at or after
         ``since_t_s`` (None: no such pair); O(1) amortised, no copy."""
         with self._lock:
-            for t_s, gap in self._gaps:
+            for t_s, gap, _ in self._gaps:
                 if t_s >= since_t_s:
                     return gap
             return None

@@ -86,6 +86,12 @@ def _frames_past(link: ProcessLink, t_s: float) -> bool:
     return last is not None and last.t_s > t_s
 
 
+def _judged_once_past(link: ProcessLink, cap: Capture, past_t_s: float, end_t_s: float, what: str) -> Any:
+    """The window ending at ``end_t_s``, judged once the link has frames past ``past_t_s``."""
+    poll_until(lambda: _frames_past(link, past_t_s), what, DEADLINE_S)
+    return cap.snapshot(end_t_s, end_t_s)
+
+
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     root = tmp_path_factory.mktemp("rates")
@@ -134,12 +140,7 @@ def test_a_move_and_a_pause_at_three_rates_under_load_are_refused(live: dict[str
     robot.move_to([q + (MOVE_RAD if i == 0 else 0.0) for i, q in enumerate(Q)], 0.2)
     moved_end = robot.motion_end_t_s()
     for r, link in links.items():
-        poll_until(
-            lambda link=link: _frames_past(link, moved_end + 0.5),
-            f"frames after the move ({r:g} Hz)",
-            DEADLINE_S,
-        )
-        snap = captures[r].snapshot(moved_end + 0.3, moved_end + 0.3)
+        snap = _judged_once_past(link, captures[r], moved_end + 0.5, moved_end + 0.3, f"frames ({r:g} Hz)")
         assert snap.verdict == "moved", (r, snap.stillness_reason)
         assert "joint 1" in snap.stillness_reason
     poll_until(
@@ -149,14 +150,9 @@ def test_a_move_and_a_pause_at_three_rates_under_load_are_refused(live: dict[str
     with ThreadPoolExecutor(len(RATES_HZ)) as pool:
         list(pool.map(lambda m: _pause(m, PAUSE_S), live["mocks"].values()))
     resumed = time.monotonic()
+    end = resumed + 0.6
+    assert end - WINDOW_S < paused_at - 0.2  # the pause lies inside the window
     for r, link in links.items():
-        poll_until(
-            lambda link=link: _frames_past(link, resumed + 0.7),
-            f"frames after the pause ({r:g} Hz)",
-            DEADLINE_S,
-        )
-        end = resumed + 0.6
-        assert end - WINDOW_S < paused_at - 0.2
-        snap = captures[r].snapshot(end, end)
+        snap = _judged_once_past(link, captures[r], resumed + 1.7, end, f"frames ({r:g} Hz)")
         assert snap.verdict == "incomplete", (r, snap.stillness_reason)
         assert "the controller stopped sending" in snap.stillness_reason, (r, snap.stillness_reason)
