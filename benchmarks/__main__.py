@@ -17,6 +17,7 @@ MODULES = (
     "benchmarks.bench_registration",
     "benchmarks.bench_end_to_end",
     "benchmarks.bench_robot_link",
+    "benchmarks.bench_stillness",
     "benchmarks.bench_service",
     "benchmarks.bench_or_latency",
 )

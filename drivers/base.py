@@ -30,7 +30,9 @@ and may be called from any thread.  :meth:`BaseLink.close` is bounded by
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
+import itertools
 import logging
 import math
 import threading
@@ -40,8 +42,10 @@ from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from types import TracebackType
-from typing import Any, Protocol, Self, runtime_checkable
+from typing import Any, Generic, Protocol, Self, TypeVar, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
 
 from drivers.errors import LinkConfigError, LinkTimeoutError, ProtocolError, RobotLinkError
 from drivers.loop_thread import LoopThread
@@ -63,7 +67,13 @@ SILENCE_RECONNECT_S = 2.0
 a VAL3 task that stopped streaming after a failed ``sioSet``)."""
 
 HISTORY_S = 120.0
-"""Ring buffer span; at 50 Hz that is 6000 samples (the contract asks for ≥ 60 s)."""
+"""Joint history span (s): the longest ``stillness.window_s`` (100 s) plus a 20 s margin for the
+scan's own transfer and the judge's look past the window end.  Held by time, whatever the rate."""
+
+MAX_RATE_HZ = 1000.0
+"""Fastest joint stream whose full ``history_s`` the history holds (Hz): 1 kHz, the CS8/CS9
+interpolation clock's order (a VAL3 task on the 4 ms clock publishes at 250 Hz).  A faster stream
+keeps the newest ``history_s × MAX_RATE_HZ`` samples, a shorter span (docs/robot-link.md)."""
 
 BACKOFF_INITIAL_S = 0.05
 BACKOFF_MAX_S = 0.5
@@ -93,7 +103,7 @@ CHECKLIST = (
 # --------------------------------------------------------------------------- data
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class JointState:
     """One joint sample as received.
 
@@ -128,7 +138,7 @@ class JointState:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class RobotStatus:
     """Controller status (simple_message STATUS, msg 13).
 
@@ -165,10 +175,6 @@ class LinkSession:
     ended_t_s: float | None
 
 
-STATUS_MIN_PERIOD_S = 0.02
-"""Shortest STATUS period the status history is sized for (the VAL3 driver and the serial link send it
-at 10 Hz; 50 Hz leaves room): ``history_s / STATUS_MIN_PERIOD_S`` statuses are kept."""
-
 SESSIONS_KEPT = 64
 """Sessions remembered by :meth:`BaseLink.sessions` (far more than reconnects in the 120 s history)."""
 
@@ -186,6 +192,9 @@ class RobotLink(Protocol):
     def status(self) -> RobotStatus | None: ...
     def health(self) -> LinkHealth: ...
     def history(self, since_t_s: float) -> list[JointState]: ...
+    def history_span_s(self, since_t_s: float) -> float: ...
+    def max_receive_gap_s(self, since_t_s: float) -> float | None: ...
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]: ...
     def stream(self) -> AsyncIterator[JointState]: ...
     async def __aenter__(self) -> Self: ...
     async def __aexit__(
@@ -196,13 +205,42 @@ class RobotLink(Protocol):
 # --------------------------------------------------------------------------- helpers
 
 
-class JointRing:
-    """Thread-safe ring buffer of :class:`JointState`, ordered by ``t_s``."""
+def float32_half_spacing(value: float) -> float:
+    """Half the float32 spacing at ``value`` (same unit): the most a float32 encoding moves a real of
+    that size (2.4e-7 rad for 4 ≤ |value| < 8 rad, e.g. ±270° = ±4.712 rad)."""
+    return float(np.spacing(np.float32(abs(value)))) / 2.0
 
-    def __init__(self, capacity: int) -> None:
-        if capacity < 1:
-            raise ValueError(f"ring capacity must be >= 1, got {capacity}")
-        self._items: deque[JointState] = deque(maxlen=capacity)
+
+class _Stamped(Protocol):
+    @property
+    def t_s(self) -> float: ...
+
+
+_T = TypeVar("_T", bound=_Stamped)
+
+
+class JointRing(Generic[_T]):
+    """Thread-safe history of :class:`JointState` (or anything with a ``t_s``), ordered by ``t_s``,
+    held by time: an append drops the samples older than ``history_s`` before the newest, and the
+    newest ``ceil(history_s × max_rate_hz)`` are kept at most (a flood cannot grow it further).
+
+    Parameters
+    ----------
+    history_s : float
+        Span kept (s).
+    max_rate_hz : float
+        The fastest stream whose whole span is kept (:data:`MAX_RATE_HZ`).
+    """
+
+    def __init__(self, history_s: float, max_rate_hz: float = MAX_RATE_HZ) -> None:
+        if not (history_s > 0 and max_rate_hz > 0):
+            raise ValueError(f"history_s and max_rate_hz must be > 0, got {history_s}, {max_rate_hz}")
+        self.history_s = float(history_s)
+        self._items: deque[_T] = deque(maxlen=max(1, math.ceil(history_s * max_rate_hz)))
+        self._gaps: deque[tuple[float, float, float]] = deque()
+        """(receive time of the later sample, gap before it, receive time of the earlier): the
+        sliding-window maximum of the gaps, decreasing, so the largest gap since any time is the first
+        entry at or after it."""
         self._lock = threading.Lock()
         self._appended = threading.Condition(self._lock)
         self._total = 0
@@ -211,9 +249,21 @@ class JointRing:
     def capacity(self) -> int:
         return self._items.maxlen or 0
 
-    def append(self, state: JointState) -> None:
+    def append(self, state: _T) -> None:
         with self._lock:
-            self._items.append(state)
+            items, gaps = self._items, self._gaps
+            if items:
+                gap = state.t_s - items[-1].t_s
+                while gaps and gaps[-1][1] <= gap:
+                    gaps.pop()
+                gaps.append((state.t_s, gap, items[-1].t_s))
+            items.append(state)
+            oldest_kept = state.t_s - self.history_s
+            while items[0].t_s < oldest_kept:
+                items.popleft()
+            oldest = items[0].t_s
+            while gaps and gaps[0][2] < oldest:
+                gaps.popleft()
             self._total += 1
             self._appended.notify_all()
 
@@ -222,11 +272,14 @@ class JointRing:
         with self._lock:
             return self._total
 
-    def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
+    def appended_since(self, cursor: int) -> tuple[list[_T], int]:
         """The samples appended after ``cursor`` (those still in the ring), and the new cursor."""
         with self._lock:
             k = min(self._total - cursor, len(self._items))
-            return (list(self._items)[-k:] if k > 0 else []), self._total
+            out = list(itertools.islice(reversed(self._items), k)) if k > 0 else []
+            total = self._total
+        out.reverse()
+        return out, total
 
     def wait_appended(self, cursor: int, timeout_s: float) -> bool:
         """Block until a sample was appended after ``cursor`` (True) or ``timeout_s`` passed."""
@@ -238,14 +291,31 @@ class JointRing:
         with self._appended:
             return self._appended.wait_for(lambda: bool(self._items) and self._items[-1].t_s > t_s, timeout_s)
 
-    def latest(self) -> JointState | None:
+    def latest(self) -> _T | None:
         with self._lock:
             return self._items[-1] if self._items else None
 
-    def since(self, since_t_s: float) -> list[JointState]:
+    def span_s(self, since_t_s: float) -> float:
+        """Time from the first sample at or after ``since_t_s`` to the newest (0 with fewer than two);
+        O(log n), no copy."""
+        with self._lock:
+            items = self._items
+            i = bisect.bisect_left(items, since_t_s, key=lambda x: x.t_s)
+            return items[-1].t_s - items[i].t_s if i < len(items) - 1 else 0.0
+
+    def max_gap_s(self, since_t_s: float) -> float | None:
+        """The largest time between two consecutive samples, both kept, the later received at or after
+        ``since_t_s`` (None: no such pair); O(1) amortised, no copy."""
+        with self._lock:
+            for t_s, gap, _ in self._gaps:
+                if t_s >= since_t_s:
+                    return gap
+            return None
+
+    def since(self, since_t_s: float) -> list[_T]:
         """Samples with ``t_s >= since_t_s``, oldest first."""
         with self._lock:
-            out: list[JointState] = []
+            out: list[_T] = []
             for s in reversed(self._items):
                 if s.t_s < since_t_s:
                     break
@@ -373,8 +443,11 @@ class BaseLink:
         Age of the last valid frame beyond which :meth:`health` says ``stale`` (s).
     silence_reconnect_s : float
         Drop and re-open a transport that delivered nothing valid for this long (s).
-    history_s, frame_period_s : float
-        Ring-buffer span and the nominal frame period used to size it (s).
+    history_s : float
+        Span of the joint and status history (s), held by time at any rate up to
+        :data:`MAX_RATE_HZ` (:class:`JointRing`).
+    frame_period_s : float
+        The controller's documented frame period (s); sizes nothing, reported for information.
     backoff_initial_s, backoff_max_s : float
         Reconnect back-off: first delay and cap (s).
     close_timeout_s : float
@@ -418,12 +491,12 @@ class BaseLink:
         self.n_joints = n_joints
         self.frame_period_s = frame_period_s
         self._sessions: deque[LinkSession] = deque(maxlen=SESSIONS_KEPT)
-        self._ring = JointRing(max(1, math.ceil(history_s / frame_period_s)))
+        self.history_s = history_s
+        self._ring: JointRing[JointState] = JointRing(history_s)
         self._backoff = Backoff(backoff_initial_s, backoff_max_s)
         self._lock = threading.Lock()
         self._status: RobotStatus | None = None
-        self._statuses: deque[RobotStatus] = deque(maxlen=max(1, math.ceil(history_s / STATUS_MIN_PERIOD_S)))
-        self._statuses_total = 0
+        self._statuses: JointRing[RobotStatus] = JointRing(history_s)
         self._transport_up = False
         self._down_reason = "not connected yet (call connect())"
         self._counters: dict[str, int] = {
@@ -534,18 +607,23 @@ class BaseLink:
         """Samples received at or after ``since_t_s`` (``time.monotonic()`` seconds), oldest first."""
         return self._ring.since(since_t_s)
 
+    def history_span_s(self, since_t_s: float) -> float:
+        """Span of the history from ``since_t_s`` (:meth:`JointRing.span_s`), without copying it."""
+        return self._ring.span_s(since_t_s)
+
+    def max_receive_gap_s(self, since_t_s: float) -> float | None:
+        """Largest receive gap ending at or after ``since_t_s`` (:meth:`JointRing.max_gap_s`)."""
+        return self._ring.max_gap_s(since_t_s)
+
     def status_history(self, since_t_s: float) -> list[RobotStatus]:
         """Controller statuses received at or after ``since_t_s`` (monotonic s), oldest first: the
         stillness check reads ``in_motion`` over a scan's window from them."""
-        with self._lock:
-            return [s for s in self._statuses if s.t_s >= since_t_s]
+        return list(self._statuses.since(since_t_s))
 
     def statuses_since(self, cursor: int) -> tuple[list[RobotStatus], int]:
         """Statuses published after ``cursor`` (0 = from the start; those still kept) and the new
         cursor; for :mod:`drivers.link_process`."""
-        with self._lock:
-            n = min(self._statuses_total - cursor, len(self._statuses))
-            return (list(self._statuses)[len(self._statuses) - n :] if n > 0 else []), self._statuses_total
+        return self._statuses.appended_since(cursor)
 
     def appended_since(self, cursor: int) -> tuple[list[JointState], int]:
         """Samples published after ``cursor`` (0 = from the start) and the new cursor
@@ -560,6 +638,12 @@ class BaseLink:
         """Block the calling thread until a sample received after ``t_s`` is in the history (True), at
         most ``timeout_s`` (False).  Never call it on an event loop."""
         return self._ring.wait_past(t_s, timeout_s)
+
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
+        """How far each decoded joint may lie from the controller's value by the wire encoding's rounding
+        alone (rad): a value this close beyond a joint limit is at the limit (issue 40).  Each link states
+        its own; the base link has no encoding of its own (0)."""
+        return tuple(0.0 for _ in joints_rad)
 
     def sessions(self) -> list[LinkSession]:
         """The last :data:`SESSIONS_KEPT` transport sessions, oldest first (the last may be open)."""
@@ -673,9 +757,8 @@ class BaseLink:
     def _publish_status(self, status: RobotStatus) -> None:
         with self._lock:
             self._status = status
-            self._statuses.append(status)
-            self._statuses_total += 1
             self._counters["status_frames"] += 1
+        self._statuses.append(status)
 
     def _silence_exceeded(self, since_t_s: float) -> bool:
         """True if nothing valid arrived for ``silence_reconnect_s`` (since the later of the

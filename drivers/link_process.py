@@ -29,7 +29,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import os
 import pickle
 import struct
@@ -37,7 +36,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import astuple
 from datetime import UTC, datetime
@@ -46,8 +44,6 @@ from typing import IO, Any, Self
 
 from drivers.base import (
     CONNECT_TIMEOUT_S,
-    HISTORY_S,
-    STATUS_MIN_PERIOD_S,
     JointRing,
     JointState,
     LinkHealth,
@@ -170,12 +166,15 @@ class ProcessLink:
         self.stale_after_s = probe.stale_after_s
         self.close_timeout_s = CLOSE_TIMEOUT_S
         self._options = options
-        self._ring = JointRing(max(1, math.ceil(HISTORY_S / probe.frame_period_s)))
+        self.history_s = probe.history_s
+        self.joint_resolution_rad = probe.joint_resolution_rad
+        """The wire's rounding, as the link in the child states it (the probe is never started)."""
+        self._ring: JointRing[JointState] = JointRing(probe.history_s)
         self._lock = threading.Lock()
         self._transport_up = False
         self._reason = "not connected yet (call connect())"
         self._status: RobotStatus | None = None
-        self._statuses: deque[RobotStatus] = deque(maxlen=max(1, math.ceil(HISTORY_S / STATUS_MIN_PERIOD_S)))
+        self._statuses: JointRing[RobotStatus] = JointRing(probe.history_s)
         self._counters: dict[str, int] = {}
         self._sessions: list[LinkSession] = []
         self._proc: subprocess.Popen[bytes] | None = None
@@ -249,6 +248,12 @@ class ProcessLink:
     def history(self, since_t_s: float) -> list[JointState]:
         return self._ring.since(since_t_s)
 
+    def history_span_s(self, since_t_s: float) -> float:
+        return self._ring.span_s(since_t_s)
+
+    def max_receive_gap_s(self, since_t_s: float) -> float | None:
+        return self._ring.max_gap_s(since_t_s)
+
     def wait_past(self, t_s: float, timeout_s: float) -> bool:
         return self._ring.wait_past(t_s, timeout_s)
 
@@ -258,8 +263,7 @@ class ProcessLink:
 
     def status_history(self, since_t_s: float) -> list[RobotStatus]:
         """As :meth:`drivers.base.BaseLink.status_history` (the child's receive stamps)."""
-        with self._lock:
-            return [s for s in self._statuses if s.t_s >= since_t_s]
+        return self._statuses.since(since_t_s)
 
     def counters(self) -> dict[str, int]:
         with self._lock:
@@ -357,8 +361,8 @@ class ProcessLink:
                 )
             self._first.set()
         elif kind == "statuses":
-            with self._lock:
-                self._statuses.extend(RobotStatus(*st) for st in msg[1])
+            for st in msg[1]:
+                self._statuses.append(RobotStatus(*st))
         elif kind == "meta":
             _, state, reason, status, counters, sessions = msg
             with self._lock:

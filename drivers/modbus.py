@@ -32,11 +32,12 @@ import asyncio
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 from urllib.parse import urlsplit
 
-from drivers.base import BaseLink, base_options, parse_query
+from drivers.base import BaseLink, base_options, float32_half_spacing, parse_query
 from drivers.errors import LinkConfigError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -172,6 +173,16 @@ def registers_to_joints(registers: list[int], rmap: RegisterMap) -> list[float]:
     return out
 
 
+def register_rounding_rad(value_rad: float, rmap: RegisterMap) -> float:
+    """The most the register type moves a joint of ``value_rad`` (rad): half a float32 spacing of the
+    register value, or half an integer step (× ``scale``), converted from ``rmap.units``."""
+    v = math.degrees(value_rad) if rmap.units == "deg" else value_rad
+    raw = v / rmap.scale
+    step = float32_half_spacing(raw) if rmap.data_type == "float32" else 0.5
+    half = step * abs(rmap.scale)
+    return math.radians(half) if rmap.units == "deg" else half
+
+
 class ModbusLink(BaseLink):
     """Polling Modbus TCP client (``modbus://HOST[:502]?…``).
 
@@ -201,6 +212,11 @@ class ModbusLink(BaseLink):
         opts.setdefault("n_joints", rm.n_joints)
         super().__init__(url, **base_options(opts, url))
         self._client: Any = None
+
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
+        """As the register map encodes them (:func:`register_rounding_rad`): int16 hundredths of a degree
+        round by 0.005° (8.7e-5 rad), float32 degrees by half a float32 spacing."""
+        return tuple(register_rounding_rad(q, self.register_map) for q in joints_rad)
 
     async def _session(self) -> None:
         from pymodbus.client import AsyncModbusTcpClient

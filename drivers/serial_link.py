@@ -35,6 +35,7 @@ import asyncio
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import unquote, urlsplit
@@ -89,9 +90,30 @@ def _sentence(payload: str) -> bytes:
     return b"$" + p + b"*" + f"{checksum(p):02X}".encode() + b"\r\n"
 
 
+SIGNIFICANT_DIGITS = 9
+"""Significant digits of a joint value on the wire (:func:`format_joint`)."""
+
+
 def format_joint(value_rad: float) -> str:
     """Decimal text of a joint value: 9 significant digits (round-trips float32 exactly)."""
-    return f"{value_rad:.9g}"
+    return f"{value_rad:.{SIGNIFICANT_DIGITS}g}"
+
+
+VAL3_DECIMALS = 8
+"""Decimals the project's VAL3 program writes (``toString(".8", …)``, docs/val3/publishSerial.pgx)."""
+
+
+def text_rounding_rad(value_rad: float) -> float:
+    """The most the text encoding moves ``value_rad``: half a unit in its last digit, for the coarser of
+    :data:`SIGNIFICANT_DIGITS` significant digits (:func:`format_joint`) and :data:`VAL3_DECIMALS`
+    decimals (the VAL3 program): 5e-9 rad for |value| < 10 rad (127.5° = 2.22529480 on the wire)."""
+    if not math.isfinite(value_rad):
+        return 0.0
+    by_decimals = 0.5 * 10.0**-VAL3_DECIMALS
+    if value_rad == 0:
+        return by_decimals
+    by_digits = 0.5 * 10.0 ** (math.floor(math.log10(abs(value_rad))) - (SIGNIFICANT_DIGITS - 1))
+    return max(by_decimals, by_digits)
 
 
 def encode_joint_line(seq: int, joints_rad: Any) -> bytes:
@@ -217,6 +239,11 @@ class SerialLink(BaseLink):
         self._fd: int | None = None
         self._splitter = LineSplitter()
         self._last_seq: int | None = None
+
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
+        """Joints are decimal text (9 significant digits, 8 decimals from the VAL3 program): half a unit in
+        the last digit (5e-9 rad at 127.5°, :func:`text_rounding_rad`)."""
+        return tuple(text_rounding_rad(q) for q in joints_rad)
 
     async def _session(self) -> None:
         import serial

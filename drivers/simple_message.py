@@ -34,11 +34,12 @@ import logging
 import socket
 import struct
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
 
-from drivers.base import BaseLink, RobotStatus, base_options, option_float, parse_query
+from drivers.base import BaseLink, RobotStatus, base_options, float32_half_spacing, option_float, parse_query
 from drivers.errors import LinkConfigError, ProtocolError
 
 log = logging.getLogger(__name__)
@@ -366,6 +367,10 @@ class SimpleMessageLink(BaseLink):
         self.connect_timeout_s = option_float(opts, "connect_timeout_s", connect_timeout_s, url)
         super().__init__(url, **base_options(opts, url))
         self._transport: asyncio.Transport | None = None
+
+    def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
+        """Every joint is a float32 on the wire: half its spacing (2.4e-7 rad at ±270°)."""
+        return tuple(float32_half_spacing(q) for q in joints_rad)
 
     def _on_frame(self, frame: bytes, t_s: float) -> None:
         try:

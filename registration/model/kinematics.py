@@ -33,7 +33,12 @@ TOOL_FRAME = "tool0"
 MM_PER_M = 1000.0
 
 JOINT_LIMIT_TOLERANCE_RAD = 1e-9
-"""Slack on the joint limits for float round-off (a value exactly at a limit is legal)."""
+"""Slack on the joint limits for float64 round-off (a value exactly at a limit is legal).  A joint read
+over a controller link also gets the link's own wire resolution (``resolution_rad``: float32 over
+simple_message rounds by up to 2.4e-7 rad at ±270°)."""
+
+DEGREES_HINT_RAD = 2.0 * math.pi
+"""A joint value beyond a limit and larger than this in magnitude (rad) reads as degrees sent as radians."""
 
 DEFAULT_TOOL0_FROM_PHANTOM_XYZ_MM = (0.0, 0.0, 200.0)
 DEFAULT_TOOL0_FROM_PHANTOM_RPY_DEG = (180.0, 0.0, 0.0)
@@ -123,14 +128,18 @@ class RobotModel:
     def n_joints(self) -> int:
         return len(self.joint_names)
 
-    def check_joints(self, joints_rad: ArrayLike) -> F64:
+    def check_joints(self, joints_rad: ArrayLike, *, resolution_rad: ArrayLike = 0.0) -> F64:
         """Return ``joints_rad`` as float64 (n_joints,) after checking count, NaN and limits.
+
+        A value within ``resolution_rad`` of a limit (the wire encoding's rounding, as the link that
+        read it states it; never less than :data:`JOINT_LIMIT_TOLERANCE_RAD`) is at the limit and is
+        returned as the limit itself (:meth:`at_limits`).
 
         Raises
         ------
         KinematicsError
-            Wrong count, non-finite value, or a joint outside its limit (named,
-            with value and limit in degrees).
+            Wrong count, non-finite value, or a joint beyond its limit by more than the rounding
+            (named, with value, limit and excess in degrees, and a hint that says what is likely).
         """
         q = np.asarray(joints_rad, dtype=np.float64).reshape(-1)
         if q.size != self.n_joints:
@@ -141,15 +150,52 @@ class RobotModel:
         bad = [self.joint_names[i] for i in range(q.size) if not math.isfinite(q[i])]
         if bad:
             raise KinematicsError(f"{self.name}: joint values must be finite; {', '.join(bad)} = NaN/inf")
+        tol = self._tolerance_rad(resolution_rad)
         for i, name in enumerate(self.joint_names):
             lo, hi = self.lower_rad[i], self.upper_rad[i]
-            if not lo - JOINT_LIMIT_TOLERANCE_RAD <= q[i] <= hi + JOINT_LIMIT_TOLERANCE_RAD:
+            if not lo - tol[i] <= q[i] <= hi + tol[i]:
                 raise KinematicsError(
-                    f"{self.name}: {name} = {math.degrees(q[i]):.4f}° is outside its limit "
-                    f"[{math.degrees(lo):.4f}°, {math.degrees(hi):.4f}°] ({self.urdf_path.name}); "
-                    "check the joint units (radians expected) and the robot model"
+                    self._limit_message(name, float(q[i]), float(lo), float(hi), float(tol[i]))
                 )
+        return self.at_limits(q, tol)
+
+    def at_limits(self, joints_rad: ArrayLike, resolution_rad: ArrayLike = 0.0) -> F64:
+        """``joints_rad`` with every value within ``resolution_rad`` (or :data:`JOINT_LIMIT_TOLERANCE_RAD`)
+        of a limit, on either side, put at that limit: the wire cannot tell them from it.  Other values
+        are unchanged (one farther beyond stays, for :meth:`check_joints` to refuse)."""
+        q = np.asarray(joints_rad, dtype=np.float64).reshape(-1).copy()
+        if q.size != self.n_joints:
+            return q
+        tol = self._tolerance_rad(resolution_rad)
+        low = np.abs(q - self.lower_rad) <= tol
+        high = np.abs(q - self.upper_rad) <= tol
+        q[low], q[high] = self.lower_rad[low], self.upper_rad[high]
         return q
+
+    def _tolerance_rad(self, resolution_rad: ArrayLike) -> F64:
+        res = np.broadcast_to(np.asarray(resolution_rad, dtype=np.float64), (self.n_joints,))
+        if not np.all(np.isfinite(res) & (res >= 0)):
+            raise KinematicsError(f"{self.name}: resolution_rad must be finite and >= 0, got {res.tolist()}")
+        return np.maximum(res, JOINT_LIMIT_TOLERANCE_RAD)
+
+    def _limit_message(self, name: str, q: float, lo: float, hi: float, tol: float) -> str:
+        excess = q - hi if q > hi else lo - q
+        head = (
+            f"{self.name}: {name} = {math.degrees(q):.4f}° is outside its limit "
+            f"[{math.degrees(lo):.4f}°, {math.degrees(hi):.4f}°] ({self.urdf_path.name}): {q:.9g} rad is "
+            f"{math.degrees(excess):.4g}° ({excess:.3g} rad) beyond it, more than the {tol:.2g} rad the "
+            "joint's encoding can round; "
+        )
+        if abs(q) > DEGREES_HINT_RAD and lo <= math.radians(q) <= hi:
+            return head + (
+                f"{q:.6g} looks like degrees ({math.radians(q):.6g} rad would be inside the limit): "
+                "the controller or the file must send radians"
+            )
+        return head + (
+            "the arm cannot stand there: check that the robot model is the arm connected "
+            "(robot.model) and that the controller reports the joints with their zero and sign "
+            "as the URDF defines them"
+        )
 
     def robot_from_tool0(self, joints_rad: ArrayLike) -> F64:
         """Pose of ``tool0`` in the robot frame (4 × 4, mm) at joint angles ``joints_rad`` (rad).

@@ -18,13 +18,21 @@ three verdicts (docs/safety.md, "Stillness and health"):
   first scan after start-up); the link reconnected inside the window; or frames are
   missing.  How "missing" is judged depends on the link:
 
-  - a **streamed** link (simple_message over TCP, serial) delivers late frames
-    intact and in order, so a receive-clock gap inside one unbroken session is not a
-    hole in the robot's history.  Coverage is the frame count against the stream's
-    measured period (:func:`stream_period_s`): at most ``max_gap_s`` worth of frames may
-    be missing.  The controller's own clock is not used: the VAL3 driver sends
-    JOINT_POSITION with sequence number 0 and never JOINT_FEEDBACK
-    (research/staubli-link.md §1.4, §1.7).
+  - a **streamed** link (simple_message over TCP, serial) delivers late frames intact and in
+    order, so a receive-clock gap inside one unbroken session is not a hole in the robot's
+    history when the frames sent meanwhile follow it.  Only a receive gap longer than
+    ``max_gap_s`` is examined: the frames received from its end until up to :data:`CATCH_UP_S`
+    later are counted against the frames the controller sends over the gap and that horizon
+    (the best horizon counts) at the session's long-run rate (:func:`stream_period_s`, frames
+    over span); when more than ``max_gap_s`` worth are missing, the controller stopped
+    sending.  The count runs over a second or so around each long receive gap, never over the
+    whole window, so a rate error of a few per mille costs milliseconds, not the 0.25 s that a
+    count over a 60 s window at the median receive interval lost under load (issue 40).  The
+    controller's own counters are not used: the VAL3 driver sends JOINT_POSITION with
+    sequence number 0 and never JOINT_FEEDBACK (research/staubli-link.md §1.4, §1.7);
+    JOINT_FEEDBACK's ``time`` is a float32 (1 ms resolution lost after ~2.3 h of controller
+    uptime); the serial ``$J`` counter shows lines lost on the wire, not a controller that
+    paused (docs/robot-link.md, "Joint history and the controller's cadence").
   - a **polled** link (Modbus) has a sample only when its poller ran: no gap between
     receive times (and the window edges) may exceed ``max_gap_s``.
 * ``still``: covered and within the deviation limit.
@@ -51,6 +59,14 @@ DEFAULT_MAX_GAP_S = 0.25
 STREAM_PERIOD_MIN_INTERVALS = 10
 """Fewest inter-frame intervals from which :func:`stream_period_s` measures a stream's period; with
 fewer the coverage is judged by receive gaps, as for a polled link."""
+
+CATCH_UP_S = 1.0
+"""After a streamed link's receive gap longer than ``max_gap_s``, the frames the controller sent
+meanwhile must have arrived within this long of the gap's end (s).  A receiver that could not read
+finds the backlog in its socket and reads it in one go (the frames share one receive stamp); a
+controller that paused sends nothing for the gap.  1 s leaves room for a second delay right after
+the first (a descheduled reader, then a sender catching up); the rate's error over it is a few
+milliseconds (a 0.5 s pause in the 60 s the rate is measured over: 0.8 % of 1.5 s)."""
 
 VERDICT_STILL = "still"
 VERDICT_MOVED = "moved"
@@ -83,8 +99,9 @@ class StillnessResult:
         Largest time between consecutive samples or a window edge and its nearest sample (s), by
         the receive clock (NaN if no samples).
     missing_frames : float
-        Streamed links: frames expected at the measured period minus frames received (NaN when
-        coverage was judged by receive gaps).
+        Streamed links: frames missing after the receive gaps over ``max_gap_s`` (those sent over a
+        gap that did not follow it within ``catch_up_s``), at the long-run period; 0 when no receive
+        gap exceeds ``max_gap_s``.  NaN when coverage was judged by receive gaps (polled).
     """
 
     still: bool
@@ -98,16 +115,19 @@ class StillnessResult:
 
 
 def stream_period_s(t_s: ArrayLike, *, min_intervals: int = STREAM_PERIOD_MIN_INTERVALS) -> float | None:
-    """The measured frame period of a stream: the median interval between receive times (s).
+    """A stream's long-run frame period: the span of its receive times over the number of intervals (s).
 
-    The median ignores both a controller stall (one long interval) and the burst of late frames
-    that follows a receive delay (a few near-zero intervals).  None with fewer than
-    ``min_intervals`` intervals.
+    Frames over span does not depend on how the receive clock bunches them: a burst of late frames
+    after a receive delay and the short intervals of a busy scheduler leave the count and the span
+    unchanged (the median interval shrinks under both, issue 40).  A controller pause inside the
+    span lengthens the period by the pause's share of the span (0.5 s in 60 s: 0.8 %), which
+    :func:`assess_stillness` applies only over a second around a receive gap.  None with fewer than
+    ``min_intervals`` intervals or a zero span.
     """
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
     if t.size - 1 < min_intervals:
         return None
-    period = float(np.median(np.diff(t)))
+    period = float((t[-1] - t[0]) / (t.size - 1))
     return period if period > 0 and math.isfinite(period) else None
 
 
@@ -123,6 +143,7 @@ def assess_stillness(
     sessions: ArrayLike | None = None,
     period_s: float | None = None,
     in_motion_t_s: ArrayLike | None = None,
+    catch_up_s: float = CATCH_UP_S,
 ) -> StillnessResult:
     """Decide whether the robot was still during ``[window_end_t_s − window_s, window_end_t_s]``.
 
@@ -149,11 +170,15 @@ def assess_stillness(
         The transport session of each sample; more than one inside the window (a
         reconnect) is ``incomplete``.
     period_s : float, optional
-        A streamed link's measured frame period (:func:`stream_period_s`): coverage is
-        judged by the frame count, not by receive gaps.  None for a polled link.
+        A streamed link's long-run frame period (:func:`stream_period_s`): a receive gap over
+        ``max_gap_s`` is a hole only when the frames sent over it did not follow within
+        ``catch_up_s`` (counted at this period).  None for a polled link.
     in_motion_t_s : array_like of float, optional
         Receive times (same clock as ``t_s``) of the controller statuses that reported
         ``in_motion`` = TRUE; one inside the window is ``moved``.
+    catch_up_s : float
+        Streamed links: how long after a long receive gap the frames sent over it are looked for
+        (:data:`CATCH_UP_S`); samples after the window end up to this long count.
 
     Returns
     -------
@@ -182,7 +207,7 @@ def assess_stillness(
     if refusal is not None:
         return refusal
     if period_s is not None:
-        return _streamed_coverage(w, period_s, max_gap_s)
+        return _streamed_coverage(w, t, period_s, max_gap_s, catch_up_s)
     return _polled_coverage(w, max_gap_s)
 
 
@@ -319,20 +344,54 @@ def _reconnected(w: _Window, sessions: ArrayLike | None, inside: NDArray[np.bool
     )  # fmt: skip
 
 
-def _streamed_coverage(w: _Window, period_s: float, max_gap_s: float) -> StillnessResult:
-    """A streamed link: ``still`` unless more than ``max_gap_s`` worth of frames are missing."""
-    missing = w.window_s / period_s - w.n
-    covered = min(w.window_s, w.n * period_s)
-    if missing * period_s > max_gap_s:
+def _receive_gaps(t: NDArray[np.float64], w: _Window) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Starts and ends of the receive gaps that touch the window: between consecutive samples, from
+    the last sample at or before the window start (else the start) and to the first sample at or
+    after the window end (else the end: nothing arrived after it)."""
+    before = t[t <= w.start_t_s]
+    after = t[t >= w.end_t_s]
+    seq = np.concatenate((
+        before[-1:] if before.size else [w.start_t_s],
+        t[(t > w.start_t_s) & (t < w.end_t_s)],
+        after[:1] if after.size else [w.end_t_s],
+    ))  # fmt: skip
+    return seq[:-1], seq[1:]
+
+
+def _streamed_coverage(
+    w: _Window, t: NDArray[np.float64], period_s: float, max_gap_s: float, catch_up_s: float
+) -> StillnessResult:
+    """A streamed link: ``still`` unless a receive gap over ``max_gap_s`` was not followed by the
+    frames the controller sent over it (more than ``max_gap_s`` worth missing at ``period_s``)."""
+    starts, ends = _receive_gaps(t, w)
+    long_gaps = np.flatnonzero(ends - starts > max_gap_s)
+    missing_s = np.zeros(long_gaps.size)
+    for k, i in enumerate(long_gaps):
+        a, b = float(starts[i]), float(ends[i])
+        # the frames received from b on, each horizon up to b + catch_up_s: did they make up for the gap?
+        seg = t[(t >= b) & (t <= b + catch_up_s)]
+        if seg.size:
+            deficits = (seg - a) - np.arange(1, seg.size + 1) * period_s
+            missing_s[k] = max(0.0, float(deficits.min()))
+        else:
+            missing_s[k] = b - a
+    covered = w.window_s - float(np.sum(np.minimum(missing_s, w.window_s)))
+    missing_frames = float(np.sum(missing_s) / period_s)
+    worst = int(np.argmax(missing_s)) if missing_s.size else -1
+    if worst >= 0 and missing_s[worst] > max_gap_s:
+        i = long_gaps[worst]
+        gap_s = float(ends[i] - starts[i])
         return StillnessResult(
-            False, w.deviation_rad, covered, w.n,
-            f"joint history incomplete: {w.n} joint frames in the {w.window_s:g} s window where the stream's "
-            f"measured period ({period_s * 1e3:.1f} ms) gives {w.window_s / period_s:.0f}; "
-            f"{missing * period_s:.3f} s of frames are missing (> {max_gap_s:g} s), the longest receive "
-            f"gap is {w.worst_gap_s:.3f} s: the controller stopped sending",
-            VERDICT_INCOMPLETE, w.worst_gap_s, missing,
+            False, w.deviation_rad, max(0.0, covered), w.n,
+            f"joint history incomplete: no joint frame for {gap_s:.3f} s from "
+            f"{float(starts[i]) - w.start_t_s:.3f} s into the {w.window_s:g} s window, and the frames sent "
+            f"meanwhile did not follow: {missing_s[worst]:.3f} s of frames missing (> {max_gap_s:g} s) at "
+            f"the stream's long-run rate of {1.0 / period_s:.1f} Hz: the controller stopped sending",
+            VERDICT_INCOMPLETE, w.worst_gap_s, missing_frames,
         )  # fmt: skip
-    return StillnessResult(True, w.deviation_rad, covered, w.n, "", VERDICT_STILL, w.worst_gap_s, missing)
+    return StillnessResult(
+        True, w.deviation_rad, max(0.0, covered), w.n, "", VERDICT_STILL, w.worst_gap_s, missing_frames
+    )
 
 
 def _polled_coverage(w: _Window, max_gap_s: float) -> StillnessResult:

@@ -38,7 +38,8 @@ window end, so frames received before the end but not yet handed to the history 
 are counted.  Twice the default ``stillness.max_gap_s``; a stopped stream costs this once."""
 
 PERIOD_HISTORY_S = 60.0
-"""Span of the session's history from which a streamed link's frame period is measured (s)."""
+"""Span of the session's history from which a streamed link's long-run frame period is measured (s),
+frames over span (:func:`registration.model.stillness.stream_period_s`)."""
 
 
 def _on_event_loop() -> bool:
@@ -72,6 +73,7 @@ class Capture:
         self._connected_since_t_s: float | None = None
         self._bad_since_t_s: float | None = time.monotonic()
         """Since when the reported state has not been ``connected`` (None while it is)."""
+        self._model: Any = None
 
     @property
     def url(self) -> str:
@@ -127,8 +129,8 @@ class Capture:
 
     def health(self) -> dict[str, Any]:
         """``{"url", "state": connected|stale|down, "reason", "last_frame_age_s", "history_s",
-        "max_receive_gap_s"}`` (the largest time between two received frames over the last
-        :data:`PERIOD_HISTORY_S`, by the receive clock).
+        "max_receive_gap_s"}`` (the largest time between two received frames, the later within the
+        last :data:`PERIOD_HISTORY_S`, by the receive clock).
 
         ``stale`` means no frame for ``robot.stale_after_s`` (not the link's own 3 frame periods,
         which flap under ordinary load); ``down`` is the link's.
@@ -137,11 +139,9 @@ class Capture:
         counters = self.link.counters()
         latest = self.link.latest()
         now = time.monotonic()
-        hist = self.link.history(now - max(self.settings.stillness.window_s * 4, PERIOD_HISTORY_S))
-        recent = [s.t_s for s in hist if s.t_s >= now - PERIOD_HISTORY_S]
-        gap_s = float(np.max(np.diff(recent))) if len(recent) > 1 else None
-        hist = [s for s in hist if s.t_s >= now - self.settings.stillness.window_s * 4]
-        span = (hist[-1].t_s - hist[0].t_s) if len(hist) > 1 else 0.0
+        # from the ring without copying it: a copy of 120 s at 1 kHz every HEALTH_POLL_S cost 22 ms
+        gap_s = self.link.max_receive_gap_s(now - PERIOD_HISTORY_S)
+        span = self.link.history_span_s(now - self.settings.stillness.window_s * 4)
         state, reason, age = h.state, h.reason, h.last_frame_age_s
         limit_s = self.settings.robot.stale_after_s
         if state != "down" and age is not None and latest is not None:
@@ -192,7 +192,7 @@ class Capture:
         The window runs from ``stillness.window_s`` before ``first_seen_t_s`` (the first file of the
         series appeared) to ``last_change_t_s`` (the last file landed), monotonic seconds.
         """
-        from registration.model.stillness import assess_stillness
+        from registration.model.stillness import CATCH_UP_S, assess_stillness
 
         st = self.settings.stillness
         h = self.health()
@@ -221,7 +221,8 @@ class Capture:
         if streamed and wait_past is not None and h["state"] != "down" and not _on_event_loop():
             wait_past(last_change_t_s, LATE_FRAME_WAIT_S)
         samples = link.history(start_t - st.max_gap_s)
-        samples = [s for s in samples if s.t_s <= last_change_t_s + st.max_gap_s]
+        after_s = max(st.max_gap_s, CATCH_UP_S)  # the judge looks for a gap's late frames this far
+        samples = [s for s in samples if s.t_s <= last_change_t_s + after_s]
         if not samples:
             return replace(
                 unknown,
@@ -256,13 +257,39 @@ class Capture:
         return replace(
             unknown,
             verdict=stillness_verdict(res.verdict),
-            joints_rad=tuple(float(v) for v in at.joints_rad),
+            joints_rad=self._at_limits(at.joints_rad),
             joints_received_at=at.received_at.isoformat(),
             max_deviation_rad=float(res.max_deviation_rad),
             covered_s=float(res.covered_s),
             n_samples=int(res.n_samples),
             stillness_reason=str(res.reason),
         )
+
+    def _at_limits(self, joints_rad: tuple[float, ...]) -> tuple[float, ...]:
+        """The joints, each value within the link's wire rounding of a joint limit
+        (``joint_resolution_rad``: float32 over simple_message, the serial text's digits, the Modbus
+        register type) put at that limit: the registration's limit check then sees the limit the arm
+        stands at, not the wire's rounding of it (issue 40).  Values farther out are left for it to
+        refuse."""
+        q = tuple(float(v) for v in joints_rad)
+        resolution = getattr(self.link, "joint_resolution_rad", None)
+        model = self._limits_model()
+        if resolution is None or model is None:
+            return q
+        return tuple(float(v) for v in model.at_limits(q, resolution(q)))
+
+    def _limits_model(self) -> Any:
+        """The configured robot model (for its joint limits), loaded once; None if it cannot be (the
+        registration reports that itself)."""
+        if self._model is None:
+            from registration.errors import ConfigError
+            from registration.model.kinematics import RobotModel
+
+            try:
+                self._model = RobotModel.load(self.settings.robot.model)
+            except ConfigError:
+                self._model = False
+        return self._model or None
 
     def _in_motion_t_s(self, start_t_s: float, end_t_s: float) -> list[float]:
         """Receive times of the controller statuses in ``[start_t_s, end_t_s]`` reporting ``in_motion``
@@ -273,7 +300,7 @@ class Capture:
         return [s.t_s for s in history(start_t_s) if s.t_s <= end_t_s and s.in_motion == 1]
 
     def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
-        """The measured frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
+        """The long-run frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
         from registration.model.stillness import stream_period_s
 
         same = [s.t_s for s in self.link.history(end_t_s - PERIOD_HISTORY_S) if s.session == last.session]

@@ -7,6 +7,7 @@ which they win; and each threshold hit exactly (inclusive) and just passed. An `
 UNKNOWN never reaches this function (only TRUE reports' times do), so "unknown" is ``None`` / empty.
 Sample times are multiples of 1/8 s, so the thresholds are hit exactly in binary floating point.
 The expected results are the code's answers before the split; any change of behaviour fails here.
+The streamed cases are issue 40's rule (a long receive gap not followed by its frames), re-pinned.
 """
 
 # ruff: noqa: E501  (the pinned reasons are compared verbatim)
@@ -79,6 +80,12 @@ def _streamed(n_frames: int) -> dict[str, Any]:
     return _kw(t, _q(t), period_s=STEP)
 
 
+def _streamed_hole(backlog: int) -> dict[str, Any]:
+    """A 0.5 s receive gap (8.5 → 9.0 s) followed by ``backlog`` late frames stamped at 9.0 s."""
+    t = np.sort(np.concatenate((_grid()[(_grid() <= 8.5) | (_grid() >= 9.0)], np.full(backlog, 9.0))))
+    return _kw(t, _q(t), period_s=STEP)
+
+
 def _before_window_only() -> dict[str, Any]:
     t = _grid(0.0, 7.875)
     return _kw(t, _q(t))
@@ -112,8 +119,10 @@ CASES: dict[str, dict[str, Any]] = {
     "still_gap_at_window_start_exactly_at_limit": _kw(_grid(8.25), _q(_grid(8.25))),
     "incomplete_gap_at_window_end": _kw(_grid(START, 9.625), _q(_grid(START, 9.625))),
     "still_streamed_all_frames": _streamed(17),
-    "still_streamed_missing_exactly_at_limit": _streamed(14),
-    "incomplete_streamed_missing_over_limit": _streamed(13),
+    "still_streamed_sparse_without_long_gap": _streamed(13),
+    "still_streamed_gap_followed_by_its_frames": _streamed_hole(3),
+    "still_streamed_gap_missing_exactly_at_limit": _streamed_hole(1),
+    "incomplete_streamed_gap_not_followed": _streamed_hole(0),
     "still_streamed_late_burst": _kw(
         np.concatenate((np.linspace(START, 8.5, 5), np.full(12, 9.9))),
         _q(np.zeros(17)),
@@ -384,26 +393,46 @@ EXPECTED: dict[str, StillnessResult] = {
         reason="",
         verdict="still",
         max_receive_gap_s=0.125,
-        missing_frames=-1.0,
+        missing_frames=0.0,
     ),
-    "still_streamed_missing_exactly_at_limit": StillnessResult(
+    "still_streamed_sparse_without_long_gap": StillnessResult(
+        still=True,
+        max_deviation_rad=0.0,
+        covered_s=2.0,
+        n_samples=13,
+        reason="",
+        verdict="still",
+        max_receive_gap_s=0.16666666666666785,
+        missing_frames=0.0,
+    ),
+    "still_streamed_gap_followed_by_its_frames": StillnessResult(
+        still=True,
+        max_deviation_rad=0.0,
+        covered_s=2.0,
+        n_samples=17,
+        reason="",
+        verdict="still",
+        max_receive_gap_s=0.5,
+        missing_frames=0.0,
+    ),
+    "still_streamed_gap_missing_exactly_at_limit": StillnessResult(
         still=True,
         max_deviation_rad=0.0,
         covered_s=1.75,
-        n_samples=14,
+        n_samples=15,
         reason="",
         verdict="still",
-        max_receive_gap_s=0.15384615384615508,
+        max_receive_gap_s=0.5,
         missing_frames=2.0,
     ),
-    "incomplete_streamed_missing_over_limit": StillnessResult(
+    "incomplete_streamed_gap_not_followed": StillnessResult(
         still=False,
         max_deviation_rad=0.0,
         covered_s=1.625,
-        n_samples=13,
-        reason="joint history incomplete: 13 joint frames in the 2 s window where the stream's measured period (125.0 ms) gives 16; 0.375 s of frames are missing (> 0.25 s), the longest receive gap is 0.167 s: the controller stopped sending",
+        n_samples=14,
+        reason="joint history incomplete: no joint frame for 0.500 s from 0.500 s into the 2 s window, and the frames sent meanwhile did not follow: 0.375 s of frames missing (> 0.25 s) at the stream's long-run rate of 8.0 Hz: the controller stopped sending",
         verdict="incomplete",
-        max_receive_gap_s=0.16666666666666785,
+        max_receive_gap_s=0.5,
         missing_frames=3.0,
     ),
     "still_streamed_late_burst": StillnessResult(
@@ -414,7 +443,7 @@ EXPECTED: dict[str, StillnessResult] = {
         reason="",
         verdict="still",
         max_receive_gap_s=1.4000000000000004,
-        missing_frames=-1.0,
+        missing_frames=0.0,
     ),
     "still_single_sample_at_end_window_within_gap": StillnessResult(
         still=True,
