@@ -169,6 +169,49 @@ def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
+JOINTS_KEY = "joints_rad"
+"""The one key of a joints file: ``{"joints_rad": [J1, …, J6]}`` in radians."""
+
+
+def read_joints_file(path: Path) -> tuple[list[float], dict[str, Any]]:
+    """(J1…J6 in radians, the whole JSON object) of a joints file ``{"joints_rad": [6 numbers]}``.
+
+    Raises
+    ------
+    PosesFileError
+        Not an object, no ``joints_rad`` (a ``joints_deg`` key is named as such: the file needs
+        radians), or not 6 finite numbers.
+    InputFileUnreadableError
+        The file is missing or unreadable (exit 8).
+    """
+    from registration.io.points import read_json
+
+    obj = read_json(path)
+    expected = f'expected {{"{JOINTS_KEY}": [6 numbers]}} (radians, J1…J6)'
+    if not isinstance(obj, dict):
+        raise _config_error(f"{path}: {expected}, found a JSON {type(obj).__name__}")
+    if JOINTS_KEY not in obj:
+        found = f"found keys {sorted(obj)[:8]}" if obj else "found an empty object"
+        fix = (
+            f'; the accepted key is "{JOINTS_KEY}" (radians): convert degrees × π/180, '
+            "or copy the radians row of `oarmreg calibrate plan`'s output"
+            if any("deg" in str(k) for k in obj)
+            else f'; the accepted key is "{JOINTS_KEY}"'
+        )
+        raise _config_error(f"{path}: {expected}, {found}{fix}")
+    joints = obj[JOINTS_KEY]
+    if (
+        not isinstance(joints, list)
+        or len(joints) != N_JOINTS
+        or not all(_is_number(v) and math.isfinite(v) for v in joints)
+    ):
+        raise _config_error(
+            f'{path}: "{JOINTS_KEY}" must be {N_JOINTS} finite JSON numbers (radians, J1…J6), '
+            f"got {joints!r}; fix the file"
+        )
+    return [float(v) for v in joints], obj
+
+
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
     """(robot_model, [(name, scan_dir, joints_rad)]) from POSES.json; paths resolved against its folder."""
     from registration.calibration.records import (
@@ -378,17 +421,10 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
 
 def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
     """Sphere centres (robot frame) for ``oarmreg register --joints [--calibration]``."""
-    from registration.io.points import read_json
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
     from registration.model.phantom import load_phantom
 
-    obj = read_json(args.joints)
-    joints = obj.get("joints_rad") if isinstance(obj, dict) else None
-    if not isinstance(joints, list) or not all(_is_number(v) for v in joints):
-        raise _config_error(
-            f'{args.joints}: expected {{"joints_rad": [6 numbers]}} (radians, J1…J6), got '
-            f"{joints!r}; fix the file (every angle a JSON number)"
-        )
+    joints, obj = read_joints_file(args.joints)
     if args.calibration is not None:
         model, rod, doc = load_calibration(args.calibration)
         provenance["calibration"] = {
@@ -461,7 +497,7 @@ def run_plan(args: argparse.Namespace) -> int:
     y = read_registration(args.registration)
     reg_doc = read_json(args.registration)
     prov = reg_doc.get("provenance", {}) or {}
-    joints = read_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
+    joints = read_joints_file(args.joints)[0] if args.joints else prov.get("joints_rad")
     if not isinstance(joints, list):
         raise _config_error(
             f"{args.registration}: no joints_rad in its provenance; register with "

@@ -103,6 +103,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="discard poses further than this from the prior (must be < 45; default 30)",
     )
     parser.add_argument(
+        "--phantom-confirmed",
+        action="store_true",
+        help="the phantom file is the phantom scanned: register even when far more spheres are "
+        "detected than it has, or the best pose explains a small share of them",
+    )
+    parser.add_argument(
         "--prereg",
         metavar="R:I,R:I,R:I,R:I",
         help="paper pre-registration: 4 pairs robot sphere index : image point index (non-coplanar)",
@@ -351,6 +357,8 @@ def registration_params(args: argparse.Namespace, quality: Any) -> Any:
         overrides["max_fre_mm"] = args.max_fre_mm
     if args.min_margin is not None:
         overrides["min_runner_up_margin"] = args.min_margin
+    if getattr(args, "phantom_confirmed", False):
+        overrides["phantom_confirmed"] = True
     return RegistrationParams(**overrides)
 
 

@@ -78,6 +78,12 @@ class RegisterRequest(BaseModel):
         max_length=1000,
     )
 
+    phantom_confirmed: bool = Field(
+        default=False,
+        description="The phantom file is the phantom scanned: register even when far more spheres are "
+        "detected than it has, or the best pose explains a small share of them (refused otherwise, "
+        '409 "Check the phantom file").',
+    )
     allow_superseded: bool = Field(
         default=False,
         description="Register and make current even though the service has newer evidence against this "
