@@ -558,9 +558,11 @@ def run_plan(args: argparse.Namespace) -> int:
         "volume": volume_doc,
         **plan.to_dict(),
     }
+    for pose in doc["poses"]:
+        pose["joints_deg"] = [round(math.degrees(v), 3) for v in pose["joints_rad"]]
     notes = keep_out_and_travel(args, doc, y, chain, rod, q0, plan.joints_rad)
     write_json(args.json, doc)
-    sys.stdout.write(notes)
+    sys.stdout.write(pendant_table(doc["poses"]) + shorter_plans_text(plan) + notes)
     why = {
         "target": f"the fewest meeting the target {params.target_rms_mm:g} mm RMS",
         "max_poses": f"calibration.max_poses; the target {params.target_rms_mm:g} mm is NOT met",
@@ -576,6 +578,42 @@ def run_plan(args: argparse.Namespace) -> int:
         + f"written: {args.json}\n"
     )
     return 0
+
+
+SCAN_MINUTES = (1, 2)
+"""Minutes one O-arm scan takes with positioning (the issue-42 walkthrough measured 1–2 min)."""
+
+
+def pendant_table(poses: list[dict[str, Any]]) -> str:
+    """The planned poses in degrees, J1…J6 as the Stäubli pendant shows them (``herej()``: the
+    driver converts only deg → rad, docs/calibration.md), one row per pose in scan order."""
+    head = (
+        "pose " + "".join(f"{f'J{j + 1}':>9}" for j in range(N_JOINTS)) + "   (degrees, as on the pendant)\n"
+    )
+    rows = [
+        f"{k:>4} " + "".join(f"{v:9.2f}" for v in pose["joints_deg"]) + "\n" for k, pose in enumerate(poses)
+    ]
+    return head + "".join(rows)
+
+
+def shorter_plans_text(plan: Any) -> str:
+    """The scans the plan asks for, their time, and what a shorter plan would be predicted to give."""
+    k = len(plan.joints_rad)
+    lo, hi = (k + 2) * SCAN_MINUTES[0], (k + 2) * SCAN_MINUTES[1]
+    lines = [
+        f"scans: {k} calibration poses + 1 registration + 1 verification = {k + 2} "
+        f"(about {lo}–{hi} min at {SCAN_MINUTES[0]}–{SCAN_MINUTES[1]} min a scan)\n"
+    ]
+    lines += [
+        f"  with {kk:>2} poses: predicted {rms:.3f} mm RMS over the working volume "
+        f"(worst pose {worst:.3f} mm)\n"
+        for kk, rms, worst in plan.shorter
+    ]
+    lines.append(
+        f"  with {k:>2} poses (this plan): predicted {plan.predicted_rms_mm:.3f} mm RMS "
+        f"(worst pose {plan.predicted_error_mm:.3f} mm)\n"
+    )
+    return "".join(lines)
 
 
 def _plan_volume(
