@@ -504,8 +504,8 @@ def plan_poses(
 
 def shorter_counts(k: int, most: int = 4) -> list[int]:
     """Up to ``most`` pose counts below ``k`` worth showing: 6 (the least a calibration takes), 10
-    (the planner's least) and two or three steps below ``k``."""
-    counts = sorted(c for c in {6, MIN_PLANNED_POSES, k - 2, k - 5, (k + 6) // 2} if 6 <= c < k)
+    (the planner's least), ``k`` − 5 and ``k`` − 2."""
+    counts = sorted(c for c in {6, MIN_PLANNED_POSES, k - 5, k - 2} if 6 <= c < k)
     return counts if len(counts) <= most else [counts[0], *counts[len(counts) - most + 1 :]]
 
 

@@ -98,16 +98,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def pacs_overrides(spec: str | None) -> dict[str, Any]:
     """``--pacs AE@HOST:PORT`` as ``load_settings`` overrides (none without the flag)."""
-    import re
+    from service.cli.commands.argtypes import parse_ae_address
 
     if spec is None:
         return {}
-    m = re.fullmatch(r"([^@\s]{1,16})@([^:\s]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", spec.strip())
-    if m is None:
+    parsed = parse_ae_address(spec)
+    if parsed is None:
         from registration.errors import ConfigError
 
         raise ConfigError(f"--pacs {spec!r}: expected AE@HOST:PORT, e.g. ORTHANC@127.0.0.1:4242")
-    return {"pacs.ae_title": m[1], "pacs.host": m[2].strip("[]"), "pacs.port": int(m[3])}
+    return {"pacs.ae_title": parsed[0], "pacs.host": parsed[1], "pacs.port": parsed[2]}
 
 
 def _err(msg: str) -> None:
