@@ -391,8 +391,9 @@ class IgtlSettings(_Section):
     poll_period_s: float = Field(default=0.01, gt=0, le=1)
     """How often new joint samples are looked for, s: 100 Hz, twice the 50 Hz VAL3 rate."""
     joint_max_age_s: float = Field(default=0.25, gt=0, le=60)
-    """A joint sample older than this makes ToolToImage INVALID even if the link says OK, s (12
-    samples at the 50 Hz VAL3 rate)."""
+    """A joint sample older than this makes ToolToImage INVALID, s (12 samples at the 50 Hz VAL3 rate):
+    its one freshness limit, named in the ``Reason`` (the driver's own three-frame "stale" does not
+    apply; service/navigation/igtl/publisher.py)."""
     client_queue_max: int = Field(default=64, ge=1, le=4096)
     """Messages queued per client; when full the oldest is dropped."""
     client_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
