@@ -538,6 +538,12 @@ class StatusOut(_Out):
         description="scans_mb (the recorded scan files not yet deleted), quota_mb (retention.max_disk_mb; "
         "null: no quota), data_dir_free_mb (free space of the data folder's file system).",
     )
+    gates: dict[str, float] = Field(
+        default_factory=dict,
+        description="The quality gates the page judges figures against, mm: max_verification_error_mm "
+        "(a verification's pass limit, and what the expected error at working poses is compared with), "
+        "max_fre_mm.",
+    )
 
 
 # ---- converters ----------------------------------------------------------------------------
