@@ -89,6 +89,15 @@ def _signed_in(context: Any, svc: h.Service) -> h.PageWatch:
     return w
 
 
+def _showing(context: Any, svc: h.Service, registration_id: int) -> h.PageWatch:
+    """A signed-in page once it shows registration ``registration_id`` as the current one."""
+    w = _signed_in(context, svc)
+    w.page.wait_for_function(
+        "id => document.getElementById('current-id').dataset.value === String(id)", arg=registration_id
+    )
+    return w
+
+
 def assert_clean(w: h.PageWatch) -> None:
     assert w.requests, "the page made no request at all"
     assert not w.foreign_requests(), f"requests left the origin: {w.foreign_requests()}"
@@ -163,11 +172,8 @@ def test_a_new_registration_appears_live_without_a_reload(
 ) -> None:
     s, _ = svc
     before = _current(s)
-    w = _signed_in(context, s)
+    w = _showing(context, s, before["id"])
     p = w.page
-    p.wait_for_function(
-        "id => document.getElementById('current-id').dataset.value === String(id)", arg=before["id"]
-    )
     p.evaluate("window.__sameDocument = true")
     reg = s.register(before["scan_id"])
     assert reg.status_code == 200, reg.text
@@ -333,11 +339,8 @@ def test_the_page_speaks_to_or_staff(
     verification its banner, verdict, histogram and action together at the top."""
     s, _ = svc
     cur = _current(s)
-    w = _signed_in(context, s)
+    w = _showing(context, s, cur["id"])
     p = w.page
-    p.wait_for_function(
-        "id => document.getElementById('current-id').dataset.value === String(id)", arg=cur["id"]
-    )
     gate = s.client.get("/status").json()["gates"]["max_verification_error_mm"]
     chain = cur["expected_error"]["predicted_chain_error_mm"]
     assert float(p.get_attribute("#current-gate", "data-value")) == gate
