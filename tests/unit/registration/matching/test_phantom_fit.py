@@ -65,3 +65,15 @@ def test_the_fre_gate_names_the_phantom_file_among_the_causes() -> None:
     shrunk = robot.mean(axis=0) + (robot - robot.mean(axis=0)) * 0.99
     with pytest.raises(AccuracyGateError, match="the phantom file does not describe the phantom scanned"):
         register_points(shrunk, image, params=replace(P, max_fre_mm=0.2))
+
+
+def test_the_api_field_confirms_the_phantom_for_one_registration() -> None:
+    """``POST /register {"phantom_confirmed": true}`` reaches the registration's parameters."""
+    from registration.pipeline import PipelineParams
+    from service.http.api.models import RegisterRequest
+    from service.registrations.orchestrator import _confirmed
+
+    assert RegisterRequest.model_validate({"phantom_confirmed": True}).phantom_confirmed is True
+    assert RegisterRequest().phantom_confirmed is False
+    params = PipelineParams()
+    assert _confirmed(params).registration.phantom_confirmed and not params.registration.phantom_confirmed
