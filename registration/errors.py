@@ -47,6 +47,13 @@ class PointsFileError(OarmRegError):
     title = "Invalid points file"
 
 
+class InputFileUnreadableError(OarmRegError):
+    """An input file (points, joints, poses, registration JSON) is missing or cannot be read: a
+    file-system problem, not bad content."""
+
+    title = "Cannot read input file"
+
+
 class KinematicsError(OarmRegError):
     """Joint values are outside the model (wrong count, NaN, joint limits)."""
 
@@ -86,6 +93,14 @@ class JointHistoryIncompleteError(RegistrationError):
     the robot's stillness is unknown, which is not the same as "moved"."""
 
     title = "Joint history incomplete"
+
+
+class PhantomMismatchError(RegistrationError):
+    """The scan does not look like the phantom file: far more spheres detected than it has, or the
+    best pose explains only a small share of the detections.  Refused unless the user confirms the
+    phantom file (``--phantom-confirmed``, ``"phantom_confirmed": true``)."""
+
+    title = "Check the phantom file"
 
 
 class AccuracyGateError(RegistrationError):

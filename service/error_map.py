@@ -28,7 +28,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drivers.errors import LinkConfigError, RobotLinkError
-from registration.errors import AccuracyGateError, ConfigError, OarmRegError, RegistrationError
+from registration.errors import (
+    AccuracyGateError,
+    ConfigError,
+    InputFileUnreadableError,
+    OarmRegError,
+    RegistrationError,
+)
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -38,7 +44,8 @@ EXIT_ROBOT_LINK = 5
 EXIT_REFUSED = 6
 EXIT_ACCURACY = 7
 EXIT_FILES = 8
-"""CLI only (:func:`service.cli.main.main`): an ``OSError`` no command turned into a typed error."""
+"""CLI only: an input file that cannot be read (:class:`~registration.errors.InputFileUnreadableError`)
+or an ``OSError`` no command turned into a typed error (:func:`service.cli.main.main`)."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +63,7 @@ ERROR_MAP: dict[type[Exception], ErrorClass] = {
     AccuracyGateError: ErrorClass(409, EXIT_ACCURACY),
     RobotLinkError: ErrorClass(409, EXIT_ROBOT_LINK),
     LinkConfigError: ErrorClass(422, EXIT_CONFIG),
+    InputFileUnreadableError: ErrorClass(422, EXIT_FILES),
 }
 """The families of ``registration`` and ``drivers``; a service error states its own
 (:mod:`service.errors`)."""

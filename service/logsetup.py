@@ -68,6 +68,29 @@ def install_redaction() -> None:
         logger.addFilter(RedactSecretsFilter())
 
 
+PER_INSTANCE_MESSAGES = ("Received Store Request", "Sending Store Request", "Received Store Response")
+"""pynetdicom's INFO lines written once per DICOM instance (132 a scan): DEBUG here."""
+PYNETDICOM_HANDLERS = "pynetdicom._handlers"
+
+
+class PerInstanceToDebugFilter(logging.Filter):
+    """Turns pynetdicom's per-instance INFO lines (:data:`PER_INSTANCE_MESSAGES`) into DEBUG records,
+    dropped unless the ``pynetdicom`` logger is at DEBUG; its association lines stay at INFO."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno != logging.INFO or not str(record.msg).startswith(PER_INSTANCE_MESSAGES):
+            return True
+        record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return logging.getLogger(PYNETDICOM_HANDLERS).getEffectiveLevel() <= logging.DEBUG
+
+
+def install_per_instance_demotion() -> None:
+    """Put :class:`PerInstanceToDebugFilter` on pynetdicom's handler logger, once (idempotent)."""
+    logger = logging.getLogger(PYNETDICOM_HANDLERS)
+    if not any(isinstance(f, PerInstanceToDebugFilter) for f in logger.filters):
+        logger.addFilter(PerInstanceToDebugFilter())
+
+
 def configure(level: int, fmt: LogFormat = "text") -> None:
     """Send every record at ``level`` and above to stderr as text or JSON (replaces earlier handlers)."""
     handler = logging.StreamHandler(sys.stderr)
@@ -78,6 +101,7 @@ def configure(level: int, fmt: LogFormat = "text") -> None:
     root.addHandler(handler)
     root.setLevel(level)
     install_redaction()
+    install_per_instance_demotion()
 
 
 def set_level(level: int) -> None:

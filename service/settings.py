@@ -391,8 +391,9 @@ class IgtlSettings(_Section):
     poll_period_s: float = Field(default=0.01, gt=0, le=1)
     """How often new joint samples are looked for, s: 100 Hz, twice the 50 Hz VAL3 rate."""
     joint_max_age_s: float = Field(default=0.25, gt=0, le=60)
-    """A joint sample older than this makes ToolToImage INVALID even if the link says OK, s (12
-    samples at the 50 Hz VAL3 rate)."""
+    """A joint sample older than this makes ToolToImage INVALID, s (12 samples at the 50 Hz VAL3 rate):
+    its one freshness limit, named in the ``Reason`` (the driver's own three-frame "stale" does not
+    apply; service/navigation/igtl/publisher.py)."""
     client_queue_max: int = Field(default=64, ge=1, le=4096)
     """Messages queued per client; when full the oldest is dropped."""
     client_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
@@ -774,7 +775,29 @@ def _nest(overrides: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _describe_error(err: Any, toml_path: Path | None) -> str:
+def _toml_has(toml_data: dict[str, Any] | None, loc: str) -> bool:
+    """Whether the dotted key ``loc`` is written in the TOML file's data."""
+    node: Any = toml_data or {}
+    for part in loc.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def _close_key(loc: str) -> str:
+    """``; did you mean 'dicom.port'?`` for a misspelt dotted key, else ``""``."""
+    import difflib
+
+    close = difflib.get_close_matches(loc, sorted(_setting_keys()), n=1, cutoff=0.75)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+def _describe_error(err: Any, toml_path: Path | None, toml_data: dict[str, Any] | None = None) -> str:
+    """One problem of a ``ValidationError``, naming the key and where its value came from: the
+    environment variable if it is set, else the TOML file that holds the key."""
+    import os
+
     loc = ".".join(str(p) for p in err.get("loc", ()) if not isinstance(p, int))
     msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
     if not loc:  # a cross-field rule: its message names the keys
@@ -782,10 +805,19 @@ def _describe_error(err: Any, toml_path: Path | None) -> str:
     env = ENV_PREFIX + loc.upper().replace(".", "__")
     where = f" in {toml_path}" if toml_path else ""
     if err.get("type") == "extra_forbidden":
-        return f"unknown setting '{loc}'{where}; check the spelling against configs/oarmreg.toml"
-    if "input" in err and err.get("type") != "value_error":
-        return f"setting '{loc}' (env {env}){where}: {msg}; got {err['input']!r}"
-    return f"setting '{loc}' (env {env}){where}: {msg}"
+        look = f"fix it in {toml_path}" if toml_path else "fix its name"
+        return (
+            f"unknown setting '{loc}'{where}{_close_key(loc)}; {look} "
+            "(`oarmreg config check` lists every setting)"
+        )
+    if env in os.environ:
+        source = f"from the environment variable {env}"
+    elif toml_path is not None and _toml_has(toml_data, loc):
+        source = f"in {toml_path}"
+    else:
+        source = f"(set it in the TOML file or with {env})"
+    got = f"; got {err['input']!r}" if "input" in err and err.get("type") != "value_error" else ""
+    return f"setting '{loc}' {source}: {msg}{got}"
 
 
 def load_settings(config_file: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Settings:
@@ -805,11 +837,12 @@ def load_settings(config_file: str | Path | None = None, overrides: dict[str, An
         names the key and the environment variable that sets it.
     """
     path = Path(config_file) if config_file is not None else None
+    toml_data: dict[str, Any] | None = None
     if path is not None:
         if not path.is_file():
             raise ConfigError(f"config file not found: {path} (pass --config FILE or unset it)")
         try:
-            tomllib.loads(path.read_text(encoding="utf-8"))
+            toml_data = tomllib.loads(path.read_text(encoding="utf-8"))
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise ConfigError(f"{path}: not valid TOML: {e}") from None
     env_problems, env_keys = _unknown_environment()
@@ -818,7 +851,7 @@ def load_settings(config_file: str | Path | None = None, overrides: dict[str, An
         settings = Settings(**_nest(overrides or {}))
     except ValidationError as e:
         problems = [
-            _describe_error(err, path)
+            _describe_error(err, path, toml_data)
             for err in e.errors()
             if not (err.get("type") == "extra_forbidden" and _loc(err) in env_keys)
         ]
@@ -873,6 +906,6 @@ def _unknown_environment(environ: dict[str, str] | None = None) -> tuple[list[st
         problems.append(
             f"unknown environment variable {var} (no setting "
             f"'{upper.removeprefix(ENV_PREFIX).lower().replace('__', '.')}'); {hint}fix its name or unset it "
-            "(settings: configs/oarmreg.toml, OARMREG_ + key in capitals, '__' between section and key)"
+            "(OARMREG_ + key in capitals, '__' between section and key; `oarmreg config check` lists keys)"
         )
     return problems, keys

@@ -1,7 +1,9 @@
 """The mock O-arm's DICOM push: send an exported series by C-STORE (pynetdicom's SCU), as the
 O-arm's "send to" does, over one association released at the end.
 
-Run: ``python -m mocks.oarm.cstore HOST PORT FILE_OR_FOLDER... [--aec OARMREG] [--aet OARM_SIM]``
+Users send a folder with ``oarmreg send DIR --to AE@HOST:PORT`` (:mod:`service.cli.commands.send`);
+``python -m mocks.oarm.cstore HOST PORT FILE_OR_FOLDER... [--aec OARMREG] [--aet OARM_SIM]`` is the
+same for the tests and benchmarks.
 """
 
 from __future__ import annotations
@@ -81,15 +83,30 @@ def send_series(
     return SendResult(tuple(statuses), n_bytes, t1 - t0, t1)
 
 
+def dicom_files(paths: Sequence[Path]) -> tuple[list[Path], list[Path]]:
+    """(DICOM Part-10 files, other regular files) under ``paths``: a file as given, a folder searched
+    recursively; a DICOMDIR and files without the 'DICM' marker at byte 128 are the others."""
+    found: list[Path] = []
+    others: list[Path] = []
+    for path in paths:
+        for f in sorted(path.rglob("*")) if path.is_dir() else [path]:
+            if not f.is_file() or f.is_symlink():
+                continue
+            with f.open("rb") as fh:
+                head = fh.read(132)
+            (found if head[128:132] == b"DICM" and f.name.upper() != "DICOMDIR" else others).append(f)
+    return found, others
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    p = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0].replace("\n", " "))
     p.add_argument("host")
     p.add_argument("port", type=int)
     p.add_argument("paths", nargs="+", type=Path)
     p.add_argument("--aec", default="OARMREG", help="called AE title (the service's dicom.ae_title)")
     p.add_argument("--aet", default="OARM_SIM", help="calling AE title")
     a = p.parse_args(argv)
-    files = [f for path in a.paths for f in (sorted(path.glob("*.dcm")) if path.is_dir() else [path])]
+    files, _ = dicom_files(a.paths)
     res = send_series(files, a.host, a.port, called_ae=a.aec, calling_ae=a.aet)
     bad = [s for s in res.statuses if s != 0]
     sys.stdout.write(

@@ -138,6 +138,9 @@ class PosePlan:
     """Why this many poses: ``"target"`` (the fewest meeting ``target_rms_mm``), ``"max_poses"``
     (the target not met within the maximum), ``"candidates"`` (not met, fewer feasible poses than
     the maximum) or ``"forced"`` (``n_poses`` given)."""
+    shorter: tuple[tuple[int, float, float], ...] = ()
+    """(K, predicted RMS mm, worst pose mm) of a few shorter plans (the first K poses of the same
+    D-optimal order), fewest first: what scanning fewer poses would cost."""
 
     @property
     def target_met(self) -> bool:
@@ -154,6 +157,10 @@ class PosePlan:
             "count_reason": self.count_reason,
             "advice": self.advice,
             "n_candidates": self.n_candidates,
+            "shorter_plans": [
+                {"n_poses": k, "predicted_rms_mm": rms, "predicted_error_mm": worst}
+                for k, rms, worst in self.shorter
+            ],
             "poses": [
                 {
                     "joints_rad": [float(v) for v in q],
@@ -475,6 +482,10 @@ def plan_poses(
     move = [int(np.flatnonzero(np.all(q[sel] == row, axis=1))[0]) for row in ordered]
     rms, worst = predictor.predict(info[sel].sum(0), shared[sel].sum(0))
     advice = _plan_advice(k, reason, rms, worst, params, len(q))
+    shorter = tuple(
+        (kk, *predictor.predict(info[order[:kk]].sum(0), shared[order[:kk]].sum(0)))
+        for kk in shorter_counts(k)
+    )
     return PosePlan(
         ordered,
         cond,
@@ -487,7 +498,15 @@ def plan_poses(
         rms,
         params.target_rms_mm,
         reason,
+        shorter,
     )
+
+
+def shorter_counts(k: int, most: int = 4) -> list[int]:
+    """Up to ``most`` pose counts below ``k`` worth showing: 6 (the least a calibration takes), 10
+    (the planner's least), ``k`` − 5 and ``k`` − 2."""
+    counts = sorted(c for c in {6, MIN_PLANNED_POSES, k - 5, k - 2} if 6 <= c < k)
+    return counts if len(counts) <= most else [counts[0], *counts[len(counts) - most + 1 :]]
 
 
 SWAP_MAX_POSES: Final = 15

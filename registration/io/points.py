@@ -8,7 +8,8 @@
   4 × 4 nested list, …) or a refusal ``{"refused": true, "reason": …, "error": …}``.
 
 Every problem raises :class:`~registration.errors.PointsFileError` naming the
-file, what was expected and what was found.
+file, what was expected and what was found; a file that cannot be read at all (missing, a folder,
+no permission) raises :class:`~registration.errors.InputFileUnreadableError`.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.errors import PointsFileError
+from registration.errors import InputFileUnreadableError, PointsFileError
 from registration.model.frames import NotRigidError, as_transform
 
 F64 = NDArray[np.float64]
@@ -33,14 +34,20 @@ MAX_ABS_COORD_MM: Final = 1.0e5
 
 def read_json(path: str | Path) -> Any:
     p = Path(path)
+    if p.exists() and not p.is_file() and not p.is_dir():
+        raise InputFileUnreadableError(f"{p}: not a regular file (a device, pipe or socket); name a file")
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise PointsFileError(f"{p}: file not found") from None
+        raise InputFileUnreadableError(f"{p}: no such file; check the path (from {Path.cwd()})") from None
     except IsADirectoryError:
-        raise PointsFileError(f"{p}: is a directory, expected a JSON file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise PointsFileError(f"{p}: cannot read: {e}") from None
+        raise InputFileUnreadableError(f"{p}: is a directory; name the JSON file inside it") from None
+    except OSError as e:
+        raise InputFileUnreadableError(
+            f"{p}: cannot read ({e.strerror or e}); check it is readable by this user"
+        ) from None
+    except UnicodeDecodeError as e:
+        raise PointsFileError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start}); expected JSON") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:

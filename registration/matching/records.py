@@ -120,6 +120,18 @@ class RegistrationParams:
     """The mirrored problem must explain this fraction of min(expected, detected) spheres to call the
     input mirrored: the cube grid is achiral, so a mirror image of a filled pattern still overlaps
     the proper pattern partly (14 of 28 spheres for bai2018_cube) and must not win by default."""
+    max_detected_per_expected: float = 1.25
+    """More detections than this × the phantom's spheres and the scan probably holds another
+    phantom (a 40-sphere phantom read with a 28-sphere file: 40 > 35).  A clean scan detects at most
+    the phantom's spheres plus a few rejected-late blobs."""
+    min_matched_share: float = 0.7
+    """The best pose must explain this share of the detections (when at least
+    ``min_unexplained_for_mismatch`` are left over): 18 of 40 (0.45) is a wrong phantom file; a
+    subset scan (8 of 28 in the field) explains nearly all of its own detections."""
+    min_unexplained_for_mismatch: int = 4
+    """Leftover detections below this never call the phantom file into question (a screw, a blob)."""
+    phantom_confirmed: bool = False
+    """The user confirmed the phantom file: the two checks above warn in the log instead of refusing."""
     verify_gate_mm: float = 5.0
     """Verification pairs a predicted sphere with a detection within this distance: large enough to
     report a registration error of several mm honestly, below half the pitch so pairs stay unique."""

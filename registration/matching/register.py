@@ -39,6 +39,7 @@ from registration.errors import (
     AccuracyGateError,
     ConfigError,
     ImproperRotationError,
+    PhantomMismatchError,
     TooFewSpheresError,
 )
 from registration.matching.hypotheses import (
@@ -143,6 +144,37 @@ def validate_inputs(
     return RegistrationInputs(robot, image, targets, prior, float(prior_tolerance_deg), pairs)
 
 
+def check_phantom_fit(n_expected: int, n_detected: int, n_matched: int, p: RegistrationParams) -> None:
+    """Step 5b: does the scan look like the phantom file?  Far more detections than its spheres, or
+    a best pose that explains a small share of them, suggests another phantom (issue 42).
+
+    Raises PhantomMismatchError unless ``p.phantom_confirmed`` (then it only warns).
+    """
+    unexplained = n_detected - n_matched
+    problem = ""
+    if n_detected > p.max_detected_per_expected * n_expected:
+        problem = (
+            f"{n_detected} spheres detected but the phantom file has {n_expected} "
+            f"(more than {p.max_detected_per_expected:g} ×)"
+        )
+    elif unexplained >= p.min_unexplained_for_mismatch and n_matched < p.min_matched_share * n_detected:
+        problem = (
+            f"the best pose matches only {n_matched} of {n_detected} detected spheres "
+            f"({n_matched / n_detected:.0%}, below {p.min_matched_share:.0%}; "
+            f"the phantom file has {n_expected})"
+        )
+    if not problem:
+        return
+    if p.phantom_confirmed:
+        log.warning("%s; registering anyway: the phantom file was confirmed", problem)
+        return
+    raise PhantomMismatchError(
+        f"{problem}: check the phantom file (is it the phantom on the rod?). If it is, register again "
+        "confirming it (`oarmreg register --phantom-confirmed`, or POST /register with "
+        '"phantom_confirmed": true)'
+    )
+
+
 def quality_figures(
     r: IcpResult, image_from_robot: F64, inp: RegistrationInputs, p: RegistrationParams
 ) -> QualityFigures:
@@ -170,8 +202,9 @@ def quality_figures(
         raise AccuracyGateError(
             f"FRE {fre:.3f} mm over {r.n_matched} matched spheres exceeds the gate of {p.max_fre_mm:g} mm "
             f"(largest residual {float(np.max(r.residuals_mm)):.3f} mm at robot sphere "
-            f"{int(r.robot_indices[int(np.argmax(r.residuals_mm))])}). Check that the robot did not move "
-            "during the scan, the robot points' pose, and the detection"
+            f"{int(r.robot_indices[int(np.argmax(r.residuals_mm))])}). Likely causes: the phantom file "
+            "does not describe the phantom scanned (check its pitch and sphere positions), the robot "
+            "moved during the scan, the robot points' pose (joints, rod), or the detection"
         )
     return QualityFigures(cond, det, fre, fle, np.asarray(tre, dtype=np.float64))
 
@@ -297,6 +330,7 @@ def register_points(
     extra = exhaustive_candidates(best, cands.pool, inp, cands.prior, tree, params)
     timings["exhaustive_runner_up_s"] = time.perf_counter() - t0
     ru = check_runner_up(best, [*cands.pool, *extra], inp.robot, tree, params)
+    check_phantom_fit(inp.n, inp.m, r.n_matched, params)
     t0 = time.perf_counter()
     q = quality_figures(r, best.image_from_robot, inp, params)
     timings["quality_s"] = time.perf_counter() - t0

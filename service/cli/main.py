@@ -39,6 +39,7 @@ COMMANDS: dict[str, str] = {
     "config": "service.cli.commands.config",
     "qa": "service.cli.commands.qa",  # QA protocols
     "token": "service.cli.commands.token",
+    "send": "service.cli.commands.send",
 }
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from registration.errors import OarmRegError
 from service.events import Publish, Reopening, ScanArrived, ScanInvalid
-from service.intake.scan_lifecycle import ContentChange, ScanLifecycle, diff, hash_files
+from service.intake.scan_lifecycle import ContentChange, Hashes, ScanLifecycle, diff, hash_files
 from service.intake.volume_cache import VolumeCache
 from service.intake.watcher import SeriesArrival
 from service.records import JointSnapshot, NewScan, ScanGeometry, matrix4
@@ -113,9 +113,14 @@ class Intake:
         previous_slices = 0 if prev is None else prev.n_slices
         if prev is not None and prev.status in ("complete", "invalid"):
             # a series judged before: what differs (the folder path sees a change only now)
-            change = arrival.change or diff(self.db.scans.files(prev.id), files)
+            change = arrival.change or content_change(prev.status, self.db.scans.files(prev.id), files)
             if prev.status == "complete" and not change.changed and not arrival.error:
                 self.db.scans.upsert(NewScan(series_uid=uid, folder=str(arrival.folder), status="complete"))
+                return
+            if prev.status == "invalid" and not change.changed and arrival.error == prev.reason:
+                # the same bytes and the same verdict (the watcher's first pass at every start-up):
+                # nothing changed, nothing is withdrawn, nothing is said
+                log.debug("scan %d (%s) still invalid, unchanged: %s", prev.id, uid, prev.reason)
                 return
             if not change.changed:  # a re-check without a named change (a refusal, an unreadable file)
                 change = (
@@ -140,6 +145,15 @@ class Intake:
             self.publish(ScanArrived(scan_id=scan_id, series_uid=uid, folder=folder, still=snap.still,
                                      link_state=snap.link_state, source=source, reopening=reopening,
                                      n_slices=scan.n_slices))  # fmt: skip
+
+
+def content_change(status: str, recorded: Hashes, now: Hashes) -> ContentChange:
+    """What differs between a judged scan's recorded instance hashes and its files now.  An
+    ``invalid`` scan recorded without hashes (a version that did not hash invalid folders) cannot be
+    compared: no change is claimed, and its verdict is compared instead."""
+    if status == "invalid" and not recorded:
+        return ContentChange()
+    return diff(recorded, now)
 
 
 def store_instances(

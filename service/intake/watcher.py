@@ -103,6 +103,27 @@ FOLDER_UID_PREFIX = "folder:"
 """Series UID under which a folder with no readable series is recorded (``folder:<path>``)."""
 
 
+def folder_hashes(folder: Path) -> dict[str, tuple[str, int]]:
+    """SHA-256 and size of the regular files directly in ``folder`` (links, FIFOs and devices are never
+    opened; hidden temp files skipped): what a folder recorded ``invalid`` is compared with at the next
+    start-up, so an unchanged one is not reported as changed."""
+    from service.intake.scan_lifecycle import sha256_file
+
+    out: dict[str, tuple[str, int]] = {}
+    try:
+        entries = sorted(os.scandir(folder), key=lambda e: e.name)
+    except OSError:
+        return out
+    for entry in entries:
+        try:
+            if entry.name.startswith(".") or not entry.is_file(follow_symlinks=False):
+                continue
+            out[entry.name] = sha256_file(Path(entry.path))
+        except OSError:
+            continue  # unreadable: left out, as the loader left it out
+    return out
+
+
 def folder_uid(folder: Path) -> str:
     """The scan key of a folder that holds no readable series (junk, NUL files, link loops, ...)."""
     return FOLDER_UID_PREFIX + str(folder)
@@ -448,6 +469,7 @@ class SeriesWatcher:
                 n_files=snapshot_dir(folder)[1],
                 error=reason,
                 preexisting=st.preexisting,
+                files=folder_hashes(folder),
             )
         )
 

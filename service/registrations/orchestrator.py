@@ -104,6 +104,11 @@ def pipeline_params(settings: Settings, phantom: Phantom) -> PipelineParams:
     )
 
 
+def _confirmed(params: PipelineParams) -> PipelineParams:
+    """``params`` with the phantom file confirmed by the request (``phantom_confirmed``)."""
+    return replace(params, registration=replace(params.registration, phantom_confirmed=True))
+
+
 LikelyCause = Literal["cell-not-calibrated", "phantom-or-oarm-moved"]
 
 
@@ -366,6 +371,7 @@ class Orchestrator:
         targets_image_mm: Sequence[Sequence[float]] | None = None,
         *,
         override: SupersededOverride | None = None,
+        phantom_confirmed: bool = False,
     ) -> RegistrationRecord | RegistrationRefusal:
         """Run the pipeline; return the stored accepted record, or the refusal (stored too, as
         ``refused``, its record id in :attr:`RegistrationRefusal.registration_id`; a bug is an
@@ -383,7 +389,7 @@ class Orchestrator:
         with self._lock:
             self.busy = True
             try:
-                return self._register_locked(scan_id, targets_image_mm, override)
+                return self._register_locked(scan_id, targets_image_mm, override, phantom_confirmed)
             finally:
                 self.busy = False
 
@@ -392,6 +398,7 @@ class Orchestrator:
         scan_id: int | None,
         targets_image_mm: Sequence[Sequence[float]] | None,
         override: SupersededOverride | None,
+        phantom_confirmed: bool = False,
     ) -> RegistrationRecord | RegistrationRefusal:
         scan = self._resolve_scan(scan_id)
         superseded = self.db.registrations.supersession(scan.id, scan.frame_of_reference_uid)
@@ -411,7 +418,7 @@ class Orchestrator:
         if superseded is not None and override is None:
             return self._store_refusal(draft, superseded_error(scan, superseded), t0)
         try:
-            accepted = self._compute(scan, draft, targets_image_mm)
+            accepted = self._compute(scan, draft, targets_image_mm, phantom_confirmed)
             if superseded is not None and override is not None:
                 accepted = _overridden(accepted, superseded, override)
         except (OarmRegError, RobotLinkError) as e:
@@ -455,7 +462,11 @@ class Orchestrator:
         return stored
 
     def _compute(
-        self, scan: ScanRecord, draft: RegistrationRecord, targets_image_mm: Sequence[Sequence[float]] | None
+        self,
+        scan: ScanRecord,
+        draft: RegistrationRecord,
+        targets_image_mm: Sequence[Sequence[float]] | None,
+        phantom_confirmed: bool = False,
     ) -> RegistrationRecord:
         """Check the capture, load, run the pipeline; the accepted record (not stored yet)."""
         snap, joints_rad = check_capture(scan, self.settings.stillness.window_s)
@@ -468,7 +479,7 @@ class Orchestrator:
             self.robot_model,
             self.tool0_from_phantom,
             self.phantom,
-            self.params,
+            _confirmed(self.params) if phantom_confirmed else self.params,
             targets_image_mm=targets_image_mm or None,
         )
         source = (

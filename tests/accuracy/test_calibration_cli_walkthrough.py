@@ -63,13 +63,14 @@ class Session:
     calibration: dict[str, Any]
     plan: list[dict[str, Any]]
     poses: list[dict[str, Any]]
+    stdout: str
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Session:
     tmp_path = tmp_path_factory.mktemp("cli-walkthrough")
     script = walkthrough()
-    assert script.count("oarmreg simulate") == 3
+    assert script.count("oarmreg simulate") == 4
     script = script.replace("oarmreg simulate", f"oarmreg simulate {SMALL_SCAN}")
     assert script.count("oarmreg calibrate plan") == 1
     script = script.replace("oarmreg calibrate plan", f"oarmreg calibrate plan --n {FORCED_POSES}")
@@ -95,6 +96,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Session:
         calibration=json.loads((work / "cal" / "calibration.json").read_text()),
         plan=json.loads((work / "plan.json").read_text())["poses"],
         poses=json.loads((work / "POSES.json").read_text())["poses"],
+        stdout=done.stdout,
     )
 
 
@@ -105,6 +107,26 @@ def test_the_documented_cli_calibration_runs_end_to_end(session: Session) -> Non
     reg = json.loads((work / "reg.json").read_text())
     assert reg["provenance"]["calibration"]["dir"] == "cal"
     assert reg["fre_mm"] < 0.5
+
+
+def test_the_plan_speaks_the_pendants_degrees_and_counts_the_scans(session: Session) -> None:
+    """Issue 42, item 2: the poses in degrees J1…J6 (printed and written), the scans it asks for."""
+    for pose in session.plan:
+        assert pose["joints_deg"] == pytest.approx([math.degrees(v) for v in pose["joints_rad"]], abs=1e-3)
+    rows = re.findall(r"^\s+(\d+)((?:\s+-?\d+\.\d\d){6})$", session.stdout, re.M)
+    assert [int(k) for k, _ in rows] == list(range(FORCED_POSES)), session.stdout
+    assert [float(v) for v in rows[0][1].split()] == pytest.approx(session.plan[0]["joints_deg"], abs=0.006)
+    assert f"{FORCED_POSES} calibration poses + 1 registration + 1 verification = {FORCED_POSES + 2}" in (
+        session.stdout
+    )
+
+
+def test_the_documented_verification_passes_through_the_calibration(session: Session) -> None:
+    """Step 6: ``verify --joints`` computed the robot points through reg.json's calibration."""
+    ver = json.loads((session.work / "verify.json").read_text())
+    assert ver["passed"] is True and ver["n_matched"] == ver["n_expected"] == 28, ver
+    assert ver["provenance"]["calibration"]["dir"] == "cal"
+    assert ver["max_mm"] <= MAX_MAX_MM
 
 
 def test_every_pose_was_detected_and_matched(session: Session) -> None:

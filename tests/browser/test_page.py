@@ -89,6 +89,15 @@ def _signed_in(context: Any, svc: h.Service) -> h.PageWatch:
     return w
 
 
+def _showing(context: Any, svc: h.Service, registration_id: int) -> h.PageWatch:
+    """A signed-in page once it shows registration ``registration_id`` as the current one."""
+    w = _signed_in(context, svc)
+    w.page.wait_for_function(
+        "id => document.getElementById('current-id').dataset.value === String(id)", arg=registration_id
+    )
+    return w
+
+
 def assert_clean(w: h.PageWatch) -> None:
     assert w.requests, "the page made no request at all"
     assert not w.foreign_requests(), f"requests left the origin: {w.foreign_requests()}"
@@ -163,11 +172,8 @@ def test_a_new_registration_appears_live_without_a_reload(
 ) -> None:
     s, _ = svc
     before = _current(s)
-    w = _signed_in(context, s)
+    w = _showing(context, s, before["id"])
     p = w.page
-    p.wait_for_function(
-        "id => document.getElementById('current-id').dataset.value === String(id)", arg=before["id"]
-    )
     p.evaluate("window.__sameDocument = true")
     reg = s.register(before["scan_id"])
     assert reg.status_code == 200, reg.text
@@ -322,6 +328,52 @@ def test_a_failed_verification_withdraws_with_a_banner_and_the_chain_figure_come
     assert s.client.get("/registration/current").status_code == 409
     _current(s)  # leave a current registration for the other tests
     assert_clean(w)
+
+
+def test_the_page_speaks_to_or_staff(
+    context: Any, svc: tuple[h.Service, dict[str, Any]], world: h.World
+) -> None:
+    """Issue 42, item 5 (at 1400 px, the context's viewport): the headline figure with its gate and a
+    one-word verdict that also colours the badge and the warning; one sentence per fact; actions
+    without API words (those in a tooltip); a scan's "why" readable in a few lines; after a failed
+    verification its banner, verdict, histogram and action together at the top."""
+    s, _ = svc
+    cur = _current(s)
+    w = _showing(context, s, cur["id"])
+    p = w.page
+    gate = s.client.get("/status").json()["gates"]["max_verification_error_mm"]
+    chain = cur["expected_error"]["predicted_chain_error_mm"]
+    assert float(p.get_attribute("#current-gate", "data-value")) == gate
+    verdict = p.text_content("#current-verdict")
+    assert verdict == ("FAIL" if chain >= gate else "OK")
+    cls = p.get_attribute("#current-verdict", "class").split()[-1]
+    assert p.get_attribute("#current-badge", "class").split()[-1] == cls  # one verdict, one colour
+    assert p.get_attribute("#current-uncalibrated", "class") == cls
+    expected = p.text_content("#current-expected")
+    assert expected.count("not calibrated") == 1, expected  # one sentence per fact
+    # the moved scan's reason: a few lines at 1400 px, not one word a line
+    why = p.locator("#scans-body td.why:has-text('robot moved')").first
+    line_px = float(p.evaluate("parseFloat(getComputedStyle(document.body).lineHeight)"))
+    assert why.bounding_box()["height"] <= 3 * line_px + 2, why.bounding_box()
+    # a failed verification: the scan at the registration's pose, the link reporting J6 turned
+    s.hold_at((*h.Q1[:5], h.Q1[5] + 0.04))
+    uid, _ = s.export(world.scan1, "wrong-pose-42")
+    failed = s.client.post("/verify", json={"scan_id": s.scan(uid)["id"]}).json()
+    s.hold_at(h.Q1)
+    assert not failed["passed"]
+    p.wait_for_selector(f"#alarm-title[data-verification='{failed['id']}']")
+    alarm = p.locator("#alarm")
+    assert p.evaluate("document.getElementById('app').firstElementChild.id") == "alarm"
+    box = alarm.bounding_box()
+    assert box["y"] < 400 and box["y"] + box["height"] < 1000, box  # on the first screen
+    text = alarm.text_content()
+    assert "What to do:" in text and "FAILED" in text and alarm.locator("svg line.gate").count() == 1
+    assert "POST /" not in p.inner_text("#app"), "an API call left in the page's words"
+    assert "POST /calibrations" in (alarm.locator("abbr.api").first.get_attribute("title") or "")
+    _current(s)  # leave a current registration for the other tests
+    assert w.requests and not w.foreign_requests()
+    # the withdrawal this test causes may race the page's own GET /registration/current (409)
+    assert not [e for e in w.console_errors() if "409 (Conflict)" not in e], w.console_errors()
 
 
 def test_the_self_hosted_docs_send_the_token(context: Any, svc: tuple[h.Service, dict[str, Any]]) -> None:

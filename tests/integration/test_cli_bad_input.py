@@ -118,3 +118,36 @@ def test_comma_separated_flags_take_a_leading_negative_number(flag: str) -> None
 def test_a_lone_negative_number_and_options_are_left_alone() -> None:
     argv = ["register", "--max-fre-mm", "-1", "-v", "--json", "-x,1"]
     assert join_negative_lists(argv) == argv
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["register", "--image-points", "{pts}", "--joints", "{missing}"],
+        ["calibrate", "run", "{missing}", "--out", "{tmp}/cal"],
+        ["calibrate", "plan", "--registration", "{missing}", "--json", "{tmp}/plan.json"],
+        ["verify", "{tmp}", "--registration", "{missing}", "--robot-points", "{pts}"],
+    ],
+    ids=["joints", "poses", "plan-registration", "verify-registration"],
+)
+def test_a_missing_input_file_is_a_file_system_error(
+    argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 42, item 4: exit 8 as docs/cli.md says, not 4 "Invalid points file"."""
+    pts = tmp_path / "img.json"
+    pts.write_text(json.dumps({"spheres_mm": [[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]]}))
+    missing = tmp_path / "nope.json"
+    filled = [a.format(pts=pts, missing=missing, tmp=tmp_path) for a in argv]
+    assert main(filled) == EXIT_FILES
+    line = _one_line_error(capsys)
+    assert str(missing) in line and "no such file" in line and "Invalid points file" not in line
+
+
+def test_a_joints_deg_key_names_the_accepted_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    joints = tmp_path / "J.json"
+    joints.write_text(json.dumps({"joints_deg": [0, 0, 90, 0, 45, 0]}))
+    pts = tmp_path / "img.json"
+    pts.write_text(json.dumps({"spheres_mm": [[0, 0, 0]] * 4}))
+    assert main(["register", "--image-points", str(pts), "--joints", str(joints)]) == EXIT_INPUT
+    line = _one_line_error(capsys)
+    assert "joints_deg" in line and 'accepted key is "joints_rad"' in line and "None" not in line

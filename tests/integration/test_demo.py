@@ -63,6 +63,8 @@ def test_demo_registers_verifies_and_archives_to_a_pacs(tmp_path: Path) -> None:
         verdict = re.search(r"matched (\d+)/(\d+): mean \S+ mm, RMS \S+ mm, max \S+ mm → (PASS|FAIL)", text)
         assert verdict is not None, text
         assert verdict[3] == "PASS", text
+        assert int(verdict[1]) == int(verdict[2]), text  # every sphere in view at the chain-moving pose
+        assert "does not bound the error elsewhere" in text
         assert (out / "verification-histogram.png").is_file()
 
 

@@ -38,6 +38,7 @@ MOCK_COMMANDS = frozenset(
         "service.cli.commands.demo_calibrate",
         "service.cli.commands.simulate",
         "service.cli.commands.mock",
+        "service.cli.commands.send",  # the mock O-arm's C-STORE push, to test a listener (issue 42)
     }
 )
 """The only production modules that may import ``mocks``: the commands that run the mocks."""

@@ -112,3 +112,24 @@ def _probe_writable(text: str, folder: Path) -> None:
         raise argparse.ArgumentTypeError(
             f"{text}: cannot write into folder {folder} ({e.strerror or e}); choose a writable folder"
         ) from None
+
+
+def parse_ae_address(text: str) -> tuple[str, str, int] | None:
+    """``AE@HOST:PORT`` (an IPv6 host in brackets) as (AE title, host, port), or None when malformed
+    (an AE title of 1–16 characters, a port 1–65535)."""
+    import re
+
+    m = re.fullmatch(r"([^@\s]{1,16})@([^:\s]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", text.strip())
+    if m is None or not 0 < int(m[3]) < 65536:
+        return None
+    return m[1], m[2].strip("[]"), int(m[3])
+
+
+def ae_address(text: str) -> tuple[str, str, int]:
+    """argparse type of ``--to AE@HOST:PORT``."""
+    parsed = parse_ae_address(text)
+    if parsed is None:
+        raise argparse.ArgumentTypeError(
+            f"expected AE@HOST:PORT (port 1–65535), e.g. OARMREG@127.0.0.1:11112; got {text!r}"
+        )
+    return parsed

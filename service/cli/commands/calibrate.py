@@ -169,6 +169,49 @@ def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
+JOINTS_KEY = "joints_rad"
+"""The one key of a joints file: ``{"joints_rad": [J1, …, J6]}`` in radians."""
+
+
+def read_joints_file(path: Path) -> tuple[list[float], dict[str, Any]]:
+    """(J1…J6 in radians, the whole JSON object) of a joints file ``{"joints_rad": [6 numbers]}``.
+
+    Raises
+    ------
+    PosesFileError
+        Not an object, no ``joints_rad`` (a ``joints_deg`` key is named as such: the file needs
+        radians), or not 6 finite numbers.
+    InputFileUnreadableError
+        The file is missing or unreadable (exit 8).
+    """
+    from registration.io.points import read_json
+
+    obj = read_json(path)
+    expected = f'expected {{"{JOINTS_KEY}": [6 numbers]}} (radians, J1…J6)'
+    if not isinstance(obj, dict):
+        raise _config_error(f"{path}: {expected}, found a JSON {type(obj).__name__}")
+    if JOINTS_KEY not in obj:
+        found = f"found keys {sorted(obj)[:8]}" if obj else "found an empty object"
+        fix = (
+            f'; the accepted key is "{JOINTS_KEY}" (radians): convert degrees × π/180, '
+            "or copy the radians row of `oarmreg calibrate plan`'s output"
+            if any("deg" in str(k) for k in obj)
+            else f'; the accepted key is "{JOINTS_KEY}"'
+        )
+        raise _config_error(f"{path}: {expected}, {found}{fix}")
+    joints = obj[JOINTS_KEY]
+    if (
+        not isinstance(joints, list)
+        or len(joints) != N_JOINTS
+        or not all(_is_number(v) and math.isfinite(v) for v in joints)
+    ):
+        raise _config_error(
+            f'{path}: "{JOINTS_KEY}" must be {N_JOINTS} finite JSON numbers (radians, J1…J6), '
+            f"got {joints!r}; fix the file"
+        )
+    return [float(v) for v in joints], obj
+
+
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
     """(robot_model, [(name, scan_dir, joints_rad)]) from POSES.json; paths resolved against its folder."""
     from registration.calibration.records import (
@@ -378,17 +421,10 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
 
 def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
     """Sphere centres (robot frame) for ``oarmreg register --joints [--calibration]``."""
-    from registration.io.points import read_json
     from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
     from registration.model.phantom import load_phantom
 
-    obj = read_json(args.joints)
-    joints = obj.get("joints_rad") if isinstance(obj, dict) else None
-    if not isinstance(joints, list) or not all(_is_number(v) for v in joints):
-        raise _config_error(
-            f'{args.joints}: expected {{"joints_rad": [6 numbers]}} (radians, J1…J6), got '
-            f"{joints!r}; fix the file (every angle a JSON number)"
-        )
+    joints, obj = read_joints_file(args.joints)
     if args.calibration is not None:
         model, rod, doc = load_calibration(args.calibration)
         provenance["calibration"] = {
@@ -461,7 +497,7 @@ def run_plan(args: argparse.Namespace) -> int:
     y = read_registration(args.registration)
     reg_doc = read_json(args.registration)
     prov = reg_doc.get("provenance", {}) or {}
-    joints = read_json(args.joints).get("joints_rad") if args.joints else prov.get("joints_rad")
+    joints = read_joints_file(args.joints)[0] if args.joints else prov.get("joints_rad")
     if not isinstance(joints, list):
         raise _config_error(
             f"{args.registration}: no joints_rad in its provenance; register with "
@@ -522,9 +558,11 @@ def run_plan(args: argparse.Namespace) -> int:
         "volume": volume_doc,
         **plan.to_dict(),
     }
+    for pose in doc["poses"]:
+        pose["joints_deg"] = [round(math.degrees(v), 3) for v in pose["joints_rad"]]
     notes = keep_out_and_travel(args, doc, y, chain, rod, q0, plan.joints_rad)
     write_json(args.json, doc)
-    sys.stdout.write(notes)
+    sys.stdout.write(pendant_table(doc["poses"]) + shorter_plans_text(plan) + notes)
     why = {
         "target": f"the fewest meeting the target {params.target_rms_mm:g} mm RMS",
         "max_poses": f"calibration.max_poses; the target {params.target_rms_mm:g} mm is NOT met",
@@ -540,6 +578,42 @@ def run_plan(args: argparse.Namespace) -> int:
         + f"written: {args.json}\n"
     )
     return 0
+
+
+SCAN_MINUTES = (1, 2)
+"""Minutes one O-arm scan takes with positioning (the issue-42 walkthrough measured 1–2 min)."""
+
+
+def pendant_table(poses: list[dict[str, Any]]) -> str:
+    """The planned poses in degrees, J1…J6 as the Stäubli pendant shows them (``herej()``: the
+    driver converts only deg → rad, docs/calibration.md), one row per pose in scan order."""
+    head = (
+        "pose " + "".join(f"{f'J{j + 1}':>9}" for j in range(N_JOINTS)) + "   (degrees, as on the pendant)\n"
+    )
+    rows = [
+        f"{k:>4} " + "".join(f"{v:9.2f}" for v in pose["joints_deg"]) + "\n" for k, pose in enumerate(poses)
+    ]
+    return head + "".join(rows)
+
+
+def shorter_plans_text(plan: Any) -> str:
+    """The scans the plan asks for, their time, and what a shorter plan would be predicted to give."""
+    k = len(plan.joints_rad)
+    lo, hi = (k + 2) * SCAN_MINUTES[0], (k + 2) * SCAN_MINUTES[1]
+    lines = [
+        f"scans: {k} calibration poses + 1 registration + 1 verification = {k + 2} "
+        f"(about {lo}–{hi} min at {SCAN_MINUTES[0]}–{SCAN_MINUTES[1]} min a scan)\n"
+    ]
+    lines += [
+        f"  with {kk:>2} poses: predicted {rms:.3f} mm RMS over the working volume "
+        f"(worst pose {worst:.3f} mm)\n"
+        for kk, rms, worst in plan.shorter
+    ]
+    lines.append(
+        f"  with {k:>2} poses (this plan): predicted {plan.predicted_rms_mm:.3f} mm RMS "
+        f"(worst pose {plan.predicted_error_mm:.3f} mm)\n"
+    )
+    return "".join(lines)
 
 
 def _plan_volume(

@@ -50,8 +50,17 @@ HELP = "run the whole registration loop on a mock robot and a simulated O-arm (�
 
 Q1_RAD = (0.0, 0.0, 1.5707963267948966, 0.0, 0.7853981633974483, 0.0)
 """First pose: the mock robot's home (TX60, J3 = 90°, J5 = 45°)."""
-Q2_DELTA_RAD = (0.0, 0.0, 0.0, 0.0, 0.0, 0.35)
-"""Verification pose: J6 turned by 20°, so the phantom spins about its own axis and stays in the volume."""
+Q2_DELTA_RAD = (0.0, 0.10, -0.15, 0.0, 0.15, 0.35)
+"""Verification pose: shoulder J2 +5.7°, elbow J3 −8.6°, wrist J5 +8.6°, J6 +20°, so the check
+exercises the arm's chain, not the wrist alone (a J6 turn spins the phantom about its own axis and
+leaves the shoulder and elbow errors unseen).  Every sphere centre stays inside the scanned volume
+(the simulator's cylinder): ≥ 15 mm for the ``demo`` preset, ≥ 6.7 mm for ``small``
+(tests/integration/test_demo_verification_pose.py checks it)."""
+VERIFICATION_CAVEAT = (
+    "  what this shows: the error at ONE pose a few degrees from the registration's (shoulder, elbow and "
+    "wrist moved); it does not bound the error elsewhere in the working volume: a calibration's "
+    "predicted error does (docs/calibration.md)"
+)
 MOVE_DURATION_S = 2.0
 WINDOW_S = 1.5
 """Stillness window of the demo's service, s."""
@@ -89,16 +98,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def pacs_overrides(spec: str | None) -> dict[str, Any]:
     """``--pacs AE@HOST:PORT`` as ``load_settings`` overrides (none without the flag)."""
-    import re
+    from service.cli.commands.argtypes import parse_ae_address
 
     if spec is None:
         return {}
-    m = re.fullmatch(r"([^@\s]{1,16})@([^:\s]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", spec.strip())
-    if m is None:
+    parsed = parse_ae_address(spec)
+    if parsed is None:
         from registration.errors import ConfigError
 
         raise ConfigError(f"--pacs {spec!r}: expected AE@HOST:PORT, e.g. ORTHANC@127.0.0.1:4242")
-    return {"pacs.ae_title": m[1], "pacs.host": m[2].strip("[]"), "pacs.port": int(m[3])}
+    return {"pacs.ae_title": parsed[0], "pacs.host": parsed[1], "pacs.port": parsed[2]}
 
 
 def _err(msg: str) -> None:
@@ -412,7 +421,8 @@ def _move_scan_verify(d: _Demo) -> None:
     from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
 
     q2 = tuple(a + b for a, b in zip(Q1_RAD, Q2_DELTA_RAD, strict=True))
-    _err(f"  moving the robot to {np.round(q2, 3).tolist()} rad ...")
+    moved = ", ".join(f"J{j + 1} {np.degrees(v):+.1f}°" for j, v in enumerate(Q2_DELTA_RAD) if v)
+    _err(f"  moving the robot to {np.round(q2, 3).tolist()} rad ({moved}) ...")
     d.robot.move_to(q2, MOVE_DURATION_S)
     image_from_phantom_2 = d.cell.image_from_phantom_true(d.hidden_image_from_robot, q2)
     scan2 = simulate_scan(
@@ -495,4 +505,5 @@ def _report_verification(ver: dict[str, Any], png_path: Path) -> None:
         f"{ver['rms_mm']:.4f} mm, "
         f"max {ver['max_mm']:.4f} mm → {'PASS' if ver['passed'] else 'FAIL'}"
     )
+    _out(VERIFICATION_CAVEAT)
     _out(f"  histogram: {png_path}")

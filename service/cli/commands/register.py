@@ -56,9 +56,10 @@ def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_common_image_arguments(parser)
-    for action in parser._actions:  # register takes the robot side from --robot-points or --joints
+def add_joints_arguments(parser: argparse.ArgumentParser, calibration_default: str = "nominal") -> None:
+    """``--joints``/``--calibration``/``--robot`` (``register`` and ``verify``): the robot side from the
+    joint angles by forward kinematics instead of ``--robot-points``."""
+    for action in parser._actions:
         if action.dest == "robot_points":
             action.required = False
     parser.add_argument(
@@ -72,11 +73,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--calibration",
         type=Path,
         metavar="CALDIR",
-        help="with --joints: use this calibration's robot.urdf and tool0_from_phantom (default: nominal)",
+        help="with --joints: use this calibration's robot.urdf and tool0_from_phantom "
+        f"(default: {calibration_default})",
     )
     parser.add_argument(
         "--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)"
     )
+
+
+def robot_points(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
+    """The robot-frame sphere centres from ``--robot-points`` or ``--joints`` (exactly one)."""
+    from registration.errors import PointsFileError
+    from registration.io.points import read_points
+
+    if (args.robot_points is None) == (args.joints is None):
+        raise PointsFileError("give either --robot-points FILE.json or --joints JOINTS.json (exactly one)")
+    if args.joints is not None:
+        from service.cli.commands.calibrate import robot_points_from_joints
+
+        return robot_points_from_joints(args, provenance)
+    provenance["robot_points_file"] = str(args.robot_points)
+    provenance["robot_points_sha256"] = sha256_of(args.robot_points)
+    return read_points(args.robot_points)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_common_image_arguments(parser)
+    add_joints_arguments(parser)
     parser.add_argument(
         "--targets-robot",
         type=Path,
@@ -101,6 +124,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float_below(45.0),
         default=30.0,
         help="discard poses further than this from the prior (must be < 45; default 30)",
+    )
+    parser.add_argument(
+        "--phantom-confirmed",
+        action="store_true",
+        help="the phantom file is the phantom scanned: register even when far more spheres are "
+        "detected than it has, or the best pose explains a small share of them",
     )
     parser.add_argument(
         "--prereg",
@@ -255,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
 
     from registration import __version__
     from registration.errors import OarmRegError
-    from registration.io.points import read_points, read_targets, write_json
+    from registration.io.points import read_targets, write_json
     from registration.matching.records import params_dict
     from registration.matching.register import register_points
     from registration.model.phantom import load_phantom
@@ -268,20 +297,7 @@ def run(args: argparse.Namespace) -> int:
             "software": f"oarmreg {__version__}",
             "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         }
-        if (args.robot_points is None) == (args.joints is None):
-            from registration.errors import PointsFileError
-
-            raise PointsFileError(
-                "give either --robot-points FILE.json or --joints JOINTS.json (exactly one)"
-            )
-        if args.joints is not None:
-            from service.cli.commands.calibrate import robot_points_from_joints
-
-            robot = robot_points_from_joints(args, provenance)
-        else:
-            robot = read_points(args.robot_points)
-            provenance["robot_points_file"] = str(args.robot_points)
-            provenance["robot_points_sha256"] = sha256_of(args.robot_points)
+        robot = robot_points(args, provenance)
         image = load_image_points(args, provenance, timings)
         quality = load_settings(args.config).quality
         params = registration_params(args, quality)
@@ -351,6 +367,8 @@ def registration_params(args: argparse.Namespace, quality: Any) -> Any:
         overrides["max_fre_mm"] = args.max_fre_mm
     if args.min_margin is not None:
         overrides["min_runner_up_margin"] = args.min_margin
+    if getattr(args, "phantom_confirmed", False):
+        overrides["phantom_confirmed"] = True
     return RegistrationParams(**overrides)
 
 

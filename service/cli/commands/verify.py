@@ -18,8 +18,9 @@ from typing import Any
 from service.cli.commands.argtypes import output_file, positive_float, renamed
 from service.cli.commands.register import (
     add_common_image_arguments,
+    add_joints_arguments,
     load_image_points,
-    sha256_of,
+    robot_points,
     write_refusal,
 )
 from service.errors import VerificationFailedError
@@ -29,6 +30,7 @@ HELP = "verify a registration on a second scan: predicted vs. detected sphere ce
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_image_arguments(parser)
+    add_joints_arguments(parser, calibration_default="the one REG.json was registered through, else nominal")
     parser.add_argument(
         "--registration",
         type=Path,
@@ -72,12 +74,23 @@ def pass_limit_mm(args: argparse.Namespace) -> tuple[float, str]:
     return float(settings.quality.max_verification_error_mm), where
 
 
+def calibration_of(registration: Path) -> Path | None:
+    """The calibration folder ``registration`` (REG.json) was registered through, if any: verifying
+    through another model would judge the wrong chain."""
+    from registration.io.points import read_json
+
+    doc = read_json(registration)
+    cal = (doc.get("provenance") or {}).get("calibration") if isinstance(doc, dict) else None
+    folder = cal.get("dir") if isinstance(cal, dict) else None
+    return Path(folder) if isinstance(folder, str) and folder else None
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from registration import __version__
     from registration.errors import OarmRegError
-    from registration.io.points import read_points, read_registration, write_json
+    from registration.io.points import read_registration, write_json
     from registration.matching.verification import verify_registration
 
     timings: dict[str, float] = {}
@@ -85,13 +98,13 @@ def run(args: argparse.Namespace) -> int:
         "software": f"oarmreg {__version__}",
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "registration_file": str(args.registration),
-        "robot_points_file": str(args.robot_points),
     }
     limit_mm, limit_source = pass_limit_mm(args)  # a bad --config: exit 3 before any work
     try:
         image_from_robot = read_registration(args.registration)
-        robot = read_points(args.robot_points)
-        provenance["robot_points_sha256"] = sha256_of(args.robot_points)
+        if args.joints is not None and args.calibration is None:
+            args.calibration = calibration_of(args.registration)
+        robot = robot_points(args, provenance)
         image = np.asarray(load_image_points(args, provenance, timings), dtype=np.float64).reshape(-1, 3)
         res = verify_registration(image_from_robot, robot, image, gate_mm=args.pairing_gate_mm)
     except OarmRegError as e:

@@ -78,6 +78,12 @@ class RegisterRequest(BaseModel):
         max_length=1000,
     )
 
+    phantom_confirmed: bool = Field(
+        default=False,
+        description="The phantom file is the phantom scanned: register even when far more spheres are "
+        "detected than it has, or the best pose explains a small share of them (refused otherwise, "
+        '409 "Check the phantom file").',
+    )
     allow_superseded: bool = Field(
         default=False,
         description="Register and make current even though the service has newer evidence against this "
@@ -531,6 +537,12 @@ class StatusOut(_Out):
         None,
         description="scans_mb (the recorded scan files not yet deleted), quota_mb (retention.max_disk_mb; "
         "null: no quota), data_dir_free_mb (free space of the data folder's file system).",
+    )
+    gates: dict[str, float] = Field(
+        default_factory=dict,
+        description="The quality gates the page judges figures against, mm: max_verification_error_mm "
+        "(a verification's pass limit, and what the expected error at working poses is compared with), "
+        "max_fre_mm.",
     )
 
 

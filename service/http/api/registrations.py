@@ -54,7 +54,9 @@ async def register(
     override = SupersededOverride((req.reason or "").strip()) if req.allow_superseded else None
     with audited(ctx, principal, "register", "registration") as note:
         rec = await anyio.to_thread.run_sync(
-            lambda: ctx.orchestrator.register(req.scan_id, req.targets_image_mm, override=override)
+            lambda: ctx.orchestrator.register(
+                req.scan_id, req.targets_image_mm, override=override, phantom_confirmed=req.phantom_confirmed
+            )
         )
         if isinstance(rec, RegistrationRefusal):
             note(rec.registration_id, *audit_refusal(rec.error))

@@ -57,6 +57,10 @@ def status(ctx: CtxDep) -> StatusOut:
         listeners=ctx.listeners(),
         active_calibration=_active_calibration(ctx),
         disk=_disk(ctx),
+        gates={
+            "max_verification_error_mm": ctx.settings.quality.max_verification_error_mm,
+            "max_fre_mm": ctx.settings.quality.max_fre_mm,
+        },
     )
 
 

@@ -14,7 +14,8 @@ answered in version 2 from then on).
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any
+import time
+from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 
@@ -49,6 +50,48 @@ if TYPE_CHECKING:
     from service.registrations.orchestrator import Orchestrator
     from service.settings import IgtlSettings
 
+REASON_MAX_CHARS: Final = 400
+"""Longest ``Reason`` (and STATUS text) sent to navigation, characters: a reader's status line, not a
+log.  A longer one is cut at a word and points to ``GET /status`` (``listeners.igtl.reasons``), which
+holds the whole text."""
+FULL_TEXT_NOTE: Final = " … (full text: GET /status, listeners.igtl.reasons)"
+
+
+def cut_at_word(text: str, limit: int = REASON_MAX_CHARS) -> str:
+    """``text`` if it fits in ``limit`` characters, else cut at the last word boundary that leaves room
+    for :data:`FULL_TEXT_NOTE` (never mid-word unless one word fills half the room)."""
+    if len(text) <= limit:
+        return text
+    room = limit - len(FULL_TEXT_NOTE)
+    head = text[:room]
+    space = head.rfind(" ")
+    if space > room // 2:
+        head = head[:space]
+    return head.rstrip(" ,;:(") + FULL_TEXT_NOTE
+
+
+def joint_view(
+    joints_rad: tuple[float, ...],
+    t_s: float,
+    link_state: str,
+    link_reason: str,
+    now_t_s: float,
+    max_age_s: float,
+) -> JointView:
+    """The joints as ``ToolToImage`` judges them: one freshness limit, ``igtl.joint_max_age_s``,
+    named in the reason.  A link the driver calls ``stale`` by its own rule (three frame periods,
+    60 ms at 50 Hz) is fresh here while its last sample is younger than ``max_age_s``; a link that is
+    ``down`` stays down."""
+    if link_state in ("connected", "stale"):
+        age_s = now_t_s - t_s
+        if age_s <= max_age_s:
+            link_state, link_reason = "connected", "receiving joint frames"
+        else:
+            link_state = "stale"
+            link_reason = f"no joint sample for {age_s:.3f} s (> igtl.joint_max_age_s = {max_age_s:g} s)"
+    return JointView(joints_rad, t_s, link_state, cut_at_word(link_reason))
+
+
 _CLIENT_EVENTS = {
     "connected": IgtlClientConnected,
     "disconnected": IgtlClientDisconnected,
@@ -74,6 +117,8 @@ class IgtlPublisher:
         self.robot_link = robot_link
         self.publish = publish
         self._last_refusal: Refusal | None = None
+        self._reasons: dict[str, str] = {}
+        """The whole texts behind what was cut for the wire (``GET /status``, ``listeners.igtl.reasons``)."""
         self._view: tuple[RegistrationRecord, RegistrationView] | None = None
         source = IgtlStateSource(
             registration=self._registration_state,
@@ -96,6 +141,7 @@ class IgtlPublisher:
             "enabled": g.enabled, "host": g.host, "port": s.port, "clients": s.client_count,
             "counters": dict(s.counters),
             "peers": s.client_info(),  # per client: peer and header version
+            "reasons": dict(self._reasons),  # the whole texts of what navigation was sent cut
         }  # fmt: skip
 
     # ---- bus listeners (the publishing thread) --------------------------------------------
@@ -107,7 +153,8 @@ class IgtlPublisher:
 
     def on_registration_refused(self, event: RegistrationRefused) -> None:
         """Push the refusal (the current registration, if any, stays)."""
-        self._last_refusal = Refusal(str(event.registration_id), event.reason)
+        self._last_refusal = Refusal(str(event.registration_id), cut_at_word(event.reason))
+        self._reasons["last_refusal"] = event.reason
         self.server.notify()
 
     def on_registration_withdrawn(self, event: RegistrationWithdrawn) -> None:
@@ -127,8 +174,14 @@ class IgtlPublisher:
         orch = self.orchestrator
         cur = orch.current
         if cur is None or cur.image_from_robot is None or cur.status != "accepted" or cur.withdrawn_at:
-            return RegistrationState(None, self._last_refusal, orch.no_current_reason if cur is None else (
-                f"registration {cur.id} is {cur.status}: {cur.reason}"))  # fmt: skip
+            why = (
+                orch.no_current_reason
+                if cur is None
+                else f"registration {cur.id} is {cur.status}: {cur.reason}"
+            )
+            self._reasons["registration"] = why
+            return RegistrationState(None, self._last_refusal, cut_at_word(why))
+        self._reasons.pop("registration", None)
         cached = self._view
         if cached is None or cached[0] is not cur:
             cached = self._view = (cur, self._make_view(cur))
@@ -173,6 +226,12 @@ class IgtlPublisher:
         if latest is None:
             return None
         h = self.robot_link.health()
-        return JointView(
-            tuple(float(v) for v in latest.joints_rad), float(latest.t_s), str(h.state), str(h.reason)
-        )
+        view = joint_view(
+            tuple(float(v) for v in latest.joints_rad), float(latest.t_s), str(h.state), str(h.reason),
+            time.monotonic(), self.settings.joint_max_age_s,
+        )  # fmt: skip
+        if view.health == "connected":
+            self._reasons.pop("joints", None)
+        else:
+            self._reasons["joints"] = str(h.reason) if h.state == "down" else view.reason
+        return view

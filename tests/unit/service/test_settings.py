@@ -81,11 +81,29 @@ def test_env_api_token(monkeypatch: pytest.MonkeyPatch) -> None:
     assert TOKEN not in repr(s) and "api_token" not in s.public_dict()
 
 
-def test_bad_value_names_key_and_env_var(tmp_path: Path) -> None:
+def test_bad_value_names_key_and_its_source(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bad value in the file names the file and the key (not an environment variable that is not
+    set); a bad value from the environment names the variable (issue 42, item 4)."""
+    monkeypatch.delenv("OARMREG_DICOM__PORT", raising=False)
+    toml = write(tmp_path, "[dicom]\nport = 99999\n")
+    with pytest.raises(ConfigError) as info:
+        load_settings(toml)
+    assert f"setting 'dicom.port' in {toml}" in str(info.value)
+    assert "OARMREG_DICOM__PORT" not in str(info.value)
+    monkeypatch.setenv("OARMREG_QUALITY__MAX_FRE_MM", "-1")
     with pytest.raises(
-        ConfigError, match=r"quality\.max_fre_mm.*OARMREG_QUALITY__MAX_FRE_MM.*greater than 0"
+        ConfigError, match=r"quality\.max_fre_mm' from the environment variable OARMREG_QUALITY__MAX_FRE_MM"
     ):
-        load_settings(write(tmp_path, "[quality]\nmax_fre_mm = -1\n"))
+        load_settings(None)
+
+
+def test_a_typo_points_to_the_file_read_and_the_nearest_key(tmp_path: Path) -> None:
+    toml = write(tmp_path, "[dicom]\nprot = 11112\n")
+    with pytest.raises(ConfigError) as info:
+        load_settings(toml)
+    text = str(info.value)
+    assert "did you mean 'dicom.port'?" in text and f"fix it in {toml}" in text
+    assert "configs/oarmreg.toml" not in text
 
 
 def test_unknown_key_is_refused(tmp_path: Path) -> None:

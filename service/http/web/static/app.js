@@ -22,7 +22,7 @@ const QA_SHOWN = 40;
 const state = {
   token: null, es: null, statusTimer: null, refreshTimer: null, reconnectTimer: null,
   verOffset: 0, verSelected: null, calSelected: null, calArmed: false,
-  current: null, withdrawal: null, registrations: [], calibrations: [],
+  current: null, withdrawal: null, registrations: [], calibrations: [], gates: {},
 };
 
 const $ = (id) => document.getElementById(id);
@@ -154,13 +154,12 @@ async function refreshAll() {
   if (!st.ok) return;
   state.registrations = regs.ok ? regs.body : [];
   state.calibrations = cals.ok ? cals.body : [];
-  let current = null;
-  if (st.body.current_registration) {
-    const cur = await api("/registration/current");
-    current = cur.ok ? cur.body : null;
-  }
+  // /status carries the current registration as GET /registration/current gives it (registration_out):
+  // one snapshot, so a withdrawal between two requests cannot answer 409 (a console error) here
+  const current = st.body.current_registration || null;
   state.current = current;
   state.withdrawal = st.body.registration_withdrawal || null;
+  state.gates = st.body.gates || {};
   renderStatus(st.body);
   await renderJoints(st.body);
   renderCurrent(current);
@@ -170,6 +169,7 @@ async function refreshAll() {
   renderCalibrations(state.calibrations);
   if (qa.ok) renderQa(qa.body);
   renderBanners(st.body, current, state.registrations);
+  await renderAlarm(current ? null : state.withdrawal);
 }
 
 async function refreshStatus() {
@@ -196,8 +196,22 @@ function advice(text) {
   for (const [re, what] of ADVICE) if (re.test(text)) return what;
   return "Read the reason, fix the cause, scan again and register again.";
 }
+// Actions in the OR's words: an API call or a docs path in parentheses moves into a tooltip ("how?").
+const API_ASIDE = /\s*\(([^()]*(?:\b(?:GET|POST) \/|docs\/)[^()]*)\)/g;
+function orWords(text) {
+  const asides = [];
+  const plain = String(text || "").replace(API_ASIDE, (_m, inner) => { asides.push(inner.trim()); return ""; });
+  return { plain, api: asides.join("; ") };
+}
+function inOrWords(text) {
+  const { plain, api } = orWords(text);
+  const out = el("span", {}, plain);
+  if (api) out.append(" ", el("abbr", { class: "api", title: api }, "how?"));
+  return out;
+}
 function banner(cls, text, what) {
-  return el("div", { class: "banner " + cls }, text, what ? el("span", { class: "what" }, "What to do: " + what) : "");
+  return el("div", { class: "banner " + cls }, inOrWords(text),
+    what ? el("span", { class: "what" }, "What to do: ", inOrWords(what)) : "");
 }
 
 function noCurrentReason(regs) {
@@ -212,6 +226,7 @@ function noCurrentReason(regs) {
 
 function renderBanners(st, current, regs) {
   const out = [];
+  $("alarm-banner").replaceChildren();
   const withdrawal = st.registration_withdrawal;
   for (const p of st.problem_details || []) {
     if (p.type === "registration-withdrawn") continue;  // its own banner below, with cause and action
@@ -229,15 +244,18 @@ function renderBanners(st, current, regs) {
     const what = v.verification_id == null
       ? `the verification of scan ${v.verification_scan_id} could not be computed (the error is beyond what matching can bridge)`
       : `verification ${v.verification_id} (scan ${v.verification_scan_id}) failed the ${fmt(v.gate_mm, 2)} mm gate`;
+    // one sentence per fact; the cause's full reasoning in a tooltip
+    const shortCause = String(v.cause).split(":")[0];
     const b = banner("bad", `No current registration: navigation must not use an old matrix. Registration ` +
-      `${v.registration_id} was withdrawn: ${what}. Likely cause: ${v.cause}.`, v.action.charAt(0).toUpperCase() + v.action.slice(1) + ".");
+      `${v.registration_id} was withdrawn: ${what}.`, v.action.charAt(0).toUpperCase() + v.action.slice(1) + ".");
+    b.insertBefore(el("span", { class: "cause", title: v.cause }, ` Likely cause: ${shortCause}.`), b.querySelector(".what"));
     b.id = "withdrawn-banner";
     b.dataset.cause = v.likely_cause;
-    out.push(b);
+    $("alarm-banner").replaceChildren(b);  // at the top, with the failed verification's histogram
   } else if (!current) {
     const reason = noCurrentReason(regs);
     out.push(banner("bad", "No current registration: navigation must not use an old matrix. " + reason,
-      /accepted yet/.test(reason) ? "Scan the phantom and register (POST /register)." : advice(reason)));
+      /accepted yet/.test(reason) ? "Scan the phantom and register it (POST /register)." : advice(reason)));
   }
   const newest = regs[0];
   if (newest && newest.status === "refused" && (!current || newest.id > current.id)) {
@@ -251,6 +269,25 @@ function renderBanners(st, current, regs) {
       "Registrations are refused until the controller streams joint angles again."));
   }
   $("banners").replaceChildren(...out);
+}
+
+// After a failed verification: its banner (cause, action), verdict and histogram together at the top.
+async function renderAlarm(withdrawal) {
+  const alarm = $("alarm");
+  alarm.hidden = !withdrawal;
+  if (!withdrawal) { $("alarm-title").textContent = ""; $("alarm-chart").replaceChildren(); return; }
+  const id = withdrawal.verification_id;
+  const r = id == null ? { ok: false } : await api(`/verifications/${id}`);
+  if (!r.ok) {
+    $("alarm-title").textContent = id == null ? "The verification could not be computed." : "";
+    $("alarm-chart").replaceChildren();
+    return;
+  }
+  const v = r.body;
+  const t = $("alarm-title");
+  t.textContent = `Verification ${v.id} FAILED: largest sphere error ${fmt(v.max_mm, 2)} mm, gate ${fmt(v.gate_mm, 2)} mm.`;
+  t.dataset.verification = v.id;
+  $("alarm-chart").replaceChildren(histogram((v.errors || []).map((e) => e.error_mm), v.gate_mm, v.passed));
 }
 
 // ---- QA trend ---------------------------------------------------------------------------------
@@ -282,7 +319,7 @@ function renderStatus(st) {
   const h = $("health");
   h.className = "pill " + (st.healthy ? "ok" : "bad");
   h.textContent = st.healthy ? "healthy" : "unhealthy";
-  $("problems").replaceChildren(...(st.problems || []).map((p) => el("li", {}, p)));
+  $("problems").replaceChildren(...(st.problems || []).map((p) => el("li", {}, inOrWords(p))));
   const link = st.link || {};
   const ls = $("link-state");
   ls.className = link.state === "connected" ? "ok" : "bad";
@@ -338,9 +375,8 @@ function renderCurrent(cur) {
     $("current-none").textContent = noCurrentReason(state.registrations);
     return;
   }
-  badge.className = "pill ok";
   badge.textContent = "current";
-  renderExpected(cur);
+  badge.className = "pill " + renderExpected(cur).cls;  // the same verdict as the headline and warning
   setText("current-id", String(cur.id), cur.id);
   setText("current-scan", String(cur.scan_id), cur.scan_id);
   setText("current-fre", fmt(cur.fre_mm), cur.fre_mm);
@@ -358,21 +394,42 @@ function renderCurrent(cur) {
   $("current-provenance").textContent = JSON.stringify(cur.provenance, null, 2);
 }
 
-// The honest figure first: the expected error where the robot works, and whether a calibration backs it.
+// The honest figure first: the expected error where the robot works, its gate and a one-word verdict.
+// One verdict colours the headline's pill, the warning and the "current" badge.
+function expectedVerdict(chain, gate, calibrated) {
+  if (chain == null || gate == null) return { word: "UNKNOWN", cls: "warn" };
+  if (chain >= gate) return { word: "FAIL", cls: "bad" };
+  return { word: "OK", cls: calibrated ? "ok" : "warn" };
+}
+
 function renderExpected(cur) {
   const e = cur.expected_error || {};
   const chain = e.predicted_chain_error_mm ?? cur.predicted_chain_error_mm;
+  const gate = state.gates.max_verification_error_mm;
+  const verdict = expectedVerdict(chain, gate, !!e.calibrated);
   setText("current-chain", fmt(chain, 2), chain);
   $("current-chain").dataset.calibrated = e.calibrated ? "true" : "false";
-  $("current-chain-basis").textContent = e.calibrated
-    ? `Backed by calibration ${e.calibration_id}: ${e.basis}.`
-    : `Nominal robot model: ${e.basis || "the cell is not calibrated"}.`;
+  setText("current-gate", fmt(gate, 2), gate);
+  const pill = $("current-verdict");
+  pill.className = "pill " + verdict.cls;
+  pill.textContent = verdict.word;
+  pill.title = verdict.word === "FAIL"
+    ? "A verification at another pose is expected to fail its gate (quality.max_verification_error_mm)."
+    : "Below the verification gate (quality.max_verification_error_mm).";
+  const basis = $("current-chain-basis");
+  basis.textContent = e.calibrated ? `Calibration ${e.calibration_id} backs this figure.`
+    : "Source: the nominal robot model's prior.";
+  basis.title = e.basis || "";
   const warn = $("current-uncalibrated");
-  warn.hidden = !!e.calibrated;
-  warn.textContent = e.calibrated ? "" :
-    `This cell is not calibrated. That costs about ${fmt(chain, 1)} mm at the robot's working poses ` +
-    `(the one-scan TRE below holds at the registration scan's pose only). Calibrate the cell ` +
-    `(docs/calibration.md) and activate the calibration to bring it down.`;
+  warn.hidden = !!e.calibrated && verdict.cls === "ok";
+  warn.className = verdict.cls;
+  warn.textContent = e.calibrated
+    ? (verdict.word === "FAIL" ? `Expect about ${fmt(chain, 1)} mm at the robot's working poses, above the ` +
+      `${fmt(gate, 1)} mm gate. Check the calibration and verify at another pose.` : "")
+    : `This cell is not calibrated. Expect about ${fmt(chain, 1)} mm at the robot's working poses. ` +
+      "Calibrate the cell and activate the calibration to bring it down.";
+  warn.title = e.calibrated ? "" : "docs/calibration.md";
+  return verdict;
 }
 
 // ---- lists ------------------------------------------------------------------------------------
@@ -385,7 +442,7 @@ function renderScans(scans) {
     const still = j.still === undefined ? "—" : j.still ? "yes" : "NO";
     return el("tr", { dataset: { scan: s.id } }, el("td", {}, s.id), el("td", {}, when(s.arrived_at)),
       stateCell(s.status, s.status === "complete" ? "ok" : "bad"), el("td", {}, s.n_slices),
-      stateCell(still, j.still ? "ok" : "bad"), el("td", {}, [s.reason, j.stillness_reason].filter(Boolean).join("; ")));
+      stateCell(still, j.still ? "ok" : "bad"), el("td", { class: "why" }, [s.reason, j.stillness_reason].filter(Boolean).join("; ")));
   }));
 }
 

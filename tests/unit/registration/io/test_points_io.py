@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from registration.errors import PointsFileError
+from registration.errors import InputFileUnreadableError, PointsFileError
 from registration.io.points import (
     read_points,
     read_registration,
@@ -46,12 +46,13 @@ def test_targets_round_trip(tmp_path: Path) -> None:
 
 
 def test_missing_file(tmp_path: Path) -> None:
-    with pytest.raises(PointsFileError, match="not found"):
+    """A file-system problem, not bad content: exit 8 (docs/cli.md), issue 42 item 4."""
+    with pytest.raises(InputFileUnreadableError, match="no such file"):
         read_points(tmp_path / "nope.json")
 
 
 def test_directory_instead_of_file(tmp_path: Path) -> None:
-    with pytest.raises(PointsFileError, match="directory"):
+    with pytest.raises(InputFileUnreadableError, match="directory"):
         read_points(tmp_path)
 
 
