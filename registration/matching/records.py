@@ -19,6 +19,7 @@ from registration.matching.correspondence import (
     DEFAULT_DISTINCT_ROTATION_DEG,
     DEFAULT_DISTINCT_TRANSLATION_MM,
 )
+from registration.matching.face_offset import MAX_FACE_OFFSET_MM
 from registration.matching.prereg import PreregResult
 from registration.matching.quality import (
     Conditioning,
@@ -120,6 +121,11 @@ class RegistrationParams:
     """The mirrored problem must explain this fraction of min(expected, detected) spheres to call the
     input mirrored: the cube grid is achiral, so a mirror image of a filled pattern still overlaps
     the proper pattern partly (14 of 28 spheres for bai2018_cube) and must not win by default."""
+    face_offset_fit: bool = True
+    """Fit the phantom's face offset β with the pose when a phantom is given
+    (:mod:`registration.matching.face_offset`): the matched centres are taken with β·n_i removed."""
+    max_face_offset_mm: float = MAX_FACE_OFFSET_MM
+    """Largest |β| accepted (origin: :data:`registration.matching.face_offset.MAX_FACE_OFFSET_MM`)."""
     verify_gate_mm: float = 5.0
     """Verification pairs a predicted sphere with a detection within this distance: large enough to
     report a registration error of several mm honestly, below half the pitch so pairs stay unique."""
@@ -175,6 +181,10 @@ class RegistrationResult:
     prereg: PreregResult | None = None
     mirror_checked: bool = False
     provenance: Mapping[str, Any] = field(default_factory=dict)
+    face_offset_mm: float | None = None
+    """The phantom's face offset β of this scan, mm (None when not fitted: no phantom given)."""
+    face_offset_se_mm: float | None = None
+    """β's standard error, mm (None when not fitted or undetermined)."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict: the ``oarmreg register --json`` format."""
@@ -211,6 +221,8 @@ class RegistrationResult:
             "mirror_checked": self.mirror_checked,
             "timings_s": dict(self.timings_s),
             "provenance": dict(self.provenance),
+            "face_offset_mm": self.face_offset_mm,
+            "face_offset_se_mm": self.face_offset_se_mm,
         }
         if self.prereg is not None:
             out["prereg"] = {
