@@ -84,7 +84,7 @@ class DetectionResult:
     """Spheres found in one volume, the rejected candidates and the time spent per stage.
 
     ``face_offset`` is None until a caller that knows the phantom fits it
-    (:func:`registration.matching.face_offset.grid_face_offset`); ``face_offset_reason`` then says
+    (:func:`registration.matching.face_offset_grid.grid_face_offset`); ``face_offset_reason`` then says
     why it could not be fitted, if it could not.
     """
 

@@ -46,6 +46,7 @@ from registration.errors import (
     ImproperRotationError,
     TooFewSpheresError,
 )
+from registration.matching.face_offset import FaceOffsetFit, check_face_offset, fit_face_offset
 from registration.matching.hypotheses import (
     Candidate,
     CandidatePool,
@@ -56,7 +57,6 @@ from registration.matching.hypotheses import (
     check_runner_up,
     exhaustive_candidates,
 )
-from registration.matching.face_offset import FaceOffsetFit, check_face_offset, fit_face_offset
 from registration.matching.icp import IcpResult
 from registration.matching.quality import (
     check_configuration,

@@ -125,7 +125,7 @@ def sphere_fit_columns(radius_mm: float, n_slices: int, score: float) -> tuple[s
 
 def _with_face_offset(result: DetectionResult, phantom_path: Path | None) -> DetectionResult:
     """The detection with the phantom's face offset fitted over its hole grid (issue #43)."""
-    from registration.matching.face_offset import grid_face_offset
+    from registration.matching.face_offset_grid import grid_face_offset
     from registration.model.phantom import load_phantom
 
     path = DEFAULT_PHANTOM if phantom_path is None or str(phantom_path).lower() == "none" else phantom_path

@@ -17,8 +17,8 @@ from registration.matching.face_offset import (
     FaceOffsetError,
     check_face_offset,
     fit_face_offset,
-    grid_face_offset,
 )
+from registration.matching.face_offset_grid import grid_face_offset
 from registration.matching.records import RegistrationParams
 from registration.matching.register import register_points
 from registration.matching.rigid import PointSetError
