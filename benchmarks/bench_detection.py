@@ -638,7 +638,9 @@ def _face_offset_row(name: str, ms: list[Any]) -> list[Any]:
     ]
 
 
-def face_offset_sweep(n_poses: int, cache_dir: Path | None, methods: tuple[str, ...] = ()) -> None:
+def face_offset_sweep(
+    n_poses: int, cache_dir: Path | None, methods: tuple[str, ...] = (), only: str | None = None
+) -> None:
     """Issue #43: pull along the hole axes, scale, FLE and TRE before / after the face-offset fit,
     per hole model × geometry × material and a no-cube control, at ``n_poses`` random poses each
     (:mod:`benchmarks.face_offset`); with ``methods``, each centre estimator on the same scans."""
@@ -650,6 +652,8 @@ def face_offset_sweep(n_poses: int, cache_dir: Path | None, methods: tuple[str, 
         for material, phantom_name in MATERIALS.items():
             phantom = load_phantom(REPO / "configs" / "phantoms" / f"{phantom_name}.toml")
             for hole in (*HOLE_MODELS, "no cube"):
+                if only is not None and only not in f"{geometry} {material} {hole}":
+                    continue
                 scans = [
                     _face_offset_scan(phantom, material, hole, geometry, seed, cache_dir)
                     for seed in range(n_poses)
@@ -689,7 +693,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--background-model", default="linear", help="background under a sphere (hard sweep)")
     ap.add_argument("--seed-offset", type=int, default=0, help="hard sweep: scan n gets seed offset + n")
-    ap.add_argument("--only", default=None, help="hard sweep: only conditions whose name contains this")
+    ap.add_argument(
+        "--only", default=None, help="hard / face-offset sweep: only conditions whose name contains this"
+    )
     ap.add_argument(
         "--face-offset", type=int, default=0, help="issue #43 face-offset sweep at this many poses per row"
     )
@@ -705,7 +711,7 @@ def main(argv: list[str] | None = None) -> None:
         accuracy_sweep(args.scans, args.quick)
     if args.face_offset:
         methods = tuple(m for m in args.face_offset_methods.split(",") if m)
-        face_offset_sweep(args.face_offset, args.cache_dir, methods)
+        face_offset_sweep(args.face_offset, args.cache_dir, methods, args.only)
     if args.hard:
         hard_sweep(args.hard, args.cache_dir, args.method, args.background_model, args.seed_offset, args.only)
 
