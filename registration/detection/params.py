@@ -29,7 +29,10 @@ METHOD_FOR_MATERIAL: Final[Mapping[str, str]] = {
 default ``subvoxel``.  On the simulator's hard scans (``python -m benchmarks.bench_detection
 --hard 40``, and held-out seeds) ``core`` measured best on tungsten carbide and worse on steel and
 titanium, ``rays`` best on steel and titanium and worse than ``core`` on tungsten carbide:
-``docs/validation.md``, "Sphere detection"."""
+``docs/validation.md``, "Sphere detection".  Chosen again on TRE at the working poses (tilts up to
+40°, both hole models, slice-wise and cone-beam, with the face-offset fit; ``python -m
+benchmarks.bench_detection --face-offset 6 --face-offset-methods subvoxel,rays,core``): the same
+two, ``docs/validation.md``, "Face offset"."""
 
 
 BACKGROUND_MODELS: Final = ("linear", "constant")
