@@ -137,26 +137,15 @@ def simulate(
     extras = SceneExtras(sphere_material=material, hole_model=hole_model, cube=cube)
     pose = random_pose(seed)
     subrays = {"tungsten_carbide": 4}.get(material)  # benchmarks/bench_detection.py WC_SUBRAYS
+    grid: dict[str, Any] = {"rows": crop, "columns": crop, "n_slices": round(crop * 0.415 / 0.833) + 8}
     if geometry == "cone":
         from mocks.oarm.cbct import ConeBeamSettings, simulate_cbct
 
-        cb = ConeBeamSettings.preset(
-            "oarm-cbct-roi",
-            rows=crop,
-            columns=crop,
-            n_slices=round(crop * 0.415 / 0.833) + 8,
-            seed=seed,
-            **({"subrays": subrays} if subrays else {}),
-        )
+        extra = {"subrays": subrays} if subrays else {}
+        cb = ConeBeamSettings.preset("oarm-cbct-roi", **grid, seed=seed, **extra)
         return simulate_cbct(phantom, pose, cb, extras)
-    settings = AcquisitionSettings.preset(
-        "oarm-realistic",
-        rows=crop,
-        columns=crop,
-        n_slices=round(crop * 0.415 / 0.833) + 8,
-        seed=seed,
-        **({"detector_subsamples": subrays} if subrays else {}),
-    )
+    extra = {"detector_subsamples": subrays} if subrays else {}
+    settings = AcquisitionSettings.preset("oarm-realistic", **grid, seed=seed, **extra)
     return simulate_scan(phantom, pose, settings, extras)
 
 

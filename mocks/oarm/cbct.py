@@ -450,28 +450,20 @@ def _balls_and_holes(
     :func:`mocks.oarm.simulator._hole_objects` builds them."""
     drilled = extras.hole_model == "drilled"
     metal = extras.material_for(phantom) != "plastic"
-    actual = extras.actual_centres_phantom_mm(phantom)
-    axes, seat = phantom.hole_axes_phantom, extras.seat_offset_mm(phantom)
     rot = rtk_from_phantom[:3, :3]
     balls: list[_Ball] = []
     holes: list[_Cylinder3] = []
-    n_filled = 0
-    for i, c in enumerate(phantom.holes_phantom_mm):
-        filled = bool(phantom.filled[i])
-        if not filled and not extras.empty_holes:
-            continue
-        centre = actual[n_filled] if filled else c + seat * axes[i]
-        n_filled += int(filled)
-        if drilled:
-            start, axis, length, radius = extras.hole_cylinder_phantom(phantom, centre, axes[i])
-            holes.append(
-                _Cylinder3(frames.apply(rtk_from_phantom, start), rot @ axis, length, radius, ((pl, -1.0),))
-            )
-        if filled and metal:
+    for h in extras.holes(phantom):
+        if h.cylinder is not None:
+            start, axis, length = h.cylinder
+            at = frames.apply(rtk_from_phantom, start)
+            holes.append(_Cylinder3(at, rot @ axis, length, h.cylinder_radius_mm, ((pl, -1.0),)))
+        centre = frames.apply(rtk_from_phantom, h.centre_mm)
+        if h.filled and metal:
             paths = ((sp, 1.0),) if drilled else ((sp, 1.0), (pl, -1.0))
-            balls.append(_Ball(frames.apply(rtk_from_phantom, centre), phantom.sphere_radius_mm, paths))
-        elif not filled and not drilled:
-            balls.append(_Ball(frames.apply(rtk_from_phantom, c), phantom.sphere_radius_mm, ((pl, -1.0),)))
+            balls.append(_Ball(centre, phantom.sphere_radius_mm, paths))
+        elif not h.filled and not drilled:
+            balls.append(_Ball(centre, phantom.sphere_radius_mm, ((pl, -1.0),)))
     return balls, holes
 
 

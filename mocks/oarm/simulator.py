@@ -327,13 +327,38 @@ class SceneExtras:
             )
         return hole_face_depth_mm(phantom) - (self.hole_depth_mm - phantom.sphere_radius_mm)
 
-    def hole_cylinder_phantom(
-        self, phantom: Phantom, centre_mm: F64, axis: F64
-    ) -> tuple[F64, F64, float, float]:
-        """(start, axis, length, radius) of the drilled hole whose sphere sits at ``centre_mm``:
-        from the hole's bottom to the face, phantom frame, mm."""
-        bottom = centre_mm - axis * phantom.sphere_radius_mm
-        return bottom, axis, self.hole_depth_mm, self.hole_diameter_mm / 2.0
+    def holes(self, phantom: Phantom) -> list[HoleGeometry]:
+        """Every filled hole, and every empty one when ``empty_holes``, in the phantom's hole
+        order, phantom frame: where its sphere (or the empty hole's air ball) sits and, for the
+        drilled model, the cylinder.  Both simulators build their scenes from this list."""
+        actual = self.actual_centres_phantom_mm(phantom)
+        axes, seat = phantom.hole_axes_phantom, self.seat_offset_mm(phantom)
+        out: list[HoleGeometry] = []
+        n_filled = 0
+        for i, c in enumerate(phantom.holes_phantom_mm):
+            filled = bool(phantom.filled[i])
+            if not filled and not self.empty_holes:
+                continue
+            # A sphere sits off-centre by the machining tolerance; its hole moves with it.
+            centre = actual[n_filled] if filled else c + seat * axes[i]
+            n_filled += int(filled)
+            cylinder = None
+            if self.hole_model == "drilled":  # from the bottom, where the sphere sits, to the face
+                cylinder = (centre - axes[i] * phantom.sphere_radius_mm, axes[i].copy(), self.hole_depth_mm)
+            out.append(HoleGeometry(filled, centre, cylinder, self.hole_diameter_mm / 2.0))
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class HoleGeometry:
+    """One hole of :meth:`SceneExtras.holes` (phantom frame, mm)."""
+
+    filled: bool
+    centre_mm: F64
+    """The sphere's centre, or the empty hole's."""
+    cylinder: tuple[F64, F64, float] | None
+    """Drilled: (start at the bottom, outward unit axis, length); None for the tight fit."""
+    cylinder_radius_mm: float
 
 
 HOLE_MODELS: Final = ("tight", "drilled")
@@ -527,33 +552,24 @@ def _hole_objects(phantom: Phantom, scanner_from_phantom: F64, extras: SceneExtr
     # Tight fit: the sphere replaces the plastic it fills.  Drilled: the hole's cylinder already
     # removed the plastic, the sphere adds its metal into the air.
     sphere_paths = (((sp, 1.0),) if drilled else ((sp, 1.0), (pl, -1.0))) if metal else ()
-    actual = extras.actual_centres_phantom_mm(phantom)
-    axes, seat = phantom.hole_axes_phantom, extras.seat_offset_mm(phantom)
     rot = scanner_from_phantom[:3, :3]
     objs: list[Any] = []
-    n_filled = 0
-    for i, c in enumerate(phantom.holes_phantom_mm):
-        filled = bool(phantom.filled[i])
-        if not filled and not extras.empty_holes:
-            continue
-        # The sphere sits in its hole off-centre by the machining tolerance; the hole moves with it.
-        centre = actual[n_filled] if filled else c + seat * axes[i]
-        n_filled += int(filled)
-        if drilled:
-            start, axis, length, radius = extras.hole_cylinder_phantom(phantom, centre, axes[i])
+    for h in extras.holes(phantom):
+        if h.cylinder is not None:
+            start, axis, length = h.cylinder
+            at = frames.apply(scanner_from_phantom, start)
+            objs.append(_Cylinder(at, rot @ axis, length, h.cylinder_radius_mm, ((pl, -1.0),), True))
+        if h.filled and sphere_paths:
             objs.append(
-                _Cylinder(
-                    frames.apply(scanner_from_phantom, start), rot @ axis, length, radius, ((pl, -1.0),), True
+                _Sphere(
+                    frames.apply(scanner_from_phantom, h.centre_mm), phantom.sphere_radius_mm, sphere_paths
                 )
             )
-        if filled and sphere_paths:
+        elif not h.filled and not drilled:  # an empty hole of the tight model: an air ball
             objs.append(
-                _Sphere(frames.apply(scanner_from_phantom, centre), phantom.sphere_radius_mm, sphere_paths)
-            )
-        elif not filled and not drilled:
-            # An empty Ø2.5 mm hole of the tight model, an air sphere.
-            objs.append(
-                _Sphere(frames.apply(scanner_from_phantom, c), phantom.sphere_radius_mm, ((pl, -1.0),))
+                _Sphere(
+                    frames.apply(scanner_from_phantom, h.centre_mm), phantom.sphere_radius_mm, ((pl, -1.0),)
+                )
             )
     return objs
 

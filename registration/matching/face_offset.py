@@ -77,13 +77,6 @@ class FaceOffsetFit:
     centres_image_mm: F64
     residuals_mm: F64
 
-    def to_dict(self) -> dict[str, float | None]:
-        """The JSON fields of a detection or registration record."""
-        return {
-            "face_offset_mm": float(self.beta_mm),
-            "face_offset_se_mm": None if math.isnan(self.beta_se_mm) else float(self.beta_se_mm),
-        }
-
 
 def _skew(v: F64) -> F64:
     """(K, 3, 3) cross-product matrices [v]× of the rows of ``v``."""
