@@ -599,6 +599,87 @@ def _hard_row(r: dict[str, Any]) -> list[Any]:
     ]
 
 
+def _face_offset_scan(
+    phantom: Any, material: str, hole: str, geometry: str, seed: int, cache_dir: Path | None
+) -> Any:
+    """:func:`benchmarks.face_offset.simulate`, pickled under ``cache_dir`` when given."""
+    from benchmarks.face_offset import simulate
+
+    cube = hole != "no cube"
+    model = hole if cube else "tight"
+    if cache_dir is None:
+        return simulate(phantom, material, model, geometry, seed, cube=cube)
+    path = cache_dir / f"face_offset-{geometry}-{material}-{hole.replace(' ', '_')}-{seed}.pkl"
+    if path.exists():
+        with path.open("rb") as f:
+            return pickle.load(f)
+    scan = simulate(phantom, material, model, geometry, seed, cube=cube)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:
+        pickle.dump(scan, f)
+    return scan
+
+
+def _face_offset_row(name: str, ms: list[Any]) -> list[Any]:
+    cat = np.concatenate
+    ax, ax_a = cat([m.axial_mm for m in ms]), cat([m.axial_after_mm for m in ms])
+    fle, fle_a = cat([m.error_mm for m in ms]), cat([m.error_after_mm for m in ms])
+    beta = np.array([m.beta_mm for m in ms])
+    return [
+        name,
+        len(ms),
+        f"{len(ax)} (-{sum(m.missed for m in ms)})",
+        f"{np.mean(ax):+.4f} / {np.nanmean(ax_a):+.4f}",
+        f"{np.mean([m.scale_permille for m in ms]):+.3f} / "
+        f"{np.nanmean([m.scale_after_permille for m in ms]):+.3f}",
+        f"{np.mean(fle):.4f} / {np.nanmean(fle_a):.4f}",
+        f"{np.nanmean(beta):+.4f} ± {np.nanstd(beta):.4f}",
+        f"{np.nanmean([m.tre_mm for m in ms]):.4f} / {np.nanmean([m.tre_after_mm for m in ms]):.4f}",
+    ]
+
+
+def face_offset_sweep(
+    n_poses: int, cache_dir: Path | None, methods: tuple[str, ...] = (), only: str | None = None
+) -> None:
+    """Issue #43: pull along the hole axes, scale, FLE and TRE before / after the face-offset fit,
+    per hole model × geometry × material and a no-cube control, at ``n_poses`` random poses each
+    (:mod:`benchmarks.face_offset`); with ``methods``, each centre estimator on the same scans."""
+    from benchmarks.face_offset import GEOMETRIES, HOLE_MODELS, MATERIALS, scan_metrics
+    from registration.model.phantom import load_phantom
+
+    rows: list[list[Any]] = []
+    for geometry in GEOMETRIES:
+        for material, phantom_name in MATERIALS.items():
+            phantom = load_phantom(REPO / "configs" / "phantoms" / f"{phantom_name}.toml")
+            for hole in (*HOLE_MODELS, "no cube"):
+                if only is not None and only not in f"{geometry} {material} {hole}":
+                    continue
+                scans = [
+                    _face_offset_scan(phantom, material, hole, geometry, seed, cache_dir)
+                    for seed in range(n_poses)
+                ]
+                for method in methods or (None,):
+                    ms = [scan_metrics(phantom, scan, method) for scan in scans]
+                    label = f"{geometry} {material} {hole}" + (f" {method}" if method else "")
+                    rows.append(_face_offset_row(label, ms))
+                    print(" | ".join(str(v) for v in rows[-1]), flush=True)
+    print_table(
+        f"Face offset (issue #43): {n_poses} poses per row, tilts ≤ 40°, 0.415 × 0.833 mm voxels; "
+        "before / after the fit",
+        [
+            "condition",
+            "scans",
+            "spheres (missed)",
+            "axial mean mm",
+            "scale ‰",
+            "FLE mean mm",
+            "β mm (sd)",
+            "TRE mm",
+        ],
+        rows,
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=20)
@@ -612,12 +693,25 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--background-model", default="linear", help="background under a sphere (hard sweep)")
     ap.add_argument("--seed-offset", type=int, default=0, help="hard sweep: scan n gets seed offset + n")
-    ap.add_argument("--only", default=None, help="hard sweep: only conditions whose name contains this")
+    ap.add_argument(
+        "--only", default=None, help="hard / face-offset sweep: only conditions whose name contains this"
+    )
+    ap.add_argument(
+        "--face-offset", type=int, default=0, help="issue #43 face-offset sweep at this many poses per row"
+    )
+    ap.add_argument(
+        "--face-offset-methods",
+        default="",
+        help="face-offset sweep: comma-separated centre estimators to compare (default: by material)",
+    )
     args = ap.parse_args(argv)
     if not args.skip_speed:
         speed()
     if not args.skip_sweep:
         accuracy_sweep(args.scans, args.quick)
+    if args.face_offset:
+        methods = tuple(m for m in args.face_offset_methods.split(",") if m)
+        face_offset_sweep(args.face_offset, args.cache_dir, methods, args.only)
     if args.hard:
         hard_sweep(args.hard, args.cache_dir, args.method, args.background_model, args.seed_offset, args.only)
 

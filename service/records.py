@@ -212,9 +212,15 @@ class RegistrationFigures:
     series_geometry: JSONDict | None = None
     """The scan's volume (:class:`registration.imaging.scan_geometry.SeriesGeometry`), for the
     pose planner."""
+    face_offset_mm: float | None = None
+    """The phantom's face offset β of this scan (mm, along every hole's outward axis; None when not
+    fitted or before this version): :mod:`registration.matching.face_offset`."""
+    face_offset_se_mm: float | None = None
 
     def to_json(self) -> JSONDict:
         return {
+            "face_offset_mm": self.face_offset_mm,
+            "face_offset_se_mm": self.face_offset_se_mm,
             "predicted_chain_error_mm": self.predicted_chain_error_mm,
             "chain_error_source": self.chain_error_source,
             "series_geometry": self.series_geometry,
@@ -259,6 +265,8 @@ class RegistrationFigures:
             ),
             chain_error_source=str(d.get("chain_error_source", "")),
             series_geometry=d.get("series_geometry"),
+            face_offset_mm=None if d.get("face_offset_mm") is None else float(d["face_offset_mm"]),
+            face_offset_se_mm=None if d.get("face_offset_se_mm") is None else float(d["face_offset_se_mm"]),
         )
 
 

@@ -58,7 +58,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -376,6 +376,15 @@ class _Scene:
     boxes: list[_Box3]
     cylinders: list[_Cylinder3]
     balls: list[_Ball]
+    holes: list[_Cylinder3] = field(default_factory=list)
+    """Small cylinders (drilled holes): traced only near their own projection."""
+
+    def hole_centres_rtk_mm(self) -> tuple[F64, F64]:
+        """(H, 3) centres and (H,) bounding radii of the drilled holes."""
+        if not self.holes:
+            return np.zeros((0, 3)), np.zeros(0)
+        c = np.array([h.start_rtk_mm + h.axis * (h.length_mm / 2.0) for h in self.holes])
+        return c, np.array([math.hypot(h.length_mm / 2.0, h.radius_mm) for h in self.holes])
 
     def corner_points_rtk_mm(self) -> F64:
         """Points whose projections bound the projections of the boxes and cylinders."""
@@ -403,19 +412,14 @@ def _build(phantom: Phantom, rtk_from_phantom: F64, extras: SceneExtras, rtk_fro
     slot = {m: i for i, m in enumerate(physics.SCENE_MATERIALS)}
     pl, sp, st = slot["plastic"], slot["sphere"], slot["steel"]
     r = rtk_from_phantom[:3, :3]
-    metal = extras.material_for(phantom) != "plastic"
-    actual = extras.actual_centres_phantom_mm(phantom)
-    balls: list[_Ball] = []
-    n_filled = 0
-    for i, c in enumerate(phantom.holes_phantom_mm):
-        if phantom.filled[i]:
-            if metal:
-                centre = frames.apply(rtk_from_phantom, actual[n_filled])
-                balls.append(_Ball(centre, phantom.sphere_radius_mm, ((sp, 1.0), (pl, -1.0))))
-            n_filled += 1
-        elif extras.empty_holes:
-            balls.append(_Ball(frames.apply(rtk_from_phantom, c), phantom.sphere_radius_mm, ((pl, -1.0),)))
+    balls, holes = _balls_and_holes(phantom, rtk_from_phantom, extras, pl, sp)
     boxes = [_Box3(rtk_from_phantom[:3, 3].copy(), r.copy(), phantom.size_mm / 2.0, ((pl, 1.0),))]
+    if not extras.cube:  # the control: spheres in air, no plastic and no holes
+        boxes, holes = [], []
+        balls = [
+            _Ball(frames.apply(rtk_from_phantom, c), phantom.sphere_radius_mm, ((sp, 1.0),))
+            for c in extras.actual_centres_phantom_mm(phantom)
+        ]
     cylinders = []
     if extras.rod:
         start = frames.apply(rtk_from_phantom, np.array([0.0, 0.0, phantom.size_mm[2] / 2.0]))
@@ -436,7 +440,31 @@ def _build(phantom: Phantom, rtk_from_phantom: F64, extras: SceneExtras, rtk_fro
         inner = half - extras.cortical_shell_mm
         if np.all(inner > 0):
             boxes.append(_Box3(centre, rot, inner, ((cc, 1.0), (cb, -1.0))))
-    return _Scene(boxes, cylinders, balls)
+    return _Scene(boxes, cylinders, balls, holes)
+
+
+def _balls_and_holes(
+    phantom: Phantom, rtk_from_phantom: F64, extras: SceneExtras, pl: int, sp: int
+) -> tuple[list[_Ball], list[_Cylinder3]]:
+    """The spheres and, for the drilled model, the air cylinders they sit in (RTK frame), as
+    :func:`mocks.oarm.simulator._hole_objects` builds them."""
+    drilled = extras.hole_model == "drilled"
+    metal = extras.material_for(phantom) != "plastic"
+    rot = rtk_from_phantom[:3, :3]
+    balls: list[_Ball] = []
+    holes: list[_Cylinder3] = []
+    for h in extras.holes(phantom):
+        if h.cylinder is not None:
+            start, axis, length = h.cylinder
+            at = frames.apply(rtk_from_phantom, start)
+            holes.append(_Cylinder3(at, rot @ axis, length, h.cylinder_radius_mm, ((pl, -1.0),)))
+        centre = frames.apply(rtk_from_phantom, h.centre_mm)
+        if h.filled and metal:
+            paths = ((sp, 1.0),) if drilled else ((sp, 1.0), (pl, -1.0))
+            balls.append(_Ball(centre, phantom.sphere_radius_mm, paths))
+        elif not h.filled and not drilled:
+            balls.append(_Ball(centre, phantom.sphere_radius_mm, ((pl, -1.0),)))
+    return balls, holes
 
 
 def _rays(s: ConeBeamSettings, theta: float, u_mm: F64, v_mm: F64) -> tuple[F64, F64]:
@@ -458,6 +486,34 @@ def _add_extended(paths: F32, scene: _Scene, src: F64, d: F64) -> None:
         chord = _cylinder_chords(src, d, cy).astype(np.float32)
         for slot, sign in cy.paths:
             paths[slot] += np.float32(sign) * chord
+
+
+def _projected_discs(s: ConeBeamSettings, theta: float, centres: F64, radii: F64) -> tuple[F64, F64]:
+    """Panel (u, v) mm of ball centres and a generous shadow radius (tangent cone + 1.5 pixels)."""
+    if len(centres) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    h = np.c_[centres, np.ones(len(centres))] @ projection_matrix(s, theta).T
+    uv = h[:, :2] / h[:, 2:3]
+    return uv, radii * s.sdd_mm / np.maximum(np.abs(h[:, 2]) - radii, 1.0) + 1.5 * s.det_pitch_mm
+
+
+def _add_holes_in_window(
+    paths: F32, scene: _Scene, s: ConeBeamSettings, theta: float, src: F64, d: F64, origin: tuple[int, int]
+) -> None:
+    """Add the drilled holes' chords to the extended pass's ``paths`` (rays ``d`` of the pixels from
+    column, row ``origin``), each only over the pixels under its own shadow."""
+    centres, radii = scene.hole_centres_rtk_mm()
+    rows, cols = d.shape[0], d.shape[1]
+    for hole, c, r in zip(scene.holes, centres, radii, strict=True):
+        _, rad = _projected_discs(s, theta, c[None], np.array([r]))
+        c0, e0, c1, e1 = _pixel_window(s, theta, c[None], float(rad[0]))
+        c0, e0 = max(c0 - origin[0], 0), min(e0 - origin[0], cols)
+        c1, e1 = max(c1 - origin[1], 0), min(e1 - origin[1], rows)
+        if e0 <= c0 or e1 <= c1:
+            continue
+        chord = _cylinder_chords(src, d[c1:e1, c0:e0], hole).astype(np.float32)
+        for slot, sign in hole.paths:
+            paths[slot][c1:e1, c0:e0] += np.float32(sign) * chord
 
 
 def _pixel_window(s: ConeBeamSettings, theta: float, pts: F64, margin_mm: float) -> tuple[int, int, int, int]:
@@ -495,9 +551,11 @@ def project_view(
             src, d = _rays(s, theta, uu, vv)
             paths = np.zeros((n_slots, *uu.shape), np.float32)
             _add_extended(paths, scene, src, d)
+            _add_holes_in_window(paths, scene, s, theta, src, d, (c0, c1))
             trans[c1:e1, c0:e0] = polychromatic_transmission(paths, mu, weights)
     if not scene.balls:
         return trans
+    hole_uv, hole_rad = _projected_discs(s, theta, *scene.hole_centres_rtk_mm())
     ns = s.subrays
     offs = ((np.arange(ns) + 0.5) / ns - 0.5) * p
     centres = np.array([bl.centre_rtk_mm for bl in scene.balls])
@@ -525,6 +583,12 @@ def project_view(
             other = scene.balls[io]
             chord = _sphere_chords(src, sd, other).astype(np.float32)
             for slot, sign in other.paths:
+                sp[slot] += np.float32(sign) * chord
+        near = np.all(np.abs(hole_uv - uv[ib]) < (hole_rad + rad[ib])[:, None], axis=1)
+        for ih in np.flatnonzero(near):
+            hole = scene.holes[ih]
+            chord = _cylinder_chords(src, sd, hole).astype(np.float32)
+            for slot, sign in hole.paths:
                 sp[slot] += np.float32(sign) * chord
         st = polychromatic_transmission(sp, mu, weights)
         trans[c1:e1, c0:e0] = st.reshape(e1 - c1, ns, e0 - c0, ns).mean(axis=(1, 3))

@@ -52,7 +52,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -256,6 +256,13 @@ class SceneExtras:
     in ±``hole_tolerance_mm`` per axis (the paper's machining figure is ±0.02 mm, Bai 2018 §2.1),
     drawn from ``hole_tolerance_seed`` (a property of the physical phantom, so the same for every
     scan); the truth gives the actual positions.
+    ``hole_model``: how a sphere sits in the plastic (:data:`HOLE_MODELS`).  ``tight``: the plastic
+    fits the sphere exactly (a sphere-shaped hole, no air).  ``drilled``: each hole is a
+    flat-bottomed air cylinder of ``hole_diameter_mm`` × ``hole_depth_mm`` drilled along its face
+    normal, the sphere seated on its bottom (centre ``hole_depth_mm`` − radius below the face),
+    air in the gaps around it; the empty holes are the same cylinders.
+    ``cube``: False leaves the plastic out (the spheres float in air where the phantom holds them):
+    the control that separates a bias of the estimator from one of the hole.
     """
 
     vertebra: bool = False
@@ -272,8 +279,18 @@ class SceneExtras:
     vertebra_size_mm: tuple[float, float, float] = (45.0, 30.0, 25.0)
     cortical_shell_mm: float = 1.5
     body_semi_axes_mm: tuple[float, float] = (100.0, 85.0)
+    hole_model: str = "tight"
+    hole_diameter_mm: float = 2.5
+    hole_depth_mm: float = 2.5
+    cube: bool = True
 
     def __post_init__(self) -> None:
+        if self.hole_model not in HOLE_MODELS:
+            raise ConfigError(f"hole_model must be one of {HOLE_MODELS}, got {self.hole_model!r}")
+        if not (0.5 <= self.hole_diameter_mm <= 20.0 and 0.5 <= self.hole_depth_mm <= 20.0):
+            raise ConfigError(
+                f"drilled hole Ø{self.hole_diameter_mm} × {self.hole_depth_mm} mm outside 0.5…20 mm"
+            )
         allowed = (None, "plastic", *physics.SPHERE_MATERIALS)
         if self.sphere_material not in allowed:
             raise ConfigError(f"sphere_material must be one of {allowed}, got {self.sphere_material!r}")
@@ -290,12 +307,70 @@ class SceneExtras:
         return self.sphere_material or phantom.sphere_material
 
     def actual_centres_phantom_mm(self, phantom: Phantom) -> F64:
-        """(N, 3) filled-sphere centres as machined: nominal plus the hole-tolerance offset."""
-        nominal = phantom.centres_phantom_mm
+        """(N, 3) filled-sphere centres as machined: nominal plus the hole-tolerance offset, and for
+        a drilled hole seated on its bottom."""
+        nominal = phantom.centres_phantom_mm + self.seat_offset_mm(phantom) * phantom.axes_phantom
         if self.hole_tolerance_mm == 0.0:
             return nominal
         rng = np.random.default_rng(self.hole_tolerance_seed)
         return nominal + rng.uniform(-self.hole_tolerance_mm, self.hole_tolerance_mm, nominal.shape)
+
+    def seat_offset_mm(self, phantom: Phantom) -> float:
+        """How far out of its nominal position (along the hole's outward axis) a sphere sits, mm:
+        0 for the tight fit; for a drilled hole, nominal depth − (hole depth − radius)."""
+        if self.hole_model == "tight":
+            return 0.0
+        if self.hole_diameter_mm < phantom.sphere_diameter_mm:
+            raise ConfigError(
+                f"a Ø{self.hole_diameter_mm} mm drilled hole cannot hold a "
+                f"Ø{phantom.sphere_diameter_mm} mm sphere"
+            )
+        return hole_face_depth_mm(phantom) - (self.hole_depth_mm - phantom.sphere_radius_mm)
+
+    def holes(self, phantom: Phantom) -> list[HoleGeometry]:
+        """Every filled hole, and every empty one when ``empty_holes``, in the phantom's hole
+        order, phantom frame: where its sphere (or the empty hole's air ball) sits and, for the
+        drilled model, the cylinder.  Both simulators build their scenes from this list."""
+        actual = self.actual_centres_phantom_mm(phantom)
+        axes, seat = phantom.hole_axes_phantom, self.seat_offset_mm(phantom)
+        out: list[HoleGeometry] = []
+        n_filled = 0
+        for i, c in enumerate(phantom.holes_phantom_mm):
+            filled = bool(phantom.filled[i])
+            if not filled and not self.empty_holes:
+                continue
+            # A sphere sits off-centre by the machining tolerance; its hole moves with it.
+            centre = actual[n_filled] if filled else c + seat * axes[i]
+            n_filled += int(filled)
+            cylinder = None
+            if self.hole_model == "drilled":  # from the bottom, where the sphere sits, to the face
+                cylinder = (centre - axes[i] * phantom.sphere_radius_mm, axes[i].copy(), self.hole_depth_mm)
+            out.append(HoleGeometry(filled, centre, cylinder, self.hole_diameter_mm / 2.0))
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class HoleGeometry:
+    """One hole of :meth:`SceneExtras.holes` (phantom frame, mm)."""
+
+    filled: bool
+    centre_mm: F64
+    """The sphere's centre, or the empty hole's."""
+    cylinder: tuple[F64, F64, float] | None
+    """Drilled: (start at the bottom, outward unit axis, length); None for the tight fit."""
+    cylinder_radius_mm: float
+
+
+HOLE_MODELS: Final = ("tight", "drilled")
+"""How a sphere sits in the plastic (:class:`SceneExtras` ``hole_model``)."""
+
+
+def hole_face_depth_mm(phantom: Phantom) -> float:
+    """Depth of the nominal hole centres below their face, mm (the phantom file's
+    ``hole_centre_depth_mm``: the same for every hole of the grid)."""
+    c, n = phantom.holes_phantom_mm[0], phantom.hole_axes_phantom[0]
+    half = phantom.size_mm / 2.0
+    return float(np.abs(n) @ half - c @ n)
 
 
 @dataclass(frozen=True, eq=False)
@@ -406,6 +481,7 @@ class _Cylinder:
     length_mm: float
     radius_mm: float
     paths: tuple[tuple[int, float], ...]
+    local: bool = False  # small (a drilled hole): traced only under its bounding ball
 
 
 @dataclass
@@ -424,7 +500,7 @@ def _build_scene(
     scanner_from_image: F64,
     image_from_phantom: F64,
 ) -> list[Any]:
-    pl, st, wa, sp = _SLOT["plastic"], _SLOT["steel"], _SLOT["water"], _SLOT["sphere"]
+    pl, st, wa = _SLOT["plastic"], _SLOT["steel"], _SLOT["water"]
     r = scanner_from_phantom[:3, :3]
     objs: list[Any] = []
     # Objects inside the body displace its water (the rod is taken to stay outside the patient).
@@ -432,33 +508,16 @@ def _build_scene(
     if extras.body:
         objs.append(_Ellipse(extras.body_semi_axes_mm, ((wa, 1.0),)))
         displaced = ((wa, -1.0),)
-    objs.append(
-        _Box(
-            frames.apply(scanner_from_phantom, np.zeros(3)),
-            r.copy(),
-            phantom.size_mm / 2.0,
-            ((pl, 1.0), *displaced),
-        )
-    )
-    sphere_paths = ((sp, 1.0), (pl, -1.0)) if extras.material_for(phantom) != "plastic" else ()
-    actual = extras.actual_centres_phantom_mm(phantom)
-    for i, c in enumerate(phantom.holes_phantom_mm):
-        if phantom.filled[i]:
-            if sphere_paths:
-                # The sphere sits in its hole off-centre by the machining tolerance; the hole
-                # (removed plastic) moves with it, which is exact for a sphere filling its hole.
-                c_actual = actual[int(np.count_nonzero(phantom.filled[:i]))]
-                objs.append(
-                    _Sphere(
-                        frames.apply(scanner_from_phantom, c_actual), phantom.sphere_radius_mm, sphere_paths
-                    )
-                )
-        elif extras.empty_holes:
-            # An empty Ø2.5 mm hole, modelled as an air sphere (the drilled cylinder + tip differs by
-            # a fraction of a voxel).
-            objs.append(
-                _Sphere(frames.apply(scanner_from_phantom, c), phantom.sphere_radius_mm, ((pl, -1.0),))
+    if extras.cube:
+        objs.append(
+            _Box(
+                frames.apply(scanner_from_phantom, np.zeros(3)),
+                r.copy(),
+                phantom.size_mm / 2.0,
+                ((pl, 1.0), *displaced),
             )
+        )
+    objs.extend(_hole_objects(phantom, scanner_from_phantom, extras))
     if extras.rod:
         start = frames.apply(scanner_from_phantom, np.array([0.0, 0.0, phantom.size_mm[2] / 2.0]))
         objs.append(
@@ -474,6 +533,44 @@ def _build_scene(
         inner = half - extras.cortical_shell_mm
         if np.all(inner > 0):
             objs.append(_Box(c, rot, inner, ((cc, 1.0), (cb, -1.0))))
+    return objs
+
+
+def _hole_objects(phantom: Phantom, scanner_from_phantom: F64, extras: SceneExtras) -> list[Any]:
+    """The spheres and the holes they sit in (:class:`SceneExtras` ``hole_model``), scanner frame."""
+    pl, sp = _SLOT["plastic"], _SLOT["sphere"]
+    drilled = extras.hole_model == "drilled" and extras.cube
+    metal = extras.material_for(phantom) != "plastic"
+    sphere_paths: tuple[tuple[int, float], ...]
+    if not extras.cube:  # the control: spheres in air, no plastic and no holes
+        sphere_paths = ((sp, 1.0),) if metal else ()
+        centres = extras.actual_centres_phantom_mm(phantom)
+        return [
+            _Sphere(frames.apply(scanner_from_phantom, c), phantom.sphere_radius_mm, sphere_paths)
+            for c in centres
+        ]
+    # Tight fit: the sphere replaces the plastic it fills.  Drilled: the hole's cylinder already
+    # removed the plastic, the sphere adds its metal into the air.
+    sphere_paths = (((sp, 1.0),) if drilled else ((sp, 1.0), (pl, -1.0))) if metal else ()
+    rot = scanner_from_phantom[:3, :3]
+    objs: list[Any] = []
+    for h in extras.holes(phantom):
+        if h.cylinder is not None:
+            start, axis, length = h.cylinder
+            at = frames.apply(scanner_from_phantom, start)
+            objs.append(_Cylinder(at, rot @ axis, length, h.cylinder_radius_mm, ((pl, -1.0),), True))
+        if h.filled and sphere_paths:
+            objs.append(
+                _Sphere(
+                    frames.apply(scanner_from_phantom, h.centre_mm), phantom.sphere_radius_mm, sphere_paths
+                )
+            )
+        elif not h.filled and not drilled:  # an empty hole of the tight model: an air ball
+            objs.append(
+                _Sphere(
+                    frames.apply(scanner_from_phantom, h.centre_mm), phantom.sphere_radius_mm, ((pl, -1.0),)
+                )
+            )
     return objs
 
 
@@ -650,13 +747,34 @@ class _Projector:
 
     def add_cylinder(self, out: F32, cyl: _Cylinder, z_mm: float) -> None:
         """Chords through a finite cylinder (3D line-cylinder intersection, clipped by the caps)."""
+        r_xy = _bounding_radius_xy(cyl)
+        d0, d1 = self._window(-r_xy, r_xy)
+        chord = self._cylinder_chords(cyl, self.t_mm[d0:d1][None, :], z_mm)
+        for slot, sign in cyl.paths:
+            out[slot][:, d0:d1] += sign * chord
+
+    def add_local_cylinder(self, out: F32, cyl: _Cylinder, z_mm: float) -> None:
+        """As :meth:`add_cylinder` for a small cylinder (a drilled hole): only the detector bins
+        under its bounding ball are traced in each view, as :meth:`add_sphere` does."""
+        centre = cyl.start_mm + cyl.axis * (cyl.length_mm / 2.0)
+        r_b = math.hypot(cyl.length_mm / 2.0, cyl.radius_mm)
+        p = centre[0] * self.cos + centre[1] * self.sin  # (V,)
+        c = (self.n_det - 1) / 2.0
+        w = math.ceil(2 * r_b / self.det_mm) + 2
+        idx = np.floor((p - r_b) / self.det_mm + c).astype(np.int64)[:, None] + np.arange(w)[None, :]
+        valid = (idx >= 0) & (idx < self.n_det)
+        idx = np.clip(idx, 0, self.n_det - 1)
+        chord = self._cylinder_chords(cyl, (idx - c) * self.det_mm, z_mm) * valid
+        rows = np.broadcast_to(np.arange(len(p))[:, None], idx.shape)
+        for slot, sign in cyl.paths:
+            out[slot][rows, idx] += (sign * chord).astype(np.float32)
+
+    def _cylinder_chords(self, cyl: _Cylinder, t: F64, z_mm: float) -> F32:
+        """Chord (mm) of the rays at detector positions ``t`` ((1, D) or (V, w)) of every view."""
         a = cyl.axis
         u = np.stack([self.cos, self.sin, np.zeros_like(self.cos)], axis=1)  # (V, 3)
         v = np.stack([-self.sin, self.cos, np.zeros_like(self.cos)], axis=1)
         w0 = np.array([0.0, 0.0, z_mm]) - cyl.start_mm
-        r_xy = _bounding_radius_xy(cyl)
-        d0, d1 = self._window(-r_xy, r_xy)
-        t = self.t_mm[d0:d1][None, :]
 
         def perp(x: F64) -> F64:
             return np.asarray(x - (x @ a)[..., None] * a)
@@ -689,9 +807,8 @@ class _Projector:
         par = np.abs(va_c) < 1e-12
         cap_lo = np.where(par, np.where(inside_par, -1e9, 1e9), cap_lo)
         cap_hi = np.where(par, np.where(inside_par, 1e9, -1e9), cap_hi)
-        chord = np.clip(np.minimum(s2, cap_hi) - np.maximum(s1, cap_lo), 0.0, None).astype(np.float32)
-        for slot, sign in cyl.paths:
-            out[slot][:, d0:d1] += sign * chord
+        chord: F32 = np.clip(np.minimum(s2, cap_hi) - np.maximum(s1, cap_lo), 0.0, None).astype(np.float32)
+        return chord
 
     def ellipse_chords(self, ell: _Ellipse) -> F32:
         ax, by = ell.semi_axes_mm
@@ -993,7 +1110,10 @@ def _trace_plane(
         elif isinstance(o, _Box):
             fine.add_box(plane, o, z)
         elif isinstance(o, _Cylinder):
-            fine.add_cylinder(plane, o, z)
+            if o.local:
+                fine.add_local_cylinder(plane, o, z)
+            else:
+                fine.add_cylinder(plane, o, z)
 
 
 def _fov_mask(s: AcquisitionSettings) -> NDArray[np.bool_]:

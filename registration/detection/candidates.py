@@ -188,11 +188,17 @@ bloom edge by up to a voxel, and the circle finder needs the 2000 → 500 HU edg
 
 
 def split_blob(
-    vox: NDArray[Any], b: Blob, threshold_hu: float, spacing: F64, params: DetectionParams
+    vox: NDArray[Any],
+    b: Blob,
+    threshold_hu: float,
+    spacing: F64,
+    params: DetectionParams,
+    core_fraction: float | None = None,
 ) -> list[Blob]:
     """The sphere-core components of an oversized blob: its metal mask opened by an ellipsoid.
 
-    The opening (radius ``split_core_fraction`` × the nominal radius, per axis in voxels) removes
+    The opening (radius ``core_fraction``, by default ``split_core_fraction``, × the nominal
+    radius, per axis in voxels) removes
     streaks and bloom bridges narrower than that, so a sphere with streak tails, or spheres joined
     by them, fall apart into cores; a rod stays one elongated component.  Returns the cores as
     blobs (measured on the opened mask, peak from the raw voxels), in (k, j, i) order.
@@ -200,7 +206,7 @@ def split_blob(
     from scipy import ndimage  # here only: an oversized blob is rare, the import costs 0.3–1 s
 
     shape = (vox.shape[0], vox.shape[1], vox.shape[2])
-    rho_mm = params.split_core_fraction * params.radius_mm
+    rho_mm = (params.split_core_fraction if core_fraction is None else core_fraction) * params.radius_mm
     semi = (rho_mm / float(spacing[2]), rho_mm / float(spacing[1]), rho_mm / float(spacing[0]))
     pad = tuple(math.floor(a) + 1 for a in semi)
     crop_box = _expand(b.box, (pad[0], pad[1], pad[2]), shape)

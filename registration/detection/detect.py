@@ -165,8 +165,9 @@ def _measure_blob(
 ) -> list[tuple[Blob, DetectedSphere | str]]:
     """(blob, sphere or rejection reason) for a blob, or for each sphere core of an oversized one.
 
-    A blob too large for one sphere is split (:func:`split_blob`); if none of its cores is
-    sphere-sized the blob is rejected with its own reason (a rod stays a rod).
+    A blob too large for one sphere is split (:func:`split_blob`), and split again with the wider
+    ``split_retry_core_fraction`` opening when no core of the first is sphere-sized; if none of
+    its cores is sphere-sized then the blob is rejected with its own reason (a rod stays a rod).
     """
     reason = blob_reject_reason(b, limits, params)
     if reason is None:
@@ -178,7 +179,12 @@ def _measure_blob(
         return [(b, reason)]
     with timer.stage("components_s"):
         cores = split_blob(scan.volume.voxels, b, threshold_hu, scan.spacing, params)
-    sized = [c for c in cores if blob_reject_reason(c, limits, params) is None]
+        sized = [c for c in cores if blob_reject_reason(c, limits, params) is None]
+        if not sized:  # streaks thicker than the first opening: split again, wider
+            cores = split_blob(
+                scan.volume.voxels, b, threshold_hu, scan.spacing, params, params.split_retry_core_fraction
+            )
+            sized = [c for c in cores if blob_reject_reason(c, limits, params) is None]
     if not sized:
         return [(b, reason)]
     out = [(c, _measure_sphere(c, scan, limits, params, timer)) for c in sized]

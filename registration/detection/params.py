@@ -29,7 +29,10 @@ METHOD_FOR_MATERIAL: Final[Mapping[str, str]] = {
 default ``subvoxel``.  On the simulator's hard scans (``python -m benchmarks.bench_detection
 --hard 40``, and held-out seeds) ``core`` measured best on tungsten carbide and worse on steel and
 titanium, ``rays`` best on steel and titanium and worse than ``core`` on tungsten carbide:
-``docs/validation.md``, "Sphere detection"."""
+``docs/validation.md``, "Sphere detection".  Chosen again on TRE at the working poses (tilts up to
+40°, both hole models, slice-wise and cone-beam, with the face-offset fit; ``python -m
+benchmarks.bench_detection --face-offset 6 --face-offset-methods subvoxel,rays,core``): the same
+two, ``docs/validation.md``, "Face offset"."""
 
 
 BACKGROUND_MODELS: Final = ("linear", "constant")
@@ -87,6 +90,13 @@ class DetectionParams:
     split_core_fraction : float
         An oversized blob is split by a morphological opening with an ellipsoid of this fraction
         of the nominal radius: streaks (1–2 voxels wide) vanish, sphere cores and the rod stay.
+    split_retry_core_fraction : float
+        When the first split leaves no sphere-sized core, the blob is split again with an opening
+        of this fraction of the nominal radius before it is called oversized (issue #43: bright
+        tungsten-carbide streaks more than 2 mm thick survived the 0.75 R opening and left a
+        6.78 mm core against the 6.75 mm limit, three spheres of forty in one row missed; 1.0 R
+        gave 3.0–3.8 mm cores, 40 / 40, and rods and bone stayed rejected).  A rod thicker than
+        the sphere survives both openings.
     background_shell_mm : float
         Thickness of the shell outside the weighting ball that gives the local background.
     background_model : str
@@ -128,6 +138,7 @@ class DetectionParams:
     crop_margin_mm: float = 2.0
     background_shell_mm: float = 1.5
     split_core_fraction: float = 0.75
+    split_retry_core_fraction: float = 1.0
     background_model: str = "linear"
     axial_profile_margin_fraction: float = 0.15
     axial_profile_min_fraction: float = 0.1

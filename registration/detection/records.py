@@ -53,13 +53,47 @@ class Rejection:
 
 
 @dataclass(frozen=True, eq=False)
+class FaceOffset:
+    """The phantom's face offset β of one scan (issue #43), fitted over the phantom's hole grid.
+
+    Attributes
+    ----------
+    beta_mm : float
+        Shared offset of every detected centre along its hole's outward axis, mm (negative: the
+        centres sit deeper in their holes than the phantom file says).
+    beta_se_mm : float
+        Its least-squares standard error, mm (NaN if undetermined).
+    centres_image_mm : ndarray, shape (M, 3), float64
+        The detected centres with β · n_i removed, image frame (LPS, mm), detection order; NaN
+        rows for detections paired with no hole.
+    """
+
+    beta_mm: float
+    beta_se_mm: float
+    centres_image_mm: F64
+
+    def to_dict(self) -> dict[str, float | None]:
+        return {
+            "face_offset_mm": float(self.beta_mm),
+            "face_offset_se_mm": None if math.isnan(self.beta_se_mm) else float(self.beta_se_mm),
+        }
+
+
+@dataclass(frozen=True, eq=False)
 class DetectionResult:
-    """Spheres found in one volume, the rejected candidates and the time spent per stage."""
+    """Spheres found in one volume, the rejected candidates and the time spent per stage.
+
+    ``face_offset`` is None until a caller that knows the phantom fits it
+    (:func:`registration.matching.face_offset_grid.grid_face_offset`); ``face_offset_reason`` then says
+    why it could not be fitted, if it could not.
+    """
 
     spheres: tuple[DetectedSphere, ...]
     rejections: tuple[Rejection, ...]
     method: str
     timings_s: dict[str, float]
+    face_offset: FaceOffset | None = None
+    face_offset_reason: str = ""
 
     @property
     def centres_image_mm(self) -> F64:
@@ -70,6 +104,18 @@ class DetectionResult:
 
     def to_dict(self, series_uid: str = "") -> dict[str, Any]:
         """The ``oarmreg detect --json`` document."""
+        fo = self.face_offset
+        doc = self._base_dict(series_uid)
+        if fo is not None:
+            doc.update(fo.to_dict())
+            for s, c in zip(doc["spheres"], fo.centres_image_mm, strict=True):
+                s["center_corrected_mm"] = None if np.isnan(c).any() else [float(v) for v in c]
+        elif self.face_offset_reason:
+            doc["face_offset_mm"] = None
+            doc["face_offset_reason"] = self.face_offset_reason
+        return doc
+
+    def _base_dict(self, series_uid: str) -> dict[str, Any]:
         return {
             "series_uid": series_uid,
             "frame": "image",

@@ -19,6 +19,7 @@ from registration.matching.correspondence import (
     DEFAULT_DISTINCT_ROTATION_DEG,
     DEFAULT_DISTINCT_TRANSLATION_MM,
 )
+from registration.matching.face_offset import MAX_FACE_OFFSET_MM
 from registration.matching.prereg import PreregResult
 from registration.matching.quality import (
     Conditioning,
@@ -132,6 +133,11 @@ class RegistrationParams:
     """Leftover detections below this never call the phantom file into question (a screw, a blob)."""
     phantom_confirmed: bool = False
     """The user confirmed the phantom file: the two checks above warn in the log instead of refusing."""
+    face_offset_fit: bool = True
+    """Fit the phantom's face offset β with the pose when a phantom is given
+    (:mod:`registration.matching.face_offset`): the matched centres are taken with β·n_i removed."""
+    max_face_offset_mm: float = MAX_FACE_OFFSET_MM
+    """Largest |β| accepted (origin: :data:`registration.matching.face_offset.MAX_FACE_OFFSET_MM`)."""
     verify_gate_mm: float = 5.0
     """Verification pairs a predicted sphere with a detection within this distance: large enough to
     report a registration error of several mm honestly, below half the pitch so pairs stay unique."""
@@ -187,6 +193,10 @@ class RegistrationResult:
     prereg: PreregResult | None = None
     mirror_checked: bool = False
     provenance: Mapping[str, Any] = field(default_factory=dict)
+    face_offset_mm: float | None = None
+    """The phantom's face offset β of this scan, mm (None when not fitted: no phantom given)."""
+    face_offset_se_mm: float | None = None
+    """β's standard error, mm (None when not fitted or undetermined)."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict: the ``oarmreg register --json`` format."""
@@ -223,6 +233,8 @@ class RegistrationResult:
             "mirror_checked": self.mirror_checked,
             "timings_s": dict(self.timings_s),
             "provenance": dict(self.provenance),
+            "face_offset_mm": self.face_offset_mm,
+            "face_offset_se_mm": self.face_offset_se_mm,
         }
         if self.prereg is not None:
             out["prereg"] = {

@@ -20,12 +20,17 @@
    the hypotheses that found the best pose;
 5. the mirrored problem (image z → −z) is tried whenever it could explain
    clearly more spheres; if it does, the input is refused as mirrored;
-6. quality figures (design.md §5) are computed and gated.
+6. with a phantom, its face offset β (one depth along every hole's axis, shared by the scan) is
+   fitted with the pose (:mod:`registration.matching.face_offset`) and the scan refused when |β|
+   is out of bounds;
+7. quality figures (design.md §5) are computed and gated.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import time
 from collections.abc import Sequence
 from typing import Final
@@ -42,6 +47,7 @@ from registration.errors import (
     PhantomMismatchError,
     TooFewSpheresError,
 )
+from registration.matching.face_offset import FaceOffsetFit, check_face_offset, fit_face_offset
 from registration.matching.hypotheses import (
     Candidate,
     CandidatePool,
@@ -66,7 +72,12 @@ from registration.matching.records import (
     RegistrationResult,
     as_rotation,
 )
-from registration.matching.rigid import PointSetError, as_points, rotation_difference_deg
+from registration.matching.rigid import (
+    PointSetError,
+    as_points,
+    fit_rigid_unchecked,
+    rotation_difference_deg,
+)
 from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)
@@ -209,6 +220,26 @@ def quality_figures(
     return QualityFigures(cond, det, fre, fle, np.asarray(tre, dtype=np.float64))
 
 
+def face_offset_step(
+    inp: RegistrationInputs, r: IcpResult, phantom: Phantom | None, p: RegistrationParams
+) -> FaceOffsetFit | None:
+    """Step 5b: the phantom's face offset β fitted with the pose over the matched pairs.
+
+    The robot points are the phantom's spheres in its order, so ``robot_from_phantom``'s rotation
+    (a Kabsch fit of the phantom's centres to them) carries each hole's axis into the robot frame.
+    None without a phantom, with the fit turned off, or when the robot points are not the
+    phantom's spheres.  Raises FaceOffsetError when |β| exceeds ``p.max_face_offset_mm``.
+    """
+    if phantom is None or not p.face_offset_fit or inp.n != phantom.n_spheres:
+        return None
+    robot_from_phantom = fit_rigid_unchecked(phantom.centres_phantom_mm, inp.robot)
+    axes_robot = phantom.axes_phantom @ robot_from_phantom[:3, :3].T
+    fit = fit_face_offset(inp.robot[r.robot_indices], axes_robot[r.robot_indices], inp.image[r.image_indices])
+    ids = phantom.filled_ids
+    check_face_offset(fit, tuple(ids[int(i)] for i in r.robot_indices), p.max_face_offset_mm)
+    return fit
+
+
 def _result(
     inp: RegistrationInputs,
     cands: CandidatePool,
@@ -218,9 +249,12 @@ def _result(
     q: QualityFigures,
     mirror_checked: bool,
     timings: dict[str, float],
+    face: FaceOffsetFit | None = None,
 ) -> RegistrationResult:
     t_best = best.image_from_robot
     return RegistrationResult(
+        face_offset_mm=None if face is None else face.beta_mm,
+        face_offset_se_mm=None if face is None or math.isnan(face.beta_se_mm) else face.beta_se_mm,
         image_from_robot=t_best,
         fre_mm=q.fre_mm,
         fle_mm=q.fle_mm,
@@ -332,6 +366,12 @@ def register_points(
     ru = check_runner_up(best, [*cands.pool, *extra], inp.robot, tree, params)
     check_phantom_fit(inp.n, inp.m, r.n_matched, params)
     t0 = time.perf_counter()
+    face = face_offset_step(inp, r, phantom, params)
+    if face is not None:  # the pose and residuals of the 7-parameter fit, β·n_i removed
+        r = dataclasses.replace(r, image_from_robot=face.image_from_model, residuals_mm=face.residuals_mm)
+        best = dataclasses.replace(best, image_from_robot=face.image_from_model, result=r)
+    timings["face_offset_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     q = quality_figures(r, best.image_from_robot, inp, params)
     timings["quality_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
@@ -344,4 +384,4 @@ def register_points(
         q.fle_mm,
         ru.margin,
     )
-    return _result(inp, cands, best, r, ru, q, mirror_checked, timings)
+    return _result(inp, cands, best, r, ru, q, mirror_checked, timings, face)

@@ -114,6 +114,16 @@ class Phantom:
         return np.asarray(self.holes_phantom_mm[self.filled], dtype=np.float64)
 
     @property
+    def hole_axes_phantom(self) -> NDArray[np.float64]:
+        """(n_holes, 3) outward unit axis of every hole (its face's normal), phantom frame."""
+        return np.asarray([_NORMALS[h.split("-r")[0]] for h in self.hole_ids], dtype=np.float64)
+
+    @property
+    def axes_phantom(self) -> NDArray[np.float64]:
+        """(N, 3) outward unit axes of the filled holes, in the phantom's sphere order."""
+        return np.asarray(self.hole_axes_phantom[self.filled], dtype=np.float64)
+
+    @property
     def n_spheres(self) -> int:
         return int(self.filled.sum())
 

@@ -68,6 +68,8 @@ def registration_figures(
         predicted_chain_error_mm=predicted_chain_error_mm,
         chain_error_source=chain_error_source,
         series_geometry=series_geometry,
+        face_offset_mm=res.face_offset_mm,
+        face_offset_se_mm=res.face_offset_se_mm,
     )
 
 

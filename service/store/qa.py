@@ -114,6 +114,8 @@ class FrePoint:
     created_at: str
     fre_mm: float
     calibration_id: int | None
+    face_offset_mm: float | None = None
+    """The scan's face offset β (mm; None: not fitted, or stored before it was)."""
 
 
 def _cal_filter(calibration_id: int | None, nominal: bool) -> tuple[str, tuple[object, ...]]:
@@ -167,7 +169,8 @@ class QaTrendStore:
         """Accepted registrations' FRE, oldest first (same filter as :meth:`checks`)."""
         where, args = _cal_filter(calibration_id, nominal)
         rows = self._db.query(
-            f"SELECT r.id, r.created_at, r.fre_mm, {_CALIBRATION_OF} AS calibration_id FROM registrations r "
+            f"SELECT r.id, r.created_at, r.fre_mm, {_CALIBRATION_OF} AS calibration_id, "
+            "json_extract(r.figures_json, '$.face_offset_mm') AS face_offset_mm FROM registrations r "
             f"WHERE r.status = 'accepted' AND r.fre_mm IS NOT NULL{where} ORDER BY r.id LIMIT ? OFFSET ?",
             (*args, limit, offset),
         )
@@ -177,6 +180,7 @@ class QaTrendStore:
                 str(x["created_at"]),
                 float(x["fre_mm"]),
                 None if x["calibration_id"] is None else int(x["calibration_id"]),
+                None if x["face_offset_mm"] is None else float(x["face_offset_mm"]),
             )
             for x in rows
         ]

@@ -53,7 +53,8 @@ def test_the_recalibrate_banner_follows_the_drift_rule(
     tmp_path: Path, world: h.World, context: Any, means: list[float], drifting: bool
 ) -> None:
     (tmp_path / "data").mkdir()
-    _, vids = seed_qa_series(tmp_path / "data", means)
+    beta_mm = -0.0123 if drifting else None  # the face offset β (issue #43), or none fitted
+    _, vids = seed_qa_series(tmp_path / "data", means, face_offset_mm=beta_mm)
     with h.running_service(tmp_path, world) as svc:
         w = _open(context, svc)
         trend = svc.client.get("/qa/trend").json()
@@ -76,4 +77,6 @@ def test_the_recalibrate_banner_follows_the_drift_rule(
             f"#{v} {p}" for v, p in zip(vids, ["p1", "p2"] * 2, strict=True)
         ]
         assert [float(t.split(": ")[1].split()[0]) for t in labels] == pytest.approx(means, abs=5e-5)
+        beta_line = w.page.inner_text("#qa-face-offset")
+        assert ("-0.0123" in beta_line) if drifting else ("not fitted" in beta_line), beta_line
         _clean(w)

@@ -25,12 +25,13 @@ POSES = (
 )
 
 
-def _figures(calibration_id: int | None) -> RegistrationFigures:
+def _figures(calibration_id: int | None, face_offset_mm: float | None = None) -> RegistrationFigures:
     cal = None if calibration_id is None else {"calibration_id": calibration_id, "calibration_hash": "x"}
     return RegistrationFigures(
         fle_mm=0.1, n_expected=28, n_detected=28, n_matched=28, symmetry_margin=12, rotation_det=1.0,
         predicted_tre_mm=(0.1,), targets_image_mm=((0.0, 0.0, 0.0),), targets_source="request",
         spheres=(), provenance={"series_uid": "seed", "calibration": cal},
+        face_offset_mm=face_offset_mm, face_offset_se_mm=None if face_offset_mm is None else 0.003,
     )  # fmt: skip
 
 
@@ -56,6 +57,7 @@ def seed_qa_series(
     calibration_id: int | None = None,
     fre_mm: float = 0.2,
     gate_mm: float = 1.0,
+    face_offset_mm: float | None = None,
 ) -> tuple[int, list[int]]:
     """One accepted registration (FRE ``fre_mm``, made under ``calibration_id``) and one QA check
     per mean, poses alternating; returns the registration id and the verification ids, oldest first."""
@@ -70,7 +72,7 @@ def seed_qa_series(
             RegistrationRecord(
                 created_at=f"2026-01-01T00:{n % 60:02d}:00+00:00", status="accepted", config_hash="seed",
                 software_version="seed", scan_id=sid, image_from_robot=IDENTITY, fre_mm=fre_mm,
-                figures=_figures(calibration_id),
+                figures=_figures(calibration_id, face_offset_mm),
             ),
             make_current=False,
         )  # fmt: skip

@@ -37,7 +37,9 @@ def steady(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Running, 
     root = tmp_path_factory.mktemp("qa-steady")
     _, vids = seed_qa_series(_data(root), STEADY, fre_mm=0.18)
     cal = seed_calibration(_data(root))
-    _, cal_vids = seed_qa_series(_data(root), UNDER_CAL, calibration_id=cal, fre_mm=0.31)
+    _, cal_vids = seed_qa_series(
+        _data(root), UNDER_CAL, calibration_id=cal, fre_mm=0.31, face_offset_mm=-0.012
+    )
     with _start(root) as s:
         yield s, cal, vids, cal_vids
 
@@ -68,6 +70,8 @@ def test_the_trend_gives_every_qa_check_and_fre_as_written(
     assert [c["pose"] for c in t["checks"]] == ["p1", "p2", "p1", "p2", "p1", "p2"]
     assert {c["protocol_name"] for c in t["checks"]} == {"weekly"}
     assert [(f["fre_mm"], f["calibration_id"]) for f in t["fre"]] == [(0.18, None), (0.31, cal)]
+    # the face offset β (issue #43) as stored; null where none was fitted
+    assert [f["face_offset_mm"] for f in t["fre"]] == [None, -0.012]
     # the rule reads the active calibration's checks (none active: the nominal model's): steady
     assert t["drift"]["drifting"] is False and t["drift"]["means_mm"] == STEADY[-3:]
     assert t["drift"]["window"] == 3 and t["drift"]["limit_mm"] == 0.5
@@ -135,6 +139,9 @@ def test_the_csv_says_what_the_json_says(steady: tuple[Running, int, list[int], 
         ]  # fmt: skip
         assert [(int(x["id"]), float(x["fre_mm"])) for x in fre] == [
             (f["registration_id"], f["fre_mm"]) for f in t["fre"]
+        ]
+        assert [float(x["face_offset_mm"]) if x["face_offset_mm"] else None for x in fre] == [
+            f["face_offset_mm"] for f in t["fre"]
         ]
 
 

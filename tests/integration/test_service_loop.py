@@ -254,6 +254,8 @@ def test_register_recovers_image_from_robot(svc: Service, world: World) -> None:
     assert np.allclose(reg["joints_rad"], Q1, atol=1e-6)
     cur = svc.client.get("/registration/current").json()
     assert cur["id"] == reg["id"] and cur["image_from_robot"] == reg["image_from_robot"]
+    # the phantom's face offset β (issue #43): fitted with the pose, bounded, with its error
+    assert abs(cur["face_offset_mm"]) < 0.15 and 0 < cur["face_offset_se_mm"] < 0.05
 
     # targets given in the IMAGE frame: predicted TRE reported at exactly those points
     targets = [[0.0, 0.0, 150.0], [100.0, 50.0, -20.0]]

@@ -6,7 +6,12 @@ candidates with their reasons; ``--overlay PNG`` draws both on the scan
 
     {"series_uid": ..., "frame": "image", "method": ...,
      "spheres": [{"center_mm": [x, y, z], "radius_mm": r, "n_slices": k, "score": s}, ...],
-     "rejected": [{"center_mm": [x, y, z], "reason": ...}, ...]}
+     "rejected": [{"center_mm": [x, y, z], "reason": ...}, ...],
+     "face_offset_mm": β, "face_offset_se_mm": σβ}
+
+With the phantom's spheres paired, each sphere also has ``center_corrected_mm`` (the centre with
+the face offset β removed, :mod:`registration.matching.face_offset`); without a pairing
+``face_offset_mm`` is null and ``face_offset_reason`` says why.
 
 The centre estimator and sphere size are the phantom file's (``--phantom``, default the built-in
 Bai 2018 cube), chosen as the service chooses them, unless ``--method`` / ``--sphere-diameter``
@@ -29,7 +34,7 @@ from registration.io.resources import default_phantom
 from service.cli.commands.argtypes import output_file, positive_float
 
 if TYPE_CHECKING:
-    from registration.detection import DetectionParams
+    from registration.detection import DetectionParams, DetectionResult
     from registration.model.phantom import Phantom
 
 DEFAULT_PHANTOM = default_phantom()
@@ -118,6 +123,15 @@ def sphere_fit_columns(radius_mm: float, n_slices: int, score: float) -> tuple[s
     return radius, str(n_slices), f"{score:.2f}" if math.isfinite(score) else "-"
 
 
+def _with_face_offset(result: DetectionResult, phantom_path: Path | None) -> DetectionResult:
+    """The detection with the phantom's face offset fitted over its hole grid (issue #43)."""
+    from registration.matching.face_offset_grid import grid_face_offset
+    from registration.model.phantom import load_phantom
+
+    path = DEFAULT_PHANTOM if phantom_path is None or str(phantom_path).lower() == "none" else phantom_path
+    return grid_face_offset(result, load_phantom(path))
+
+
 def run(args: argparse.Namespace) -> int:
     from registration.detection import detect_spheres
     from registration.dicom import load_series
@@ -131,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
 
     volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
     result = detect_spheres(volume, params)
+    result = _with_face_offset(result, args.phantom)
 
     if args.json_out is not None:
         doc = result.to_dict(series_uid=volume.series_uid)
@@ -167,6 +182,14 @@ def run(args: argparse.Namespace) -> int:
         for r in result.rejections:
             x, y, z = r.center_image_mm
             out.write(f"  ({x:.1f}, {y:.1f}, {z:.1f}) mm: {r.reason}\n")
+    fo = result.face_offset
+    if fo is not None:
+        out.write(
+            f"face offset β {fo.beta_mm:+.4f} ± {fo.beta_se_mm:.4f} mm along the hole axes "
+            "(centres corrected in the JSON; docs/detection-settings.md)\n"
+        )
+    elif result.face_offset_reason:
+        out.write(f"face offset not fitted: {result.face_offset_reason}\n")
     if args.json_out is not None:
         out.write(f"wrote {args.json_out}\n")
     if args.overlay is not None:

@@ -24,7 +24,7 @@ JOINTS = 6
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from mocks.oarm.cbct import CBCT_PRESET_NAMES
     from mocks.oarm.physics import SPHERE_MATERIALS
-    from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, ORIENTATIONS, PRESET_NAMES
+    from mocks.oarm.simulator import DEMO_POSE_XYZ_RPY, HOLE_MODELS, ORIENTATIONS, PRESET_NAMES
 
     default_pose = ",".join(f"{v:g}" for v in DEMO_POSE_XYZ_RPY)
     parser.add_argument(
@@ -60,6 +60,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=SPHERE_MATERIALS,
         default=None,
         help="sphere material, overriding the phantom file's sphere_material",
+    )
+    parser.add_argument(
+        "--hole-model",
+        choices=HOLE_MODELS,
+        default="tight",
+        help="how a sphere sits in the plastic: tight (the plastic fits the sphere) or drilled (a "
+        "Ø2.5 x 2.5 mm air cylinder, the sphere seated on its bottom) (default: %(default)s)",
     )
     parser.add_argument(
         "--hole-tolerance-mm",
@@ -303,6 +310,7 @@ def run(args: argparse.Namespace) -> int:
         body=args.body,
         sphere_material="plastic" if args.metal_free else args.material,
         hole_tolerance_mm=args.hole_tolerance_mm,
+        hole_model=args.hole_model,
     )
     err = sys.stderr
     if args.preset in CBCT_PRESET_NAMES:

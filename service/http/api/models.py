@@ -421,6 +421,19 @@ class RegistrationOut(_Out):
     retired_by_calibration: int | None = None
     provenance: dict[str, Any] = Field({}, validation_alias=_from("figures", "provenance"))
     timings_s: dict[str, float] = Field({}, validation_alias=_from("figures", "timings_s"))
+    face_offset_mm: float | None = Field(
+        default=None,
+        description="The phantom's face offset β of this scan: how far every detected sphere centre sat "
+        "along its hole's outward axis from the phantom file's position, fitted with the pose and "
+        "removed (mm; negative: deeper in the hole).  A drift over time is a phantom or scanner "
+        "change (docs/detection-settings.md).  Null: not fitted.",
+        validation_alias=_from("figures", "face_offset_mm"),
+    )
+    face_offset_se_mm: float | None = Field(
+        default=None,
+        description="β's least-squares standard error (mm).",
+        validation_alias=_from("figures", "face_offset_se_mm"),
+    )
     pacs_export: PacsExportOut | None = Field(
         default=None, description="Its archive to the PACS (GET /registrations/{id} only; null: none queued)."
     )

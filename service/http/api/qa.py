@@ -198,6 +198,10 @@ class FreOut(BaseModel):
     created_at: str
     fre_mm: float
     calibration_id: int | None
+    face_offset_mm: float | None = Field(
+        default=None,
+        description="The scan's face offset β (mm): a drift is a phantom or scanner change; null: not fitted",
+    )
 
 
 class DriftOut(BaseModel):
@@ -265,7 +269,7 @@ def qa_trend(
 
 CSV_COLUMNS = (
     "kind", "id", "created_at", "calibration_id", "protocol_id", "protocol_name", "pose",
-    "mean_mm", "max_mm", "passed", "registration_id", "withdrawn", "fre_mm",
+    "mean_mm", "max_mm", "passed", "registration_id", "withdrawn", "fre_mm", "face_offset_mm",
 )  # fmt: skip
 """``GET /qa/trend.csv``: one row per QA check (``kind`` qa_check) then per registration (``kind`` fre)."""
 
@@ -294,12 +298,13 @@ def qa_trend_csv(
         w.writerow(
             ("qa_check", c.verification_id, c.created_at, cal(c.calibration_id), c.protocol_id,
              c.protocol_name, c.pose, repr(c.mean_mm), repr(c.max_mm), "PASS" if c.passed else "FAIL",
-             c.registration_id, int(c.withdrawn), "")
+             c.registration_id, int(c.withdrawn), "", "")
         )  # fmt: skip
     for f in fre:
         w.writerow(
             ("fre", f.registration_id, f.created_at, cal(f.calibration_id), "", "", "", "", "", "",
-             f.registration_id, "", repr(f.fre_mm))
+             f.registration_id, "", repr(f.fre_mm),
+             "" if f.face_offset_mm is None else repr(f.face_offset_mm))
         )  # fmt: skip
     return Response(
         buf.getvalue(),

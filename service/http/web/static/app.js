@@ -292,7 +292,19 @@ async function renderAlarm(withdrawal) {
 
 // ---- QA trend ---------------------------------------------------------------------------------
 
+// The phantom's face offset β of the last registrations (docs/detection-settings.md): a drift is a
+// phantom or scanner change.
+function renderFaceOffsetTrend(fre) {
+  const b = (fre || []).filter((f) => f.face_offset_mm != null).slice(-QA_SHOWN);
+  setText("qa-face-offset", b.length === 0 ? "Face offset β: not fitted yet."
+    : `Face offset β of the last ${b.length} registrations (mm, oldest first): ` +
+      b.map((f) => `#${f.registration_id} ${fmt(f.face_offset_mm, 4)}`).join(", ") +
+      " (a drift means a phantom or scanner change: docs/detection-settings.md).",
+    b.length ? JSON.stringify(b.map((f) => f.face_offset_mm)) : undefined);
+}
+
 function renderQa(t) {
+  renderFaceOffsetTrend(t.fre);
   const checks = t.checks.slice(-QA_SHOWN);
   const d = t.drift;
   const under = d.calibration_id == null ? "the nominal robot model" : `calibration ${d.calibration_id}`;
@@ -391,7 +403,8 @@ function renderCurrent(cur) {
   $("current-matrix").dataset.value = JSON.stringify(cur.image_from_robot);
   const bars = (cur.spheres || []).map((s) => ({ label: s.sphere, value: s.residual_mm }));
   $("current-chart").replaceChildren(barChart(bars, { unit: "mm", title: "residual (mm)" }));
-  $("current-provenance").textContent = JSON.stringify(cur.provenance, null, 2);
+  $("current-provenance").textContent = JSON.stringify(
+    { ...cur.provenance, face_offset_mm: cur.face_offset_mm, face_offset_se_mm: cur.face_offset_se_mm }, null, 2);
 }
 
 // The honest figure first: the expected error where the robot works, its gate and a one-word verdict.
