@@ -272,6 +272,12 @@ class ApiSettings(_Section):
     auth_lockout_max_s: float = Field(default=30.0, gt=0, le=30)
     # an address's failures are forgotten after this long without one, s (it ends a burst)
     auth_failure_memory_s: float = Field(default=300.0, gt=0, le=86400)
+    # throttle audit rows (one per address per burst) written per minute at most; past it one
+    # auth_throttle_summary row (issue #41: 1,000 spoofed addresses wrote 1,004 rows in 5 s)
+    auth_throttle_audit_rows_per_minute: int = Field(default=20, ge=1, le=10_000)
+    # proxies whose X-Forwarded-For / X-Forwarded-Proto are believed (addresses or networks, "*" =
+    # any); empty: none, the client's address is the socket's (uvicorn's own default trusts 127.0.0.1)
+    forwarded_allow_ips: tuple[str, ...] = ()
 
 
 class DatabaseSettings(_Section):
