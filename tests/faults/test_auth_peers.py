@@ -27,6 +27,9 @@ AUDIT_ROWS_PER_MINUTE = 3
 FAILURES_BEFORE_THROTTLE = 10
 """``api.auth_failures_before_throttle`` (the default)."""
 WRONG = "Bearer " + "x" * 43
+PROXY_LIKE = "127.0.0.1"
+"""The address uvicorn believes as a proxy by default (``FORWARDED_ALLOW_IPS``: 127.0.0.1, ::1): any
+local process.  The forwarded-header tests send from it; its right token still works (item 5)."""
 
 CLIENT = r"""
 import json, sys, httpx
@@ -104,14 +107,14 @@ def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
 def test_item4_rotating_x_forwarded_for_does_not_dodge_the_throttle(auth: Auth) -> None:
     """Wrong tokens from one socket address, each with another ``X-Forwarded-For``: the throttle keys
     on the socket (before: all 3,000 answered 401, uvicorn believing loopback as a proxy)."""
-    codes = client_run(auth.base, [("127.0.41.1", FAILURES_BEFORE_THROTTLE + 5, WRONG, "10.9.{i}.1", "/status")])
-    assert codes[:FAILURES_BEFORE_THROTTLE] == [401] * FAILURES_BEFORE_THROTTLE, codes
+    codes = client_run(auth.base, [(PROXY_LIKE, FAILURES_BEFORE_THROTTLE + 5, WRONG, "10.9.{i}.1", "/status")])
+    assert codes.count(401) <= FAILURES_BEFORE_THROTTLE, codes  # fewer if another test failed here first
     assert codes[FAILURES_BEFORE_THROTTLE:] == [429] * 5, codes
 
 
 def test_item4_a_spoofed_address_cannot_lock_its_owner_out(auth: Auth) -> None:
     """A peer spoofing ``X-Forwarded-For: 127.0.41.3`` is throttled itself; the real 127.0.41.3 is not."""
-    spoofer = client_run(auth.base, [("127.0.41.2", FAILURES_BEFORE_THROTTLE + 2, WRONG, "127.0.41.3", "/status")])
+    spoofer = client_run(auth.base, [(PROXY_LIKE, FAILURES_BEFORE_THROTTLE + 2, WRONG, "127.0.41.3", "/status")])
     assert spoofer[-1] == 429, spoofer
     owner = client_run(auth.base, [("127.0.41.3", 1, WRONG, "", "/status"), ("127.0.41.3", 1, f"Bearer {TOKEN}", "", "/status")])
     assert owner == [401, 200], owner
