@@ -9,10 +9,10 @@ from __future__ import annotations
 import json
 import logging
 import re
-from urllib.parse import unquote_plus
 import sys
 from datetime import UTC, datetime
 from typing import Literal
+from urllib.parse import unquote_plus
 
 LogFormat = Literal["text", "json"]
 LOG_FORMATS: tuple[LogFormat, ...] = ("text", "json")

@@ -330,6 +330,9 @@ class DicomSettings(_Section):
     socket_timeout_s: float = Field(default=10.0, gt=0, le=3600)
     # concurrent associations (pynetdicom's default 10)
     maximum_associations: int = Field(default=10, ge=1, le=1000)
+    # of those, held at once by one peer address (A-ASSOCIATE-RJ transient beyond it), so one host
+    # cannot lock the O-arm out (issue #41: ten echoing associations did); an O-arm sends one at a time
+    max_associations_per_peer: int = Field(default=5, ge=1, le=1000)
     # largest C-STORE instance, MB (a 512 x 512 x 192 Enhanced CT is ~100 MB; received to a temp file)
     max_instance_mb: float = Field(default=1024.0, gt=0, le=65536)
 
@@ -337,6 +340,13 @@ class DicomSettings(_Section):
     @classmethod
     def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
         return _check_networks(v)
+
+    @field_validator("allowed_calling_ae_titles")
+    @classmethod
+    def _callers(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        """``TITLE`` or ``TITLE@ADDRESS[/PREFIX]``: the address part must parse."""
+        _check_networks(tuple(e.partition("@")[2].strip() for e in v if "@" in e))
+        return v
 
     @field_validator("ae_title")
     @classmethod

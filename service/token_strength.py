@@ -103,9 +103,8 @@ def _patterned(token: str) -> list[bool]:
     walks = not is_hex(token)
     for i in range(1, len(token)):
         step = ord(token[i]) - ord(token[i - 1])
-        if abs(step) <= 1 and _class_of(token[i]) == _class_of(token[i - 1]):
-            out[i] = True
-        elif walks and _keyboard_neighbours(token[i - 1], token[i]):
+        run = abs(step) <= 1 and _class_of(token[i]) == _class_of(token[i - 1])
+        if run or (walks and _keyboard_neighbours(token[i - 1], token[i])):
             out[i] = True
     for i, ch in enumerate(token):
         if not ch.isalnum() and ch in token[:i]:  # a separator used again

@@ -305,7 +305,9 @@ class AuthThrottle:
             self._audit_bounded(ctx, address, rec, lock_s, now)
         raise _throttled(lock_s)
 
-    def _audit_bounded(self, ctx: ServiceContext, address: str, rec: _Failures, lock_s: float, now: float) -> None:
+    def _audit_bounded(
+        self, ctx: ServiceContext, address: str, rec: _Failures, lock_s: float, now: float
+    ) -> None:
         """One row per address per burst, at most ``api.auth_throttle_audit_rows_per_minute`` a minute;
         the first burst past the cap writes one ``auth_throttle_summary`` row, the rest are counted
         (logged when the minute ends) so that spoofed or rotated addresses cannot fill the disk."""

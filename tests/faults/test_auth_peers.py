@@ -107,16 +107,23 @@ def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
 def test_item4_rotating_x_forwarded_for_does_not_dodge_the_throttle(auth: Auth) -> None:
     """Wrong tokens from one socket address, each with another ``X-Forwarded-For``: the throttle keys
     on the socket (before: all 3,000 answered 401, uvicorn believing loopback as a proxy)."""
-    codes = client_run(auth.base, [(PROXY_LIKE, FAILURES_BEFORE_THROTTLE + 5, WRONG, "10.9.{i}.1", "/status")])
+    codes = client_run(
+        auth.base, [(PROXY_LIKE, FAILURES_BEFORE_THROTTLE + 5, WRONG, "10.9.{i}.1", "/status")]
+    )
     assert codes.count(401) <= FAILURES_BEFORE_THROTTLE, codes  # fewer if another test failed here first
     assert codes[FAILURES_BEFORE_THROTTLE:] == [429] * 5, codes
 
 
 def test_item4_a_spoofed_address_cannot_lock_its_owner_out(auth: Auth) -> None:
     """A peer spoofing ``X-Forwarded-For: 127.0.41.3`` is throttled itself; the real 127.0.41.3 is not."""
-    spoofer = client_run(auth.base, [(PROXY_LIKE, FAILURES_BEFORE_THROTTLE + 2, WRONG, "127.0.41.3", "/status")])
+    spoofer = client_run(
+        auth.base, [(PROXY_LIKE, FAILURES_BEFORE_THROTTLE + 2, WRONG, "127.0.41.3", "/status")]
+    )
     assert spoofer[-1] == 429, spoofer
-    owner = client_run(auth.base, [("127.0.41.3", 1, WRONG, "", "/status"), ("127.0.41.3", 1, f"Bearer {TOKEN}", "", "/status")])
+    owner = client_run(
+        auth.base,
+        [("127.0.41.3", 1, WRONG, "", "/status"), ("127.0.41.3", 1, f"Bearer {TOKEN}", "", "/status")],
+    )
     assert owner == [401, 200], owner
 
 
@@ -168,9 +175,10 @@ def test_item7_a_percent_encoded_ticket_is_redacted_in_the_log(auth: Auth) -> No
     """``GET /events?%74icket=T`` is redeemed as ``?ticket=`` (the gate decodes the name) and the
     access log shows ``<redacted>``, never ``T`` (before: logged as sent)."""
     ticket = auth.client.post("/events/ticket", headers={"Content-Type": "application/json"}).json()["ticket"]
-    with httpx.Client(base_url=auth.base, timeout=DEADLINE_S) as anon, anon.stream(
-        "GET", f"/events?%74icket={ticket}"
-    ) as stream:
+    with (
+        httpx.Client(base_url=auth.base, timeout=DEADLINE_S) as anon,
+        anon.stream("GET", f"/events?%74icket={ticket}") as stream,
+    ):
         assert stream.status_code == 200
         wait_for(lambda: "%74icket=<redacted>" in auth.serve.log.read_text(), "the access log line")
     assert ticket not in auth.serve.log.read_text()
