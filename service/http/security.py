@@ -50,7 +50,7 @@ import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 from urllib.parse import parse_qs
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -355,7 +355,12 @@ class AuthThrottle:
         _record_audit(ctx, f"client:{address}", "auth_throttle", detail)
 
 
-def _record_audit(ctx: ServiceContext, principal: str, action: str, detail: str) -> None:
+def _record_audit(
+    ctx: ServiceContext,
+    principal: str,
+    action: Literal["auth_throttle", "auth_throttle_summary"],
+    detail: str,
+) -> None:
     try:
         ctx.db.audit.record(principal, action, "api", None, "throttled", detail)
     except Exception as e:  # the refusal matters more than its audit row

@@ -13,7 +13,14 @@ from typing import Literal
 from service.store.base import Connection, utc_now
 
 AuditAction = Literal[
-    "register", "verify", "activate", "delete", "pacs_export", "qa_protocol_create", "auth_throttle"
+    "register",
+    "verify",
+    "activate",
+    "delete",
+    "pacs_export",
+    "qa_protocol_create",
+    "auth_throttle",
+    "auth_throttle_summary",
 ]
 MAX_DETAIL_CHARS = 500
 
