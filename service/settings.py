@@ -284,6 +284,9 @@ class DatabaseSettings(_Section):
     # How often the service checks that its database file is still the one it opened (same
     # device + inode) besides the check on every write transaction, s.
     integrity_check_interval_s: float = Field(default=5.0, gt=0, le=3600)
+    # How long a write waits for another process holding the database (a backup, an sqlite3 shell)
+    # before the request is answered 503 + Retry-After, s (service.store.database.BUSY_TIMEOUT_S)
+    busy_timeout_s: float = Field(default=10.0, gt=0, le=60)
 
 
 class Tool0FromTcp(_Section):

@@ -61,15 +61,33 @@ def client_run(base: str, runs: list[tuple[str, int, str, str, str]]) -> list[in
 def _supported(kw: dict[str, Any]) -> dict[str, Any]:
     """``kw`` minus the ``[api]`` settings this checkout does not know (so the module also runs against
     the code before issue 41, where each test must fail on its assertion)."""
-    from service.settings import ApiSettings
+    from service.settings import ApiSettings, DatabaseSettings
 
-    return {k: v for k, v in kw.items() if not k.startswith("api.") or k[4:] in ApiSettings.model_fields}
+    known = {"api.": ApiSettings.model_fields, "database.": DatabaseSettings.model_fields}
+    return {
+        k: v
+        for k, v in kw.items()
+        if not any(k.startswith(p) and k[len(p) :] not in f for p, f in known.items())
+    }
+
+
+BUSY_TIMEOUT_S = 0.5
+"""``database.busy_timeout_s`` of the test service (default 10 s; main waits its 10 s for each write)."""
+LOCKER = r"""
+import sqlite3, sys
+c = sqlite3.connect(sys.argv[1], isolation_level=None)
+c.execute("BEGIN EXCLUSIVE")
+print("locked", flush=True)
+sys.stdin.readline()
+c.execute("ROLLBACK")
+"""
 
 
 @dataclass
 class Auth:
     serve: ServeProcess
     client: httpx.Client
+    db_path: Path
 
     @property
     def base(self) -> str:
@@ -89,6 +107,7 @@ def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
         "port": port, "robot.link_url": f"simple-message://127.0.0.1:{free_port()}",
         "robot.connect_timeout_s": 1.0,
         "api.auth_throttle_audit_rows_per_minute": AUDIT_ROWS_PER_MINUTE,
+        "database.busy_timeout_s": BUSY_TIMEOUT_S,
     }))  # fmt: skip
     serve = ServeProcess(cfg, port, root / "serve.log")
     serve.start()
@@ -96,7 +115,7 @@ def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
         with httpx.Client(
             base_url=serve.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=DEADLINE_S
         ) as client:
-            yield Auth(serve, client)
+            yield Auth(serve, client, root / "data" / "oarmreg.sqlite3")
     finally:
         serve.stop()
 
@@ -182,3 +201,26 @@ def test_item7_a_percent_encoded_ticket_is_redacted_in_the_log(auth: Auth) -> No
         assert stream.status_code == 200
         wait_for(lambda: "%74icket=<redacted>" in auth.serve.log.read_text(), "the access log line")
     assert ticket not in auth.serve.log.read_text()
+
+
+def test_item7_a_database_locked_by_another_process_is_503_and_the_audit_row_kept(auth: Auth) -> None:
+    """Another process holds the database (``BEGIN EXCLUSIVE``): ``POST /qa/protocols`` is answered 503
+    with ``Retry-After`` after ``database.busy_timeout_s`` (before: 500 after 20 s, its audit row
+    lost); once released, the refusal's audit row is in the log."""
+    assert auth.db_path.is_file(), sorted(p.name for p in auth.db_path.parent.iterdir())
+    locker = subprocess.Popen([sys.executable, "-c", LOCKER, str(auth.db_path)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert locker.stdout is not None and locker.stdout.readline().strip() == "locked"
+        body = {"name": "locked-out", "poses": [{"name": "p1", "joints_rad": [0, 0, 1.5, 0, 0.7, 0]}]}
+        r = auth.client.post("/qa/protocols", json=body, timeout=60.0)
+        assert r.status_code == 503, r.text
+        assert int(r.headers["retry-after"]) >= 1
+        assert r.json()["title"] == "Database busy"
+    finally:
+        assert locker.stdin is not None
+        locker.stdin.write("\n")
+        locker.stdin.close()
+        locker.wait(30)
+    rows = [e for e in auth.audit("qa_protocol_create") if e["outcome"] == "refused"]
+    assert rows and rows[0]["detail"] == "Database busy", rows
