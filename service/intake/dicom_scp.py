@@ -80,6 +80,7 @@ from registration.dicom.uids import is_dicom_uid
 from service.errors import DicomScpConfigError, InstanceNotStoredError
 from service.intake.scan_lifecycle import OfferTally
 from service.netaddr import in_networks, parse_networks
+from service.peer_text import printable
 from service.settings import as_enabled
 
 if TYPE_CHECKING:
@@ -153,16 +154,6 @@ ALLOW_LIST_EMPTY = (
     "dicom.allowed_calling_ae_titles is empty: any calling AE title may store CT here (and a foreign "
     "instance in the current series withdraws its registration); list the O-arm's AE title"
 )
-
-
-def printable(text: str, limit: int = 64) -> str:
-    """``text`` from a peer (an AE title, an ErrorComment, a device name) safe for a log line or an API
-    field: control and non-ASCII characters as ``\\xNN`` / ``\\uNNNN`` escapes, at most ``limit``
-    characters kept."""
-    return text[:limit].encode("ascii", "backslashreplace").decode("ascii").translate(_CONTROL_ESCAPES)
-
-
-_CONTROL_ESCAPES = {c: f"\\x{c:02x}" for c in (*range(0x20), 0x7F)}
 
 
 def parse_allowed_callers(entries: tuple[str, ...]) -> dict[str, tuple[Any, ...]]:

@@ -10,6 +10,8 @@ and the tests run in any order.  Every wait polls with a deadline; nothing sleep
 from __future__ import annotations
 
 import json
+import socket
+import struct
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -88,6 +90,7 @@ class Auth:
     serve: ServeProcess
     client: httpx.Client
     db_path: Path
+    igtl_port: int
 
     @property
     def base(self) -> str:
@@ -101,13 +104,14 @@ class Auth:
 @pytest.fixture(scope="module")
 def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
     root = tmp_path_factory.mktemp("auth")
-    cfg, port = root / "oarmreg.toml", free_port()
+    cfg, port, igtl_port = root / "oarmreg.toml", free_port(), free_port()
     write_config(cfg, _supported({
         "watch_dir": str(root / "watch"), "data_dir": str(root / "data"), "api_token": TOKEN,
         "port": port, "robot.link_url": f"simple-message://127.0.0.1:{free_port()}",
         "robot.connect_timeout_s": 1.0,
         "api.auth_throttle_audit_rows_per_minute": AUDIT_ROWS_PER_MINUTE,
         "database.busy_timeout_s": BUSY_TIMEOUT_S,
+        "igtl.enabled": True, "igtl.port": igtl_port,
     }))  # fmt: skip
     serve = ServeProcess(cfg, port, root / "serve.log")
     serve.start()
@@ -115,7 +119,7 @@ def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
         with httpx.Client(
             base_url=serve.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=DEADLINE_S
         ) as client:
-            yield Auth(serve, client, root / "data" / "oarmreg.sqlite3")
+            yield Auth(serve, client, root / "data" / "oarmreg.sqlite3", igtl_port)
     finally:
         serve.stop()
 
@@ -224,3 +228,26 @@ def test_item7_a_database_locked_by_another_process_is_503_and_the_audit_row_kep
         locker.wait(30)
     rows = [e for e in auth.audit("qa_protocol_create") if e["outcome"] == "refused"]
     assert rows and rows[0]["detail"] == "Database busy", rows
+
+
+IGTL_HEADER = struct.Struct(">H12s20sQQQ")
+
+
+def test_item7_a_query_for_a_non_ascii_device_is_answered_with_a_status_and_logged(auth: Auth) -> None:
+    """``GET_TRANS`` for device ``"été"`` (UTF-8 bytes): a STATUS NOT_FOUND comes back and the log names
+    it escaped (before: the connection dropped, unanswered and unlogged)."""
+    head = IGTL_HEADER.pack(1, b"GET_TRANS", "été".encode(), 0, 0, 0)  # empty body: CRC 0
+    with socket.create_connection(("127.0.0.1", auth.igtl_port), timeout=DEADLINE_S) as s:
+        s.sendall(head)
+        f = s.makefile("rb")
+        while True:  # the server may push its devices first
+            raw = f.read(IGTL_HEADER.size)
+            assert len(raw) == IGTL_HEADER.size, "connection closed without an answer"
+            _, typ, _, _, size, _ = IGTL_HEADER.unpack(raw)
+            body = f.read(size)
+            if typ.rstrip(b"\0") == b"STATUS" and b"NOT_FOUND" in body:  # not the pushed "no registration"
+                break
+    assert b"printable ASCII" in body, body
+    wait_for(lambda: "not a printable ASCII name" in auth.serve.log.read_text(), "the log line")
+    line = next(x for x in auth.serve.log.read_text().splitlines() if "not a printable ASCII name" in x)
+    assert "\\ufffd" in line or "\\x" in line, line
