@@ -22,7 +22,16 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.faults._service import DEADLINE_S, REPO, TOKEN, ServeProcess, free_port, wait_for, write_config
+from tests.faults._service import (
+    DEADLINE_S,
+    REPO,
+    TOKEN,
+    ServeProcess,
+    free_port,
+    served,
+    wait_for,
+    write_config,
+)
 
 AUDIT_ROWS_PER_MINUTE = 3
 """``api.auth_throttle_audit_rows_per_minute`` of the test service (default 20; 3 shows the cap)."""
@@ -113,15 +122,8 @@ def auth(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Auth]:
         "database.busy_timeout_s": BUSY_TIMEOUT_S,
         "igtl.enabled": True, "igtl.port": igtl_port,
     }))  # fmt: skip
-    serve = ServeProcess(cfg, port, root / "serve.log")
-    serve.start()
-    try:
-        with httpx.Client(
-            base_url=serve.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=DEADLINE_S
-        ) as client:
-            yield Auth(serve, client, root / "data" / "oarmreg.sqlite3", igtl_port)
-    finally:
-        serve.stop()
+    with served(cfg, port) as (serve, client):
+        yield Auth(serve, client, root / "data" / "oarmreg.sqlite3", igtl_port)
 
 
 # ---------------------------------------------------------------------------- item 4

@@ -33,6 +33,7 @@ from tests.faults._service import (
     ServeProcess,
     factory_series,
     free_port,
+    served,
     wait_for,
     write_config,
 )
@@ -82,15 +83,8 @@ def scp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Scp]:
     })  # fmt: skip
     with cfg.open("a", encoding="utf-8") as f:  # [dicom] is the last table; write_config has no lists
         f.write("allowed_calling_ae_titles = [" + ", ".join(f'"{a}"' for a in ALLOWED) + "]\n")
-    serve = ServeProcess(cfg, port, root / "serve.log")
-    serve.start()
-    try:
-        with httpx.Client(
-            base_url=serve.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=DEADLINE_S
-        ) as client:
-            yield Scp(serve, client, dicom_port, root / "data" / "dicom-intake")
-    finally:
-        serve.stop()
+    with served(cfg, port) as (serve, client):
+        yield Scp(serve, client, dicom_port, root / "data" / "dicom-intake")
 
 
 def _associate(scp: Scp, calling: str, source: str = "127.0.0.1") -> Any:
@@ -137,7 +131,8 @@ def test_item6_an_association_that_only_echoes_is_closed(scp: Scp) -> None:
     r = subprocess.run([str(ECHOSCU), "--repeat", "10000000", "-aet", OARM, "-aec", AE_TITLE,
                         "127.0.0.1", str(scp.port)], capture_output=True, text=True,
                        timeout=NETWORK_TIMEOUT_S + 20)  # fmt: skip
-    assert r.returncode != 0, "echoscu finished every echo: the association was never closed"
+    # echoscu exits 0 or 1 when the peer aborts (it says so on stderr); every echo answered = not closed
+    assert r.returncode != 0 or "aborted" in r.stderr.lower(), (r.returncode, r.stderr)
     assert time.monotonic() - started >= NETWORK_TIMEOUT_S
     assert scp.dicom()["counters"]["closed_echo_only"] == before + 1
 
