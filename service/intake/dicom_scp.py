@@ -79,8 +79,7 @@ from dicomnet.server import AssociationServer, start_server
 from registration.dicom.uids import is_dicom_uid
 from service.errors import DicomScpConfigError, InstanceNotStoredError
 from service.intake.scan_lifecycle import OfferTally
-from service.netaddr import in_networks, parse_networks
-from service.peer_text import printable
+from service.netaddr import in_networks, parse_networks, printable
 from service.settings import as_enabled
 
 if TYPE_CHECKING:

@@ -80,8 +80,7 @@ import numpy.typing as npt
 
 from service.errors import IgtlConfigError, IgtlCrcError, IgtlPeerError, IgtlWireError
 from service.navigation.igtl import wire
-from service.netaddr import in_networks, is_loopback, parse_networks
-from service.peer_text import printable
+from service.netaddr import in_networks, is_loopback, parse_networks, printable
 from service.settings import as_enabled
 
 if TYPE_CHECKING:

@@ -34,7 +34,7 @@ from typing import Any, Literal
 from pydicom import dcmread
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 
-from service.peer_text import printable
+from service.netaddr import printable
 from service.settings import PacsSettings
 
 log = logging.getLogger(__name__)
