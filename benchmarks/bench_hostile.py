@@ -237,7 +237,28 @@ def main(argv: list[str] | None = None) -> int:
             settle_s, fds = _settle(proc.pid, 120.0)
             print(f"  the service settled in {settle_s:.1f} s at {fds} descriptors")
             print(_row("hostile", proc.pid, url, a) + f" | DICOM echo {_echo(ports['dicom'])}")
+        print(_forwarded_probe(url, 3000))
     return 0
+
+
+def _forwarded_probe(url: str, n: int) -> str:
+    """Issue 41 item 4: ``n`` wrong tokens from 127.0.0.1 (the proxy uvicorn believes by default), each
+    with another ``X-Forwarded-For``: how many were throttled (429) and how many ``auth_throttle`` audit
+    rows they wrote.  Before: all 401 at ~4,400/s, one audit row per spoofed address."""
+    codes: dict[int, int] = {}
+    t0 = time.monotonic()
+    with httpx.Client(base_url=url, timeout=10.0) as c:
+        for i in range(n):
+            fwd = f"10.{(i >> 16) & 255}.{(i >> 8) & 255}.{i & 255}"
+            r = c.get("/status", headers={"Authorization": "Bearer " + "x" * 43, "X-Forwarded-For": fwd})
+            codes[r.status_code] = codes.get(r.status_code, 0) + 1
+        elapsed_s = time.monotonic() - t0
+        audit = c.get("/audit", params={"limit": 1000}, headers={"Authorization": f"Bearer {TOKEN}"}).json()
+    rows = sum(1 for e in audit if str(e.get("action", "")).startswith("auth_throttle"))
+    return (
+        f"forwarded-address probe: {n} wrong tokens, rotating X-Forwarded-For, {n / elapsed_s:,.0f}/s: "
+        f"{codes.get(401, 0)} answered 401, {codes.get(429, 0)} answered 429; {rows} auth_throttle audit rows"
+    )
 
 
 if __name__ == "__main__":

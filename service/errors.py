@@ -238,6 +238,21 @@ class DatabaseUnavailableError(OarmRegError):
     exit_code = EXIT_CONFIG
 
 
+class DatabaseBusyError(OarmRegError):
+    """The database could not be written: locked by another process past ``database.busy_timeout_s``
+    (``SQLITE_BUSY``) or read-only (``SQLITE_READONLY``: the file, its WAL or its folder not writable).
+    Nothing was written; the request may be retried after ``Retry-After``."""
+
+    title = "Database busy"
+    http_status = 503
+    exit_code = EXIT_CONFIG
+    RETRY_AFTER_S = 5
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.headers = {"Retry-After": str(self.RETRY_AFTER_S)}
+
+
 class StorageFullError(OarmRegError):
     """The data folder is full (SQLite ``SQLITE_FULL`` / ``ENOSPC``): the write was rolled back, nothing
     stored before it is lost."""

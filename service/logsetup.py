@@ -12,6 +12,7 @@ import re
 import sys
 from datetime import UTC, datetime
 from typing import Literal
+from urllib.parse import unquote_plus
 
 LogFormat = Literal["text", "json"]
 LOG_FORMATS: tuple[LogFormat, ...] = ("text", "json")
@@ -38,14 +39,21 @@ class JsonFormatter(logging.Formatter):
 SECRET_QUERY_PARAMS = ("ticket",)
 """Query parameters whose values never reach a log: the single-use ``GET /events?ticket=`` (a
 bearer credential while it lives; :mod:`service.http.tickets`)."""
-_SECRET_QUERY = re.compile(r"([?&](?:" + "|".join(SECRET_QUERY_PARAMS) + r")=)[^&#\s]*")
+_QUERY_PAIR = re.compile(r"([?&])([^=&#\s]*)=([^&#\s]*)")
 REDACTED = "<redacted>"
 ACCESS_LOGGER = "uvicorn.access"
 
 
 def redact_query(text: str) -> str:
-    """``text`` with the value of every :data:`SECRET_QUERY_PARAMS` parameter replaced by ``<redacted>``."""
-    return _SECRET_QUERY.sub(r"\1" + REDACTED, text)
+    """``text`` with the value of every :data:`SECRET_QUERY_PARAMS` parameter replaced by ``<redacted>``;
+    a parameter's name is compared after URL decoding (``%74icket`` is ``ticket``), as the gate reads it."""
+
+    def _pair(m: re.Match[str]) -> str:
+        if unquote_plus(m.group(2)) in SECRET_QUERY_PARAMS:
+            return f"{m.group(1)}{m.group(2)}={REDACTED}"
+        return m.group(0)
+
+    return _QUERY_PAIR.sub(_pair, text)
 
 
 class RedactSecretsFilter(logging.Filter):

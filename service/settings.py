@@ -272,12 +272,21 @@ class ApiSettings(_Section):
     auth_lockout_max_s: float = Field(default=30.0, gt=0, le=30)
     # an address's failures are forgotten after this long without one, s (it ends a burst)
     auth_failure_memory_s: float = Field(default=300.0, gt=0, le=86400)
+    # throttle audit rows (one per address per burst) written per minute at most; past it one
+    # auth_throttle_summary row (issue #41: 1,000 spoofed addresses wrote 1,004 rows in 5 s)
+    auth_throttle_audit_rows_per_minute: int = Field(default=20, ge=1, le=10_000)
+    # proxies whose X-Forwarded-For / X-Forwarded-Proto are believed (addresses or networks, "*" =
+    # any); empty: none, the client's address is the socket's (uvicorn's own default trusts 127.0.0.1)
+    forwarded_allow_ips: tuple[str, ...] = ()
 
 
 class DatabaseSettings(_Section):
     # How often the service checks that its database file is still the one it opened (same
     # device + inode) besides the check on every write transaction, s.
     integrity_check_interval_s: float = Field(default=5.0, gt=0, le=3600)
+    # How long a write waits for another process holding the database (a backup, an sqlite3 shell)
+    # before the request is answered 503 + Retry-After, s (service.store.database.BUSY_TIMEOUT_S)
+    busy_timeout_s: float = Field(default=10.0, gt=0, le=60)
 
 
 class Tool0FromTcp(_Section):
@@ -324,6 +333,9 @@ class DicomSettings(_Section):
     socket_timeout_s: float = Field(default=10.0, gt=0, le=3600)
     # concurrent associations (pynetdicom's default 10)
     maximum_associations: int = Field(default=10, ge=1, le=1000)
+    # of those, held at once by one peer address (A-ASSOCIATE-RJ transient beyond it), so one host
+    # cannot lock the O-arm out (issue #41: ten echoing associations did); an O-arm sends one at a time
+    max_associations_per_peer: int = Field(default=5, ge=1, le=1000)
     # largest C-STORE instance, MB (a 512 x 512 x 192 Enhanced CT is ~100 MB; received to a temp file)
     max_instance_mb: float = Field(default=1024.0, gt=0, le=65536)
 
@@ -331,6 +343,13 @@ class DicomSettings(_Section):
     @classmethod
     def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
         return _check_networks(v)
+
+    @field_validator("allowed_calling_ae_titles")
+    @classmethod
+    def _callers(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        """``TITLE`` or ``TITLE@ADDRESS[/PREFIX]``: the address part must parse."""
+        _check_networks(tuple(e.partition("@")[2].strip() for e in v if "@" in e))
+        return v
 
     @field_validator("ae_title")
     @classmethod

@@ -12,8 +12,11 @@ hand-made tokens still has to guess, character by character:
   character classes the token uses (lower case 26, upper case 26, digits 10, ``-`` / ``_`` 2,
   other printable 32: a ``token_urlsafe`` token has 64); a token of hex digits only has 16;
 * a character that repeats the previous one or steps by one from it (``aaaa``, ``0123``,
-  ``fedc``), continues a piece of 3 characters seen earlier (``passwordpassword``), or is a
-  separator used before (the second ``-``) is worth :data:`PATTERN_BITS`;
+  ``fedc``), is next to it on a keyboard row (``qwerty``, ``asdf``; not in hexadecimal tokens),
+  belongs to a piece of 3 characters seen earlier (the whole piece: ``Xk9#mQ2!`` × 3 is worth one
+  copy), or is a separator used before (the second ``-``) is worth :data:`PATTERN_BITS`;
+* a year 1950–2039 standing alone between non-digits (``Surgery2026``) is worth :data:`YEAR_BITS`
+  in all;
 * in a token whose letters are all of one case (random tokens mix cases), a piece of
   :data:`WORD_MIN_CHARS` or more letters between separators is read as a word and its letters are
   worth :data:`WORD_BITS` each (written English carries about 1 bit a letter, Shannon 1951).
@@ -53,6 +56,11 @@ MIN_WORDS = 2
 holds two letter-only pieces between separators; a hand-made one is usually words and dashes)."""
 HEX_DIGITS = frozenset("0123456789abcdef")
 REPEAT_MIN_CHARS = 3
+KEYBOARD_ROWS = ("1234567890", "qwertyuiop", "asdfghjkl", "zxcvbnm")
+"""Rows of a US/UK keyboard: a letter or digit next to the previous one on its row continues a
+keyboard walk (``qwerty``, ``asdf``, ``0987``).  Not applied to hexadecimal tokens (machine-made)."""
+YEAR_BITS = 7.0
+"""What a year 1950–2039 standing alone between non-digits is worth, bits (90 years: log2 90 = 6.5)."""
 
 
 def _class_of(ch: str) -> str:
@@ -81,20 +89,45 @@ def alphabet_size(token: str) -> int:
     return sum(size for name, size in _CLASSES if name in used)
 
 
+def _keyboard_neighbours(a: str, b: str) -> bool:
+    """Are ``a`` and ``b`` next to each other on one row of :data:`KEYBOARD_ROWS` (either order)?"""
+    a, b = a.lower(), b.lower()
+    return any(a + b in row or b + a in row for row in KEYBOARD_ROWS)
+
+
 def _patterned(token: str) -> list[bool]:
-    """Per character: does it repeat / step from the previous one, or continue an earlier piece?"""
+    """Per character: does it repeat / step from the previous one, walk the keyboard from it, or
+    belong to a piece of :data:`REPEAT_MIN_CHARS` seen earlier (the whole piece, so ``abc!`` × 3
+    costs only its first copy; in a hexadecimal token the piece's last character)?"""
     out = [False] * len(token)
+    walks = not is_hex(token)
     for i in range(1, len(token)):
         step = ord(token[i]) - ord(token[i - 1])
-        if abs(step) <= 1 and _class_of(token[i]) == _class_of(token[i - 1]):
+        run = abs(step) <= 1 and _class_of(token[i]) == _class_of(token[i - 1])
+        if run or (walks and _keyboard_neighbours(token[i - 1], token[i])):
             out[i] = True
     for i, ch in enumerate(token):
         if not ch.isalnum() and ch in token[:i]:  # a separator used again
             out[i] = True
     for i in range(REPEAT_MIN_CHARS - 1, len(token)):
-        if token[i - REPEAT_MIN_CHARS + 1 : i + 1] in token[:i]:
-            out[i] = True
+        start = i - REPEAT_MIN_CHARS + 1
+        if token[start : i + 1] in token[:i]:  # hexadecimal (machine-made): its last character only
+            out[start if walks else i : i + 1] = [True] * (i + 1 - (start if walks else i))
     return out
+
+
+def _year_digits(token: str) -> list[tuple[int, int]]:
+    """Spans of years 1950–2039 standing alone between non-digits (``Surgery2026!``); none in a
+    hexadecimal token, whose digit runs are random."""
+    if is_hex(token):
+        return []
+    spans = []
+    for i in range(len(token) - 3):
+        piece = token[i : i + 4]
+        alone = (i == 0 or not token[i - 1].isdigit()) and (i + 4 == len(token) or not token[i + 4].isdigit())
+        if alone and piece.isdigit() and 1950 <= int(piece) <= 2039:
+            spans.append((i, i + 4))
+    return spans
 
 
 def _word_letters(token: str) -> list[bool]:
@@ -127,6 +160,10 @@ def estimated_bits(token: str) -> float:
     patterned = _patterned(token)
     words = _word_letters(token)
     bits = 0.0
+    for a, b in _year_digits(token):
+        if not any(patterned[a:b]):  # a repeated year is already counted as a repeat
+            bits += YEAR_BITS - PATTERN_BITS * (b - a)  # its digits count PATTERN_BITS below
+            patterned[a:b] = [True] * (b - a)
     for i in range(len(token)):
         if patterned[i]:
             bits += PATTERN_BITS

@@ -233,7 +233,7 @@ def _open_database(settings: Settings, stack: contextlib.AsyncExitStack) -> Data
     make_private(settings.data_dir)  # umask 077, folder 0700, files 0600
     serve_lock = hold_serve_lock(settings.data_dir)
     stack.callback(serve_lock.close)
-    db = Database.open(settings.db_path)
+    db = Database.open(settings.db_path, busy_timeout_s=settings.database.busy_timeout_s)
     stack.callback(db.close)
     _task(stack, _watch_database(db, settings.database.integrity_check_interval_s), "oarmreg-db-watch")
     return db

@@ -22,6 +22,7 @@ from contextlib import contextmanager
 from drivers.errors import RobotLinkError
 from registration.errors import OarmRegError
 from service.error_map import title_of
+from service.errors import DatabaseBusyError
 from service.http.context import ServiceContext
 from service.store.audit import AuditAction
 
@@ -40,7 +41,10 @@ def audited(ctx: ServiceContext, principal: str, action: AuditAction, target: st
     try:
         yield note
     except (OarmRegError, RobotLinkError) as e:
-        _write(ctx, principal, action, target, None, *audit_refusal(e))
+        if isinstance(e, DatabaseBusyError):  # kept in memory, written once the database takes it
+            ctx.db.audit.defer(principal, action, target, None, *audit_refusal(e))
+        else:
+            _write(ctx, principal, action, target, None, *audit_refusal(e))
         raise
     except Exception as e:
         _write(ctx, principal, action, target, None, "error", type(e).__name__)

@@ -16,10 +16,14 @@ byte is read (so a 10 MB body without a token costs nothing):
    ``POST /events/ticket`` (``EventSource`` cannot send headers) → else 401.  ``api.auth =
    "none-loopback-only"`` skips this on a loopback bind (settings refuse it elsewhere).
    Failed authentications are throttled per client address (:class:`AuthThrottle`): after
-   ``api.auth_failures_before_throttle`` wrong ``Authorization`` headers the address gets 429 with
-   ``Retry-After`` (1 s, doubling per attempt, at most ``api.auth_lockout_max_s``) without its
-   token being checked; other addresses are not affected, a request without the header is not counted, and
-   each burst is one audit entry (action ``auth_throttle``).
+   ``api.auth_failures_before_throttle`` wrong ``Authorization`` headers the address's wrong tokens
+   get 429 with ``Retry-After`` (1 s, doubling per attempt, at most ``api.auth_lockout_max_s``); the
+   right token is admitted all the same (tokens carry ≥ 76 bits: the throttle slows and records
+   guessing, it must not lock the owner out).  Other addresses are not affected, a request without
+   the header is not counted, each burst is one audit entry (action ``auth_throttle``) and at most
+   ``api.auth_throttle_audit_rows_per_minute`` such rows are written a minute, then one
+   ``auth_throttle_summary`` row.  The address is the socket's: ``X-Forwarded-For`` is believed
+   only from the proxies listed in ``api.forwarded_allow_ips`` (none by default).
 4. Mutating methods (POST, PUT, PATCH, DELETE) need ``Content-Type: application/json``, bodiless
    ones included → else 415.  A cross-site form or ``fetch`` without a CORS pre-flight can only
    send ``text/plain``, form or multipart bodies, so this closes CSRF.
@@ -46,7 +50,7 @@ import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 from urllib.parse import parse_qs
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -186,7 +190,9 @@ def bearer_principal(settings: Settings, auth: str) -> str | None:
 
 
 def client_address(scope: Scope) -> str:
-    """The client's address as the server saw it (``?`` when the server does not say)."""
+    """The client's address as the server saw it (``?`` when the server does not say): the socket's
+    peer, or ``X-Forwarded-For`` only when the peer is a proxy in ``api.forwarded_allow_ips``
+    (uvicorn rewrites ``scope["client"]`` then; :func:`forwarded_options`)."""
     client = scope.get("client")
     return str(client[0]) if client else "?"
 
@@ -201,13 +207,12 @@ def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | Non
         return PRINCIPAL_NO_AUTH
     auth = _header(scope, b"authorization")
     if auth is not None and auth.strip() and settings.api_token is not None:  # empty: no credentials
-        address = client_address(scope)
-        if throttle is not None:
-            throttle.check(settings.api, address)  # locked out: 429, the token is not even compared
         principal = bearer_principal(settings, auth)
-        if principal is not None:
+        if principal is not None:  # the right token always works, throttled address or not
             return principal
         if throttle is not None:
+            address = client_address(scope)
+            throttle.check(settings.api, address)  # locked out: 429
             throttle.failed(ctx, address)
         raise UnauthorizedError("the Bearer token does not match the service's api_token")
     if scope["path"] == EVENTS_PATH and scope["method"] == "GET":
@@ -244,17 +249,23 @@ class AuthThrottle:
 
     The first ``auth_failures_before_throttle`` failures are answered 401 at once; each further
     one locks the address out for ``auth_lockout_initial_s · 2^k`` (at most ``auth_lockout_max_s``),
-    during which every request of that address carrying ``Authorization`` is answered 429 with
-    ``Retry-After`` before its token is compared.  An address without a failure for
+    during which every wrong token of that address is answered 429 with ``Retry-After`` (the right
+    one is admitted before the throttle is asked).  An address without a failure for
     ``auth_failure_memory_s`` starts afresh (a new burst).  Loopback is not exempt.
     """
 
     MAX_ADDRESSES = 10_000
     """Addresses remembered; the least recently failed are forgotten first (bounded memory)."""
 
+    AUDIT_WINDOW_S = 60.0
+    """The window of ``api.auth_throttle_audit_rows_per_minute``, s."""
+
     def __init__(self, clock: Any = time.monotonic) -> None:
         self._clock = clock
         self._by_address: OrderedDict[str, _Failures] = OrderedDict()
+        self._audit_window_start_s = -math.inf
+        self._audit_rows = 0
+        self._audit_suppressed = 0
 
     def _current(self, cfg: ApiSettings, address: str, now: float) -> _Failures | None:
         rec = self._by_address.get(address)
@@ -267,8 +278,8 @@ class AuthThrottle:
         return rec
 
     def check(self, cfg: ApiSettings, address: str) -> None:
-        """Raise 429 while ``address`` is locked out; an attempt then counts as one more failure
-        (its token is not compared), so a client that ignores ``Retry-After`` stays locked out."""
+        """Raise 429 while ``address`` is locked out; a wrong token then counts as one more failure,
+        so a guesser that ignores ``Retry-After`` stays locked out."""
         now = self._clock()
         rec = self._current(cfg, address, now)
         if rec is not None and now < rec.locked_until_s:
@@ -291,8 +302,34 @@ class AuthThrottle:
             return
         if not rec.audited:
             rec.audited = True
-            self._audit(ctx, address, rec, lock_s)
+            self._audit_bounded(ctx, address, rec, lock_s, now)
         raise _throttled(lock_s)
+
+    def _audit_bounded(
+        self, ctx: ServiceContext, address: str, rec: _Failures, lock_s: float, now: float
+    ) -> None:
+        """One row per address per burst, at most ``api.auth_throttle_audit_rows_per_minute`` a minute;
+        the first burst past the cap writes one ``auth_throttle_summary`` row, the rest are counted
+        (logged when the minute ends) so that spoofed or rotated addresses cannot fill the disk."""
+        cap = ctx.settings.api.auth_throttle_audit_rows_per_minute
+        if now - self._audit_window_start_s >= self.AUDIT_WINDOW_S:
+            if self._audit_suppressed:
+                log.warning("auth throttle: %d further throttled addresses in the last minute were not "
+                            "audited one by one", self._audit_suppressed)  # fmt: skip
+            self._audit_window_start_s, self._audit_rows, self._audit_suppressed = now, 0, 0
+        if self._audit_rows < cap:
+            self._audit_rows += 1
+            self._audit(ctx, address, rec, lock_s)
+            return
+        self._audit_suppressed += 1
+        if self._audit_suppressed == 1:
+            detail = (
+                f"more than {cap} addresses throttled within {self.AUDIT_WINDOW_S:g} s; further ones in "
+                "this minute are counted in the log, not audited one by one "
+                "(api.auth_throttle_audit_rows_per_minute)"
+            )
+            log.warning("auth throttle: %s", detail)
+            _record_audit(ctx, "client:*", "auth_throttle_summary", detail)
 
     @staticmethod
     def _count(cfg: ApiSettings, rec: _Failures, now: float) -> float | None:
@@ -315,10 +352,19 @@ class AuthThrottle:
             f"({ctx.settings.api.auth_lockout_max_s:g} s)"
         )
         log.warning("auth throttle: %s", detail)
-        try:
-            ctx.db.audit.record(f"client:{address}", "auth_throttle", "api", None, "throttled", detail)
-        except Exception as e:  # the refusal matters more than its audit row
-            log.error("audit: could not record the auth throttle of %s (%s)", address, type(e).__name__)
+        _record_audit(ctx, f"client:{address}", "auth_throttle", detail)
+
+
+def _record_audit(
+    ctx: ServiceContext,
+    principal: str,
+    action: Literal["auth_throttle", "auth_throttle_summary"],
+    detail: str,
+) -> None:
+    try:
+        ctx.db.audit.record(principal, action, "api", None, "throttled", detail)
+    except Exception as e:  # the refusal matters more than its audit row
+        log.error("audit: could not record %s of %s (%s)", action, principal, type(e).__name__)
 
 
 def _throttled(retry_after_s: float) -> AuthThrottledError:
@@ -328,6 +374,14 @@ def _throttled(retry_after_s: float) -> AuthThrottledError:
         "throttled per address: api.auth_failures_before_throttle, api.auth_lockout_max_s)",
         retry_after_s=wait_s,
     )
+
+
+def forwarded_options(settings: Settings) -> dict[str, Any]:
+    """uvicorn ``Config`` options for forwarded headers: off unless ``api.forwarded_allow_ips`` lists
+    the proxies to believe (uvicorn's own default believes 127.0.0.1, so any local process could
+    pose as any address and dodge or aim the throttle)."""
+    ips = settings.api.forwarded_allow_ips
+    return {"proxy_headers": bool(ips), "forwarded_allow_ips": list(ips) if ips else []}
 
 
 def check_content(settings: Settings, scope: Scope) -> int | None:

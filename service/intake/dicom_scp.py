@@ -39,7 +39,11 @@ of ``select`` and failed ``accept`` calls reported): what is generic pynetdicom 
 :mod:`dicomnet`, what the intake stores and refuses lives here.
 
 Security: loopback by default.  A non-loopback bind needs at least one allow-list (calling
-AE titles and/or peer addresses); DICOM has no authentication here (no TLS configured).
+AE titles and/or peer addresses); DICOM has no authentication here (no TLS configured).  A calling
+AE title may be tied to addresses (``OARM_01@10.0.0.21``); an unlisted caller gets A-ASSOCIATE-RJ
+(permanent, calling AE title not recognised).  With the list empty the start-up log and ``/status``
+say so.  No address holds more than ``max_associations_per_peer`` associations (A-ASSOCIATE-RJ
+transient, local limit exceeded), and one that only echoes for ``network_timeout_s`` is aborted.
 """
 
 from __future__ import annotations
@@ -75,7 +79,7 @@ from dicomnet.server import AssociationServer, start_server
 from registration.dicom.uids import is_dicom_uid
 from service.errors import DicomScpConfigError, InstanceNotStoredError
 from service.intake.scan_lifecycle import OfferTally
-from service.netaddr import in_networks, parse_networks
+from service.netaddr import in_networks, parse_networks, printable
 from service.settings import as_enabled
 
 if TYPE_CHECKING:
@@ -143,6 +147,34 @@ class ScpCallbacks:
     """Like ``on_series_released`` plus the association's :class:`~service.intake.scan_lifecycle.OfferTally`
     for the series (instances offered, stored, refused and why); used instead when set.  Series whose
     every instance was refused are settled too."""
+
+
+ALLOW_LIST_EMPTY = (
+    "dicom.allowed_calling_ae_titles is empty: any calling AE title may store CT here (and a foreign "
+    "instance in the current series withdraws its registration); list the O-arm's AE title"
+)
+
+
+def parse_allowed_callers(entries: tuple[str, ...]) -> dict[str, tuple[Any, ...]]:
+    """``dicom.allowed_calling_ae_titles`` entries, ``TITLE`` or ``TITLE@ADDRESS[/PREFIX]`` (as Orthanc's
+    ``DicomModalities`` pairs an AE title with its host), as {title: networks (empty = any address)}."""
+    out: dict[str, list[Any]] = {}
+    for entry in entries:
+        title, at, where = entry.strip().partition("@")
+        nets = out.setdefault(title.strip(), [])
+        if at:
+            nets.extend(parse_networks((where.strip(),), "dicom.allowed_calling_ae_titles"))
+        else:
+            nets.append(None)
+    return {t: tuple(n) for t, n in out.items()}
+
+
+def caller_allowed(allowed: dict[str, tuple[Any, ...]], calling: str, peer: str) -> bool:
+    """Is ``calling`` listed, from anywhere or from a network holding ``peer``?"""
+    nets = allowed.get(calling)
+    if nets is None:
+        return False
+    return any(n is None for n in nets) or in_networks(peer, tuple(n for n in nets if n is not None))
 
 
 # --------------------------------------------------------------------------- writing
@@ -250,6 +282,8 @@ def _fsync_dir(d: Path) -> None:
 class _AssocState:
     calling_ae: str
     peer: str
+    last_store_s: float = field(default_factory=time.monotonic)
+    """When the association was accepted or last carried a C-STORE (monotonic, s)."""
     series: dict[Path, int] = field(default_factory=dict)
     tallies: dict[Path, OfferTally] = field(default_factory=dict)
     unattributed: Counter[str] = field(default_factory=Counter)
@@ -285,7 +319,7 @@ class StorageScp:
         self.callbacks = callbacks or ScpCallbacks()
         self._write = write
         self._networks = parse_networks(config.allowed_peer_addresses, "dicom.allowed_peer_addresses")
-        self._allowed_aets = {a.strip() for a in config.allowed_calling_ae_titles}
+        self._allowed_aets = parse_allowed_callers(config.allowed_calling_ae_titles)
         self._lock = threading.Lock()
         self._assocs: dict[int, _AssocState] = {}
         self._server: AssociationServer | None = None
@@ -293,6 +327,7 @@ class StorageScp:
             "stored": 0, "duplicates": 0, "replaced": 0, "refused": 0, "echoes": 0,
             "released": 0, "aborted": 0, "bytes": 0,
             "rejected_busy": 0, "accept_errors": 0, "transport_errors": 0,
+            "rejected_peer_share": 0, "closed_echo_only": 0,
         }  # fmt: skip
         self.association_failure: str | None = None
         """Why the intake last refused or failed an association for its own reasons (all
@@ -348,6 +383,14 @@ class StorageScp:
             ) from None
         log.info("DICOM Storage SCP %s on %s:%d → %s", self.config.ae_title, self.config.host,
                  self.port, self.intake_dir)  # fmt: skip
+        if not self._allowed_aets:
+            log.warning("DICOM SCP: %s", ALLOW_LIST_EMPTY)
+
+    @property
+    def allow_list(self) -> str | list[str]:
+        """For ``GET /status`` (``listeners.dicom.allowed_callers``): the allow-list, or
+        :data:`ALLOW_LIST_EMPTY` when there is none."""
+        return list(self.config.allowed_calling_ae_titles) or ALLOW_LIST_EMPTY
 
     def stop(self) -> None:
         if self._server is not None:
@@ -440,17 +483,34 @@ class StorageScp:
             self._refuse(
                 ScpRefusal("peer", f"peer {peer} not in dicom.allowed_peer_addresses", calling, peer)
             )
-        elif self._allowed_aets and calling not in self._allowed_aets:
+        elif self._allowed_aets and not caller_allowed(self._allowed_aets, calling, peer):
             assoc.acse.send_reject(0x01, 0x01, 0x03)  # calling AE title not recognised
             assoc.kill()
+            listed = list(self.config.allowed_calling_ae_titles)
             self._refuse(ScpRefusal(
-                "calling_ae", f"calling AE title {calling!r} not in dicom.allowed_calling_ae_titles "
-                f"{sorted(self._allowed_aets)}", calling, peer,
+                "calling_ae", f"calling AE title {printable(calling)!r} from {peer} not in "
+                f"dicom.allowed_calling_ae_titles {listed}", printable(calling), peer,
             ))  # fmt: skip
+        elif self._peer_slots_taken(peer) >= self.config.max_associations_per_peer:
+            assoc.acse.send_reject(0x02, 0x03, 0x02)  # rejected-transient, provider, local limit exceeded
+            assoc.kill()
+            with self._lock:
+                self.counters["rejected_peer_share"] += 1
+            n, m = self.config.max_associations_per_peer, self.config.maximum_associations
+            self._association_failed(
+                "rejected_busy",
+                f"association from {printable(calling)} {peer} rejected: that address holds its share of "
+                f"dicom.max_associations_per_peer = {n} of the dicom.maximum_associations = {m} slots (so "
+                "one host cannot lock the O-arm out); the sender must release one first",
+            )
+
+    def _peer_slots_taken(self, peer: str) -> int:
+        with self._lock:
+            return sum(1 for st in self._assocs.values() if st.peer == peer)
 
     def _on_accepted(self, event: evt.Event) -> None:
         assoc = event.assoc
-        state = _AssocState(str(assoc.requestor.ae_title).strip(), str(assoc.requestor.address))
+        state = _AssocState(printable(str(assoc.requestor.ae_title).strip()), str(assoc.requestor.address))
         with self._lock:
             self._assocs[id(assoc)] = state
         names = sorted(
@@ -467,8 +527,20 @@ class StorageScp:
             ), level=level)  # fmt: skip
 
     def _on_echo(self, event: evt.Event) -> int:
+        """Answer success; an association that has only echoed for ``network_timeout_s`` (no C-STORE
+        since it was accepted or since its last one) is then aborted, so echoes cannot hold a slot."""
+        now = time.monotonic()
         with self._lock:
             self.counters["echoes"] += 1
+            state = self._assocs.get(id(event.assoc))
+            idle = state is not None and now - state.last_store_s > self.config.network_timeout_s
+            if idle:
+                self.counters["closed_echo_only"] += 1
+        if idle and state is not None:
+            log.warning("DICOM SCP: association from %s %s closed: only C-ECHO for more than "
+                        "dicom.network_timeout_s = %g s", state.calling_ae, state.peer,
+                        self.config.network_timeout_s)  # fmt: skip
+            threading.Thread(target=event.assoc.abort, name="oarmreg-dicom-echo-abort", daemon=True).start()
         return STATUS_SUCCESS
 
     # ---- storage ---------------------------------------------------------------
@@ -477,6 +549,7 @@ class StorageScp:
         assoc = event.assoc
         with self._lock:
             state = self._assocs.get(id(assoc)) or _AssocState("", "")
+            state.last_store_s = time.monotonic()
         sop = str(cast(C_STORE, event.request).AffectedSOPInstanceUID or "")
         status, reason, target, series_dir = self._check(event, sop)
         if target is None:

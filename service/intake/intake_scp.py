@@ -118,6 +118,7 @@ class CStoreIntake:
             "enabled": d.enabled, "host": d.host, "ae_title": d.ae_title, "port": self.scp.port,
             "associations": self.scp.active_associations, "counters": dict(self.scp.counters),
             "pending_series": len(self._accumulators),
+            "allowed_callers": self.scp.allow_list,
         }  # fmt: skip
 
     # ---- pynetdicom's threads -------------------------------------------------------------

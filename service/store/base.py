@@ -26,6 +26,17 @@ def _is_disk_full(e: BaseException) -> bool:
     return (code is not None and code & 0xFF == SQLITE_FULL) or "disk is full" in str(e)
 
 
+SQLITE_BUSY, SQLITE_LOCKED, SQLITE_READONLY = 5, 6, 8
+"""SQLite's primary result codes for "database is locked" and "attempt to write a readonly database"."""
+
+
+def _is_busy_or_readonly(e: BaseException) -> bool:
+    code = getattr(e, "sqlite_errorcode", None)
+    if code is not None and code & 0xFF in (SQLITE_BUSY, SQLITE_LOCKED, SQLITE_READONLY):
+        return True
+    return "database is locked" in str(e) or "readonly database" in str(e)
+
+
 def utc_now() -> str:
     """ISO 8601 UTC timestamp with microseconds."""
     return datetime.now(UTC).isoformat()
@@ -62,6 +73,8 @@ class Connection:
         ------
         StorageFullError
             The disk holding the database is full (``SQLITE_FULL``, ``ENOSPC``); rolled back.
+        DatabaseBusyError
+            Another process holds the database past the busy timeout, or it is read-only; rolled back.
         DatabaseUnavailableError
             The database file was deleted or replaced since it was opened (nothing is written).
         """
@@ -81,11 +94,20 @@ class Connection:
                     raise
                 self.raw.execute("COMMIT")
             except (sqlite3.OperationalError, OSError) as e:
-                if not _is_disk_full(e):
+                if not (_is_disk_full(e) or _is_busy_or_readonly(e)):
                     raise
                 with contextlib.suppress(sqlite3.Error):
                     if self.raw.in_transaction:
                         self.raw.execute("ROLLBACK")
+                if _is_busy_or_readonly(e):
+                    from service.errors import DatabaseBusyError
+
+                    raise DatabaseBusyError(
+                        f"the database {self.path} cannot be written now ({e}): another process holds it "
+                        "(a backup, an sqlite3 shell) or its file, WAL or folder is read-only; nothing was "
+                        "written. Retry after Retry-After; if it persists, find what holds the file "
+                        "(fuser) or fix its permissions."
+                    ) from e
                 raise StorageFullError(
                     f"the data folder {self.path.parent} is full ({e}); the write was rolled back, nothing "
                     "stored before is lost. Free disk space there (or lower retention.max_disk_mb) and retry."

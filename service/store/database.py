@@ -41,11 +41,15 @@ class Database:
         self.qa_trend = QaTrendStore(conn)  # read-only: QA checks and FRE over time
 
     @classmethod
-    def open(cls, path: str | Path, *, hold_lock: bool = True) -> Database:
+    def open(
+        cls, path: str | Path, *, hold_lock: bool = True, busy_timeout_s: float = BUSY_TIMEOUT_S
+    ) -> Database:
         """Open (creating only if the path does not exist), check and migrate the database at ``path``.
 
-        ``hold_lock``: take the shared service lock (``<db>.lock``, see
-        :mod:`service.store.integrity`) until :meth:`close`, so ``oarmreg restore`` refuses.
+        ``busy_timeout_s``: how long a write waits for another process holding the file (then
+        :class:`~service.errors.DatabaseBusyError`, 503).  ``hold_lock``: take the shared service lock
+        (``<db>.lock``, see :mod:`service.store.integrity`) until :meth:`close`, so ``oarmreg
+        restore`` refuses.
 
         Raises
         ------
@@ -63,7 +67,7 @@ class Database:
         is_new = integrity.preflight(p)
         lock = integrity.hold_shared(p) if hold_lock else None
         try:
-            raw = _connect(p, is_new)
+            raw = _connect(p, is_new, busy_timeout_s)
         except BaseException:
             if lock is not None:
                 lock.close()
@@ -94,10 +98,10 @@ class Database:
         }
 
 
-def _connect(p: Path, is_new: bool) -> sqlite3.Connection:
+def _connect(p: Path, is_new: bool, busy_timeout_s: float = BUSY_TIMEOUT_S) -> sqlite3.Connection:
     """Connect, check an existing file (integrity, identity), migrate, stamp; ConfigError on failure."""
     try:
-        raw = sqlite3.connect(p, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False)
+        raw = sqlite3.connect(p, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
     except (OSError, sqlite3.Error) as e:
         raise ConfigError(f"cannot open the database {p}: {e}; check data_dir and its permissions") from None
     try:

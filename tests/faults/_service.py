@@ -317,3 +317,18 @@ def mock_controller_process(link: str = "simple-message://127.0.0.1:0") -> Itera
         mock.wait(30)
         if mock.stdout is not None:
             mock.stdout.close()
+
+
+@contextlib.contextmanager
+def served(cfg: Path, port: int) -> Iterator[tuple[ServeProcess, httpx.Client]]:
+    """``serve --config cfg`` on ``port`` (log beside ``cfg``) and a client carrying the token;
+    stopped on exit."""
+    serve = ServeProcess(cfg, port, cfg.with_name("serve.log"))
+    serve.start()
+    try:
+        with httpx.Client(
+            base_url=serve.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=DEADLINE_S
+        ) as client:
+            yield serve, client
+    finally:
+        serve.stop()

@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.http.app import create_app
+    from service.http.security import forwarded_options
     from service.http.tls import uvicorn_ssl_options
 
     settings = settings_from_args(args)
@@ -92,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         port=settings.port,
         **ssl_options,
         **http_limits(settings),
+        **forwarded_options(settings),
         log_config=None,  # the CLI configured logging
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
         loop=UVICORN_LOOP,
@@ -261,6 +263,14 @@ def _app_http_limits(app: Any) -> dict[str, Any]:
     return http_limits(inputs.settings) if inputs is not None else {}
 
 
+def _app_forwarded_options(app: Any) -> dict[str, Any]:
+    """:func:`service.http.security.forwarded_options` of the app's settings (none: not believed)."""
+    from service.http.security import forwarded_options
+
+    inputs = getattr(getattr(app, "state", None), "inputs", None)
+    return forwarded_options(inputs.settings) if inputs is not None else {"proxy_headers": False}
+
+
 @contextlib.contextmanager
 def serve_in_thread(
     app: Any, host: str = "127.0.0.1", port: int = 0, *, ssl_options: dict[str, Any] | None = None
@@ -289,6 +299,7 @@ def serve_in_thread(
         loop=UVICORN_LOOP,
         **(ssl_options or {}),
         **_app_http_limits(app),
+        **_app_forwarded_options(app),
     )
     server = _Server(config, app)
     failure: list[BaseException] = []

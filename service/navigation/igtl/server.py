@@ -80,7 +80,7 @@ import numpy.typing as npt
 
 from service.errors import IgtlConfigError, IgtlCrcError, IgtlPeerError, IgtlWireError
 from service.navigation.igtl import wire
-from service.netaddr import in_networks, is_loopback, parse_networks
+from service.netaddr import in_networks, is_loopback, parse_networks, printable
 from service.settings import as_enabled
 
 if TYPE_CHECKING:
@@ -583,6 +583,14 @@ class IgtlServer:
         if not msg_type.startswith("GET_"):
             return
         self.counters["queries"] += 1
+        if not (device.isascii() and device.isprintable()):  # refused with a STATUS (#41), not dropped
+            log.warning("OpenIGTLink: %s for device %s refused: not a printable ASCII name", msg_type,
+                        printable(device))  # fmt: skip
+            why = wire.status_content(
+                4, error_name="NOT_FOUND", status_string="device names are printable ASCII"
+            )
+            client.offer(_Out("STATUS", "oarmreg", why, {}, time.time()))
+            return
         reg = self._registration()
         outs: list[_Out]
         if msg_type in ("GET_TRANS", "GET_TRANSFOR"):

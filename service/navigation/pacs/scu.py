@@ -34,6 +34,7 @@ from typing import Any, Literal
 from pydicom import dcmread
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 
+from service.netaddr import printable
 from service.settings import PacsSettings
 
 log = logging.getLogger(__name__)
@@ -135,7 +136,7 @@ def c_store(sro_bytes: bytes, cfg: PacsSettings) -> StoreOutcome:
             return StoreOutcome(
                 "unreachable", None, f"no C-STORE response from {where} (aborted or timed out)"
             )
-        comment = str(status.get("ErrorComment", "")).strip()
+        comment = printable(str(status.get("ErrorComment", "")).strip(), 200)  # the PACS's text
         if code == 0x0000 or code in WARNING_STATUSES:
             return StoreOutcome(
                 "sent", code, f"stored by {where}" + (f" with warning: {comment}" if comment else "")
