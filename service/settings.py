@@ -122,11 +122,26 @@ def as_enabled(section: _S, error: type[ConfigError]) -> _S:
         raise error("; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())) from None
 
 
+def _refuse_radian_rpy(setting: str, rpy_deg: tuple[float, float, float]) -> None:
+    """A degrees field holding radians (``[3.14159, 0, 0]`` for 180°) is refused: one scan cannot see
+    the resulting robot-side error (registration.model.mount_checks)."""
+    from registration.model.mount_checks import rpy_problems
+
+    problems = rpy_problems(setting, rpy_deg)
+    if problems:
+        raise ValueError(problems[0])
+
+
 class Tool0FromPhantom(_Section):
     """The connecting rod: phantom frame expressed in the flange (tool0) frame."""
 
     translation_mm: tuple[_TranslationMm, _TranslationMm, _TranslationMm] = (0.0, 0.0, 200.0)
     rpy_deg: tuple[_RpyDeg, _RpyDeg, _RpyDeg] = (180.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _degrees_not_radians(self) -> Tool0FromPhantom:
+        _refuse_radian_rpy("robot.tool0_from_phantom", self.rpy_deg)
+        return self
 
     def matrix(self) -> NDArray[np.float64]:
         """4 × 4 ``tool0_from_phantom`` (mm), URDF rpy convention."""
@@ -294,6 +309,11 @@ class Tool0FromTcp(_Section):
 
     translation_mm: tuple[_TranslationMm, _TranslationMm, _TranslationMm] = (0.0, 0.0, 0.0)
     rpy_deg: tuple[_RpyDeg, _RpyDeg, _RpyDeg] = (0.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _degrees_not_radians(self) -> Tool0FromTcp:
+        _refuse_radian_rpy("igtl.tool0_from_tcp", self.rpy_deg)
+        return self
 
     def matrix(self) -> NDArray[np.float64]:
         """4 × 4 ``tool0_from_tcp`` (mm), URDF rpy convention (identity by default)."""
@@ -708,6 +728,23 @@ class Settings(BaseSettings):
                 "to a random token (make one with `oarmreg token`), "
                 "or, on a loopback bind only, api.auth = 'none-loopback-only' to serve without authentication"
             )
+
+    def check_robot_side(self, phantom_size_mm: NDArray[np.float64]) -> None:
+        """Refuse a rod whose length cannot be right for this phantom and arm (metres typed in the
+        millimetre field, a rod beyond the arm's reach; registration.model.mount_checks).
+
+        Raises
+        ------
+        ConfigError
+            Naming ``robot.tool0_from_phantom`` and the likely unit.
+        """
+        from registration.model.mount_checks import rod_length_problems
+
+        rod = self.robot.tool0_from_phantom
+        half = float(np.min(np.asarray(phantom_size_mm, dtype=np.float64))) / 2.0
+        problems = rod_length_problems("robot.tool0_from_phantom", rod.translation_mm, half)
+        if problems:
+            raise ConfigError(problems[0])
 
     @property
     def db_path(self) -> Path:

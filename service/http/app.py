@@ -103,10 +103,12 @@ def create_app(
         Bad phantom file, robot model or link URL (fail at start-up, naming the setting).
     """
     settings.check_serving()
+    phantom = phantom if phantom is not None else _load_phantom(settings)
+    settings.check_robot_side(phantom.size_mm)
     inputs = ServiceInputs(
         settings=settings,
         bus=EventBus(),
-        phantom=phantom if phantom is not None else _load_phantom(settings),
+        phantom=phantom,
         robot_model=robot_model if robot_model is not None else _load_robot_model(settings),
         robot_link=robot_link if robot_link is not None else _open_link(settings),
     )

@@ -139,6 +139,49 @@ def test_config_check_and_serve_exit_3_on_a_non_finite_or_absurd_setting(
     assert rc == 3 and f"setting '{key}'" in err, err
 
 
+IMPLAUSIBLE_ROBOT_SIDE = [
+    # issue 40 item 1: a rod typed in radians served a matrix 176-275 mm wrong under a "1.00 mm" headline
+    ("robot.tool0_from_phantom", "rpy_deg = [3.14159, 0.0, 0.0]", "looks like radians"),
+    ("robot.tool0_from_phantom", "rpy_deg = [1.5708, 0.0, -1.5708]", "looks like radians"),
+    ("igtl.tool0_from_tcp", "rpy_deg = [0.0, 0.0, 0.7854]", "looks like radians"),
+    ("robot.tool0_from_phantom", "translation_mm = [0.0, 0.0, 0.2]", "looks like metres"),
+    ("robot.tool0_from_phantom", "translation_mm = [0.0, 0.0, 900.0]", "beyond the arm's own reach"),
+]
+
+
+@pytest.mark.parametrize(("section", "line", "shown"), IMPLAUSIBLE_ROBOT_SIDE)
+def test_config_check_and_serve_exit_3_on_an_implausible_robot_side(
+    section: str, line: str, shown: str, tmp_path: Path, clean_env: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str], root_logging: None,
+) -> None:  # fmt: skip
+    """Issue 40 item 1: radians in a degrees field, metres in a millimetre field and a rod beyond the
+    arm's reach are refused by ``config check`` and ``serve`` (exit 3), naming the setting and the
+    likely unit; on main they passed and the service served a matrix hundreds of mm wrong."""
+    bad = tmp_path / "oarmreg.toml"
+    bad.write_text(f"[{section}]\n{line}\n")
+    rc, out, err = _cli(["config", "check", "--config", str(bad)], capsys)
+    assert rc == 3 and out == "", (out, err)
+    assert section in err and shown in err, err
+    clean_env.setenv("OARMREG_API_TOKEN", TOKEN)
+    argv = ["serve", "--config", str(bad), "--watch", str(tmp_path / "w"), "--data", str(tmp_path / "d"),
+            "--port", "0"]  # fmt: skip
+    rc, _, err = _cli(argv, capsys)
+    assert rc == 3 and shown in err, err
+
+
+def test_config_check_passes_a_real_odd_mount(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], root_logging: None
+) -> None:
+    """A tilted, offset rod in degrees and millimetres is not mistaken for a unit slip."""
+    odd = tmp_path / "oarmreg.toml"
+    odd.write_text(
+        "[robot.tool0_from_phantom]\ntranslation_mm = [12.5, -3.0, 87.25]\nrpy_deg = [178.5, 1.2, 90.0]\n"
+        "[igtl.tool0_from_tcp]\ntranslation_mm = [0.0, 0.0, 0.0]\nrpy_deg = [0.0, 0.0, 45.0]\n"
+    )
+    rc, out, err = _cli(["config", "check", "--config", str(odd)], capsys)
+    assert rc == 0 and "valid" in out, err
+
+
 # ---- logging options ---------------------------------------------------------------------------
 
 

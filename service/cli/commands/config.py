@@ -89,9 +89,14 @@ def validate_resources(settings: Any) -> None:
 
     problems = []
     try:
-        load_phantom(settings.phantom_file)
+        phantom = load_phantom(settings.phantom_file)
     except ConfigError as e:
         problems.append(f"setting 'phantom_file' ({settings.phantom_file}): {e}")
+    else:
+        try:
+            settings.check_robot_side(phantom.size_mm)
+        except ConfigError as e:
+            problems.append(str(e))
     try:
         RobotModel.load(settings.robot.model)
     except ConfigError as e:

@@ -149,6 +149,16 @@ def _resolve(p: str | Path, base: Path) -> Path:
     return base / p
 
 
+def _refuse_radians(setting: str, rpy_deg: list[float]) -> None:
+    """The settings' radians-in-degrees rule (registration.model.mount_checks) for a rod given here."""
+    from registration.errors import ConfigError
+    from registration.model.mount_checks import rpy_problems
+
+    problems = rpy_problems(setting, [float(a) for a in rpy_deg])
+    if problems:
+        raise ConfigError(problems[0])
+
+
 def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
     import numpy as np
 
@@ -162,6 +172,7 @@ def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
                 v = [float(x) for x in cli]
             except ValueError:
                 raise ConfigError(f"--tool0-from-phantom: expected 6 numbers, got {cli}") from None
+            _refuse_radians("--tool0-from-phantom ROLL PITCH YAW", v[3:])
             return transform_from_xyz_rpy(v[:3], v[3:])
         if len(cli) == 1:
             try:
@@ -176,7 +187,9 @@ def _rod(cli: list[str] | None, robot_cfg: dict[str, Any]) -> Any:
         raise ConfigError("--tool0-from-phantom takes X Y Z ROLL PITCH YAW or one JSON file")
     rod = robot_cfg.get("tool0_from_phantom")
     if isinstance(rod, dict):  # the service schema: translation_mm + rpy_deg
-        return transform_from_xyz_rpy(rod.get("translation_mm", [0, 0, 200]), rod.get("rpy_deg", [180, 0, 0]))
+        rpy = rod.get("rpy_deg", [180, 0, 0])
+        _refuse_radians("robot.tool0_from_phantom", rpy)
+        return transform_from_xyz_rpy(rod.get("translation_mm", [0, 0, 200]), rpy)
     if rod is not None:  # a 4 × 4 matrix
         return as_transform(np.asarray(rod, dtype=float), "tool0_from_phantom")
     return default_tool0_from_phantom()
