@@ -255,6 +255,7 @@ async def _start_core(inputs: ServiceInputs, db: Database, stack: contextlib.Asy
     )
     stack.push_async_callback(asyncio.to_thread, calibrations.stop)
     calibrations.restore()
+    orchestrator.withdraw_if_robot_side_changed()  # after the calibration in force is known
     lifecycle = ScanLifecycle(db, inputs.volumes, publish, orchestrator.withdraw_scan)
     intake_dir = settings.data_dir / INTAKE_FOLDER
     await asyncio.to_thread(lifecycle.recover, cstore_root=intake_dir)  # after a crash

@@ -68,6 +68,7 @@ from service.intake.scan_checks import check_capture
 from service.intake.volume_cache import VolumeCache
 from service.records import ScanRecord
 from service.registrations.orchestrator import Orchestrator
+from service.registrations.robot_side import FINGERPRINT_KEY, changed_settings
 from service.settings import Settings
 from service.store import Database
 from service.store.base import utc_now
@@ -132,6 +133,8 @@ class CalibrationJobs:
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.inactive_reason = ""
+        """Why the active calibration is not used (made under other robot settings; ``/status``)."""
 
     # ---- life ----------------------------------------------------------------------------
 
@@ -141,7 +144,18 @@ class CalibrationJobs:
         if ids:
             log.warning("calibration(s) %s were interrupted by a restart: marked refused", ids)
         act = self.db.calibrations.active()
-        if act is not None:
+        changed = (
+            []
+            if act is None
+            else changed_settings(act.params.get(FINGERPRINT_KEY), self.orchestrator.robot_settings)
+        )
+        if act is not None and changed:
+            self.inactive_reason = (
+                f"calibration {act.id} was made under other robot settings ({', '.join(changed)} changed): "
+                "it is not used; restore those settings, or calibrate again under these"
+            )
+            log.warning("%s", self.inactive_reason)
+        elif act is not None:
             model, rod = self._model_of(act)
             self.orchestrator.use_calibration(model, rod, self._ref(act))
             log.info("active calibration %d (%s) restored", act.id, act.calibration_hash[:12])
@@ -237,6 +251,7 @@ class CalibrationJobs:
             params={
                 **dataclasses.asdict(req.params(self.settings.calibration.target_rms_mm)),
                 "request": _request_json(req),
+                FINGERPRINT_KEY: self.orchestrator.robot_settings,
             },
             config_hash=self.orchestrator.config_hash,
             software_version=__version__,

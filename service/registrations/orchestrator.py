@@ -77,6 +77,7 @@ from service.records import (
     points3,
 )
 from service.registrations.figures import provenance, registration_figures, verification_figures
+from service.registrations.robot_side import FINGERPRINT_KEY, robot_settings_fingerprint, stale_reasons
 from service.settings import Settings
 from service.store import Database
 from service.store.base import utc_now
@@ -215,6 +216,8 @@ class Orchestrator:
         self.publish = publish
         self.volumes = volumes if volumes is not None else VolumeCache()
         self.config_hash = settings.config_hash()
+        self.robot_settings = robot_settings_fingerprint(settings, robot_model)
+        """The robot side the settings in force describe (service.registrations.robot_side)."""
         self.tool0_from_phantom = settings.robot.tool0_from_phantom.matrix()
         self._nominal: tuple[RobotModel, NDArray[np.float64], None] = (
             robot_model,
@@ -240,6 +243,32 @@ class Orchestrator:
                 self._current.series_uid,
                 self._current.fre_mm or float("nan"),
             )
+
+    def withdraw_if_robot_side_changed(self) -> str:
+        """At start-up, after the active calibration is restored: withdraw the current registration
+        if it rests on other robot settings or another calibration than those in force (a restart
+        after a rod change must not serve the old matrix).  Returns the reason ("" when it stands)."""
+        with self._lock:
+            cur = self._current
+            if cur is None or cur.figures is None:
+                return ""
+            changed = stale_reasons(
+                cur.figures.provenance, self.robot_settings, self.calibration, self.tool0_from_phantom
+            )
+            if not changed:
+                return ""
+            reason = (
+                f"the robot side changed since registration {cur.id} was made ({', '.join(changed)}): "
+                "its matrix no longer describes this robot; scan the phantom and register again"
+            )
+            self.db.registrations.withdraw_one(cur.id, reason)
+            self._current = None
+            self._withdrawn_by_verification = None
+        log.warning("registration %d not restored: %s", cur.id, reason)
+        self.publish(RegistrationWithdrawn(
+            registration_ids=(cur.id,), scan_id=cur.scan_id or 0, was_current=True, reason=reason,
+        ))  # fmt: skip
+        return reason
 
     @property
     def current(self) -> RegistrationRecord | None:
@@ -499,6 +528,7 @@ class Orchestrator:
             config_hash=self.config_hash,
         )
         prov["calibration"] = self.calibration
+        prov[FINGERPRINT_KEY] = self.robot_settings
         chain_mm, chain_src = chain_error_figure(self.calibration)
         figures = registration_figures(
             run,

@@ -128,6 +128,14 @@ class RegistrationStore:
                 c.execute("DELETE FROM current_registration WHERE singleton = 1")
             return ids, was_current
 
+    def withdraw_one(self, reg_id: int, reason: str) -> None:
+        """Withdraw registration ``reg_id`` and, if it is current, remove the current pointer."""
+        with self._db.transaction() as c:
+            c.execute(_Withdraw.UPDATE, (utc_now(), reason, reg_id))
+            c.execute(
+                "DELETE FROM current_registration WHERE singleton = 1 AND registration_id = ?", (reg_id,)
+            )
+
     def withdraw_derived(self, scan_id: int, reason: str) -> DerivedWithdrawal:
         """Withdraw the verifications and calibrations made from ``scan_id`` (its content changed).
 

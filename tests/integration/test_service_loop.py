@@ -474,8 +474,6 @@ def test_verify_after_moving_the_robot(svc: Service, world: World, baseline: Bas
 def test_restart_restores_current_registration(
     svc: Service, world: World, baseline: Baseline, tmp_path: Path
 ) -> None:
-    import sqlite3
-
     from service.cli.commands.serve import serve_in_thread
     from service.http.app import create_app
 
@@ -484,15 +482,7 @@ def test_restart_restores_current_registration(
     n_regs = len(svc.client.get("/registrations").json())
     # A second service may not share the running one's data folder (serve.lock, issue 19): the
     # restarted service opens a copy of the database (SQLite's online backup).
-    data2 = tmp_path / "data"
-    data2.mkdir()
-    src = sqlite3.connect(svc.settings.db_path)
-    dst = sqlite3.connect(data2 / svc.settings.db_path.name)
-    try:
-        src.backup(dst)
-    finally:
-        src.close()
-        dst.close()
+    data2 = _copy_database(svc, tmp_path)
     app2 = create_app(
         make_settings(svc.watch, data2, svc.mock.url), phantom=world.phantom, robot_model=world.model
     )
@@ -508,6 +498,47 @@ def test_restart_restores_current_registration(
         scans2 = wait_for(lambda: c2.get("/status").json()["watcher"]["last_scan_at"], "a watcher pass")
         assert scans2
         assert len(c2.get("/scans").json()) == len(svc.client.get("/scans").json())
+
+
+def _copy_database(svc: Service, tmp_path: Path) -> Path:
+    """A data folder holding a copy of the running service's database (SQLite's online backup): a
+    second service may not share the running one's data folder (serve.lock, issue 19)."""
+    import sqlite3
+
+    data2 = tmp_path / "data"
+    data2.mkdir()
+    src = sqlite3.connect(svc.settings.db_path)
+    dst = sqlite3.connect(data2 / svc.settings.db_path.name)
+    try:
+        src.backup(dst)
+    finally:
+        src.close()
+        dst.close()
+    return data2
+
+
+def test_restart_after_a_rod_change_withdraws_the_current_registration(
+    svc: Service, world: World, baseline: Baseline, tmp_path: Path
+) -> None:
+    """Issue 40 item 2: a restart under another rod does not restore the registration made with the
+    old one (on main: 'restored current registration', the old matrix served); it is withdrawn with
+    a reason naming the setting, and nothing is current."""
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
+
+    reg_id = baseline.registration["id"]
+    data2 = _copy_database(svc, tmp_path)
+    rod = {"translation_mm": (0.0, 0.0, 210.0), "rpy_deg": (180.0, 0.0, 0.0)}
+    settings2 = make_settings(svc.watch, data2, svc.mock.url, **{"robot.tool0_from_phantom": rod})
+    app2 = create_app(settings2, phantom=world.phantom, robot_model=world.model)
+    with (
+        serve_in_thread(app2) as server2,
+        httpx.Client(base_url=server2.base_url, headers={"Authorization": f"Bearer {TOKEN}"}) as c2,
+    ):
+        assert c2.get("/registration/current").status_code != 200
+        rec = c2.get(f"/registrations/{reg_id}").json()
+        assert rec["status"] == "withdrawn", rec
+        assert "robot.tool0_from_phantom" in rec["reason"], rec
 
 
 def _dead_port() -> int:

@@ -106,6 +106,8 @@ def _active_calibration(ctx: CtxDep) -> dict[str, object] | None:
         "calibration_hash": act.calibration_hash,
         "activated_at": act.activated_at,
         "predicted_held_out_rms_mm": (act.result or {}).get("predicted_held_out_rms_mm"),
+        "in_use": not ctx.calibrations.inactive_reason,
+        "not_in_use_reason": ctx.calibrations.inactive_reason,
     }
 
 
