@@ -137,24 +137,52 @@ class VerificationWithdrawal:
         return f"registration {self.registration_id} was withdrawn: {self.reason}. Likely cause: {self.cause}"
 
 
-def verification_withdrawal(rec: RegistrationRecord, gate_mm: float) -> VerificationWithdrawal:
+def same_pose(a: Sequence[float] | None, b: Sequence[float] | None, tol_rad: float) -> bool:
+    """Whether two joint vectors are the same pose within ``tol_rad`` (False when either is unknown)."""
+    if a is None or b is None or len(a) != len(b):
+        return False
+    return bool(np.max(np.abs(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64))) <= tol_rad)
+
+
+def verification_withdrawal(
+    rec: RegistrationRecord,
+    gate_mm: float,
+    *,
+    verification_joints_rad: Sequence[float] | None = None,
+    same_pose_tol_rad: float = 0.0,
+) -> VerificationWithdrawal:
     """The likely cause of ``rec``'s withdrawal by a verification and what to do.
 
-    Cell not calibrated when the registration's own expected error at other poses
-    (``predicted_chain_error_mm``) is at or above the gate: a verification at another pose is then
-    expected to fail whatever else happened.  Otherwise the chain should have held: the phantom was
-    knocked on its rod or the O-arm moved since the registration scan."""
+    At the registration scan's own joints (within ``same_pose_tol_rad``, the stillness tolerance) the
+    chain's error is absorbed by the fit, so it cannot explain a failure: the phantom was knocked or
+    the O-arm moved.  At another pose: cell not calibrated when the registration's own expected error
+    at other poses (``predicted_chain_error_mm``) is at or above the gate (a verification at another
+    pose is then expected to fail whatever else happened); otherwise the chain should have held, and
+    again the phantom or the O-arm moved."""
     assert rec.withdrawn_by_scan is not None
     fig = rec.figures
     chain = None if fig is None else fig.predicted_chain_error_mm
     cal = None if fig is None else fig.provenance.get("calibration")
     calibrated = isinstance(cal, dict) and cal.get("calibration_id") is not None
-    if chain is not None and chain >= gate_mm:
+    reg_joints = None if fig is None else fig.provenance.get("joints_rad")
+    at_registration_pose = same_pose(verification_joints_rad, reg_joints, same_pose_tol_rad)
+    if at_registration_pose:
+        cause: LikelyCause = "phantom-or-oarm-moved"
+        why = (
+            "phantom knocked or O-arm moved since the registration scan: the verification scan was taken "
+            "at the registration scan's own joints, where the robot model's and rod's errors are absorbed "
+            "by the fit, so the robot side cannot explain it"
+        )
+        action = (
+            "check the phantom's mount on the rod and the O-arm's placement, scan the phantom again "
+            "and register the new scan"
+        )
+    elif chain is not None and chain >= gate_mm:
         backed = (
             f"calibration {cal['calibration_id']}'s posterior figure" if calibrated and isinstance(cal, dict)
             else "the nominal model's prior: the cell is not calibrated"
         )  # fmt: skip
-        cause: LikelyCause = "cell-not-calibrated"
+        cause = "cell-not-calibrated"
         why = (
             f"cell not calibrated: the registration's expected error at the robot's other poses is "
             f"{chain:.2f} mm ({backed}), at or above the {gate_mm:g} mm gate, so a verification at "
@@ -281,7 +309,7 @@ class Orchestrator:
         w = self._withdrawn_by_verification
         if w is None or self._current is not None:
             return None
-        return verification_withdrawal(w, self.settings.quality.max_verification_error_mm)
+        return self._verification_withdrawal(w)
 
     def use_calibration(
         self,
@@ -677,13 +705,35 @@ class Orchestrator:
             f"{reason}; registration {current.id} is withdrawn: likely cause: {w.cause}; {w.action}"
         )
 
+    def _verification_withdrawal(self, rec: RegistrationRecord) -> VerificationWithdrawal:
+        """:func:`verification_withdrawal` with the joints of the verification scan (its record's, or
+        the scan's snapshot when it could not be computed)."""
+        joints: Sequence[float] | None = None
+        ver = (
+            None
+            if rec.withdrawn_by_verification is None
+            else self.db.verifications.get(rec.withdrawn_by_verification)
+        )
+        if ver is not None:
+            joints = ver.figures.joints_rad
+        elif rec.withdrawn_by_scan is not None:
+            scan = self.db.scans.get(rec.withdrawn_by_scan)
+            snap = None if scan is None else scan.snapshot
+            joints = None if snap is None else snap.joints_rad
+        return verification_withdrawal(
+            rec,
+            self.settings.quality.max_verification_error_mm,
+            verification_joints_rad=joints,
+            same_pose_tol_rad=self.settings.stillness.max_deviation_rad,
+        )
+
     def _published_withdrawal(self, reg_id: int, reason: str) -> VerificationWithdrawal:
         """After the store withdrew ``reg_id`` (the current one) by a verification: remember why, log,
         publish ``registration_withdrawn`` (the push channels read :attr:`current`, now None)."""
         rec = self.db.registrations.get(reg_id)
         assert rec is not None and rec.withdrawn_by_scan is not None and rec.scan_id is not None
         self._withdrawn_by_verification = rec
-        w = verification_withdrawal(rec, self.settings.quality.max_verification_error_mm)
+        w = self._verification_withdrawal(rec)
         log.warning("%s; nothing is current; %s", w.describe(), w.action)
         self.publish(
             RegistrationWithdrawn(
