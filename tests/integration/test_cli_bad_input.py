@@ -151,3 +151,34 @@ def test_a_joints_deg_key_names_the_accepted_key(tmp_path: Path, capsys: pytest.
     assert main(["register", "--image-points", str(pts), "--joints", str(joints)]) == EXIT_INPUT
     line = _one_line_error(capsys)
     assert "joints_deg" in line and 'accepted key is "joints_rad"' in line and "None" not in line
+
+
+def test_simulate_of_a_pose_that_images_no_sphere_fails(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 40 item 6: the mock robot's own default pose at placement or1 images no sphere; on main
+    ``simulate`` exited 0 with 'spheres fully imaged: 0 of 28' and wrote the empty series."""
+    out = tmp_path / "scan"
+    argv = ["simulate", "--joints", "0,0,1.5707963,0,0.7853982,0", "--placement", "or1", "--out", str(out),
+            "--preset", "small"]  # fmt: skip
+    assert main(argv) == EXIT_INPUT
+    err = capsys.readouterr().err  # the progress line (carriage returns), then the one error line
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert (
+        line.startswith("oarmreg simulate: ")
+        and "none of the phantom's 28 spheres" in line
+        and "field" in line
+    )
+    assert not any(out.glob("*.dcm"))
+
+
+def test_detect_that_finds_no_sphere_fails(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 40 item 6: a scan with no metal sphere (plastic ones) detects none; on main ``detect``
+    printed '0 sphere(s)' and exited 0."""
+    out = tmp_path / "scan"
+    assert main(["simulate", "--out", str(out), "--preset", "small", "--metal-free"]) == 0
+    capsys.readouterr()
+    assert main(["detect", str(out)]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert "no sphere found" in err and "phantom" in err and "Traceback" not in err

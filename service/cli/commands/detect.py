@@ -133,6 +133,8 @@ def _with_face_offset(result: DetectionResult, phantom_path: Path | None) -> Det
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.error_map import EXIT_INPUT
+
     from registration.detection import detect_spheres
     from registration.dicom import load_series
 
@@ -194,4 +196,11 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"wrote {args.json_out}\n")
     if args.overlay is not None:
         out.write(f"wrote {args.overlay}\n")
+    if not result.spheres:  # no empty success (issue 40 item 6)
+        sys.stderr.write(
+            f"oarmreg detect: no sphere found in series {volume.series_uid}: check that this is the phantom "
+            "scan and the phantom is inside the O-arm's field (the rejections above say what was seen), "
+            "then scan again\n"
+        )
+        return EXIT_INPUT
     return 0

@@ -334,6 +334,15 @@ def run(args: argparse.Namespace) -> int:
 
         scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
         err.write("\n")
+    if len(scan.sphere_indices) == 0:  # no empty success (issue 40 item 6): nothing is written
+        from service.error_map import EXIT_INPUT
+
+        sys.stderr.write(
+            f"oarmreg simulate: this pose images none of the phantom's {phantom.n_spheres} spheres "
+            f"({len(scan.partial_indices)} cut by the edge of the imaged region); nothing written: move the "
+            "phantom into the O-arm's field (other --joints, --placement or pose) and simulate again\n"
+        )
+        return EXIT_INPUT
     for_uid: str | None = None
     if args.placement is not None or placement is not None:
         from mocks.oarm.placement import placement_frame_of_reference_uid
