@@ -133,10 +133,9 @@ def _with_face_offset(result: DetectionResult, phantom_path: Path | None) -> Det
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.error_map import EXIT_INPUT
-
     from registration.detection import detect_spheres
     from registration.dicom import load_series
+    from service.error_map import EXIT_INPUT
 
     overrides: dict[str, object] = {}
     if args.sphere_diameter is not None:
