@@ -305,6 +305,9 @@ class RegistrationRecord:
     """The verification scan whose failed verification withdrew it (None: not withdrawn by one)."""
     withdrawn_by_verification: int | None = None
     """That stored verification (None: its error was beyond what matching can bridge, nothing stored)."""
+    verified_by: int | None = None
+    """A verification at another pose that passed against it (its evidence level ``verified``;
+    service.registrations.evidence).  Derived from the verifications by the orchestrator, not stored."""
 
 
 # ---- verifications -------------------------------------------------------------------------

@@ -39,7 +39,14 @@ from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
 from service.data_dir import hold_serve_lock, make_private
 from service.event_bus import EventBus, Subscriptions
-from service.events import Publish, RegistrationDone, RegistrationRefused, RegistrationWithdrawn, ScanArrived
+from service.events import (
+    Publish,
+    RegistrationDone,
+    RegistrationRefused,
+    RegistrationWithdrawn,
+    ScanArrived,
+    VerificationDone,
+)
 from service.http.context import ServiceContext, ServiceInputs
 from service.http.security import SecurityGate
 from service.intake.intake_scp import INTAKE_FOLDER, CStoreIntake
@@ -288,6 +295,7 @@ async def _start_outputs(inputs: ServiceInputs, core: _Core, stack: contextlib.A
         subs.listen(RegistrationDone, igtl.on_registration_done, safety=True)
         subs.listen(RegistrationRefused, igtl.on_registration_refused, safety=True)
         subs.listen(RegistrationWithdrawn, igtl.on_registration_withdrawn, safety=True)
+        subs.listen(VerificationDone, igtl.on_verification_done)
     pacs: PacsExporter | None = None
     if settings.pacs.enabled:
         pacs = PacsExporter(core.db, settings.pacs, settings.data_dir, publish)

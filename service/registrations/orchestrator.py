@@ -258,7 +258,8 @@ class Orchestrator:
         """``{"calibration_id", "calibration_hash", "robot_urdf"}`` of the active calibration (None:
         the nominal model and rod of the settings); named in every registration's provenance."""
         self._lock = threading.Lock()
-        self._current: RegistrationRecord | None = db.registrations.current()
+        restored = db.registrations.current()
+        self._current: RegistrationRecord | None = None if restored is None else self.with_evidence(restored)
         self._withdrawn_by_verification: RegistrationRecord | None = (
             db.registrations.standing_verification_withdrawal()
         )
@@ -271,6 +272,17 @@ class Orchestrator:
                 self._current.series_uid,
                 self._current.fre_mm or float("nan"),
             )
+
+    def with_evidence(self, rec: RegistrationRecord) -> RegistrationRecord:
+        """``rec`` with ``verified_by`` set when a verification at another pose passed against it."""
+        if rec.figures is None:
+            return rec
+        reg_joints = rec.figures.provenance.get("joints_rad")
+        tol = self.settings.stillness.max_deviation_rad
+        for ver in self.db.verifications.passed_for(rec.id):
+            if ver.figures.joints_rad is not None and not same_pose(ver.figures.joints_rad, reg_joints, tol):
+                return replace(rec, verified_by=ver.id)
+        return rec
 
     def withdraw_if_robot_side_changed(self) -> str:
         """At start-up, after the active calibration is restored: withdraw the current registration
@@ -671,6 +683,8 @@ class Orchestrator:
         ver_id = self.db.verifications.insert(record, withdraw_reason=withdraw_reason)
         if not record.passed:
             self._current = None
+        elif current.verified_by is None:  # at another pose, it upgrades the evidence to "verified"
+            self._current = self.with_evidence(current)
         self._write_histogram(
             ver_id, scan.id, current.id, np.asarray(res.errors_mm, dtype=np.float64), gate_mm=gate
         )

@@ -59,6 +59,14 @@ class VerificationStore:
         rows = self._db.query("SELECT * FROM verifications WHERE id = ?", (ver_id,))
         return _record(rows[0]) if rows else None
 
+    def passed_for(self, registration_id: int) -> list[VerificationRecord]:
+        """The verifications that passed against ``registration_id``, oldest first (its evidence)."""
+        rows = self._db.query(
+            "SELECT * FROM verifications WHERE registration_id = ? AND passed = 1 ORDER BY id",
+            (registration_id,),
+        )
+        return [_record(r) for r in rows]
+
     def list(self, limit: int = 100, offset: int = 0) -> list[VerificationRecord]:
         """Newest first (``GET /verifications``)."""
         rows = self._db.query(

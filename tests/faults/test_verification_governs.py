@@ -266,7 +266,8 @@ def test_a_passing_verification_at_a_moved_pose_keeps_the_registration_current_a
     reg = _registered(svc, world)
     # issue #31 item 6: the honest figure first, the one-scan TRE labelled as what it is
     body = svc.client.get("/registration/current").json()
-    assert next(iter(body)) == "expected_error"
+    assert list(body)[:2] == ["evidence", "expected_error"]  # what backs the robot side, then the figure
+    assert body["evidence"]["level"] == "unverified"
     e = body["expected_error"]
     assert e["predicted_chain_error_mm"] == reg["predicted_chain_error_mm"] == 1.0  # the nominal prior
     assert e["calibrated"] is False and "not calibrated" in e["basis"]

@@ -195,6 +195,9 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     before = c.post("/register", json={"scan_id": session.scan_ids[-1]})
     assert before.status_code == 200, before.text
     assert before.json()["provenance"]["calibration"] is None
+    # issue 40 item 1: what backs the robot side, first: nothing yet (nominal model, configured rod)
+    ev = before.json()["evidence"]
+    assert ev["level"] == "unverified" and "verify at another pose" in ev["action"], ev
     # no calibration: the chain figure is the nominal model's prior, never the one-scan TRE alone
     assert before.json()["predicted_chain_error_mm"] == NOMINAL_CHAIN_ERROR_MM
     body = {"scan_ids": session.scan_ids, "drop_weak": True}
@@ -233,6 +236,7 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     assert after.status_code == 200, after.text
     prov = after.json()["provenance"]
     assert prov["calibration"]["calibration_id"] == cal_id
+    assert after.json()["evidence"]["level"] == "calibrated" and not after.json()["evidence"]["action"]
     assert prov["calibration"]["calibration_hash"] == cal["calibration_hash"]
     assert np.allclose(prov["tool0_from_phantom"], cal["tool0_from_phantom"])
     chain_mm = after.json()["predicted_chain_error_mm"]

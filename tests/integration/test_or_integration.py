@@ -364,6 +364,7 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
             rx = receive(c, "RobotToImage", lambda m: m.metadata.get("RegistrationId") == str(reg["id"]),
                          "RobotToImage of the current registration")  # fmt: skip
             assert rx.metadata["TransformStatus"] == "OK"
+            assert rx.metadata["Evidence"] == reg["evidence"]["level"]  # issue 40: what backs the robot side
             chain_mm = float(rx.metadata["ChainError_pred_mm"])  # the registration's chain figure
             assert chain_mm == pytest.approx(reg["predicted_chain_error_mm"], abs=1e-3)
             expected = RAS_FROM_LPS @ m_lps  # the documented conversion
@@ -389,6 +390,7 @@ def test_igtl_registration_equals_rest_and_tool_follows_the_robot(svc: Service, 
                          and np.abs(m.matrix[:3, :3] - expected_tool[:3, :3]).max() < 1e-5,
                          "ToolToImage at the robot's new pose")  # fmt: skip
             assert rx.metadata["RegistrationId"] == str(reg["id"])
+            assert rx.metadata["Evidence"] == reg["evidence"]["level"]
         listeners = svc.client.get("/status").json()["listeners"]["igtl"]
         assert listeners["clients"] >= 3
         versions = {p["peer"]: p["header_version"] for p in listeners["peers"]}

@@ -463,6 +463,10 @@ def test_verify_after_moving_the_robot(svc: Service, world: World, baseline: Bas
     ver = r.json()
     assert ver["registration_id"] == baseline.registration["id"]
     assert ver["n_matched"] >= 20 and ver["passed"]
+    # issue 40 item 1: a pass at another pose upgrades the evidence, on REST and the fast path alike
+    for path in ("/registration/current", f"/registrations/{baseline.registration['id']}"):
+        ev = svc.client.get(path).json()["evidence"]
+        assert ev["level"] == "verified" and str(ver["id"]) in ev["summary"], (path, ev)
     assert ver["mean_mm"] < TRE_LIMIT_MM and ver["max_mm"] < 0.5
     assert ver["rms_mm"] >= ver["mean_mm"] and len(ver["errors"]) == ver["n_matched"]
     png = svc.client.get(ver["histogram_url"])

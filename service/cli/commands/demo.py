@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.cli.commands.demo_report import expected_error_lines, report_withdrawal
+from service.cli.commands.demo_report import evidence_line, expected_error_lines, report_withdrawal
 
 if TYPE_CHECKING:
     import numpy as np
@@ -444,6 +444,10 @@ def _move_scan_verify(d: _Demo) -> None:
     _report_verification(ver, png_path)
     if not ver["passed"]:  # on an uncalibrated cell that is the truth, not an error of the demo
         report_withdrawal(d.client, ver)
+    else:  # a pass at another pose raises the evidence level
+        cur = d.client.get("/registration/current")
+        if cur.status_code == 200:
+            _out("  " + evidence_line(cur.json()))
 
 
 def _report_registration(

@@ -26,7 +26,16 @@ def expected_error_lines(reg: dict[str, Any]) -> str:
         backing = "the cell is NOT calibrated: the nominal model's prior"
     tre = e.get("one_scan_tre_max_mm")
     one_scan = "" if tre is None else f"; one-scan TRE, this pose only: max {tre:.4f} mm"
-    return f"expected error at the robot's working poses: {chain_text} ({backing}){one_scan}"
+    expected = f"expected error at the robot's working poses: {chain_text} ({backing}){one_scan}"
+    return f"{evidence_line(reg)}\n{expected}"
+
+
+def evidence_line(reg: dict[str, Any]) -> str:
+    """What backs the robot side, first (docs/safety.md, "Evidence levels")."""
+    ev = reg.get("evidence") or {}
+    level = str(ev.get("level", "unverified")).upper()
+    action = f" Next: {ev['action']}." if ev.get("action") else ""
+    return f"evidence: {level}: {ev.get('summary', '')}{action}"
 
 
 def report_withdrawal(client: Any, ver: dict[str, Any]) -> None:

@@ -451,7 +451,16 @@ def summary(d: dict[str, Any]) -> str:
     """Human-readable summary of a registration dict: the honest figure first (the chain's expected
     error at the robot's working poses, and whether a calibration backs it), then the matrix, then the
     one-scan figures labelled as what they are."""
-    lines = []
+    from service.registrations.evidence import UNVERIFIED_ACTION
+
+    cal = (d.get("provenance") or {}).get("calibration")
+    cal_id = cal.get("calibration_id") if isinstance(cal, dict) else None
+    lines = [
+        f"evidence: CALIBRATED: calibration {cal_id} backs the robot side"
+        if cal_id is not None
+        else "evidence: UNVERIFIED: one scan cannot see an error in the robot model, rod or mount; "
+        f"next: {UNVERIFIED_ACTION}"
+    ]
     chain = d.get("predicted_chain_error_mm")
     if chain is not None:
         source = str(d.get("chain_error_source", ""))

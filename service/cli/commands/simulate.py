@@ -7,6 +7,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -334,15 +335,8 @@ def run(args: argparse.Namespace) -> int:
 
         scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
         err.write("\n")
-    if len(scan.sphere_indices) == 0:  # no empty success (issue 40 item 6): nothing is written
-        from service.error_map import EXIT_INPUT
-
-        sys.stderr.write(
-            f"oarmreg simulate: this pose images none of the phantom's {phantom.n_spheres} spheres "
-            f"({len(scan.partial_indices)} cut by the edge of the imaged region); nothing written: move the "
-            "phantom into the O-arm's field (other --joints, --placement or pose) and simulate again\n"
-        )
-        return EXIT_INPUT
+    if len(scan.sphere_indices) == 0:
+        return _refuse_empty(scan, phantom.n_spheres)
     for_uid: str | None = None
     if args.placement is not None or placement is not None:
         from mocks.oarm.placement import placement_frame_of_reference_uid
@@ -380,3 +374,15 @@ def run(args: argparse.Namespace) -> int:
         render_slice_png(scan, f"{stem}_zoom_bone_window.png", k, window="bone", zoom=3)
         out.write(f"png: {stem}_{{bone,soft,zoom_bone}}_window.png (slice {k})\n")
     return 0
+
+
+def _refuse_empty(scan: Any, n_spheres: int) -> int:
+    """No empty success: a pose that images no sphere writes nothing and exits 4 with what to do."""
+    from service.error_map import EXIT_INPUT
+
+    sys.stderr.write(
+        f"oarmreg simulate: this pose images none of the phantom's {n_spheres} spheres "
+        f"({len(scan.partial_indices)} cut by the edge of the imaged region); nothing written: move the "
+        "phantom into the O-arm's field (other --joints, --placement or pose) and simulate again\n"
+    )
+    return EXIT_INPUT

@@ -24,6 +24,7 @@ from pydantic import (
 )
 
 from service.records import RegistrationRecord, ScanRecord, VerificationRecord
+from service.registrations.evidence import evidence_of
 
 EXAMPLE_MATRIX: list[Any] = [
     [0.0, -1.0, 0.0, 412.5],
@@ -323,6 +324,18 @@ def expected_error_of(rec: RegistrationRecord) -> ExpectedErrorOut | None:
     )
 
 
+class EvidenceOut(_Out):
+    """What backs the registration's robot side (docs/safety.md, "Evidence levels")."""
+
+    level: Literal["calibrated", "verified", "unverified"] = Field(
+        description="calibrated: an active calibration under the same robot settings backs it; verified: "
+        "a verification at another pose passed against it; unverified: neither (nominal model and the "
+        "configured rod) — served, but one scan cannot see a robot-side error."
+    )
+    summary: str = Field(description="One sentence: what the level rests on.")
+    action: str = Field(default="", description="What to do to raise it (empty when nothing is needed).")
+
+
 class RegistrationOut(_Out):
     model_config = ConfigDict(
         json_schema_extra={
@@ -350,6 +363,11 @@ class RegistrationOut(_Out):
         }
     )
 
+    evidence: EvidenceOut | None = Field(
+        default=None,
+        description="What backs the robot side, first: calibrated, verified or unverified (null for a "
+        "refused registration).",
+    )
     expected_error: ExpectedErrorOut | None = Field(
         default=None,
         description="First, the honest figure: the expected error at the robot's working poses and "
@@ -568,6 +586,8 @@ def scan_out(scan: ScanRecord) -> ScanOut:
 
 def registration_out(rec: RegistrationRecord) -> RegistrationOut:
     out = RegistrationOut.model_validate(rec, from_attributes=True)
+    ev = evidence_of(rec)
+    out.evidence = None if ev is None else EvidenceOut(level=ev.level, summary=ev.summary, action=ev.action)
     out.expected_error = expected_error_of(rec)
     return out
 

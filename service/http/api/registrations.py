@@ -128,7 +128,9 @@ def list_registrations(
     limit: Limit = 100,
     offset: Offset = 0,
 ) -> list[RegistrationOut]:
-    return [registration_out(r) for r in ctx.db.registrations.list(limit, offset)]
+    return [
+        registration_out(ctx.orchestrator.with_evidence(r)) for r in ctx.db.registrations.list(limit, offset)
+    ]
 
 
 @router.get(
@@ -141,7 +143,7 @@ def get_registration(ctx: CtxDep, registration_id: RecordId) -> RegistrationOut:
     rec = ctx.db.registrations.get(registration_id)
     if rec is None:
         raise NotFoundError(f"registration {registration_id} does not exist; GET /registrations lists them")
-    out = registration_out(rec)
+    out = registration_out(ctx.orchestrator.with_evidence(rec))
     export = ctx.db.pacs_exports.get(registration_id)
     if export is not None:  # its archive to the PACS
         out.pacs_export = PacsExportOut.model_validate(export, from_attributes=True)

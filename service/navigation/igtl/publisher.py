@@ -28,6 +28,7 @@ from service.events import (
     RegistrationDone,
     RegistrationRefused,
     RegistrationWithdrawn,
+    VerificationDone,
 )
 from service.navigation.igtl.server import (
     F64,
@@ -40,6 +41,7 @@ from service.navigation.igtl.server import (
     SpherePoint,
 )
 from service.records import RegistrationRecord
+from service.registrations.evidence import evidence_of
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +159,11 @@ class IgtlPublisher:
         self._reasons["last_refusal"] = event.reason
         self.server.notify()
 
+    def on_verification_done(self, event: VerificationDone) -> None:
+        """Push at once: a passing verification at another pose raises the evidence level."""
+        if event.passed:
+            self.server.notify()
+
     def on_registration_withdrawn(self, event: RegistrationWithdrawn) -> None:
         """Push at once when the current registration was withdrawn (a failed verification, a changed
         scan): every client must see INVALID now, not at the next ``igtl.period_s``."""
@@ -198,6 +205,7 @@ class IgtlPublisher:
             tre_pred_mm=max(tre) if tre else None,
             chain_error_mm=None if fig is None else fig.predicted_chain_error_mm,
             chain_error_source="" if fig is None else fig.chain_error_source,
+            evidence="" if (ev := evidence_of(cur)) is None else ev.level,
             spheres=self._spheres(cur, image_from_robot),
             sphere_diameter_mm=float(self.orchestrator.phantom.sphere_diameter_mm),
         )

@@ -125,6 +125,9 @@ class RegistrationView:
     """The registration's ``predicted_chain_error_mm`` (metadata ``ChainError_pred_mm``)."""
     chain_error_source: str = ""
     """Whether a calibration backs ``chain_error_mm`` (metadata ``ChainErrorSource``)."""
+    evidence: str = ""
+    """What backs the robot side: calibrated, verified or unverified (metadata ``Evidence``, first;
+    service.registrations.evidence)."""
     spheres: tuple[SpherePoint, ...] = ()
     sphere_diameter_mm: float = 0.0
 
@@ -241,6 +244,8 @@ def _no_registration(state: RegistrationState) -> str:
 def _figures(cur: RegistrationView) -> dict[str, str]:
     """The registration's figures, the chain's expected error first (the honest figure)."""
     meta: dict[str, str] = {}
+    if cur.evidence:
+        meta["Evidence"] = cur.evidence
     if cur.chain_error_mm is not None:
         meta["ChainError_pred_mm"] = _fmt(cur.chain_error_mm)
         meta["ChainErrorSource"] = cur.chain_error_source[:200] or "unknown"
@@ -313,6 +318,8 @@ def tool_messages(
         reason = f"joint sample is {now_t_s - joints.t_s:.3f} s old (> {cfg.joint_max_age_s:g} s)"
     if state.current is not None:
         meta["RegistrationId"] = state.current.registration_id
+        if state.current.evidence:
+            meta["Evidence"] = state.current.evidence
     if not reason:
         assert joints is not None and state.current is not None
         try:

@@ -387,8 +387,11 @@ function renderCurrent(cur) {
     $("current-none").textContent = noCurrentReason(state.registrations);
     return;
   }
-  badge.textContent = "current";
-  badge.className = "pill " + renderExpected(cur).cls;  // the same verdict as the headline and warning
+  const level = renderEvidence(cur);
+  const verdict = renderExpected(cur);
+  // the same verdict as the headline and warning; never green while the robot side is unverified
+  badge.textContent = level === "unverified" ? "current, unverified" : "current";
+  badge.className = "pill " + (level === "unverified" && verdict.cls === "ok" ? "warn" : verdict.cls);
   setText("current-id", String(cur.id), cur.id);
   setText("current-scan", String(cur.scan_id), cur.scan_id);
   setText("current-fre", fmt(cur.fre_mm), cur.fre_mm);
@@ -405,6 +408,18 @@ function renderCurrent(cur) {
   $("current-chart").replaceChildren(barChart(bars, { unit: "mm", title: "residual (mm)" }));
   $("current-provenance").textContent = JSON.stringify(
     { ...cur.provenance, face_offset_mm: cur.face_offset_mm, face_offset_se_mm: cur.face_offset_se_mm }, null, 2);
+}
+
+// What backs the robot side, first (docs/safety.md, "Evidence levels"): calibrated, verified or
+// unverified, one sentence, and the action when one is needed.
+function renderEvidence(cur) {
+  const ev = cur.evidence || { level: "unverified", summary: "", action: "" };
+  const pill = $("current-evidence-level");
+  pill.className = "pill " + (ev.level === "unverified" ? "warn" : "ok");
+  pill.textContent = ev.level.toUpperCase();
+  setText("current-evidence-text", ev.summary + (ev.action ? ` Next: ${ev.action}.` : ""));
+  $("current-evidence").dataset.level = ev.level;
+  return ev.level;
 }
 
 // The honest figure first: the expected error where the robot works, its gate and a one-word verdict.
