@@ -296,6 +296,35 @@ def test_verifications_show_the_gate_line_and_the_verdict(
     assert_clean(w)
 
 
+def test_the_evidence_level_rises_on_the_page_after_a_verification_at_another_pose(
+    context: Any, svc: tuple[h.Service, dict[str, Any]], world: h.World
+) -> None:
+    """Issue 40 item 1, in Chromium: a fresh registration of the Q1 scan reads UNVERIFIED first, with
+    the action and no green badge; a passing verification at Q2 turns it VERIFIED, live."""
+    s, _ = svc
+    s.hold_at(h.Q1)
+    uid, _ = s.export(world.scan1, "evidence-q1")
+    fresh = s.register(s.scan(uid)["id"])
+    assert fresh.status_code == 200, fresh.text
+    reg = fresh.json()
+    assert reg["evidence"]["level"] == "unverified"
+    w = _showing(context, s, reg["id"])
+    p = w.page
+    p.wait_for_selector("#current-evidence[data-level='unverified']")
+    assert p.text_content("#current-evidence-level") == "UNVERIFIED"
+    assert "verify at another pose" in p.text_content("#current-evidence")
+    assert "ok" not in p.get_attribute("#current-badge", "class").split()
+    s.hold_at(h.Q2)
+    uid, _ = s.export(world.scan2, "evidence")
+    v = s.client.post("/verify", json={"scan_id": s.scan(uid)["id"]})
+    s.hold_at(h.Q1)
+    assert v.status_code == 200 and v.json()["passed"], v.text
+    p.wait_for_selector("#current-evidence[data-level='verified']")
+    assert p.text_content("#current-evidence-level") == "VERIFIED"
+    assert f"verification {v.json()['id']}" in p.text_content("#current-evidence-text")
+    assert_clean(w)
+
+
 def test_a_failed_verification_withdraws_with_a_banner_and_the_chain_figure_comes_first(
     context: Any, svc: tuple[h.Service, dict[str, Any]], world: h.World
 ) -> None:

@@ -100,6 +100,7 @@ def test_still_robot_12_associations_and_200_silent_igtl_clients_every_verdict_s
             "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.25,
             "dicom.enabled": True, "dicom.port": dicom_port, "dicom.ae_title": AE_TITLE,
             "dicom.maximum_associations": N_ASSOCIATIONS + 4,
+            "dicom.max_associations_per_peer": N_ASSOCIATIONS,  # 12 O-arms played from one address
             "igtl.enabled": True, "igtl.port": igtl_port,
             "igtl.max_clients": N_IGTL_CLIENTS + 8,  # all held (the default 32 refuses the rest)
         })  # fmt: skip

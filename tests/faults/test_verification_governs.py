@@ -260,14 +260,27 @@ def test_a_client_switching_to_version_2_gets_the_metadata_at_once(
     assert "TransformStatus=OK" in v2[0] and f"RegistrationId={reg['id']}" in v2[0], v2[0]
 
 
+def _evidence_over_igtl(svc: Svc, ref_client: Path) -> str:
+    """``Evidence`` of ``RobotToImage`` as the reference library reads it (version 2, as Slicer)."""
+    proc = subprocess.run(
+        [str(ref_client), "127.0.0.1", str(_igtl_port(svc)), "1", "1"],
+        capture_output=True, text=True, timeout=DEADLINE_S,
+    )  # fmt: skip
+    assert proc.returncode == 0, f"reference client exit {proc.returncode}:\n{proc.stdout}\n{proc.stderr}"
+    v2 = next(ln for ln in proc.stdout.splitlines() if ln.startswith("V2 TRANSFORM RobotToImage "))
+    return next(w.split("=", 1)[1].rstrip(";") for w in v2.split() if w.startswith("Evidence="))
+
+
+@needs_ref_client
 def test_a_passing_verification_at_a_moved_pose_keeps_the_registration_current_and_first_the_chain_figure(
-    svc: Svc, world: World
+    svc: Svc, world: World, ref_client: Path
 ) -> None:
     reg = _registered(svc, world)
     # issue #31 item 6: the honest figure first, the one-scan TRE labelled as what it is
     body = svc.client.get("/registration/current").json()
     assert list(body)[:2] == ["evidence", "expected_error"]  # what backs the robot side, then the figure
     assert body["evidence"]["level"] == "unverified"
+    assert _evidence_over_igtl(svc, ref_client) == "unverified"  # issue 40, as Slicer reads it
     e = body["expected_error"]
     assert e["predicted_chain_error_mm"] == reg["predicted_chain_error_mm"] == 1.0  # the nominal prior
     assert e["calibrated"] is False and "not calibrated" in e["basis"]
@@ -278,6 +291,9 @@ def test_a_passing_verification_at_a_moved_pose_keeps_the_registration_current_a
     assert v.status_code == 200 and v.json()["passed"], v.text
     cur = svc.client.get("/registration/current")
     assert cur.status_code == 200 and cur.json()["id"] == reg["id"]
+    # issue 40: a pass at another pose upgrades the evidence, on REST and OpenIGTLink alike
+    assert cur.json()["evidence"]["level"] == "verified"
+    assert _evidence_over_igtl(svc, ref_client) == "verified"
     ready = svc.client.get("/ready").json()
     assert "registration-withdrawn" not in {p["type"] for p in ready["problems"]}, ready
     assert svc.client.get("/status").json()["registration_withdrawal"] is None

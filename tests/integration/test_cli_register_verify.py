@@ -104,10 +104,12 @@ def test_register_summary_shows_the_chain_figure_first_and_the_services_default_
     out = tmp_path / "reg.json"
     assert main(register(files, "--json", str(out))) == EXIT_OK
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].startswith(
+    # issue 40: what backs the robot side first (no calibration given: unverified, with the action)
+    assert lines[0].startswith("evidence: UNVERIFIED: ") and "verify at another pose" in lines[0]
+    assert lines[1].startswith(
         "expected error at the robot's working poses: 1.000 mm (predicted_chain_error_mm"
     )
-    assert "NOT calibrated" in lines[0]
+    assert "NOT calibrated" in lines[1]
     one_scan = next(ln for ln in lines if ln.startswith("one-scan TRE, this pose only"))
     assert "not the chain's error" in one_scan and "6 targets" in one_scan and "150 mm" in one_scan
     doc = json.loads(out.read_text())

@@ -557,6 +557,7 @@ def test_documented_metadata_keys_are_what_is_sent_both_ways() -> None:
     full = RegistrationView(
         IMAGE_FROM_ROBOT, "reg-0007", fre_mm=0.41, tre_pred_mm=0.6, chain_error_mm=1.02,
         chain_error_source="nominal model prior (no active calibration)",
+        evidence="unverified",
         spheres=(SpherePoint("+x-r1c1", (1.0, 2.0, 3.0), 0.02),), sphere_diameter_mm=4.0,
     )  # fmt: skip
     holder = Holder(RegistrationState(full, Refusal("reg-0008", "moved")))
@@ -589,7 +590,9 @@ def test_documented_metadata_keys_are_what_is_sent_both_ways() -> None:
     assert sent - set(documented) == set(), "sent but not in docs/slicer.md §3"
     assert set(documented) - sent == set(), "in docs/slicer.md §3 but never sent"
     first = list(registration_messages(RegistrationState(full), IgtlSettings())[0].metadata)
-    assert first[:2] == ["ChainError_pred_mm", "ChainErrorSource"], first  # the honest figure first
+    assert first[:3] == ["Evidence", "ChainError_pred_mm", "ChainErrorSource"], (
+        first
+    )  # what backs it, then the figure
 
 
 def test_a_non_finite_matrix_or_tcp_is_a_status_and_the_server_keeps_serving() -> None:

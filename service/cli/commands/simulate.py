@@ -276,7 +276,7 @@ def write_joints(out: Path, joints_rad: list[float], robot: str, placement: str,
 def run(args: argparse.Namespace) -> int:
     from mocks.oarm.cbct import CBCT_PRESET_NAMES, ConeBeamSettings, simulate_cbct
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, pose_from_string, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings, pose_from_string, simulate_scan
     from registration.errors import ConfigError
     from registration.model.phantom import load_phantom
 
@@ -305,14 +305,7 @@ def run(args: argparse.Namespace) -> int:
         if args.poses is not None or args.pose_index is not None:
             raise UsageError("--poses and --pose-index need --joints")
         pose = pose_from_string(args.pose)
-    extras = SceneExtras(
-        vertebra=args.vertebra,
-        rod=args.rod,
-        body=args.body,
-        sphere_material="plastic" if args.metal_free else args.material,
-        hole_tolerance_mm=args.hole_tolerance_mm,
-        hole_model=args.hole_model,
-    )
+    extras = _scene_extras(args)
     err = sys.stderr
     if args.preset in CBCT_PRESET_NAMES:
         cb = ConeBeamSettings.preset(args.preset)
@@ -335,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
 
         scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
         err.write("\n")
-    if len(scan.sphere_indices) == 0:
+    if len(scan.sphere_indices) == 0:  # no empty success: nothing is written
         return _refuse_empty(scan, phantom.n_spheres)
     for_uid: str | None = None
     if args.placement is not None or placement is not None:
@@ -386,3 +379,17 @@ def _refuse_empty(scan: Any, n_spheres: int) -> int:
         "phantom into the O-arm's field (other --joints, --placement or pose) and simulate again\n"
     )
     return EXIT_INPUT
+
+
+def _scene_extras(args: argparse.Namespace) -> Any:
+    """What the scan holds besides the phantom (``SceneExtras``), from the flags."""
+    from mocks.oarm.simulator import SceneExtras
+
+    return SceneExtras(
+        vertebra=args.vertebra,
+        rod=args.rod,
+        body=args.body,
+        sphere_material="plastic" if args.metal_free else args.material,
+        hole_tolerance_mm=args.hole_tolerance_mm,
+        hole_model=args.hole_model,
+    )

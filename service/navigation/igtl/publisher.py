@@ -125,7 +125,9 @@ class IgtlPublisher:
         source = IgtlStateSource(
             registration=self._registration_state,
             joints=self._joints,
-            robot_from_tool0=robot_model.robot_from_tool0,
+            robot_from_tool0=lambda q: robot_model.robot_from_tool0(
+                robot_model.at_limits(q, robot_link.joint_resolution_rad(q))
+            ),  # a joint within the wire's rounding of a limit is at it (issue 40)
             tool0_from_tcp=settings.tool0_from_tcp.matrix(),
         )
         self.server = IgtlServer(settings, source, on_client=self._on_client)
