@@ -196,6 +196,27 @@ def registration_withdrawn_problems(ctx: ServiceContext) -> list[HealthProblem]:
     ]
 
 
+def robot_settings_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """The robot settings changed since what was made with them (docs/safety.md, "Robot settings bind
+    what was made with them"): the current registration withdrawn at start-up, while nothing is current;
+    an active calibration not used."""
+    out = []
+    why = ctx.orchestrator.robot_side_withdrawal
+    if why and ctx.orchestrator.current is None:
+        out.append(
+            HealthProblem("robot-settings-changed", "Registration made under other robot settings", why)
+        )
+    if ctx.calibrations.inactive_reason:
+        out.append(
+            HealthProblem(
+                "calibration-not-used",
+                "Calibration made under other robot settings",
+                ctx.calibrations.inactive_reason,
+            )
+        )
+    return out
+
+
 PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     database_problems,
     robot_link_problems,
@@ -208,6 +229,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     qa_drift_problems,
     bus_listener_problems,
     registration_withdrawn_problems,
+    robot_settings_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""
 

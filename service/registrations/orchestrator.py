@@ -265,6 +265,9 @@ class Orchestrator:
         )
         """The registration a failed verification withdrew, while that is why nothing is current."""
         self.busy = False
+        self.robot_side_withdrawal = ""
+        """Why start-up withdrew the current registration (robot settings changed); ``/ready`` names it
+        while nothing is current."""
         if self._current is not None:
             log.info(
                 "restored current registration %d (scan %s, FRE %.3f mm)",
@@ -303,6 +306,7 @@ class Orchestrator:
             )
             self.db.registrations.withdraw_one(cur.id, reason)
             self._current = None
+            self.robot_side_withdrawal = reason
             self._withdrawn_by_verification = None
         log.warning("registration %d not restored: %s", cur.id, reason)
         self.publish(RegistrationWithdrawn(

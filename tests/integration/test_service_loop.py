@@ -543,6 +543,9 @@ def test_restart_after_a_rod_change_withdraws_the_current_registration(
         rec = c2.get(f"/registrations/{reg_id}").json()
         assert rec["status"] == "withdrawn", rec
         assert "robot.tool0_from_phantom" in rec["reason"], rec
+        ready = c2.get("/ready")  # not ready, and it says why (on main: 200, the old matrix current)
+        problems = {p["type"]: p["detail"] for p in ready.json()["problems"]}
+        assert ready.status_code == 503 and "robot.tool0_from_phantom" in problems["robot-settings-changed"]
 
 
 def _dead_port() -> int:
