@@ -32,9 +32,11 @@ wheel-smoke: $(STAMP)
 	$(BIN)/python -m pytest -q -n 0 tests/integration/test_install_recipe.py
 
 # Two workers, each module on one of them (module-scoped services and the per-module leak guard
-# stay whole); `PYTEST_WORKERS=0 make test` runs it in one process.
+# stay whole); `PYTEST_WORKERS=0 make test` runs it in one process.  The dearest modules start
+# first (tests/helpers/module_costs.py orders them by tests/helpers/module_costs.json), so xdist's
+# own reorder (by number of tests) is off: it left a few-but-slow module to run alone at the end.
 PYTEST_WORKERS ?= 2
-PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
+PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder)
 
 test: lint
 	$(BIN)/python -m pytest $(PYTEST_PARALLEL)
