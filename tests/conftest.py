@@ -99,7 +99,7 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """Record what each module cost in this run, over the record of earlier runs (not on xdist
     workers: the controller has it all)."""
-    cache = session.config.cache
+    cache = getattr(session.config, "cache", None)  # None under -p no:cacheprovider
     if _MODULE_TIME_S and cache is not None and not hasattr(session.config, "workerinput"):
         cache.set(module_costs.CACHE_KEY, {**cache.get(module_costs.CACHE_KEY, {}), **_MODULE_TIME_S})
 
