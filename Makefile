@@ -36,7 +36,7 @@ wheel-smoke: $(STAMP)
 # two: two workers kept the two cores only 128 % busy (services wait on sockets, pollers, robot
 # moves) and, beside other load, got a smaller share of the CPU (issue #42: .ci/run with
 # stress-ng --cpu 2 beside it, 12 min 51 s with two workers at load 6-11, 7 min 37 s with three at
-# load 5-7.5).  The dearest modules start
+# load mostly 5-7.5, 2.6-8.7).  The dearest modules start
 # first (tests/helpers/module_costs.py orders them by tests/helpers/module_costs.json), so xdist's
 # own reorder (by number of tests) is off: it left a few-but-slow module to run alone at the end.
 PYTEST_WORKERS ?= 3
