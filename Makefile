@@ -31,10 +31,16 @@ lint: $(STAMP)
 wheel-smoke: $(STAMP)
 	$(BIN)/python -m pytest -q -n 0 tests/integration/test_install_recipe.py
 
-# Two workers, each module on one of them (module-scoped services and the per-module leak guard
-# stay whole); `PYTEST_WORKERS=0 make test` runs it in one process.
-PYTEST_WORKERS ?= 2
-PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
+# Three workers on CI's two cores, each module on one of them (module-scoped services and the
+# per-module leak guard stay whole); `PYTEST_WORKERS=0 make test` runs it in one process.  Three, not
+# two: two workers kept the two cores only 128 % busy (services wait on sockets, pollers, robot
+# moves) and, beside other load, got a smaller share of the CPU (issue #42: .ci/run with
+# stress-ng --cpu 2 beside it, 12 min 51 s with two workers at load 6-11, 7 min 37 s with three at
+# load mostly 5-7.5, 2.6-8.7).  The dearest modules start
+# first (tests/helpers/module_costs.py orders them by tests/helpers/module_costs.json), so xdist's
+# own reorder (by number of tests) is off: it left a few-but-slow module to run alone at the end.
+PYTEST_WORKERS ?= 3
+PYTEST_PARALLEL := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder)
 
 test: lint
 	$(BIN)/python -m pytest $(PYTEST_PARALLEL)

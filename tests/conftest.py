@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import module_costs
 from tests.helpers.paths import CONFIGS, REPO
 
 __all__ = ["CONFIGS", "REPO"]
@@ -78,6 +79,29 @@ def _assert_nothing_left(
     names = [f"{t.name}{' (daemon)' if t.daemon else ''}" for t in threads]
     coros = [f"{t.get_name()}: {t.get_coro()!r}" for t in tasks]
     assert not (threads or tasks), f"{what} left threads running: {names}; asyncio tasks pending: {coros}"
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Dearest modules first (tests/helpers/module_costs.py), so no slow module starts last."""
+    order = module_costs.order_by_cost(items, module_costs.load_table())
+    items[:] = [items[i] for i in order]
+
+
+_MODULE_TIME_S: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Add up each module's setup, call and teardown time (on xdist's controller: all workers')."""
+    module_costs.add_durations(_MODULE_TIME_S, report.nodeid, report.duration)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Record what each module cost in this run, over the record of earlier runs (not on xdist
+    workers: the controller has it all)."""
+    cache = getattr(session.config, "cache", None)  # None under -p no:cacheprovider
+    if _MODULE_TIME_S and cache is not None and not hasattr(session.config, "workerinput"):
+        cache.set(module_costs.CACHE_KEY, {**cache.get(module_costs.CACHE_KEY, {}), **_MODULE_TIME_S})
 
 
 @pytest.fixture(autouse=True, scope="module")

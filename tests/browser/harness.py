@@ -202,21 +202,44 @@ class PageWatch:
     page: Any
     origin: str
     requests: list[str] = field(default_factory=list)
-    console: list[tuple[str, str]] = field(default_factory=list)
+    console: list[tuple[str, str, str]] = field(default_factory=list)
+    """(type, text, URL of the source) of every console message; for Chromium's "Failed to load
+    resource" errors (a fetch() answered 4xx/5xx) the URL is the resource's."""
     page_errors: list[str] = field(default_factory=list)
 
     def foreign_requests(self) -> list[str]:
         return [u for u in self.requests if not (u.startswith(self.origin + "/") or u == self.origin)]
 
-    def console_errors(self) -> list[str]:
-        return [t for kind, t in self.console if kind == "error"] + self.page_errors
+    def console_errors(self, provoked: tuple[tuple[str, int], ...] = ()) -> list[str]:
+        """Console errors and uncaught page errors, except the failed loads the test itself provoked:
+        ``provoked`` holds (path, status) pairs, e.g. ``("/registration/current", 409)`` when the
+        scenario withdraws the current registration while the page may be fetching it.  Any other
+        error (another status, another path, anything else) is returned."""
+        return [
+            text
+            for kind, text, url in self.console
+            if kind == "error" and not self._provoked(text, url, provoked)
+        ] + self.page_errors
+
+    def _provoked(self, text: str, url: str, provoked: tuple[tuple[str, int], ...]) -> bool:
+        if not (text.startswith(FAILED_LOAD) and url.startswith(self.origin + "/")):
+            return False
+        path = url[len(self.origin) :].split("?", 1)[0]
+        return any(path == p and text.startswith(f"{FAILED_LOAD} {status} ") for p, status in provoked)
+
+    def on_console(self, msg: Any) -> None:
+        self.console.append((msg.type, msg.text, str(msg.location.get("url", ""))))
+
+
+FAILED_LOAD = "Failed to load resource: the server responded with a status of"
+"""How Chromium logs a fetch() answered with an HTTP error (the status follows, then its reason)."""
 
 
 def watched_page(context: Any, origin: str) -> PageWatch:
     page = context.new_page()
     w = PageWatch(page, origin)
     page.on("request", lambda req: w.requests.append(req.url))
-    page.on("console", lambda msg: w.console.append((msg.type, msg.text)))
+    page.on("console", w.on_console)
     page.on("pageerror", lambda exc: w.page_errors.append(str(exc)))
     return w
 

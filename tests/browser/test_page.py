@@ -98,10 +98,18 @@ def _showing(context: Any, svc: h.Service, registration_id: int) -> h.PageWatch:
     return w
 
 
-def assert_clean(w: h.PageWatch) -> None:
+WITHDRAWN = (("/registration/current", 409),)
+"""The failed load a test that withdraws the current registration provokes: the page reads /status
+(a registration is current), the test withdraws it, the page's /registration/current then answers
+409 and Chromium logs it; under load that window is wide.  The page handles it (nothing current)."""
+
+
+def assert_clean(w: h.PageWatch, provoked: tuple[tuple[str, int], ...] = ()) -> None:
+    """No request left the origin; no console error but the failed loads in ``provoked``."""
     assert w.requests, "the page made no request at all"
     assert not w.foreign_requests(), f"requests left the origin: {w.foreign_requests()}"
-    assert not w.console_errors(), f"console errors: {w.console_errors()}"
+    errors = w.console_errors(provoked)
+    assert not errors, f"console errors: {errors}"
 
 
 # ---- tests ---------------------------------------------------------------------------------------
@@ -249,7 +257,7 @@ def test_a_withdrawal_is_shown_and_nothing_is_current(
     ).wait_for()
     assert s.client.get("/registration/current").status_code == 409
     _current(s)  # leave a current registration for the other tests
-    assert_clean(w)
+    assert_clean(w, provoked=WITHDRAWN)
 
 
 def test_verifications_show_the_gate_line_and_the_verdict(
@@ -368,7 +376,7 @@ def test_a_failed_verification_withdraws_with_a_banner_and_the_chain_figure_come
     assert p.is_visible("#current-none") and p.text_content("#current-badge") == "none"
     assert s.client.get("/registration/current").status_code == 409
     _current(s)  # leave a current registration for the other tests
-    assert_clean(w)
+    assert_clean(w, provoked=WITHDRAWN)
 
 
 def test_the_page_speaks_to_or_staff(
@@ -414,9 +422,7 @@ def test_the_page_speaks_to_or_staff(
     assert "POST /" not in p.inner_text("#app"), "an API call left in the page's words"
     assert "POST /calibrations" in (alarm.locator("abbr.api").first.get_attribute("title") or "")
     _current(s)  # leave a current registration for the other tests
-    assert w.requests and not w.foreign_requests()
-    # the withdrawal this test causes may race the page's own GET /registration/current (409)
-    assert not [e for e in w.console_errors() if "409 (Conflict)" not in e], w.console_errors()
+    assert_clean(w, provoked=WITHDRAWN)  # the withdrawal this test causes may race the page's own GET
 
 
 def test_the_self_hosted_docs_send_the_token(context: Any, svc: tuple[h.Service, dict[str, Any]]) -> None:

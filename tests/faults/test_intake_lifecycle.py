@@ -453,6 +453,27 @@ def _register_new(c: httpx.Client, dicom_port: int, datasets: list[Dataset]) -> 
     return int(scan["id"]), int(r.json()["id"])
 
 
+SETUP_ATTEMPTS = 3
+"""Fresh series tried for one set-up registration (see _register_fresh)."""
+
+
+def _register_fresh(c: httpx.Client, dicom_port: int, base: list[Dataset]) -> tuple[list[Dataset], int, int]:
+    """A fresh series of ``base`` sent and registered (_register_new).  On a loaded machine the mock
+    controller in this process can be starved past the joint-history gap limit (seen at load 10:
+    "the longest receive gap is 0.570 s"); the service then rightly refuses that scan as
+    joint-history-incomplete.  That is the set-up of a scan, not the change under test, so only that
+    refusal is met with another fresh series, at most SETUP_ATTEMPTS times; any other answer fails."""
+    for _ in range(SETUP_ATTEMPTS - 1):
+        datasets = _fresh_series(base)
+        try:
+            return (datasets, *_register_new(c, dicom_port, datasets))
+        except AssertionError as e:
+            if "joint-history-incomplete" not in str(e):
+                raise
+    datasets = _fresh_series(base)
+    return (datasets, *_register_new(c, dicom_port, datasets))
+
+
 def _fresh_series(datasets: list[Dataset]) -> list[Dataset]:
     uid = generate_uid()
     out = []
@@ -476,8 +497,7 @@ def test_kill_9_during_a_reopen_and_a_replacement_leaves_nothing_stale_current(
     ):  # fmt: skip
         forked.start()
         # 1. kill -9 during a reopen: the first added instance is acknowledged, then the service dies
-        a = _fresh_series(base)
-        a_scan, a_reg = _register_new(c, dicom_port, a)
+        a, a_scan, a_reg = _register_fresh(c, dicom_port, base)
         with contextlib.suppress(Exception):
             send(dicom_port, extension(a, 3), after=lambda k: (forked.kill9(), True)[1])
         forked.start()
@@ -486,8 +506,7 @@ def test_kill_9_during_a_reopen_and_a_replacement_leaves_nothing_stale_current(
         assert c.get(f"/registrations/{a_reg}").json()["status"] == "withdrawn"
 
         # 2. kill -9 during a replacement: 5 instances re-sent with other pixels, then the service dies
-        b = _fresh_series(base)
-        b_scan, b_reg = _register_new(c, dicom_port, b)
+        b, b_scan, b_reg = _register_fresh(c, dicom_port, base)
         changed = []
         for ds in b[:20]:
             m = copy.deepcopy(ds)
@@ -504,8 +523,7 @@ def test_kill_9_during_a_reopen_and_a_replacement_leaves_nothing_stale_current(
 
         # 3. the state a wrong crash order would leave: a stored instance replaced on disk, the
         #    withdrawal never committed (kill -9 of an idle service, then the file changes)
-        d = _fresh_series(base)
-        d_scan, d_reg = _register_new(c, dicom_port, d)
+        d, d_scan, d_reg = _register_fresh(c, dicom_port, base)
         forked.kill9()
         folder = next((tmp_path / "data" / "dicom-intake").glob(f"*/{d[0].SeriesInstanceUID}"))
         victim = sorted(folder.glob("*.dcm"))[10]
