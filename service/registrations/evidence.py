@@ -16,7 +16,7 @@ states what backs the robot side, strongest first:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from service.records import RegistrationRecord
 
@@ -38,14 +38,22 @@ class Evidence:
     action: str = ""
 
 
+def calibration_of(provenance: dict[str, Any]) -> tuple[int | None, dict[str, Any]]:
+    """The id of the calibration a registration was made through (None: the nominal model) and its
+    provenance entry (empty without one)."""
+    cal = provenance.get("calibration")
+    if not isinstance(cal, dict) or cal.get("calibration_id") is None:
+        return None, {}
+    return int(cal["calibration_id"]), cal
+
+
 def evidence_of(rec: RegistrationRecord) -> Evidence | None:
     """The evidence level of an accepted (or once accepted) registration; None without figures."""
     fig = rec.figures
     if fig is None:
         return None
-    cal = fig.provenance.get("calibration")
-    cal_id = cal.get("calibration_id") if isinstance(cal, dict) else None
-    if isinstance(cal, dict) and cal_id is not None:
+    cal_id, cal = calibration_of(fig.provenance)
+    if cal_id is not None:
         err = cal.get("predicted_chain_error_mm")
         figure = (
             f", predicted error {float(err):.2f} mm at the working poses"

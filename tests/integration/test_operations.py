@@ -126,17 +126,27 @@ def test_config_check_and_serve_exit_3_on_a_non_finite_or_absurd_setting(
     """Issue 31 item 8: NaN, infinity or 1e300 in a transform or limit setting is refused by
     ``config check`` and at start-up (exit 3), the message naming the setting; before, they passed
     (NaN later cut every OpenIGTLink client off, 1e300 gave a 500 at /register)."""
-    bad = tmp_path / "oarmreg.toml"
-    bad.write_text(f"[{section}]\n{line}\n")
     key = f"{section}.{line.split(' =')[0]}"
+    _check_and_serve_exit_3(
+        f"[{section}]\n{line}\n", (f"setting '{key}'", shown), tmp_path, clean_env, capsys
+    )
+
+
+def _check_and_serve_exit_3(
+    toml: str, shown: tuple[str, ...], tmp_path: Path, clean_env: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    """``config check`` and ``serve`` of a file holding ``toml`` exit 3, each error naming ``shown``."""
+    bad = tmp_path / "oarmreg.toml"
+    bad.write_text(toml)
     rc, out, err = _cli(["config", "check", "--config", str(bad)], capsys)
     assert rc == 3 and out == "", (out, err)
-    assert f"setting '{key}'" in err and shown in err, err
+    assert all(x in err for x in shown), err
     clean_env.setenv("OARMREG_API_TOKEN", TOKEN)
     argv = ["serve", "--config", str(bad), "--watch", str(tmp_path / "w"), "--data", str(tmp_path / "d"),
             "--port", "0"]  # fmt: skip
     rc, _, err = _cli(argv, capsys)
-    assert rc == 3 and f"setting '{key}'" in err, err
+    assert rc == 3 and all(x in err for x in shown), err
 
 
 IMPLAUSIBLE_ROBOT_SIDE = [
@@ -157,16 +167,7 @@ def test_config_check_and_serve_exit_3_on_an_implausible_robot_side(
     """Issue 40 item 1: radians in a degrees field, metres in a millimetre field and a rod beyond the
     arm's reach are refused by ``config check`` and ``serve`` (exit 3), naming the setting and the
     likely unit; on main they passed and the service served a matrix hundreds of mm wrong."""
-    bad = tmp_path / "oarmreg.toml"
-    bad.write_text(f"[{section}]\n{line}\n")
-    rc, out, err = _cli(["config", "check", "--config", str(bad)], capsys)
-    assert rc == 3 and out == "", (out, err)
-    assert section in err and shown in err, err
-    clean_env.setenv("OARMREG_API_TOKEN", TOKEN)
-    argv = ["serve", "--config", str(bad), "--watch", str(tmp_path / "w"), "--data", str(tmp_path / "d"),
-            "--port", "0"]  # fmt: skip
-    rc, _, err = _cli(argv, capsys)
-    assert rc == 3 and shown in err, err
+    _check_and_serve_exit_3(f"[{section}]\n{line}\n", (section, shown), tmp_path, clean_env, capsys)
 
 
 def test_config_check_passes_a_real_odd_mount(

@@ -24,7 +24,7 @@ from pydantic import (
 )
 
 from service.records import RegistrationRecord, ScanRecord, VerificationRecord
-from service.registrations.evidence import evidence_of
+from service.registrations.evidence import calibration_of, evidence_of
 
 EXAMPLE_MATRIX: list[Any] = [
     [0.0, -1.0, 0.0, 412.5],
@@ -304,8 +304,7 @@ def expected_error_of(rec: RegistrationRecord) -> ExpectedErrorOut | None:
     fig = rec.figures
     if fig is None:
         return None
-    cal = fig.provenance.get("calibration")
-    cal_id = cal.get("calibration_id") if isinstance(cal, dict) else None
+    cal_id, _ = calibration_of(fig.provenance)
     calibrated = cal_id is not None
     chain = fig.predicted_chain_error_mm
     source = fig.chain_error_source or ("calibration posterior" if calibrated else "nominal model prior")
