@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import time
 
 import numpy as np
 import pytest
@@ -29,12 +28,12 @@ def test_float32_degrees_exact_and_polls_not_lost() -> None:
             await link.connect()
             expected = tuple(math.radians(float(np.float32(d))) for d in Q_DEG)
             assert link.latest().joints_rad == expected  # the float32 the controller wrote, exactly
-            t0 = time.monotonic()
-            await wait_until(lambda: time.monotonic() - t0 >= 2.0, "2 s of polling", 4.0)
+            # 80 polls (1.6 s at 50 Hz), waited for by count, not by time: a loaded machine polls slower
+            await wait_until(lambda: link.counters()["frames_accepted"] >= 80, "80 polls", 30.0)
             await link.close()
             sent, got = mock.frames_sent(), link.counters()["frames_accepted"]
-            assert got >= 80  # 50 Hz poll for 2 s (+ the connect)
-            assert 0 <= sent - got <= 1  # at most the one request in flight at close
+            assert got >= 80
+            assert 0 <= sent - got <= 1  # none lost: at most the one request in flight at close
             assert link.counters()["frames_rejected"] == 0
 
     asyncio.run(main())

@@ -17,8 +17,8 @@ The centre estimator and sphere size are the phantom file's (``--phantom``, defa
 Bai 2018 cube), chosen as the service chooses them, unless ``--method`` / ``--sphere-diameter``
 say otherwise.
 
-Exit codes: 0 success (even with no sphere found: the table says so), 4 bad
-input (unreadable / inconsistent series or phantom file, see :mod:`registration.errors`).
+Exit codes: 0 success, 4 bad input (unreadable / inconsistent series or phantom file, see
+:mod:`registration.errors`) and no sphere found (the table and rejections are printed first).
 """
 
 from __future__ import annotations
