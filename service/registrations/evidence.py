@@ -60,14 +60,14 @@ def evidence_of(rec: RegistrationRecord) -> Evidence | None:
             if isinstance(err, int | float)
             else ""
         )
-        return Evidence("calibrated", f"Calibrated: calibration {cal_id} backs the robot side{figure}.")
+        return Evidence("calibrated", f"Calibration {cal_id} backs the robot side{figure}.")
     if rec.verified_by is not None:
         return Evidence(
-            "verified", f"Verified: verification {rec.verified_by}, at another pose, passed against it."
+            "verified", f"A verification at another pose (verification {rec.verified_by}) passed against it."
         )
     return Evidence(
         "unverified",
-        "Unverified: one scan cannot see an error in the robot model, rod or mount, and no scan at another "
-        "pose has checked this matrix.",
+        "One scan cannot see an error in the robot model, rod or mount, and no scan at another pose has "
+        "checked this matrix.",
         UNVERIFIED_ACTION,
     )
