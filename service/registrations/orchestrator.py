@@ -137,6 +137,13 @@ class VerificationWithdrawal:
         return f"registration {self.registration_id} was withdrawn: {self.reason}. Likely cause: {self.cause}"
 
 
+MOVED_ACTION = (
+    "check the phantom's mount on the rod and the O-arm's placement, scan the phantom again and register "
+    "the new scan"
+)
+"""What to do when the phantom or the O-arm moved (``likely_cause`` ``phantom-or-oarm-moved``)."""
+
+
 def same_pose(a: Sequence[float] | None, b: Sequence[float] | None, tol_rad: float) -> bool:
     """Whether two joint vectors are the same pose within ``tol_rad`` (False when either is unknown)."""
     if a is None or b is None or len(a) != len(b):
@@ -173,10 +180,7 @@ def verification_withdrawal(
             "at the registration scan's own joints, where the robot model's and rod's errors are absorbed "
             "by the fit, so the robot side cannot explain it"
         )
-        action = (
-            "check the phantom's mount on the rod and the O-arm's placement, scan the phantom again "
-            "and register the new scan"
-        )
+        action = MOVED_ACTION
     elif chain is not None and chain >= gate_mm:
         backed = (
             f"calibration {cal['calibration_id']}'s posterior figure" if calibrated and isinstance(cal, dict)
@@ -199,10 +203,7 @@ def verification_withdrawal(
             f"error at other poses, {'unknown' if chain is None else f'{chain:.2f} mm'}, is below the "
             f"{gate_mm:g} mm gate)"
         )
-        action = (
-            "check the phantom's mount on the rod and the O-arm's placement, scan the phantom again "
-            "and register the new scan"
-        )
+        action = MOVED_ACTION
     return VerificationWithdrawal(
         registration_id=rec.id,
         verification_scan_id=rec.withdrawn_by_scan,

@@ -44,9 +44,9 @@ from service.intake.intake_scp import INTAKE_FOLDER
 from tests.faults._service import (
     DEADLINE_S,
     TOKEN,
-    ServeProcess,
     free_port,
     mock_controller_process,
+    served,
     wait_for,
     write_config,
 )
@@ -174,15 +174,10 @@ def service(tmp_path: Path) -> Iterator[tuple[httpx.Client, int]]:
             "stillness.window_s": WINDOW_S,
             "dicom.enabled": True, "dicom.port": dicom_port, "dicom.ae_title": AE_TITLE,
         })  # fmt: skip
-        serve = ServeProcess(cfg, port, tmp_path / "serve.log")
-        serve.start()
         try:
-            with httpx.Client(
-                base_url=serve.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=DEADLINE_S
-            ) as client:
+            with served(cfg, port) as (_serve, client):
                 yield client, dicom_port
         finally:
-            serve.stop()
             # the received copy of the big instance is 800 MB of real disk (pytest keeps 3 runs' tmp)
             shutil.rmtree(tmp_path / "data" / INTAKE_FOLDER, ignore_errors=True)
 
