@@ -1002,7 +1002,7 @@ def simulate_scan(
     # Truth: spheres fully inside the grid and the FOV circle, at their machined positions.
     centres_img = frames.apply(image_from_phantom, extras.actual_centres_phantom_mm(phantom))
     nominal_img = frames.apply(image_from_phantom, phantom.centres_phantom_mm)
-    idx, partial = imaged_spheres(frames.apply(scanner_from_image, centres_img), phantom.sphere_radius_mm, s)
+    idx, partial = spheres_imaged_at(phantom, image_from_phantom, s, extras)
     timings["total_s"] = time.perf_counter() - t_start
     report(1.0)
     log.info(
@@ -1146,6 +1146,21 @@ def _to_hu(
     np.clip(hu, HU_MIN, HU_MAX, out=hu)
     hu_i: NDArray[np.int16] = np.rint(hu).astype(np.int16)
     return hu_i
+
+
+def spheres_imaged_at(
+    phantom: Phantom,
+    image_from_phantom: NDArray[Any],
+    settings: AcquisitionSettings,
+    extras: SceneExtras = SceneExtras(),
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """:func:`imaged_spheres` of ``phantom`` at ``image_from_phantom``, without simulating: what a
+    scan there would image fully and what the imaged region's edge would cut (the same truth
+    :func:`simulate_scan` records), so a pose that images nothing can be refused before the cost."""
+    image_from_phantom = frames.as_transform(image_from_phantom, "image_from_phantom")
+    scanner_from_image = frames.invert(image_from_scanner(settings.orientation))
+    centres_img = frames.apply(image_from_phantom, extras.actual_centres_phantom_mm(phantom))
+    return imaged_spheres(frames.apply(scanner_from_image, centres_img), phantom.sphere_radius_mm, settings)
 
 
 def imaged_spheres(

@@ -116,6 +116,7 @@ def session(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[
                 "watch_dir": watch, "data_dir": data, "api_token": TOKEN, "robot.link_url": mock.url,
                 "stillness.window_s": WINDOW_S, "stillness.max_gap_s": 0.25,
                 "watcher.quiet_period_s": 0.3, "watcher.poll_interval_s": 0.2,
+                "igtl.enabled": True, "igtl.port": 0,
             },
         )  # fmt: skip
         rod = settings.robot.tool0_from_phantom.matrix()
@@ -237,6 +238,9 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     prov = after.json()["provenance"]
     assert prov["calibration"]["calibration_id"] == cal_id
     assert after.json()["evidence"]["level"] == "calibrated" and not after.json()["evidence"]["action"]
+    # the same level where navigation and the OR read it: OpenIGTLink metadata and the page
+    assert _evidence_over_igtl(c, after.json()["id"]) == "calibrated"
+    _page_shows_evidence(c, after.json()["id"], "calibrated")
     assert prov["calibration"]["calibration_hash"] == cal["calibration_hash"]
     assert np.allclose(prov["tool0_from_phantom"], cal["tool0_from_phantom"])
     chain_mm = after.json()["predicted_chain_error_mm"]
@@ -276,6 +280,56 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     nominal_again = c.post("/register", json={"scan_id": rejudged["id"]})
     assert nominal_again.status_code == 200, nominal_again.text
     assert nominal_again.json()["provenance"]["calibration"] is None
+
+
+def _evidence_over_igtl(c: httpx.Client, registration_id: int) -> str:
+    """``Evidence`` of ``RobotToImage`` for ``registration_id`` as pyigtl (Slicer's Python client)
+    reads it, after a version-2 hello (as Slicer sends at connect)."""
+    import pyigtl
+
+    port = c.get("/status").json()["listeners"]["igtl"]["port"]
+    client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
+    hello = pyigtl.StringMessage("reads header version 2", device_name="Hello")
+    hello.header_version = 2
+    client.send_message(hello, wait=False)
+    try:
+        msg = wait_for(
+            lambda: (
+                (m := client.wait_for_message("RobotToImage", timeout=0.2)) is not None
+                and m.metadata.get("RegistrationId") == str(registration_id)
+                and m
+            ),
+            f"RobotToImage of registration {registration_id}",
+            DEADLINE_S,
+        )
+    finally:
+        client.stop()
+    return str(msg.metadata["Evidence"])
+
+
+def _page_shows_evidence(c: httpx.Client, registration_id: int, level: str) -> None:
+    """The page (the distribution's Chromium) shows ``registration_id`` as current at ``level``:
+    the pill in capitals, no "unverified" warning look, no console error."""
+    from tests.browser import harness as bh
+
+    with bh.browser() as b:
+        ctx = b.new_context(viewport={"width": 1400, "height": 1000})
+        ctx.set_default_timeout(DEADLINE_S * 1000)
+        try:
+            w = bh.watched_page(ctx, str(c.base_url).rstrip("/"))
+            w.page.goto(f"{str(c.base_url).rstrip('/')}/#token={TOKEN}")
+            w.page.wait_for_function(
+                "id => document.getElementById('current-id').dataset.value === String(id)",
+                arg=registration_id,
+            )
+            p = w.page
+            assert p.get_attribute("#current-evidence", "data-level") == level
+            assert p.text_content("#current-evidence-level") == level.upper()
+            assert "pill ok" in (p.get_attribute("#current-evidence-level", "class") or "")
+            assert "unverified" not in (p.text_content("#current-badge") or "")
+            assert not w.console_errors(), w.console_errors()
+        finally:
+            ctx.close()
 
 
 def _replace_one_slice(folder: Path) -> None:

@@ -121,6 +121,22 @@ def test_capture_records_the_limit_not_the_wires_rounding(tmp_path: Path) -> Non
             asyncio.run(link.close())
 
 
+def test_cli_robot_points_reads_the_limit_not_the_wires_rounding(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``oarmreg robot points`` at the upper limits over simple_message: float32 puts some joints
+    beyond them; the points are computed (not refused) at the limits themselves."""
+    import json
+
+    from service.cli.main import main
+
+    with run_mock_controller("simple-message", ScriptedRobot(POSES["upper"])) as mock:
+        argv = ["robot", "points", "--link", mock.url, "--still-window-s", "0.2"]
+        assert main(argv) == 0, capsys.readouterr().err
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["joints_rad"] == list(POSES["upper"])
+
+
 def test_a_value_beyond_the_rounding_is_refused_with_a_hint_that_fits() -> None:
     upper = np.array(POSES["upper"])
     res = [2.4e-7] * 6

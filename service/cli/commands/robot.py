@@ -237,13 +237,18 @@ async def _points(args: argparse.Namespace) -> int:
             if not result.still:
                 err = RobotMovedError if result.verdict == "moved" else JointHistoryIncompleteError
                 raise err(f"{url}: {result.reason}; hold the robot still and retry")
+        # a joint within the wire's rounding of a limit is at the limit (as the service's capture
+        # reads it): float32 over simple_message puts J1 = 180° 2.4e-7 rad beyond it
+        joints_rad = [
+            float(v) for v in model.at_limits(state.joints_rad, link.joint_resolution_rad(state.joints_rad))
+        ]
     finally:
         await link.close()
 
-    spheres = sphere_centres_robot_mm(model, state.joints_rad, rod, phantom.centres_phantom_mm)
+    spheres = sphere_centres_robot_mm(model, joints_rad, rod, phantom.centres_phantom_mm)
     doc = {
         "spheres_mm": spheres.round(6).tolist(),
-        "joints_rad": list(state.joints_rad),
+        "joints_rad": joints_rad,
         "received_at": state.received_at.isoformat(),
         "link": url,
         "robot_model": model.name,

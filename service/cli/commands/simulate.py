@@ -276,7 +276,7 @@ def write_joints(out: Path, joints_rad: list[float], robot: str, placement: str,
 def run(args: argparse.Namespace) -> int:
     from mocks.oarm.cbct import CBCT_PRESET_NAMES, ConeBeamSettings, simulate_cbct
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, pose_from_string, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings, pose_from_string, simulate_scan, spheres_imaged_at
     from registration.errors import ConfigError
     from registration.model.phantom import load_phantom
 
@@ -326,10 +326,13 @@ def run(args: argparse.Namespace) -> int:
                 err.write(f"\rsimulating {label}: {pct:3d} %  ({time.perf_counter() - t0:5.1f} s)")
                 err.flush()
 
+        fully, partly = spheres_imaged_at(phantom, pose, settings, extras)
+        if len(fully) == 0:  # refused before the simulation's cost (seconds to minutes)
+            return _refuse_empty(len(partly), phantom.n_spheres)
         scan = simulate_scan(phantom, pose, settings, extras, progress=progress)
         err.write("\n")
     if len(scan.sphere_indices) == 0:  # no empty success: nothing is written
-        return _refuse_empty(scan, phantom.n_spheres)
+        return _refuse_empty(len(scan.partial_indices), phantom.n_spheres)
     for_uid: str | None = None
     if args.placement is not None or placement is not None:
         from mocks.oarm.placement import placement_frame_of_reference_uid
@@ -369,13 +372,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _refuse_empty(scan: Any, n_spheres: int) -> int:
+def _refuse_empty(n_cut: int, n_spheres: int) -> int:
     """No empty success: a pose that images no sphere writes nothing and exits 4 with what to do."""
     from service.error_map import EXIT_INPUT
 
     sys.stderr.write(
         f"oarmreg simulate: this pose images none of the phantom's {n_spheres} spheres "
-        f"({len(scan.partial_indices)} cut by the edge of the imaged region); nothing written: move the "
+        f"({n_cut} cut by the edge of the imaged region); nothing written: move the "
         "phantom into the O-arm's field (other --joints, --placement or pose) and simulate again\n"
     )
     return EXIT_INPUT
