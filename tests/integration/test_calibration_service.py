@@ -51,6 +51,7 @@ class Session:
     odd_scan_id: int
     held_out_joints: np.ndarray
     watch: Path
+    link_url: str
     events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
 
 
@@ -155,7 +156,7 @@ def session(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[
                 for i, q in enumerate(plan.joints_rad)
             ]
             odd = _scan_at(client, robot, plan.joints_rad[0], make_scan, watch, "odd", OTHER_FOR_UID)
-            yield Session(client, robot, cell, model, rod, y, ids, odd, held, watch)
+            yield Session(client, robot, cell, model, rod, y, ids, odd, held, watch, mock.url)
 
 
 def _stream_until(client: httpx.Client, start: Callable[[], Any], done: set[str]) -> tuple[Any, list[Any]]:
@@ -241,6 +242,7 @@ def test_calibrate_activate_retire_and_register_with_it(session: Session, phanto
     # the same level where navigation and the OR read it: OpenIGTLink metadata and the page
     assert _evidence_over_igtl(c, after.json()["id"]) == "calibrated"
     _page_shows_evidence(c, after.json()["id"], "calibrated")
+    _restart_under_another_rod_does_not_use_it(session, phantom, cal_id, after.json()["id"])
     assert prov["calibration"]["calibration_hash"] == cal["calibration_hash"]
     assert np.allclose(prov["tool0_from_phantom"], cal["tool0_from_phantom"])
     chain_mm = after.json()["predicted_chain_error_mm"]
@@ -330,6 +332,51 @@ def _page_shows_evidence(c: httpx.Client, registration_id: int, level: str) -> N
             assert not w.console_errors(), w.console_errors()
         finally:
             ctx.close()
+
+
+def _restart_under_another_rod_does_not_use_it(s: Session, phantom: Any, cal_id: int, reg_id: int) -> None:
+    """A service started on a copy of the records under a 210 mm rod (not the calibration's 200 mm):
+    the calibration stays active but is not used (``/status``, ``/ready`` ``calibration-not-used``,
+    naming the setting) and the registration made with it is not restored."""
+    import sqlite3
+
+    from registration.model.kinematics import RobotModel
+    from service.cli.commands.serve import serve_in_thread
+    from service.http.app import create_app
+    from service.settings import load_settings
+
+    root = s.watch.parent / "restart-210mm"
+    data2 = root / "data"
+    data2.mkdir(parents=True)
+    settings = load_settings(
+        None,
+        {
+            "watch_dir": root / "watch", "data_dir": data2, "api_token": TOKEN, "robot.link_url": s.link_url,
+            "robot.tool0_from_phantom": {"translation_mm": (0.0, 0.0, 210.0), "rpy_deg": (180.0, 0.0, 0.0)},
+        },
+    )  # fmt: skip
+    src, dst = (
+        sqlite3.connect(s.watch.parent / "data" / settings.db_path.name),
+        sqlite3.connect(settings.db_path),
+    )
+    try:
+        src.backup(dst)  # SQLite's online backup: the running service keeps its folder (serve.lock)
+    finally:
+        src.close()
+        dst.close()
+    app = create_app(settings, phantom=phantom, robot_model=RobotModel.load("tx60"))
+    with (
+        serve_in_thread(app) as server,
+        httpx.Client(base_url=server.base_url, headers={"Authorization": f"Bearer {TOKEN}"}) as c2,
+    ):
+        active = c2.get("/status").json()["active_calibration"]
+        assert active["calibration_id"] == cal_id and not active["in_use"], active
+        assert "tool0_from_phantom" in active["not_in_use_reason"], active
+        ready = c2.get("/ready")
+        problems = {p["type"]: p["detail"] for p in ready.json()["problems"]}
+        assert ready.status_code == 503 and f"calibration {cal_id}" in problems["calibration-not-used"]
+        assert c2.get("/registration/current").status_code == 409
+        assert c2.get(f"/registrations/{reg_id}").json()["status"] == "withdrawn"
 
 
 def _replace_one_slice(folder: Path) -> None:
