@@ -623,14 +623,16 @@ class IgtlServer:
         return sorted((c.info() for c in self._clients), key=lambda d: str(d["peer"]))
 
     def slot_report(self) -> SlotReport:
-        """The listener's slots: held per address, the latest refusals (for the health problems)."""
+        """The listener's slots: held per address, the latest refusals (for the health problems).  Read
+        from any thread (a copy of the client set is taken at once)."""
+        clients = list(self._clients)
         by_address: dict[str, int] = {}
-        for c in self._clients:
+        for c in clients:
             by_address[c.host] = by_address.get(c.host, 0) + 1
         now = time.monotonic()
         full, share = self._full_refused, self._address_refused
         return SlotReport(
-            clients=len(self._clients),
+            clients=len(clients),
             max_clients=self.config.max_clients,
             address_share=self.config.address_share,
             by_address=dict(sorted(by_address.items(), key=lambda kv: (-kv[1], kv[0]))),
