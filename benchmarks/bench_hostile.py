@@ -8,7 +8,11 @@ server on, the mock robot controller in another process), then, over loopback:
    ``--stalled`` OpenIGTLink peers stalled half-way through an 8 MiB STATUS body; once the service
    has taken the burst (its descriptor count still for 3 s; the time it took is printed) the same
    probes, RSS and descriptors, and whether a DICOM association still works (dcmtk ``echoscu``; the
-   issue's failure was every association aborted above 1024 descriptors).
+   issue's failure was every association aborted above 1024 descriptors);
+3. OpenIGTLink (issue 41 items 1 and 2, :func:`_igtl_probes`): 1 x ``GET_POINT`` and 8 x ``GET_TRANS``
+   flooders that never read (processes under ``nice -n 19``, 10 s each): ``/health`` median / max and a
+   navigation client's worst ``ToolToImage`` gap; then 32 idle sockets from 127.0.0.5: how many are
+   held, whether a client from 127.0.0.6 still receives, what ``/ready`` lists.
 
 "Before" is the same run against the code before issue 32: ``--checkout DIR`` runs the service
 from another checkout (``git worktree add /tmp/before <commit>``); settings it does not know
@@ -238,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  the service settled in {settle_s:.1f} s at {fds} descriptors")
             print(_row("hostile", proc.pid, url, a) + f" | DICOM echo {_echo(ports['dicom'])}")
         print(_forwarded_probe(url, 3000))
+        _igtl_probes(url, ports["igtl"])
     return 0
 
 
@@ -259,6 +264,155 @@ def _forwarded_probe(url: str, n: int) -> str:
         f"forwarded-address probe: {n} wrong tokens, rotating X-Forwarded-For, {n / elapsed_s:,.0f}/s: "
         f"{codes.get(401, 0)} answered 401, {codes.get(429, 0)} answered 429; {rows} auth_throttle audit rows"
     )
+
+
+# ------------------------------------------------------------- OpenIGTLink (issue 41 items 1, 2)
+
+_IGTL_FLOODER = r"""
+import socket, struct, sys
+port, source, kind = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+batch = struct.pack(">H12s20sQQQ", 1, kind.encode(), b"", 0, 0, 0) * 1000  # empty bodies: CRC 0
+while True:  # never reads; reconnects when dropped
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.bind((source, 0))
+    try:
+        s.connect(("127.0.0.1", port))
+        print("flooding", flush=True)
+        while True:
+            s.sendall(batch)
+    except OSError:
+        print("dropped", flush=True)
+    finally:
+        s.close()
+"""
+
+
+def _igtl_reader(port: int, source: str, arrivals: list[float], stop: list[bool]) -> socket.socket:
+    """A navigation client bound to ``source`` reading every message on a thread of its own; appends
+    ``time.monotonic()`` of each ``ToolToImage`` to ``arrivals``.  Close the returned socket to end it."""
+    import threading
+
+    s = socket.socket()
+    s.bind((source, 0))
+    s.settimeout(30.0)
+    s.connect(("127.0.0.1", port))
+
+    def run() -> None:
+        f = s.makefile("rb")
+        with contextlib.suppress(OSError, ValueError):
+            while not stop:
+                head = f.read(IGTL_HEADER.size)
+                if len(head) < IGTL_HEADER.size:
+                    return
+                _, _, dev, _, size, _ = IGTL_HEADER.unpack(head)
+                f.read(size)
+                if dev.rstrip(b"\0") == b"ToolToImage":
+                    arrivals.append(time.monotonic())
+
+    threading.Thread(target=run, name="bench-igtl-reader", daemon=True).start()
+    return s
+
+
+def _igtl_flood_probe(url: str, port: int, kind: str, peers: int, seconds: float, before: str) -> str:
+    """``peers`` processes (``nice -n 19``, each on its own loopback address) flood ``kind`` queries
+    without reading for ``seconds`` while ``/health`` is probed back to back and a navigation client
+    on 127.0.40.1 reads: ``/health`` median / max, the client's worst ``ToolToImage`` gap, drops."""
+    import itertools
+
+    arrivals: list[float] = []
+    stop: list[bool] = []
+    nav = _igtl_reader(port, "127.0.40.1", arrivals, stop)
+    _wait(lambda: len(arrivals) >= 2, "the navigation client's first ToolToImage", 30.0)
+    procs = [
+        subprocess.Popen(
+            ["nice", "-n", "19", sys.executable, "-c", _IGTL_FLOODER, str(port), f"127.0.41.{10 + i}", kind],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(peers)
+    ]
+    lat: list[float] = []
+    failed = 0
+    try:
+        for p in procs:
+            assert p.stdout is not None
+            p.stdout.readline()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            p0 = time.monotonic()
+            try:
+                ok = httpx.get(url + "/health", timeout=30.0).status_code == 200
+            except httpx.HTTPError:
+                ok = False
+            if ok:
+                lat.append(time.monotonic() - p0)
+            else:
+                failed += 1
+        t1 = time.monotonic()
+    finally:
+        for p in procs:
+            p.terminate()
+        drops = sum(p.communicate(timeout=30)[0].split().count("dropped") for p in procs)
+        stop.append(True)
+        nav.close()
+    times = [t0, *(t for t in arrivals if t0 <= t <= t1), t1]
+    gap_ms = max(b - a for a, b in itertools.pairwise(times)) * 1e3
+    med = f"{statistics.median(lat) * 1e3:.1f}" if lat else "-"
+    top = f"{max(lat) * 1e3:.1f}" if lat else "-"
+    return (
+        f"igtl flood, {peers} x {kind} never reading (nice 19), {seconds:g} s: /health median {med} ms, "
+        f"max {top} ms ({len(lat)} probes, {failed} failed); ToolToImage worst gap {gap_ms:.0f} ms; "
+        f"flooders dropped {drops} times  [before the fix: {before}]"
+    )
+
+
+def _igtl_slot_probe(url: str, port: int, idle: int) -> str:
+    """``idle`` idle sockets from 127.0.0.5: how many the listener holds; whether a client from
+    127.0.0.6 still connects and receives; the problems ``/ready`` lists."""
+
+    def outcome(s: socket.socket) -> bool:
+        try:
+            return bool(s.recv(IGTL_HEADER.size))
+        except OSError:
+            return False
+
+    with contextlib.ExitStack() as stack:
+        socks = []
+        for _ in range(idle):
+            s = stack.enter_context(socket.socket())
+            s.bind(("127.0.0.5", 0))
+            s.settimeout(30.0)
+            s.connect(("127.0.0.1", port))
+            socks.append(s)
+        held = sum(outcome(s) for s in socks)
+        with socket.socket() as other:
+            other.bind(("127.0.0.6", 0))
+            other.settimeout(30.0)
+            t0 = time.monotonic()
+            other.connect(("127.0.0.1", port))
+            got = outcome(other)
+            first_ms = (time.monotonic() - t0) * 1e3
+        r = httpx.get(url + "/ready", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30.0)
+        types = [str(p["type"]).rsplit(":", 1)[-1] for p in r.json().get("problems", [])]
+    other_says = f"received its first message in {first_ms:.0f} ms" if got else "got EOF"
+    return (
+        f"igtl slots: {idle} idle sockets from 127.0.0.5: {held} held, {idle - held} closed; a client from "
+        f"127.0.0.6 {other_says}; /ready {r.status_code} {types}  [before the fix: all {idle} held, "
+        "the next client got EOF, /ready 200 with no problem]"
+    )
+
+
+def _igtl_probes(url: str, port: int) -> None:
+    print(_igtl_flood_probe(url, port, "GET_POINT", 1, 10.0, "/health median 6.4 s, ToolToImage gap 4.5 s"))
+    print(_igtl_flood_probe(url, port, "GET_TRANS", 8, 10.0, "/health median 10.8 s, ToolToImage gap 12.2 s"))
+    _wait(lambda: _igtl_clients(url) == 0, "the flooders' connections to close", 30.0)
+    print(_igtl_slot_probe(url, port, 32))
+
+
+def _igtl_clients(url: str) -> int:
+    r = httpx.get(url + "/status", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30.0)
+    return int(r.json()["listeners"]["igtl"]["clients"])
 
 
 if __name__ == "__main__":

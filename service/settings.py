@@ -117,7 +117,7 @@ def as_enabled(section: _S, error: type[ConfigError]) -> _S:
     allow-list rule applies to any listener, enabled in the TOML or not); a refusal raises ``error``
     with the settings' own message."""
     try:
-        return type(section).model_validate({**section.model_dump(), "enabled": True})
+        return type(section).model_validate({**section.model_dump(exclude_unset=True), "enabled": True})
     except ValidationError as e:
         raise error("; ".join(str(err["msg"]).removeprefix("Value error, ") for err in e.errors())) from None
 
@@ -413,6 +413,16 @@ class IgtlSettings(_Section):
     workstations on one OR network: a Slicer or two, a PLUS, a recorder; 32 is ample, and bounds the
     descriptors the listener can hold (:func:`descriptor_budget` sums the listeners' maxima against
     RLIMIT_NOFILE)."""
+    max_clients_per_address: int = Field(default=8, ge=1, le=1024)
+    """Connections one peer address may hold (at most ``max_clients``: the default is capped at it, a
+    larger value set explicitly is refused); one more from that address is closed at once and counted
+    (``refused_per_address``), so one host's idle sockets cannot lock another host's navigation out.
+    8: a workstation runs a Slicer, a PLUS and a recorder, a connection or two each, with room."""
+    max_query_answers_per_s: float = Field(default=240.0, gt=0, le=10_000)
+    """Queries (``GET_``) answered per client per second; a client that asks faster is read no faster
+    (its queries wait in its own socket) and gets the latest state, not a backlog.  Navigation polls at
+    most at 60 Hz (a display's refresh): 60 Hz x 4 queries (the two TRANSFORMs, the POINT list,
+    GET_STATUS)."""
     status_max_body_bytes: int = Field(default=4096, ge=64, le=IGTL_BODY_LIMIT_MAX_BYTES)
     """Largest STATUS body a client may send, bytes; a larger BODY_SIZE closes its connection unread.
     A STATUS is 30 bytes + its status string (+ 12 + metadata in version 2); SlicerOpenIGTLink's
@@ -436,7 +446,9 @@ class IgtlSettings(_Section):
     client_queue_max: int = Field(default=64, ge=1, le=4096)
     """Messages queued per client; when full the oldest is dropped."""
     client_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
-    """Transport write-buffer high-water mark per client, bytes."""
+    """Transport write-buffer high-water mark per client, bytes; a client that sends a query while more
+    than this is waiting for it to read (its socket buffer full as well) is dropped at once
+    (``slow_reader_drops``): it asks faster than it reads."""
     socket_send_buffer_bytes: int = Field(default=64 * 1024, ge=1024, le=64 * 1024 * 1024)
     """SO_SNDBUF of each accepted socket, bytes: bounds what a stalled client can pile up in the kernel
     (and so how fast it is detected) instead of Linux's autotuning up to 4 MiB."""
@@ -450,6 +462,21 @@ class IgtlSettings(_Section):
     @classmethod
     def _networks(cls, v: tuple[str, ...]) -> tuple[str, ...]:
         return _check_networks(v)
+
+    @model_validator(mode="after")
+    def _share_within_max(self) -> IgtlSettings:
+        share, most = self.max_clients_per_address, self.max_clients
+        if "max_clients_per_address" in self.model_fields_set and share > most:
+            raise ValueError(
+                f"igtl.max_clients_per_address ({share}) is more than igtl.max_clients ({most}): one "
+                "address's share must fit in the listener"
+            )
+        return self
+
+    @property
+    def address_share(self) -> int:
+        """Connections one peer address may hold: ``max_clients_per_address`` capped at ``max_clients``."""
+        return min(self.max_clients_per_address, self.max_clients)
 
     @model_validator(mode="after")
     def _allow_list(self) -> IgtlSettings:

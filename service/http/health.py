@@ -217,6 +217,52 @@ def robot_settings_problems(ctx: ServiceContext) -> list[HealthProblem]:
     return out
 
 
+IGTL_REFUSAL_HOLD_S = 60.0
+"""An OpenIGTLink refusal stays a health problem this long, s: a navigation client refused once (it
+retries, or its user gives up) is seen on the next minute's status checks, not only at that instant."""
+
+
+def igtl_slot_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """The OpenIGTLink listener at ``igtl.max_clients`` or refusing connections (full, or an address at
+    its ``igtl.max_clients_per_address`` share) within :data:`IGTL_REFUSAL_HOLD_S`: a navigation client
+    that connects gets EOF."""
+    server = ctx.igtl.server if ctx.igtl is not None else None
+    if server is None:
+        return []
+    r = server.slot_report()
+    held = ", ".join(f"{host} {n}" for host, n in list(r.by_address.items())[:4]) or "none"
+    out: list[HealthProblem] = []
+    full_recent = r.full_refused_s_ago is not None and r.full_refused_s_ago < IGTL_REFUSAL_HOLD_S
+    if r.clients >= r.max_clients or full_recent:
+        refused = (
+            f"; it refused {r.full_refused_host} {r.full_refused_s_ago:.0f} s ago"
+            if full_recent and r.full_refused_s_ago is not None
+            else ""
+        )
+        out.append(
+            HealthProblem(
+                "igtl-full",
+                "OpenIGTLink listener full",
+                f"{r.clients} of igtl.max_clients = {r.max_clients} connections held (by address: {held})"
+                f"{refused}; a navigation client that connects now is closed at once: close the unused "
+                "OpenIGTLink clients (GET /status, listeners.igtl.peers) or raise igtl.max_clients",
+            )
+        )
+    ago = r.address_refused_s_ago
+    if ago is not None and ago < IGTL_REFUSAL_HOLD_S:
+        host = r.address_refused_host
+        out.append(
+            HealthProblem(
+                "igtl-address-share",
+                "OpenIGTLink address at its share",
+                f"{host} was refused a connection {ago:.0f} s ago: it holds {r.by_address.get(host, 0)} of "
+                f"its igtl.max_clients_per_address = {r.address_share}; close that host's idle OpenIGTLink "
+                "connections or raise its share (other hosts still connect)",
+            )
+        )
+    return out
+
+
 PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     database_problems,
     robot_link_problems,
@@ -230,6 +276,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     bus_listener_problems,
     registration_withdrawn_problems,
     robot_settings_problems,
+    igtl_slot_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""
 

@@ -103,6 +103,7 @@ def test_still_robot_12_associations_and_200_silent_igtl_clients_every_verdict_s
             "dicom.max_associations_per_peer": N_ASSOCIATIONS,  # 12 O-arms played from one address
             "igtl.enabled": True, "igtl.port": igtl_port,
             "igtl.max_clients": N_IGTL_CLIENTS + 8,  # all held (the default 32 refuses the rest)
+            "igtl.max_clients_per_address": N_IGTL_CLIENTS + 8,  # from one address (the default: 8)
         })  # fmt: skip
         serve = ServeProcess(cfg, port, tmp_path / "serve.log")
         serve.start()

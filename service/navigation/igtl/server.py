@@ -50,17 +50,23 @@ Version 2 carries the metadata (the honest figure first) ``ChainError_pred_mm`` 
 one stays current, ``LastRefusal``; INVALID ones give ``Reason``.
 
 Listener limits (``docs/security.md``, OpenIGTLink listener limits): at most ``max_clients``
-connections (more are closed at once, counted ``refused_full``); each message type class has a
-maximum body size (STATUS, queries, anything else): a larger BODY_SIZE closes the connection
-before a byte of the body is read; once a message has started (its first byte), the rest must
-arrive within ``stall_timeout_s`` or the connection is closed (a client that only receives, as
+connections (more are closed at once, counted ``refused_full``), at most ``max_clients_per_address``
+of them from one peer address (more from it are closed at once, counted ``refused_per_address``; a
+full listener and these refusals are health problems, :meth:`IgtlServer.slot_report`); each message
+type class has a maximum body size (STATUS, queries, anything else): a larger BODY_SIZE closes the
+connection before a byte of the body is read; once a message has started (its first byte), the rest
+must arrive within ``stall_timeout_s`` or the connection is closed (a client that only receives, as
 Slicer does, is never timed out); a malformed header closes the connection.  The body CRC is
 crcmod's C code (a 64 KiB body in about 0.2 ms); the server refuses to start without it.  Each
 client has a bounded queue: when it is full the oldest message is dropped; a client whose socket
-stays blocked for longer than ``slow_client_timeout_s`` is disconnected.  Nothing here ever
-blocks the caller or the other clients.  OpenIGTLink has no authentication: binding anything but
-loopback requires an explicit ``allowed_peer_addresses`` list, and peers not on the list are
-closed at once.
+stays blocked for longer than ``slow_client_timeout_s`` is disconnected.  Queries are read one
+message at a time, yielding to the event loop between messages, and answered at most
+``max_query_answers_per_s`` per client (a faster client is read no faster); an answer waiting to be
+sent is replaced by a newer one of the same type and device (the latest state, not a backlog); a
+client that sends a query while more than ``client_buffer_bytes`` wait for it to read is dropped
+(``slow_reader_drops``).  Nothing here ever blocks the caller or the other clients.  OpenIGTLink has
+no authentication: binding anything but loopback requires an explicit ``allowed_peer_addresses``
+list, and peers not on the list are closed at once.
 """
 
 from __future__ import annotations
@@ -350,6 +356,18 @@ def service_status(state: RegistrationState, tool: list[_Out]) -> tuple[int, str
 
 # --------------------------------------------------------------------------- clients
 
+_QUERY_BURST_S = 0.1
+"""A client's queries may come in a burst worth this long at ``max_query_answers_per_s`` (24 at 240/s:
+a poller's queries for every device at once) before its pace applies."""
+
+
+@dataclass(frozen=True)
+class _AnswerKey:
+    """Stands in a client's queue for its pending answer of this type and device."""
+
+    type: str
+    device: str
+
 
 class _Client:
     """One connected peer: a bounded queue drained by its own writer task."""
@@ -362,7 +380,13 @@ class _Client:
         self.writer = writer
         peer = writer.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
-        self.queue: asyncio.Queue[_Out | None] = asyncio.Queue(maxsize=server.config.client_queue_max)
+        self.queue: asyncio.Queue[_Out | _AnswerKey | None] = asyncio.Queue(
+            maxsize=server.config.client_queue_max
+        )
+        self.answers: dict[_AnswerKey, _Out] = {}
+        """The one pending answer per (type, device); the queue holds its key in its place."""
+        self.next_query_t = -math.inf
+        """``time.monotonic()`` from which the next query may be answered (the per-client pace)."""
         self.seq = 0
         self.dropped = 0
         self.header_version = 1
@@ -371,12 +395,31 @@ class _Client:
 
     def offer(self, out: _Out) -> None:
         """Enqueue without blocking; drop the oldest message when full."""
+        self._put(out)
+
+    def offer_answer(self, out: _Out) -> None:
+        """Enqueue a query's answer, replacing the one of the same type and device still waiting."""
+        key = _AnswerKey(out.type, out.device)
+        if key in self.answers:
+            self.answers[key] = out
+            self.server.counters["answers_coalesced"] += 1
+            return
+        self.answers[key] = out
+        self._put(key)
+
+    def _put(self, item: _Out | _AnswerKey) -> None:
         if self.queue.full():
             with contextlib.suppress(asyncio.QueueEmpty):
-                self.queue.get_nowait()
+                old = self.queue.get_nowait()
+                if isinstance(old, _AnswerKey):
+                    self.answers.pop(old, None)
                 self.dropped += 1
                 self.server.counters["dropped"] += 1
-        self.queue.put_nowait(out)
+        self.queue.put_nowait(item)
+
+    def backlog_bytes(self) -> int:
+        """Bytes written for this client and not yet taken by its socket."""
+        return int(self.writer.transport.get_write_buffer_size())
 
     def _pack(self, out: _Out) -> bytes | None:
         v2 = self.header_version >= 2
@@ -392,7 +435,10 @@ class _Client:
     async def write_loop(self) -> None:
         timeout = self.server.config.slow_client_timeout_s
         try:
-            while (out := await self.queue.get()) is not None:
+            while (item := await self.queue.get()) is not None:
+                out = self.answers.pop(item, None) if isinstance(item, _AnswerKey) else item
+                if out is None:
+                    continue
                 raw = self._pack(out)
                 if raw is None:
                     continue
@@ -440,7 +486,9 @@ class _Client:
 
     async def read_loop(self) -> None:
         """Read what the client sends (header version 1 or 2), switch it to version 2 after its
-        first well-formed version-2 message, answer the queries; end on EOF or a broken limit."""
+        first well-formed version-2 message, answer the queries (paced, see the module docstring); end on
+        EOF or a broken limit."""
+        cfg = self.server.config
         try:
             while True:
                 head, body = await self._read_message()
@@ -458,7 +506,13 @@ class _Client:
                     log.info("OpenIGTLink client %s sent header version 2; answering in version 2", self.peer)
                     self.server._report("header_version", self)
                     self.server.push_current(self, points=True)  # the metadata now, not a period later
+                if head.type.startswith("GET_"):
+                    if self.backlog_bytes() > cfg.client_buffer_bytes:
+                        self.server._drop_slow_reader(self)
+                        return
+                    await self._pace()
                 self.server._answer(self, head.type, head.device_name)
+                await asyncio.sleep(0)  # a yield, not a wait: the next buffered message after the others
         except (asyncio.IncompleteReadError, ConnectionError, OSError):
             pass
         except IgtlPeerError as e:
@@ -466,6 +520,22 @@ class _Client:
             log.warning("OpenIGTLink client %s %s; closing the connection", self.peer, e)
         finally:
             self.writer.transport.abort()
+
+    async def _pace(self) -> None:
+        """Wait until this client's next query may be answered: at most ``max_query_answers_per_s``, in
+        bursts of up to :data:`_QUERY_BURST_S` of that rate.  Its socket is not read meanwhile."""
+        now = time.monotonic()
+        interval = 1.0 / self.server.config.max_query_answers_per_s
+        t = max(self.next_query_t, now - _QUERY_BURST_S)
+        self.next_query_t = t + interval
+        if t > now:
+            self.server.counters["queries_paced"] += 1
+            await asyncio.sleep(t - now)
+
+    @property
+    def host(self) -> str:
+        peer = self.writer.get_extra_info("peername")
+        return str(peer[0]) if isinstance(peer, tuple) else ""
 
     def info(self) -> dict[str, object]:
         """For ``/status``: who, which header version, how much was sent / dropped."""
@@ -476,7 +546,26 @@ class _Client:
 # --------------------------------------------------------------------------- server
 
 _REFUSAL_LOG_EVERY_S = 10.0
-"""A flood of refused connections is logged once per this period (with the count), not per peer."""
+"""A flood of refused connections (or of dropped slow readers) is logged once per this period (with
+the count), not per peer."""
+
+
+@dataclass(frozen=True)
+class SlotReport:
+    """Who holds the listener's slots and who was refused one (``service.http.health``)."""
+
+    clients: int
+    max_clients: int
+    address_share: int
+    """``igtl.max_clients_per_address`` (capped at ``max_clients``)."""
+    by_address: dict[str, int]
+    """Connections held per peer address, the most first."""
+    full_refused_s_ago: float | None
+    """Seconds since a connection was last refused because the listener was full (None: never)."""
+    full_refused_host: str
+    address_refused_s_ago: float | None
+    """Seconds since an address was last refused for holding its share (None: never)."""
+    address_refused_host: str
 
 
 class IgtlServer:
@@ -508,10 +597,14 @@ class IgtlServer:
         self._tick_task: asyncio.Task[None] | None = None
         self._refusals_logged_at = -math.inf
         self._refusals_unlogged = 0
+        self._slow_logged_at = -math.inf
+        self._slow_unlogged = 0
+        self._full_refused: tuple[float, str] | None = None
+        self._address_refused: tuple[float, str] | None = None
         self.counters: dict[str, int] = {
-            "connects": 0, "refused_peers": 0, "refused_full": 0, "sent": 0, "dropped": 0,
-            "slow_disconnects": 0, "bad_headers": 0, "bad_crc": 0, "oversize": 0, "stalled": 0,
-            "queries": 0,
+            "connects": 0, "refused_peers": 0, "refused_full": 0, "refused_per_address": 0, "sent": 0,
+            "dropped": 0, "slow_disconnects": 0, "slow_reader_drops": 0, "bad_headers": 0, "bad_crc": 0,
+            "oversize": 0, "stalled": 0, "queries": 0, "queries_paced": 0, "answers_coalesced": 0,
         }  # fmt: skip
 
     @property
@@ -528,6 +621,26 @@ class IgtlServer:
     def client_info(self) -> list[dict[str, object]]:
         """Each connected client's peer address and header version (``/status``)."""
         return sorted((c.info() for c in self._clients), key=lambda d: str(d["peer"]))
+
+    def slot_report(self) -> SlotReport:
+        """The listener's slots: held per address, the latest refusals (for the health problems).  Read
+        from any thread (a copy of the client set is taken at once)."""
+        clients = list(self._clients)
+        by_address: dict[str, int] = {}
+        for c in clients:
+            by_address[c.host] = by_address.get(c.host, 0) + 1
+        now = time.monotonic()
+        full, share = self._full_refused, self._address_refused
+        return SlotReport(
+            clients=len(clients),
+            max_clients=self.config.max_clients,
+            address_share=self.config.address_share,
+            by_address=dict(sorted(by_address.items(), key=lambda kv: (-kv[1], kv[0]))),
+            full_refused_s_ago=None if full is None else now - full[0],
+            full_refused_host="" if full is None else full[1],
+            address_refused_s_ago=None if share is None else now - share[0],
+            address_refused_host="" if share is None else share[1],
+        )
 
     async def start(self) -> None:
         if not wire.native_crc():
@@ -596,7 +709,7 @@ class IgtlServer:
             why = wire.status_content(
                 4, error_name="NOT_FOUND", status_string="device names are printable ASCII"
             )
-            client.offer(_Out("STATUS", "oarmreg", why, {}, time.time()))
+            client.offer_answer(_Out("STATUS", "oarmreg", why, {}, time.time()))
             return
         reg = self._registration()
         outs: list[_Out]
@@ -625,7 +738,7 @@ class IgtlServer:
                 12, error_name="UNKNOWN", status_string=f"{msg_type} is not answered here; GET_CAPABIL lists "
                 "what is"), {}, time.time())]  # fmt: skip
         for out in outs:
-            client.offer(out)
+            client.offer_answer(out)
 
     @staticmethod
     def _not_found(device: str, known: tuple[str, ...]) -> _Out:
@@ -638,17 +751,39 @@ class IgtlServer:
             return is_loopback(host)
         return in_networks(host, self._networks)
 
-    def _refuse_full(self, writer: asyncio.StreamWriter, host: str) -> None:
-        self.counters["refused_full"] += 1
-        self._refusals_unlogged += 1
+    def _refuse(self, writer: asyncio.StreamWriter, host: str, *, full: bool) -> None:
+        """Close a connection the listener has no slot for: full, or its address at its share."""
         writer.transport.abort()
         now = time.monotonic()
+        if full:
+            self.counters["refused_full"] += 1
+            self._full_refused = (now, host)
+            why = f"igtl.max_clients = {self.config.max_clients} reached"
+        else:
+            self.counters["refused_per_address"] += 1
+            self._address_refused = (now, host)
+            why = f"{host} holds igtl.max_clients_per_address = {self.config.address_share}"
+        self._refusals_unlogged += 1
         if now - self._refusals_logged_at >= _REFUSAL_LOG_EVERY_S:
             log.warning(
-                "OpenIGTLink: %d connection(s) refused (latest from %s): igtl.max_clients = %d reached",
-                self._refusals_unlogged, host, self.config.max_clients,
+                "OpenIGTLink: %d connection(s) refused (latest from %s): %s",
+                self._refusals_unlogged, host, why,
             )  # fmt: skip
             self._refusals_logged_at, self._refusals_unlogged = now, 0
+
+    def _drop_slow_reader(self, client: _Client) -> None:
+        """A client asked while its unread output is over ``client_buffer_bytes``: the read loop ends
+        (and with it the connection); logged at most once per :data:`_REFUSAL_LOG_EVERY_S`."""
+        self.counters["slow_reader_drops"] += 1
+        self._slow_unlogged += 1
+        now = time.monotonic()
+        if now - self._slow_logged_at >= _REFUSAL_LOG_EVERY_S:
+            log.warning(
+                "OpenIGTLink: %d client(s) dropped for asking faster than they read (latest %s: %d bytes "
+                "unread, over igtl.client_buffer_bytes = %d)",
+                self._slow_unlogged, client.peer, client.backlog_bytes(), self.config.client_buffer_bytes,
+            )  # fmt: skip
+            self._slow_logged_at, self._slow_unlogged = now, 0
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
@@ -659,7 +794,10 @@ class IgtlServer:
             writer.transport.abort()
             return
         if len(self._clients) >= self.config.max_clients:
-            self._refuse_full(writer, host)
+            self._refuse(writer, host, full=True)
+            return
+        if sum(1 for c in self._clients if c.host == host) >= self.config.address_share:
+            self._refuse(writer, host, full=False)
             return
         handler = asyncio.current_task()
         if handler is not None:
