@@ -12,7 +12,10 @@ server on, the mock robot controller in another process), then, over loopback:
 3. OpenIGTLink (issue 41 items 1 and 2, :func:`_igtl_probes`): 1 x ``GET_POINT`` and 8 x ``GET_TRANS``
    flooders that never read (processes under ``nice -n 19``, 10 s each): ``/health`` median / max and a
    navigation client's worst ``ToolToImage`` gap; then 32 idle sockets from 127.0.0.5: how many are
-   held, whether a client from 127.0.0.6 still receives, what ``/ready`` lists.
+   held, whether a client from 127.0.0.6 still receives, what ``/ready`` lists;
+4. HTTP slow readers (issue 41 item 3, :func:`_slow_reader_probe`): 300 connections from 127.0.0.44
+   pipelining ten GETs of the 1.7 MB Swagger bundle and never reading: ``/health`` answered of
+   ``--probes``, median and max.
 
 "Before" is the same run against the code before issue 32: ``--checkout DIR`` runs the service
 from another checkout (``git worktree add /tmp/before <commit>``); settings it does not know
@@ -243,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
             print(_row("hostile", proc.pid, url, a) + f" | DICOM echo {_echo(ports['dicom'])}")
         print(_forwarded_probe(url, 3000))
         _igtl_probes(url, ports["igtl"])
+        print(_slow_reader_probe(url, ports["http"], 300, a.probes, a.timeout))
     return 0
 
 
@@ -400,6 +404,48 @@ def _igtl_slot_probe(url: str, port: int, idle: int) -> str:
         f"igtl slots: {idle} idle sockets from 127.0.0.5: {held} held, {idle - held} closed; a client from "
         f"127.0.0.6 {other_says}; /ready {r.status_code} {types}  [before the fix: all {idle} held, "
         "the next client got EOF, /ready 200 with no problem]"
+    )
+
+
+SLOW_READER = r"""
+import socket, sys
+port, n = int(sys.argv[1]), int(sys.argv[2])
+req = f"GET /static/swagger/swagger-ui-bundle.js HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode() * 10
+held = []
+for _ in range(n):
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.bind(("127.0.0.44", 0))
+    try:
+        s.connect(("127.0.0.1", port))
+        s.sendall(req)
+    except OSError:
+        pass
+    held.append(s)
+print("holding", flush=True)
+sys.stdin.read()
+"""
+
+
+def _slow_reader_probe(url: str, port: int, n: int, probes: int, timeout_s: float) -> str:
+    """``n`` connections from 127.0.0.44 (a process of its own, niced), each pipelining ten GETs of
+    the 1.7 MB Swagger bundle and never reading; ``/health`` probes from 127.0.0.1 meanwhile."""
+    proc = subprocess.Popen(
+        ["nice", "-n", "19", sys.executable, "-c", SLOW_READER, str(port), str(n)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "holding"
+        lat, failed = _probes(url, probes, timeout_s)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=30)
+    med = f"{statistics.median(lat) * 1e3:.1f} ms" if lat else "-"
+    worst = f"{max(lat) * 1e3:.1f} ms" if lat else "-"
+    return (
+        f"slow readers: {n} connections pipelining 10 x 1.7 MB GETs, never reading: /health "
+        f"{probes - failed} of {probes} answered, median {med}, max {worst} (before the write deadline "
+        "and the per-address share: 0 of 20)"
     )
 
 

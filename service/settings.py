@@ -277,6 +277,16 @@ class ApiSettings(_Section):
     # milliseconds; Apache's mod_reqtimeout allows 20 s for the first header bytes; 10 s frees an idle
     # peer's descriptor within seconds.
     first_request_timeout_s: float = Field(default=10.0, gt=0, le=300)
+    # Connections one peer address may hold at once (capped at max_connections); one more closes that
+    # address's oldest idle connection, or itself when all are busy.  64: ten browser tabs (6 each,
+    # Chromium's per-host limit) plus a navigation client, while 300 slow readers from one host
+    # (issue #41) cannot take every slot.  Behind a reverse proxy every client shares its address:
+    # raise it to max_connections there.
+    max_connections_per_address: int = Field(default=64, ge=1, le=16384)
+    # A response whose peer reads nothing (the transport paused writing) for this long is aborted, s.
+    # A LAN client drains a 1.7 MB response in well under a second; 10 s, as the header deadline,
+    # frees the slot of a peer that pipelines requests and never reads (issue #41: HTTP locked out).
+    write_timeout_s: float = Field(default=10.0, gt=0, le=300)
     # --- failed authentications, throttled per client address (service.http.security.AuthThrottle)
     # wrong credentials answered 401 before the address is throttled: the status page calls 7 API
     # paths when it loads with one token, so one mistyped token must not lock its user out at once

@@ -48,6 +48,7 @@ from service.events import (
     VerificationDone,
 )
 from service.http.context import ServiceContext, ServiceInputs
+from service.http.limits import HttpLimitCounters
 from service.http.security import SecurityGate
 from service.intake.intake_scp import INTAKE_FOLDER, CStoreIntake
 from service.intake.recording import Intake
@@ -123,7 +124,8 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         async with contextlib.AsyncExitStack() as stack:
-            app.state.ctx = await _start(inputs, stack, start_watcher=start_watcher)
+            http_limits = getattr(app.state, "http_limits", None)  # the server's counters, set by serve
+            app.state.ctx = await _start(inputs, stack, start_watcher=start_watcher, http_limits=http_limits)
             yield
 
     docs = settings.api.docs
@@ -175,7 +177,11 @@ def _open_link(settings: Settings) -> RobotLink:
 
 
 async def _start(
-    inputs: ServiceInputs, stack: contextlib.AsyncExitStack, *, start_watcher: bool
+    inputs: ServiceInputs,
+    stack: contextlib.AsyncExitStack,
+    *,
+    start_watcher: bool,
+    http_limits: HttpLimitCounters | None = None,
 ) -> ServiceContext:
     """Start the parts in order, each one's stop pushed on ``stack`` as soon as it runs (a failure
     half-way stops what had started); then build the context, complete.
@@ -201,7 +207,7 @@ async def _start(
         robot_link=inputs.robot_link, volumes=inputs.volumes, tickets=inputs.tickets,
         started_at=inputs.started_at, db=db, capture=core.capture, orchestrator=core.orchestrator,
         calibrations=core.calibrations, watcher=watcher, cstore=cstore, igtl=outputs.igtl,
-        pacs=outputs.pacs, auto_register=outputs.auto_register,
+        pacs=outputs.pacs, auto_register=outputs.auto_register, http_limits=http_limits,
     )  # fmt: skip
     if settings.api.auth == "none-loopback-only":
         log.warning(

@@ -17,6 +17,7 @@ from drivers.base import RobotLink
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
 from service.event_bus import EventBus
+from service.http.limits import HttpLimitCounters
 from service.http.tickets import TicketBook
 from service.intake.intake_scp import CStoreIntake
 from service.intake.volume_cache import VolumeCache
@@ -76,6 +77,8 @@ class ServiceContext:
     """``service.registrations.auto_register``."""
     retention_problem: str | None = None
     """Set by the retention loop: why the scan folders exceed ``retention.max_disk_mb`` (``/status``)."""
+    http_limits: HttpLimitCounters | None = None
+    """The HTTP connection bounds' counters (``service.http.limits``; None when not served by ``serve``)."""
     current_json: tuple[RegistrationRecord, bytes] | None = None
     """(current registration record, its JSON) for GET /registration/current."""
 
@@ -116,4 +119,5 @@ class ServiceContext:
             "tls": s.tls.enabled,
             "auto_register": s.service.auto_register,
             "event_bus_failures": [asdict(f) for f in self.bus.listener_failures()],
+            "http_limits": self.http_limits.as_dict() if self.http_limits is not None else None,
         }

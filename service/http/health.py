@@ -263,6 +263,27 @@ def igtl_slot_problems(ctx: ServiceContext) -> list[HealthProblem]:
     return out
 
 
+def http_slot_problems(ctx: ServiceContext) -> list[HealthProblem]:
+    """HTTP connections closed within :data:`IGTL_REFUSAL_HOLD_S` because their address held its
+    ``api.max_connections_per_address`` share or their peer read nothing for ``api.write_timeout_s``."""
+    import time
+
+    c = ctx.http_limits
+    if c is None or time.monotonic() - c.last_drop_at >= IGTL_REFUSAL_HOLD_S:
+        return []
+    ago = time.monotonic() - c.last_drop_at
+    return [
+        HealthProblem(
+            "http-peer-limits",
+            "HTTP connections closed for holding slots",
+            f"{c.last_address or 'a peer'} had a connection closed {ago:.0f} s ago (since start-up: "
+            f"{c.address_share} over an address's api.max_connections_per_address share, "
+            f"{c.write_timeouts} whose peer read nothing for api.write_timeout_s): a host holds HTTP "
+            "connections without reading them; find and stop that client (other hosts are still served)",
+        )
+    ]
+
+
 PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     database_problems,
     robot_link_problems,
@@ -277,6 +298,7 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     registration_withdrawn_problems,
     robot_settings_problems,
     igtl_slot_problems,
+    http_slot_problems,
 ]
 """Every problem source, in the order their problems are listed.  Append new ones here."""
 

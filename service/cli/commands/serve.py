@@ -87,12 +87,13 @@ def run(args: argparse.Namespace) -> int:
     raise_descriptor_limit(settings)
     preflight(settings)
     app = create_app(settings)
+    limits = http_limits(settings, app)
     config = uvicorn.Config(
         app,
         host=settings.host,
         port=settings.port,
         **ssl_options,
-        **http_limits(settings),
+        **limits,
         **forwarded_options(settings),
         log_config=None,  # the CLI configured logging
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
@@ -107,12 +108,18 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def http_limits(settings: Any) -> dict[str, Any]:
+def http_limits(settings: Any, app: Any = None) -> dict[str, Any]:
     """uvicorn ``Config`` options bounding HTTP connections (``api.max_connections``,
     ``api.first_request_timeout_s``; :mod:`service.http.limits`)."""
     from service.http.limits import bounded_protocol
 
-    return {"http": bounded_protocol(settings.api.max_connections, settings.api.first_request_timeout_s)}
+    api = settings.api
+    protocol = bounded_protocol(
+        api.max_connections, api.first_request_timeout_s, api.max_connections_per_address, api.write_timeout_s
+    )
+    if app is not None:  # the counters, for /ready and /status (service.http.health)
+        app.state.http_limits = protocol.counters
+    return {"http": protocol}
 
 
 def raise_descriptor_limit(settings: Any) -> int:
@@ -260,7 +267,7 @@ class ServerThread:
 def _app_http_limits(app: Any) -> dict[str, Any]:
     """:func:`http_limits` of the app's settings (an app from :func:`service.http.app.create_app`)."""
     inputs = getattr(getattr(app, "state", None), "inputs", None)
-    return http_limits(inputs.settings) if inputs is not None else {}
+    return http_limits(inputs.settings, app) if inputs is not None else {}
 
 
 def _app_forwarded_options(app: Any) -> dict[str, Any]:

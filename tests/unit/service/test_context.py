@@ -11,8 +11,9 @@ from service.http.context import ServiceContext
 
 SWITCHABLE = {"watcher", "cstore", "igtl", "pacs", "auto_register"}
 """The parts the settings (or ``start_watcher=False``) can switch off."""
-STATE = {"retention_problem", "current_json"}
-"""Not parts: what the retention loop found, and the encoded current registration (a cache)."""
+STATE = {"retention_problem", "current_json", "http_limits"}
+"""Not parts: what the retention loop found, the encoded current registration (a cache), and the
+HTTP server's connection counters (None when the app is not served by ``serve``)."""
 
 
 def _optional(tp: object) -> bool:
