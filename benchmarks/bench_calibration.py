@@ -49,10 +49,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from mocks.cell import SPREAD_JOINTS_RAD, CellErrorSizes, SimulatedPose, TrueCell, simulate_pose_scan
 from mocks.oarm.simulator import AcquisitionSettings
+from registration.arrays import F64
 from registration.calibration.planner import PlannerParams, ScanVolume, feasible_poses, plan_poses
 from registration.calibration.records import (
     CalibrationParams,
@@ -69,7 +69,6 @@ from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from registration.model.phantom import Phantom, load_phantom
 
-F64 = NDArray[np.float64]
 REPO = Path(__file__).resolve().parents[1]
 START_JOINTS_RAD = (0.2, -0.15, 1.75, 0.3, 0.6, -0.9)
 """The end-to-end test's first pose: phantom in front of the arm, wrist bent."""

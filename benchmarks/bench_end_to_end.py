@@ -30,13 +30,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from benchmarks.common import print_table
 from mocks.oarm.dicom_export import write_dicom_series
 from mocks.oarm.simulator import AcquisitionSettings, SceneExtras, image_from_scanner, simulate_scan
+from registration.arrays import F64
 from registration.detection import DetectionParams, detect_spheres
 from registration.dicom import load_series
 from registration.errors import RegistrationError
@@ -46,7 +46,6 @@ from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
 from registration.model.phantom import Phantom, load_phantom
 
-F64 = NDArray[np.float64]
 REPO = Path(__file__).resolve().parents[1]
 
 TARGET_DISTANCE_MM = 150.0

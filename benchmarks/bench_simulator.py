@@ -18,11 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from benchmarks.common import median_time_s, naive_read_series, print_table
-
-F64 = NDArray[np.float64]
+from registration.arrays import F64
 
 REPO = Path(__file__).resolve().parents[1]
 BUDGET_S = {

@@ -38,10 +38,10 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from mocks.cell import CellErrorSizes, TrueCell
+from registration.arrays import F64
 from registration.calibration.model import (
     ErrorModel,
     Observations,
@@ -67,7 +67,6 @@ from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from registration.model.phantom import Phantom, load_phantom
 
-F64 = NDArray[np.float64]
 REPO: Final = Path(__file__).resolve().parents[1]
 START_JOINTS_RAD: Final = (0.2, -0.15, 1.75, 0.3, 0.6, -0.9)
 """First pose of every session: phantom in front of the arm, wrist bent (bench_calibration's)."""

@@ -21,9 +21,8 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from registration.arrays import F64
 
 MATCH_MM: Final = 1.0
 MAX_TILT_DEG: Final = 40.0

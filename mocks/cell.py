@@ -30,14 +30,12 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.calibration.urdf import SerialChain, read_chain, rotation_about
 from registration.model.frames import as_transform, make_transform
 from registration.model.kinematics import RobotModel
-
-F64 = NDArray[np.float64]
-
 
 SPREAD_BASE_JOINTS_RAD = np.array([0.2, 0.3, 1.6, 0.1, 0.8, -0.3])
 """A TX60 configuration inside every joint's limits, the centre of the spread poses (rad)."""

@@ -19,8 +19,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.detection import DetectionParams, DetectionResult, detect_spheres
 from registration.imaging.volume import Volume
 from registration.matching.quality import predicted_tre_mm
@@ -35,8 +36,6 @@ from registration.matching.verification import VerificationResult, verify_regist
 from registration.model.frames import apply, invert
 from registration.model.kinematics import RobotModel, sphere_centres_robot_mm
 from registration.model.phantom import Phantom
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -74,11 +74,11 @@ from mocks.oarm.simulator import (
     image_from_scanner,
     kernel_scatter,
 )
+from registration.arrays import F64
 from registration.errors import ConfigError
 from registration.model import frames
 from registration.model.phantom import Phantom
 
-F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
 RTK_FROM_SCANNER = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, -1.0, 0, 0], [0, 0, 0, 1.0]])

@@ -13,14 +13,13 @@ import hashlib
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from mocks.cell import SPREAD_BASE_JOINTS_RAD, TrueCell
 from mocks.oarm.simulator import demo_pose
+from registration.arrays import F64
 from registration.model.frames import invert, transform_from_xyz_rpy
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
-
-F64 = NDArray[np.float64]
 
 DEFAULT_CELL_SEED = 2
 """Seed of the simulated true cell (:meth:`mocks.cell.TrueCell.sample`), the demo's own."""

@@ -58,6 +58,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocks.oarm import physics
+from registration.arrays import F64
 from registration.errors import ConfigError
 from registration.imaging.volume import Volume
 from registration.model import frames
@@ -65,7 +66,6 @@ from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)
 
-F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
 HU_MAX = 3071.0

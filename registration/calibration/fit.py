@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from registration.arrays import F64
 from registration.calibration.model import (
     ErrorModel,
     Observations,
@@ -28,9 +29,6 @@ from registration.calibration.records import (
 
 if TYPE_CHECKING:
     pass
-
-
-F64 = NDArray[np.float64]
 
 
 I64 = NDArray[np.int64]

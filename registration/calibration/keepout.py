@@ -16,12 +16,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.calibration.urdf import SerialChain, rotation_about
 from registration.model.frames import apply, as_transform
-
-F64 = NDArray[np.float64]
 
 NEAR_MARGIN_MM = 50.0
 """A pose is reported "near" a keep-out box when a checked point comes this close (mm): the

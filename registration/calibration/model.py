@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.arrays import F64
 from registration.calibration.records import (
     CalibrationError,
     CalibrationResult,
@@ -26,9 +27,6 @@ from registration.model.frames import as_transform, invert, make_transform
 
 if TYPE_CHECKING:
     pass
-
-
-F64 = NDArray[np.float64]
 
 
 I64 = NDArray[np.int64]

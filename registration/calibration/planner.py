@@ -34,6 +34,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.arrays import F64
 from registration.calibration.model import (
     ErrorModel,
     Observations,
@@ -67,8 +68,6 @@ __all__ = [
     "sample_poses_in_volume",
     "solve_ik",
 ]
-
-F64 = NDArray[np.float64]
 
 
 class PlanningError(RegistrationError):

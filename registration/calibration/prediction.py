@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.calibration.fit import (
     fit_parameters,
 )
@@ -29,9 +30,6 @@ from registration.calibration.records import (
 
 if TYPE_CHECKING:
     from registration.calibration.sampling import ScanVolume
-
-
-F64 = NDArray[np.float64]
 
 
 I64 = NDArray[np.int64]

@@ -15,15 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import __version__
+from registration.arrays import F64
 from registration.calibration.targets import TARGET_RMS_MM
 from registration.calibration.urdf import SerialChain
 from registration.errors import RegistrationError
 
 if TYPE_CHECKING:
     pass
-
-
-F64 = NDArray[np.float64]
 
 
 I64 = NDArray[np.int64]

@@ -9,13 +9,12 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
+from registration.arrays import F64
 from registration.calibration.urdf import SerialChain, rotation_about
 from registration.model.frames import apply, as_transform, invert
-
-F64 = NDArray[np.float64]
 
 IK_ROTATION_WEIGHT_MM: Final = 100.0
 """Rotation errors (rad) are weighted as this lever (mm) in the IK residual."""

@@ -59,6 +59,7 @@ from typing import TYPE_CHECKING, Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.arrays import F64
 from registration.calibration.fit import (
     cross_validate,
     fit_parameters,
@@ -103,7 +104,6 @@ from registration.model.frames import as_transform
 if TYPE_CHECKING:
     from registration.calibration.sampling import ScanVolume
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 MIN_JOINT_SPREAD_DEG: Final = 5.0

@@ -25,13 +25,12 @@ from pathlib import Path
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
+from registration.arrays import F64
 from registration.errors import ConfigError, KinematicsError
 from registration.model.frames import transform_from_xyz_rpy
-
-F64 = NDArray[np.float64]
 
 MM_PER_M: Final = 1000.0
 ROOT_LINK: Final = "base"

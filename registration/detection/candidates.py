@@ -18,10 +18,8 @@ import cc3d
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.params import DetectionParams
-
-F64 = NDArray[np.float64]
-
 
 Support = tuple[tuple[slice, slice, slice], NDArray[np.bool_]]
 """A region of the volume: a (k, j, i) box and a boolean mask of the box's shape."""

@@ -18,11 +18,9 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Support
 from registration.detection.params import DetectionParams
-
-F64 = NDArray[np.float64]
-
 
 SATURATION_MIN_VOXELS: Final = 3
 """A crop whose maximum is held by at least this many voxels is clipped there (a 12-bit export

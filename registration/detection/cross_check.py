@@ -17,14 +17,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Support
 from registration.detection.centroid import support_mask
 from registration.detection.params import DetectionParams
 from registration.detection.timing import StageTimer
 from registration.imaging.circles import CircleParams, find_circles
 from registration.imaging.mar import reduce_metal_artifacts
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

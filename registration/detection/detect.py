@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Blob, find_blobs, group_hits, split_blob, threshold_hits
 from registration.detection.centroid import ball_weights, subvoxel_centre
 from registration.detection.cross_check import fit_radius, slice_circles, sphere_score
@@ -47,9 +47,6 @@ from registration.errors import DetectionError
 from registration.imaging.volume import Volume
 
 log = logging.getLogger(__name__)
-
-
-F64 = NDArray[np.float64]
 
 
 def _checked_spacing(volume: Volume) -> F64:

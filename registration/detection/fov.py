@@ -27,7 +27,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from registration.arrays import F64
 
 PROFILE_STEP_MM: Final = 0.05
 """Sampling step along a profile (mm): far below the 0.4 mm pixel, so the linear interpolation

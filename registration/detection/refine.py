@@ -15,13 +15,11 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Support
 from registration.detection.centroid import ball_weights
 from registration.detection.fov import DataRegion, boundaries, plateau_reaches_edge
 from registration.detection.params import DetectionParams
-
-F64 = NDArray[np.float64]
-
 
 EDGE_WINDOW_ITERATIONS: Final = 8
 """Re-centrings of the symmetric window near an edge; each halves the remaining offset or better

@@ -16,14 +16,12 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Blob
 from registration.detection.centroid import BallWeights
 from registration.detection.params import DetectionParams
 from registration.detection.records import DetectedSphere, Rejection
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Final
 
 import numpy as np
-from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.dicom.errors import (
     MAX_FILES_IN_MESSAGE,
     DuplicatePositionError,
@@ -44,8 +44,6 @@ from registration.dicom.errors import (
     file_names,
 )
 from registration.dicom.headers import SliceHeader, slice_name
-
-F64 = NDArray[np.float64]
 
 ORIENTATION_TOLERANCE: Final = 1e-4
 """Max difference of any ImageOrientationPatient direction cosine between slices of one series

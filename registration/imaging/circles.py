@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from registration.arrays import F64
 
 PHI1_DISC: Final = 1.0 / (2.0 * math.pi)
 """Hu's φ1 of an ideal disc (η20 + η02 = 1/(2π))."""

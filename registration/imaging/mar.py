@@ -35,11 +35,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
+
 log = logging.getLogger(__name__)
 
 F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
-
 LAMBDA_MIN_ROWS: Final = 2
 """Smallest structuring-element length (polar rows): the paper's λ = 2 … 20 (§2.2)."""
 LAMBDA_MAX_ROWS: Final = 20

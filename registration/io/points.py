@@ -21,12 +21,11 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import InputFileUnreadableError, PointsFileError
 from registration.model.frames import NotRigidError, as_transform
-
-F64 = NDArray[np.float64]
 
 MAX_ABS_COORD_MM: Final = 1.0e5
 """Coordinates beyond 100 m are not millimetres of an operating room."""

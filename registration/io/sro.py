@@ -46,9 +46,8 @@ import numpy.typing as npt
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, ExplicitVRLittleEndian, generate_uid
 
+from registration.arrays import F64
 from registration.errors import OarmRegError
-
-F64 = npt.NDArray[np.float64]
 
 SPATIAL_REGISTRATION_STORAGE = UID("1.2.840.10008.5.1.4.1.1.66.1")
 FIDUCIAL_ALIGNMENT = ("125022", "DCM", "Fiducial Alignment")

@@ -41,11 +41,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from registration.arrays import F64
 from registration.matching.rigid import fit_rigid_batch, rotation_difference_deg
 
 log = logging.getLogger(__name__)
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 MIN_EDGE_FRACTION: Final = 0.45

@@ -26,13 +26,11 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import RegistrationError
 from registration.matching.rigid import PointSetError, as_points, fit_rigid_unchecked
-
-F64 = NDArray[np.float64]
-
 
 MAX_FACE_OFFSET_MM: Final = 0.15
 """Largest |β| accepted.  Origin: the pulls measured along the hole axis are 0.004–0.024 mm for the

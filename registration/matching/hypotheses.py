@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from registration.arrays import F64
 from registration.errors import (
     AmbiguousMatchError,
     MirroredInputError,
@@ -41,9 +42,6 @@ from registration.matching.rigid import fit_rigid, rotation_difference_deg
 from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)
-
-
-F64 = NDArray[np.float64]
 
 
 I64 = NDArray[np.int64]

@@ -33,11 +33,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from registration.arrays import F64
 from registration.matching.rigid import fit_rigid_unchecked
 
 log = logging.getLogger(__name__)
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 GATE_START_MM: Final = 7.5

@@ -16,12 +16,11 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import DegenerateConfigurationError, MirroredInputError, RegistrationError
 from registration.matching.rigid import nearest_rotation
-
-F64 = NDArray[np.float64]
 
 MIN_MARK_PLANARITY: Final = 1e-3
 """λ3/λ1 of the four marks below this = (near) coplanar: P_r is (nearly) singular (eq. 7)."""

@@ -21,11 +21,10 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import DegenerateConfigurationError
-
-F64 = NDArray[np.float64]
 
 MIN_COLLINEAR_RATIO: Final = 1e-3
 """λ2/λ1 of the centred point covariance below this = collinear: the rotation about the line is

@@ -11,6 +11,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.arrays import F64
 from registration.errors import (
     ConfigError,
     RegistrationError,
@@ -26,9 +27,6 @@ from registration.matching.quality import (
 )
 
 log = logging.getLogger(__name__)
-
-
-F64 = NDArray[np.float64]
 
 
 I64 = NDArray[np.int64]

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from registration import __version__
+from registration.arrays import F64
 from registration.errors import (
     AccuracyGateError,
     ConfigError,
@@ -82,7 +83,6 @@ from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 

@@ -19,13 +19,12 @@ import logging
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import DegenerateConfigurationError, OarmRegError
 
 log = logging.getLogger(__name__)
-
-F64 = NDArray[np.float64]
 
 MIN_POINTS: Final = 3
 """A rigid fit needs at least three non-collinear point pairs."""

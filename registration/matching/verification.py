@@ -21,13 +21,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from registration.arrays import F64
 from registration.errors import TooFewSpheresError
 from registration.matching.icp import unique_pairs
 from registration.matching.records import RegistrationParams
 from registration.matching.rigid import as_points
 from registration.model.frames import as_transform
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 

@@ -10,8 +10,9 @@ from __future__ import annotations
 from typing import Final
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import OarmRegError
 
 FRAMES: Final = ("voxel", "image", "robot", "tool0", "phantom")
@@ -19,8 +20,6 @@ FRAMES: Final = ("voxel", "image", "robot", "tool0", "phantom")
 
 RIGID_TOLERANCE: Final = 1e-6
 """Max |RᵀR − I| and |det R − 1| accepted as rigid (float64 round-off of a chain of ~10 products)."""
-
-F64 = NDArray[np.float64]
 
 
 class NotRigidError(OarmRegError):

@@ -19,13 +19,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from registration.arrays import F64
 from registration.errors import ConfigError, KinematicsError
 from registration.io.resources import robot_urdf, robots_dir
 from registration.model.frames import apply, as_transform
-
-F64 = NDArray[np.float64]
 
 ROOT_FRAME = "base"
 TOOL_FRAME = "tool0"

@@ -17,6 +17,7 @@ from typing import Any, Protocol, TypeVar, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Support
 from registration.detection.centroid import SATURATION_MIN_VOXELS
 from registration.detection.cross_check import SliceCircle
@@ -25,7 +26,6 @@ from registration.detection.fov import near_imaged_edge
 from registration.detection.params import DetectionParams
 from registration.errors import DetectionError
 
-F64 = NDArray[np.float64]
 PreparedT = TypeVar("PreparedT")
 
 

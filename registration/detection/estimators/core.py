@@ -12,17 +12,15 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
-import numpy as np
 from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.candidates import Support
 from registration.detection.centroid import LINEAR_BACKGROUND_MIN_VOXELS, subvoxel_centre
 from registration.detection.estimators.base import MeasuredSphere, SpherePatch, sphere_patch
 from registration.detection.estimators.core_centroid import CoreWeights, core_centroid
 from registration.detection.params import DetectionParams
 from registration.detection.refine import edge_refined_centre
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,11 +33,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.errors import DetectionError
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -10,13 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Final
 
-import numpy as np
-from numpy.typing import NDArray
-
+from registration.arrays import F64
 from registration.detection.estimators.base import MeasuredSphere, SpherePatch, sphere_patch
 from registration.detection.estimators.sphere_fit import FitParams, fit_sphere_model
-
-F64 = NDArray[np.float64]
 
 MODEL_MIN_VOXELS: Final = 27
 """The model has 6 parameters; fewer than a 3 × 3 × 3 block of voxels cannot constrain it."""

@@ -13,12 +13,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.cross_check import SliceCircle
 from registration.detection.estimators.base import MeasuredSphere
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

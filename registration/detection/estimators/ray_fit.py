@@ -43,7 +43,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from registration.arrays import F64
 
 TUKEY_C: Final = 4.685
 """Tukey biweight cut-off in robust standard deviations (95 % efficiency for Gaussian residuals)."""

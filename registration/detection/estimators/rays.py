@@ -13,13 +13,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from registration.arrays import F64
 from registration.detection.centroid import axial_profile_centre
 from registration.detection.estimators.base import MeasuredSphere
 from registration.detection.estimators.ray_fit import RayFit, ray_centre
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

@@ -24,9 +24,8 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from registration.arrays import F64
 
 SQRT2: Final = math.sqrt(2.0)
 SQRT2PI: Final = math.sqrt(2.0 * math.pi)

@@ -9,13 +9,9 @@ every other estimator is measured against (``docs/validation.md``).
 
 from __future__ import annotations
 
-import numpy as np
-from numpy.typing import NDArray
-
+from registration.arrays import F64
 from registration.detection.centroid import axial_profile_centre
 from registration.detection.estimators.base import MeasuredSphere
-
-F64 = NDArray[np.float64]
 
 
 class SubvoxelEstimator:

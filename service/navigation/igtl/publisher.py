@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 
+from registration.arrays import F64
 from registration.model.kinematics import sphere_centres_robot_mm
 from service.events import (
     IgtlClientConnected,
@@ -31,7 +32,6 @@ from service.events import (
     VerificationDone,
 )
 from service.navigation.igtl.server import (
-    F64,
     IgtlServer,
     IgtlStateSource,
     JointView,

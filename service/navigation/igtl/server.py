@@ -82,8 +82,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
+from registration.arrays import F64
 from service.errors import IgtlConfigError, IgtlCrcError, IgtlPeerError, IgtlWireError
 from service.navigation.igtl import wire
 from service.netaddr import in_networks, is_loopback, parse_networks, printable
@@ -93,8 +93,6 @@ if TYPE_CHECKING:
     from service.settings import IgtlSettings
 
 log = logging.getLogger(__name__)
-
-F64 = npt.NDArray[np.float64]
 
 RAS_FROM_LPS: F64 = np.diag([-1.0, -1.0, 1.0, 1.0])
 """DICOM patient LPS → Slicer RAS (its own inverse)."""

@@ -35,9 +35,8 @@ import crcmod  # type: ignore[import-untyped]
 import numpy as np
 import numpy.typing as npt
 
+from registration.arrays import F64
 from service.errors import IgtlCrcError, IgtlWireError
-
-F64 = npt.NDArray[np.float64]
 
 HEADER_SIZE = 58
 EXT_HEADER_SIZE = 12
