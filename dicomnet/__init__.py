@@ -6,9 +6,8 @@
 * :mod:`dicomnet.server`: the listening side (``poll`` instead of ``select``, a failed ``accept``
   reported).  Used by the service's Storage SCP (:mod:`service.intake.dicom_scp`).
 
-Why a package of its own (issue #35): the client was in ``drivers/``, among the robot links, only
-because the mocks may import ``drivers`` and may not import ``service``; and the listening half of
-the same workarounds sat inside the service's intake.  Here both halves sit together, below every
+Why a package of its own: the mocks may import it (they may not import ``service``) without the
+robot links of ``drivers/``, and both halves of the same workarounds sit together here, below every
 package that uses them.  What a peer stores, refuses or exports stays with its user
 (``service/intake``, ``service/navigation/pacs``, ``mocks/oarm``).
 

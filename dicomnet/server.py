@@ -1,14 +1,14 @@
 """The listening side of a pynetdicom association, with two pynetdicom 3.0 defects worked around.
 
 * :class:`PollAssociationSocket`: pynetdicom checks a socket for data with ``select``, which fails
-  for a descriptor >= 1024; this one asks ``poll`` (issue #32).
+  for a descriptor >= 1024; this one asks ``poll``.
 * :class:`AssociationServer`: ``socketserver`` drops a failed ``accept`` (EMFILE) silently; this one
   reports it.
 
 :func:`start_server` is ``ae.start_server(block=False)`` with both.  Nothing here knows what the
 server stores or why: the service's Storage SCP (:mod:`service.intake.dicom_scp`) is the one user,
-and a test peer may be another.  Moved here from ``service/intake/dicom_scp.py`` beside the client
-side (:mod:`dicomnet.scu`), issue #35.
+and a test peer may be another.  It sits beside the client side
+(:mod:`dicomnet.scu`).
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ class PollAssociationSocket(AssociationSocket):
     pynetdicom 3.0 checks for incoming data with ``select.select([sock], [], [], 0)``, which raises
     ``ValueError`` for a descriptor >= 1024 (FD_SETSIZE); pynetdicom takes that for a closed
     connection, so once the process holds more than 1024 descriptors (idle peers on the other
-    listeners) every new association was aborted before its A-ASSOCIATE-RQ was read, silently
-    (issue #32).  ``poll`` has no such limit; the answer is otherwise the same (readable, hung up or
+    listeners) every new association was aborted before its A-ASSOCIATE-RQ was read, silently.
+    ``poll`` has no such limit; the answer is otherwise the same (readable, hung up or
     in error all mean "read now").  pynetdicom has no switch for this.  The listener itself uses
     ``socketserver``'s ``PollSelector`` already.
     """

@@ -641,7 +641,7 @@ class BaseLink:
 
     def joint_resolution_rad(self, joints_rad: Sequence[float]) -> tuple[float, ...]:
         """How far each decoded joint may lie from the controller's value by the wire encoding's rounding
-        alone (rad): a value this close beyond a joint limit is at the limit (issue 40).  Each link states
+        alone (rad): a value this close beyond a joint limit is at the limit.  Each link states
         its own; the base link has no encoding of its own (0)."""
         return tuple(0.0 for _ in joints_rad)
 

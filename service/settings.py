@@ -73,7 +73,7 @@ _NESTED_PATH_KEYS = (
 MAX_SETTING_MAGNITUDE = 1e9
 """Largest |value| of any float setting.  No setting of this service means anything beyond 1e9 of its
 unit (1e9 s = 31 years, 1e9 mm = 1000 km, 1e9 MB = 1 PB); a larger value is a typo or an overflow
-(``1e300`` in ``robot.tool0_from_phantom`` gave a 500 at ``/register``, issue 31)."""
+(``1e300`` in ``robot.tool0_from_phantom`` gave a 500 at ``/register``)."""
 MAX_TRANSFORM_TRANSLATION_MM = 2000.0
 """Largest |component| of a transform setting's ``translation_mm``: the TX60's reach is 670 mm
 (Stäubli TX60 data sheet); a flange-to-phantom rod or a tool centre point 2 m away is not this cell."""
@@ -94,8 +94,8 @@ def _floats_of(v: Any) -> list[float]:
 
 class _Section(BaseModel):
     """Every settings section: unknown keys refused; NaN / infinity refused in every float
-    (``allow_inf_nan``; NaN in ``[igtl] tool0_from_tcp`` silently cut every OpenIGTLink client off,
-    issue 31), and every float's magnitude at most :data:`MAX_SETTING_MAGNITUDE`."""
+    (``allow_inf_nan``; NaN in ``[igtl] tool0_from_tcp`` silently cut every OpenIGTLink client off),
+    and every float's magnitude at most :data:`MAX_SETTING_MAGNITUDE`."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -253,7 +253,7 @@ class ApiSettings(_Section):
 
     auth: Literal["token", "none-loopback-only"] = "token"
     # 1 MiB: the largest legitimate body is POST /register with 1000 targets (~60 kB of JSON);
-    # 16× headroom, and far below what stalls the event loop (a 10 MB body took seconds, #13).
+    # 16× headroom, and far below what stalls the event loop (a 10 MB body took seconds).
     max_body_bytes: int = Field(default=1_048_576, ge=1024, le=64 * 1_048_576)
     # Host header values accepted ("name" = that name on the service's port, "name:port" exactly).
     # Empty: the bind host, localhost, 127.0.0.1 and [::1] on the service's port (DNS rebinding guard).
@@ -266,26 +266,26 @@ class ApiSettings(_Section):
     # Lifetime of a single-use ticket from POST /events/ticket for GET /events?ticket=..., s
     # (EventSource cannot send an Authorization header; short, as it travels in the URL).
     event_ticket_ttl_s: float = Field(default=30.0, gt=0, le=600)
-    # --- connection bounds (issue #32; service.http.limits).  Connections held open at once; one
+    # --- connection bounds (service.http.limits).  Connections held open at once; one
     # more closes the oldest idle one (no request in progress), so /health and the page keep
     # answering while a peer floods the port.  256: a browser opens at most 6 per host (Chromium's
     # per-host limit) and an SSE stream holds one, so ~40 browser tabs plus the navigation clients.
     max_connections: int = Field(default=256, ge=8, le=16384)
     # A connection must complete a request header within this long of opening (and of its previous
     # response), s; then it is closed.  uvicorn's timeout_keep_alive does not close a connection that
-    # never sends a byte (issue #32: idle peers stayed past 20 s).  A LAN client sends its header in
+    # never sends a byte (idle peers stayed past 20 s).  A LAN client sends its header in
     # milliseconds; Apache's mod_reqtimeout allows 20 s for the first header bytes; 10 s frees an idle
     # peer's descriptor within seconds.
     first_request_timeout_s: float = Field(default=10.0, gt=0, le=300)
     # Connections one peer address may hold at once (capped at max_connections); one more closes that
     # address's oldest idle connection, or itself when all are busy.  64: ten browser tabs (6 each,
     # Chromium's per-host limit) plus a navigation client, while 300 slow readers from one host
-    # (issue #41) cannot take every slot.  Behind a reverse proxy every client shares its address:
+    # cannot take every slot.  Behind a reverse proxy every client shares its address:
     # raise it to max_connections there.
     max_connections_per_address: int = Field(default=64, ge=1, le=16384)
     # A response whose peer reads nothing (the transport paused writing) for this long is aborted, s.
     # A LAN client drains a 1.7 MB response in well under a second; 10 s, as the header deadline,
-    # frees the slot of a peer that pipelines requests and never reads (issue #41: HTTP locked out).
+    # frees the slot of a peer that pipelines requests and never reads (they locked HTTP out).
     write_timeout_s: float = Field(default=10.0, gt=0, le=300)
     # --- failed authentications, throttled per client address (service.http.security.AuthThrottle)
     # wrong credentials answered 401 before the address is throttled: the status page calls 7 API
@@ -293,12 +293,12 @@ class ApiSettings(_Section):
     auth_failures_before_throttle: int = Field(default=10, ge=1, le=1000)
     # the first lock-out (429 + Retry-After) after those, s; doubled on each further failure
     auth_lockout_initial_s: float = Field(default=1.0, gt=0, le=30)
-    # the longest lock-out, s (issue #32: at most 30 s, the longest an operator who mistyped waits)
+    # the longest lock-out, s (at most 30 s, the longest an operator who mistyped waits)
     auth_lockout_max_s: float = Field(default=30.0, gt=0, le=30)
     # an address's failures are forgotten after this long without one, s (it ends a burst)
     auth_failure_memory_s: float = Field(default=300.0, gt=0, le=86400)
     # throttle audit rows (one per address per burst) written per minute at most; past it one
-    # auth_throttle_summary row (issue #41: 1,000 spoofed addresses wrote 1,004 rows in 5 s)
+    # auth_throttle_summary row (1,000 spoofed addresses wrote 1,004 rows in 5 s)
     auth_throttle_audit_rows_per_minute: int = Field(default=20, ge=1, le=10_000)
     # proxies whose X-Forwarded-For / X-Forwarded-Proto are believed (addresses or networks, "*" =
     # any); empty: none, the client's address is the socket's (uvicorn's own default trusts 127.0.0.1)
@@ -364,7 +364,7 @@ class DicomSettings(_Section):
     # concurrent associations (pynetdicom's default 10)
     maximum_associations: int = Field(default=10, ge=1, le=1000)
     # of those, held at once by one peer address (A-ASSOCIATE-RJ transient beyond it), so one host
-    # cannot lock the O-arm out (issue #41: ten echoing associations did); an O-arm sends one at a time
+    # cannot lock the O-arm out (ten echoing associations did); an O-arm sends one at a time
     max_associations_per_peer: int = Field(default=5, ge=1, le=1000)
     # largest C-STORE instance, MB (a 512 x 512 x 192 Enhanced CT is ~100 MB; received to a temp file)
     max_instance_mb: float = Field(default=1024.0, gt=0, le=65536)
@@ -620,7 +620,7 @@ class CalibrationSettings(_Section):
     # mm; the planner adds poses until its predicted RMS sphere error over the working volume (what
     # held-out poses measure) is at most this.  0.075 mm: 1.5 × the floor (true geometric model,
     # oracle registration) of an unseen simulated TX60 cell, where 20 planned poses reached 0.072 mm
-    # and 10 gave 0.106 mm (issue #33; registration/calibration/targets.py)
+    # and 10 gave 0.106 mm (registration/calibration/targets.py)
     target_rms_mm: float = Field(default=_cal_targets.TARGET_RMS_MM, gt=0, le=5.0)
     # the most poses the planner proposes on its own (each is one O-arm spin of the phantom, no
     # patient); --n forces a count
@@ -820,7 +820,7 @@ decoding a series adds a few more."""
 
 
 def descriptor_budget(settings: Settings) -> list[tuple[str, int]]:
-    """``(setting, descriptors)`` the configured maxima can hold open at once (issue #32): one per
+    """``(setting, descriptors)`` the configured maxima can hold open at once: one per
     HTTP connection, OpenIGTLink client and DICOM association, plus :data:`DESCRIPTOR_MARGIN`."""
     out = [("api.max_connections", settings.api.max_connections)]
     if settings.igtl.enabled:

@@ -1,4 +1,4 @@
-"""Keep-out report and short-travel ordering for planned calibration poses (issue 34, item 2).
+"""Keep-out report and short-travel ordering for planned calibration poses.
 
 The planner keeps the phantom inside the scan volume; it knows nothing of the O-arm's gantry or
 the table.  What it can be told is a **keep-out volume**: axis-aligned boxes in the image frame

@@ -335,7 +335,7 @@ def registration_tre_ms(
     """(W,) mean squared TRE over each working pose's spheres of the one-scan registration at
     ``registration_joints_rad`` (Fitzpatrick 1998 eq. 46, FLE ``fle_rms_mm``): the registration's
     rotation error grows with the distance from the registration scan's spheres, and a working
-    pose's spheres are up to ~150 mm from them (issue #33: evaluated at the registration scan's own
+    pose's spheres are up to ~150 mm from them (evaluated at the registration scan's own
     spheres, the term was ⅓ of what the test bed's held-out poses measure)."""
     from registration.matching.quality import predicted_tre_mm
 

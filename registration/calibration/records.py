@@ -168,7 +168,7 @@ class CalibrationParams:
     prediction.loo_unmodelled`: the rigid part of each pose's leave-one-pose-out residual beyond
     what detection noise and the other poses' errors explain, plus :attr:`unmodelled_se_factor`
     standard errors; the prior :attr:`unmodelled_floor_mm` where it cannot); ``"prior"`` takes
-    max(in-sample residual, :attr:`unmodelled_floor_mm`) as before issue #33's last step."""
+    max(in-sample residual, :attr:`unmodelled_floor_mm`) (the simpler, older estimate)."""
     unmodelled_se_factor: float = 1.0
     """Standard errors added to the leave-one-pose-out estimate of u² (mm²): the prediction uses
     its one-sided 84 % upper bound, so few poses (a wide estimate) widen the prediction instead of

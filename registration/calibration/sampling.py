@@ -65,7 +65,7 @@ def _rotation_log(r: F64) -> F64:
     """(C, 3) rotation vectors of rotations (C, 3, 3): the log map, through the unit quaternion.
 
     Smooth up to and including 180° (unlike θ / (2 sin θ) · vee(R − Rᵀ), which divides by a vanishing
-    sin θ there: the planner's ``Singular matrix`` of issue #33).  A non-finite rotation gives NaN."""
+    sin θ there: the planner's ``Singular matrix`` without it).  A non-finite rotation gives NaN."""
     out = np.full((len(r), 3), np.nan)
     ok = np.all(np.isfinite(r), axis=(1, 2))
     if ok.any():

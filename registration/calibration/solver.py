@@ -447,7 +447,7 @@ def _predict(
     unmodelled = estimate_unmodelled(fit.model, fit.data, fit.values, fle, params)
     unmod = unmodelled.rms_mm
     # the per-pose error the prediction adds at every working pose was there at the calibration poses
-    # too, and the fit absorbed it into the parameters: the sandwich takes the same figure (issue #33)
+    # too, and the fit absorbed it into the parameters: the sandwich takes the same figure
     cov = posterior_covariance(
         fit.model,
         fit.data,

@@ -9,7 +9,7 @@ __all__ = ["MAX_PLANNED_POSES", "TARGET_RMS_MM"]
 
 TARGET_RMS_MM: Final = 0.075
 """The pose planner's default target: predicted RMS sphere error over the working volume after
-calibrating (what held-out poses measure), mm.  Origin (issue #33): 20 planned poses gave 0.072 mm
+calibrating (what held-out poses measure), mm.  Origin (simulated): 20 planned poses gave 0.072 mm
 held-out mean on an unseen simulated TX60 cell whose floor (true geometric model, oracle
 registration) was 0.050 mm, 10 gave 0.106 mm; 0.075 mm is 1.5 × that floor, what enough poses
 deliver there.  Setting ``calibration.target_rms_mm``."""

@@ -92,7 +92,7 @@ class DetectionParams:
         of the nominal radius: streaks (1–2 voxels wide) vanish, sphere cores and the rod stay.
     split_retry_core_fraction : float
         When the first split leaves no sphere-sized core, the blob is split again with an opening
-        of this fraction of the nominal radius before it is called oversized (issue #43: bright
+        of this fraction of the nominal radius before it is called oversized (bright
         tungsten-carbide streaks more than 2 mm thick survived the 0.75 R opening and left a
         6.78 mm core against the 6.75 mm limit, three spheres of forty in one row missed; 1.0 R
         gave 3.0–3.8 mm cores, 40 / 40, and rods and bone stayed rejected).  A rod thicker than

@@ -53,7 +53,7 @@ class Rejection:
 
 @dataclass(frozen=True, eq=False)
 class FaceOffset:
-    """The phantom's face offset β of one scan (issue #43), fitted over the phantom's hole grid.
+    """The phantom's face offset β of one scan, fitted over the phantom's hole grid.
 
     Attributes
     ----------

@@ -3,7 +3,7 @@
 A detected sphere centre sits systematically deeper in (or higher out of) its hole than the
 phantom file says: scatter and detector blur acting on a sphere seated in a drilled hole pull the
 estimate along the hole's axis, by an amount and a sign that depend on how the hole is built and
-on the estimator (issue #43: −0.007 … −0.024 mm on unseen scans, +0.004 … +0.019 mm on the
+on the estimator (measured: −0.007 … −0.024 mm on unseen scans, +0.004 … +0.019 mm on the
 simulator's tight fit).  A pull shared by every sphere along its own outward axis shrinks or grows
 the detected pattern and does not average out in a rigid fit, so it is measured in every scan:
 
@@ -34,7 +34,7 @@ from registration.matching.rigid import PointSetError, as_points, fit_rigid_unch
 
 MAX_FACE_OFFSET_MM: Final = 0.15
 """Largest |β| accepted.  Origin: the pulls measured along the hole axis are 0.004–0.024 mm for the
-chosen estimators and 0.05–0.09 mm for the worst one (``model``, issue #43); the phantom is
+chosen estimators and 0.05–0.09 mm for the worst one (``model``); the phantom is
 machined to ±0.02 mm (Bai 2018 §2.1).  A shared offset beyond 0.15 mm is not a detection bias: the
 spheres are not pressed home, the phantom file's ``hole_centre_depth_mm`` or
 ``sphere_diameter_mm`` is wrong, or the spheres are of another size than the file says."""

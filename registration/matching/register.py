@@ -157,7 +157,7 @@ def validate_inputs(
 
 def check_phantom_fit(n_expected: int, n_detected: int, n_matched: int, p: RegistrationParams) -> None:
     """Step 5b: does the scan look like the phantom file?  Far more detections than its spheres, or
-    a best pose that explains a small share of them, suggests another phantom (issue 42).
+    a best pose that explains a small share of them, suggests another phantom.
 
     Raises PhantomMismatchError unless ``p.phantom_confirmed`` (then it only warns).
     """

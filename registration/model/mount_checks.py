@@ -4,7 +4,7 @@ plausible in the units its fields claim?
 A one-scan registration cannot see an error on the robot side: with a rod typed in radians in a
 degrees field (``rpy_deg = [3.14159, 0, 0]``, meant as 180°) every sphere moves together, the fit
 absorbs it, FRE stays at a few hundredths of a millimetre, and robot points 150 mm from the phantom
-land 176–275 mm from where they belong (issue #40 item 1).  These checks catch the unit slips a
+land 176–275 mm from where they belong.  These checks catch the unit slips a
 person makes when copying a rod's values from a CAD tool or a pendant, and let real odd mounts pass:
 
 * **radians in a degrees field**: every non-zero angle is within :data:`RADIAN_MATCH_TOL` of a

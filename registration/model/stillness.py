@@ -27,7 +27,7 @@ three verdicts (docs/safety.md, "Stillness and health"):
     over span); when more than ``max_gap_s`` worth are missing, the controller stopped
     sending.  The count runs over a second or so around each long receive gap, never over the
     whole window, so a rate error of a few per mille costs milliseconds, not the 0.25 s that a
-    count over a 60 s window at the median receive interval lost under load (issue 40).  The
+    count over a 60 s window at the median receive interval lost under load.  The
     controller's own counters are not used: the VAL3 driver sends JOINT_POSITION with
     sequence number 0 and never JOINT_FEEDBACK (research/staubli-link.md §1.4, §1.7);
     JOINT_FEEDBACK's ``time`` is a float32 (1 ms resolution lost after ~2.3 h of controller
@@ -119,7 +119,7 @@ def stream_period_s(t_s: ArrayLike, *, min_intervals: int = STREAM_PERIOD_MIN_IN
 
     Frames over span does not depend on how the receive clock bunches them: a burst of late frames
     after a receive delay and the short intervals of a busy scheduler leave the count and the span
-    unchanged (the median interval shrinks under both, issue 40).  A controller pause inside the
+    unchanged (the median interval shrinks under both).  A controller pause inside the
     span lengthens the period by the pause's share of the span (0.5 s in 60 s: 0.8 %), which
     :func:`assess_stillness` applies only over a second around a receive gap.  None with fewer than
     ``min_intervals`` intervals or a zero span.

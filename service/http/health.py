@@ -130,7 +130,7 @@ def intake_write_problems(ctx: ServiceContext) -> list[HealthProblem]:
 
 def intake_association_problems(ctx: ServiceContext) -> list[HealthProblem]:
     """The C-STORE intake refused or failed an association for its own reasons (every
-    ``dicom.maximum_associations`` slot taken, ``accept`` failing, a transport error; issue #32);
+    ``dicom.maximum_associations`` slot taken, ``accept`` failing, a transport error);
     cleared by the next association released normally.  Counters: ``listeners.dicom.counters``."""
     why = None if ctx.cstore is None else ctx.cstore.scp.association_failure
     if why is None:

@@ -1,4 +1,4 @@
-"""Bounded HTTP connections for uvicorn (issue #32): a connection cap and a request-header deadline.
+"""Bounded HTTP connections for uvicorn: a connection cap and a request-header deadline.
 
 uvicorn's own bounds do not hold a flood of idle peers: ``timeout_keep_alive`` only starts after a
 response (a connection that never sends a byte stays open for ever), and ``limit_concurrency``

@@ -518,8 +518,8 @@ class StorageScp:
         )
         if names:  # one report per association (storescu, for one, proposes ~120 classes)
             shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
-            # Refusing the standard classes a sender proposes besides CT is the normal case (issue
-            # #21): DEBUG while some context was accepted; a WARNING when none was (wrong modality).
+            # Refusing the standard classes a sender proposes besides CT is the normal case: DEBUG
+            # while some context was accepted; a WARNING when none was (wrong modality).
             level = logging.DEBUG if assoc.accepted_contexts else logging.WARNING
             self._refuse(ScpRefusal(
                 "context", f"presentation context(s) refused: {shown}; only CT Image Storage and "

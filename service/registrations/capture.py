@@ -269,7 +269,7 @@ class Capture:
         """The joints, each value within the link's wire rounding of a joint limit
         (``joint_resolution_rad``: float32 over simple_message, the serial text's digits, the Modbus
         register type) put at that limit: the registration's limit check then sees the limit the arm
-        stands at, not the wire's rounding of it (issue 40).  Values farther out are left for it to
+        stands at, not the wire's rounding of it.  Values farther out are left for it to
         refuse."""
         q = tuple(float(v) for v in joints_rad)
         resolution = getattr(self.link, "joint_resolution_rad", None)

@@ -35,7 +35,7 @@
 ``qa_protocols``, ``qa_checks``
     named sets of verification poses; which verification was taken at which pose of which protocol.
 ``registrations.withdrawn_by_scan`` / ``withdrawn_by_verification`` (9)
-    a registration withdrawn by a verification (issue #31): the verification scan, and the stored
+    a registration withdrawn by a verification: the verification scan, and the stored
     verification when it could be computed (NULL: the error was beyond what matching can bridge).
 ``joint_snapshots.verdict`` (10)
     the typed stillness verdict the registration gate reads (backfilled from the reason text once).
@@ -321,7 +321,7 @@ VERIFICATION_WITHDRAWAL_MIGRATION = """
     ALTER TABLE registrations ADD COLUMN withdrawn_by_scan INTEGER REFERENCES scans(id);
     ALTER TABLE registrations ADD COLUMN withdrawn_by_verification INTEGER REFERENCES verifications(id)
 """
-"""A failed verification withdraws the registration it verified (issue #31, docs/safety.md "Which
+"""A failed verification withdraws the registration it verified (docs/safety.md "Which
 registration may be current"): ``withdrawn_at`` / ``withdrawn_reason`` as for a scan withdrawal, plus
 the verification scan and, when the error could be computed, the stored verification.  A row with
 ``withdrawn_by_scan`` set was withdrawn by a verification; without it, by its own scan's change."""
@@ -338,7 +338,7 @@ STILLNESS_VERDICT_MIGRATION = """
     END
 """
 """The stillness verdict (``still`` / ``moved`` / ``incomplete``) is a column written from the typed
-:attr:`service.records.JointSnapshot.verdict`, and the registration gate reads only it (issue #35).
+:attr:`service.records.JointSnapshot.verdict`, and the registration gate reads only it.
 Rows stored before it are backfilled here, once, the way the software that wrote them read them:
 ``still`` set is ``still``; every ``moved`` reason of registration.model.stillness starts with
 "robot moved"; anything else (no samples, a gap, a reconnect, a series already there) is

@@ -1,4 +1,4 @@
-"""What ``oarmreg demo`` and ``demo --calibrate`` print about a registration and a withdrawal (issue #31):
+"""What ``oarmreg demo`` and ``demo --calibrate`` print about a registration and a withdrawal:
 the honest figure first, and a failed verification's withdrawal in plain words.  Shared by
 :mod:`service.cli.commands.demo` and :mod:`service.cli.commands.demo_calibrate` (which must not import
 demo)."""
@@ -15,7 +15,7 @@ def out(msg: str = "") -> None:
 
 
 def expected_error_lines(reg: dict[str, Any]) -> str:
-    """The honest figure first (issue #31): the expected error at the robot's working poses and
+    """The honest figure first: the expected error at the robot's working poses and
     whether a calibration backs it, then the one-scan TRE labelled as what it is."""
     e = reg.get("expected_error") or {}
     chain = e.get("predicted_chain_error_mm", reg.get("predicted_chain_error_mm"))

@@ -124,7 +124,7 @@ def sphere_fit_columns(radius_mm: float, n_slices: int, score: float) -> tuple[s
 
 
 def _with_face_offset(result: DetectionResult, phantom_path: Path | None) -> DetectionResult:
-    """The detection with the phantom's face offset fitted over its hole grid (issue #43)."""
+    """The detection with the phantom's face offset fitted over its hole grid."""
     from registration.matching.face_offset_grid import grid_face_offset
     from registration.model.phantom import load_phantom
 
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"wrote {args.json_out}\n")
     if args.overlay is not None:
         out.write(f"wrote {args.overlay}\n")
-    if not result.spheres:  # no empty success (issue 40 item 6)
+    if not result.spheres:  # no empty success
         sys.stderr.write(
             f"oarmreg detect: no sphere found in series {volume.series_uid}: check that this is the phantom "
             "scan and the phantom is inside the O-arm's field (the rejections above say what was seen), "

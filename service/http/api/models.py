@@ -111,7 +111,7 @@ class RegisterRequest(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _renamed(cls, data: Any) -> Any:
-        if isinstance(data, dict) and "targets_mm" in data:  # one frame per name (issue 31)
+        if isinstance(data, dict) and "targets_mm" in data:  # one frame per name
             raise ValueError(
                 "targets_mm was renamed targets_image_mm (image frame, DICOM LPS mm); the CLI's robot-frame "
                 "targets are targets_robot_mm"

@@ -127,7 +127,7 @@ class IgtlPublisher:
             joints=self._joints,
             robot_from_tool0=lambda q: robot_model.robot_from_tool0(
                 robot_model.at_limits(q, robot_link.joint_resolution_rad(q))
-            ),  # a joint within the wire's rounding of a limit is at it (issue 40)
+            ),  # a joint within the wire's rounding of a limit is at it
             tool0_from_tcp=settings.tool0_from_tcp.matrix(),
         )
         self.server = IgtlServer(settings, source, on_client=self._on_client)

@@ -701,7 +701,7 @@ class IgtlServer:
         if not msg_type.startswith("GET_"):
             return
         self.counters["queries"] += 1
-        if not (device.isascii() and device.isprintable()):  # refused with a STATUS (#41), not dropped
+        if not (device.isascii() and device.isprintable()):  # refused with a STATUS, not dropped
             log.warning("OpenIGTLink: %s for device %s refused: not a printable ASCII name", msg_type,
                         printable(device))  # fmt: skip
             why = wire.status_content(
