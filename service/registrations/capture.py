@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.base import RobotLink
 from service.events import LinkState, Publish
 from service.records import JointSnapshot, stillness_verdict
 from service.settings import Settings
@@ -64,7 +65,7 @@ class Capture:
         ``publish(event)``; thread-safe (``EventBus.publish``).
     """
 
-    def __init__(self, link: Any, settings: Settings, publish: Publish) -> None:
+    def __init__(self, link: RobotLink, settings: Settings, publish: Publish) -> None:
         self.link = link
         self.settings = settings
         self.publish = publish
@@ -216,10 +217,9 @@ class Capture:
             )
         start_t = first_seen_t_s - st.window_s
         link = self.link
-        streamed = bool(getattr(link, "streamed", False))
-        wait_past = getattr(link, "wait_past", None)
-        if streamed and wait_past is not None and h["state"] != "down" and not _on_event_loop():
-            wait_past(last_change_t_s, LATE_FRAME_WAIT_S)
+        streamed = link.streamed
+        if streamed and h["state"] != "down" and not _on_event_loop():
+            link.wait_past(last_change_t_s, LATE_FRAME_WAIT_S)
         samples = link.history(start_t - st.max_gap_s)
         after_s = max(st.max_gap_s, CATCH_UP_S)  # the judge looks for a gap's late frames this far
         samples = [s for s in samples if s.t_s <= last_change_t_s + after_s]
@@ -236,7 +236,7 @@ class Capture:
         before = [s for s in samples if s.t_s <= first_seen_t_s]
         at = before[-1] if before else samples[0]
         inside = [s for s in samples if start_t <= s.t_s <= last_change_t_s]
-        sessions = {x.number: x for x in getattr(link, "sessions", list)()}
+        sessions = {x.number: x for x in link.sessions()}
         first_session = sessions.get(inside[0].session) if inside else None
         period_s = self._stream_period_s(inside[-1], last_change_t_s) if streamed and inside else None
         t = np.array([s.t_s for s in samples], dtype=np.float64)
@@ -250,7 +250,7 @@ class Capture:
             max_deviation_rad=st.max_deviation_rad,
             max_gap_s=st.max_gap_s,
             watched_from_t_s=first_session.connected_t_s if first_session is not None else None,
-            sessions=np.array([getattr(s, "session", 0) for s in samples], dtype=np.int64),
+            sessions=np.array([s.session for s in samples], dtype=np.int64),
             period_s=period_s,
             in_motion_t_s=self._in_motion_t_s(start_t, last_change_t_s),
         )
@@ -272,11 +272,10 @@ class Capture:
         stands at, not the wire's rounding of it.  Values farther out are left for it to
         refuse."""
         q = tuple(float(v) for v in joints_rad)
-        resolution = getattr(self.link, "joint_resolution_rad", None)
         model = self._limits_model()
-        if resolution is None or model is None:
+        if model is None:
             return q
-        return tuple(float(v) for v in model.at_limits(q, resolution(q)))
+        return tuple(float(v) for v in model.at_limits(q, self.link.joint_resolution_rad(q)))
 
     def _limits_model(self) -> Any:
         """The configured robot model (for its joint limits), loaded once; None if it cannot be (the
@@ -293,11 +292,9 @@ class Capture:
 
     def _in_motion_t_s(self, start_t_s: float, end_t_s: float) -> list[float]:
         """Receive times of the controller statuses in ``[start_t_s, end_t_s]`` reporting ``in_motion``
-        = TRUE (a link without a status history gives none)."""
-        history = getattr(self.link, "status_history", None)
-        if history is None:
-            return []
-        return [s.t_s for s in history(start_t_s) if s.t_s <= end_t_s and s.in_motion == 1]
+        = TRUE (a link whose controller sends no status gives none)."""
+        history = self.link.status_history(start_t_s)
+        return [s.t_s for s in history if s.t_s <= end_t_s and s.in_motion == 1]
 
     def _stream_period_s(self, last: Any, end_t_s: float) -> float | None:
         """The long-run frame period of ``last``'s session over :data:`PERIOD_HISTORY_S` (None: too few)."""
