@@ -25,13 +25,14 @@ C-STORE statuses (PS3.4 Annex B.2.3):
 ``0xC210``  cannot understand: the dataset could not be decoded
 
 Callbacks run on pynetdicom's association threads: keep them short and thread-safe.
-``on_series_settled(series_dir, instance_count, calling_ae, tally)`` per series touched by an
-association that was released normally (``instance_count`` = ``.dcm`` files now in the folder;
-``tally`` the association's :class:`~service.intake.scan_lifecycle.OfferTally` of the series:
-offered, stored, refused and why); ``on_association_aborted(series_dirs, reason)`` when an association aborts
+``on_series_released(series_dir, instance_count, calling_ae)`` per series touched by an
+association that was released normally (``instance_count`` = ``.dcm`` files now in the
+folder); ``on_association_aborted(series_dirs, reason)`` when an association aborts
 (its stored instances stay, but the series may be incomplete); ``on_refused(refusal)`` for
 every refusal (peer address, calling AE title, rejected presentation context, dataset,
-disk); ``on_instance_stored(path, outcome)`` after each instance is on disk.
+disk); ``on_instance_stored(path, outcome)`` after each instance is on disk;
+``on_series_settled`` (used instead of ``on_series_released`` when set) adds the association's
+:class:`~service.intake.scan_lifecycle.OfferTally` of the series (offered, stored, refused and why).
 
 It listens through :func:`dicomnet.server.start_server` (pynetdicom's transport with ``poll`` instead
 of ``select`` and failed ``accept`` calls reported): what is generic pynetdicom lives in
@@ -131,6 +132,7 @@ class ScpRefusal:
 
 @dataclass(frozen=True)
 class ScpCallbacks:
+    on_series_released: Callable[[Path, int, str], None] | None = None
     on_association_aborted: Callable[[list[Path], str], None] | None = None
     on_refused: Callable[[ScpRefusal], None] | None = None
     on_instance_stored: Callable[[Path, str], None] | None = None
@@ -142,10 +144,9 @@ class ScpCallbacks:
     what was made from the series' earlier content here (the crash order of docs/safety.md, "Scan
     lifecycle").  If it raises the instance is not stored (0xA700)."""
     on_series_settled: Callable[[Path, int, str, OfferTally], None] | None = None
-    """``(series_dir, instance_count, calling_ae, tally)`` per series an association released
-    normally touched, with the association's :class:`~service.intake.scan_lifecycle.OfferTally` for it
-    (instances offered, stored, refused and why).  Series whose every instance was refused are settled
-    too."""
+    """Like ``on_series_released`` plus the association's :class:`~service.intake.scan_lifecycle.OfferTally`
+    for the series (instances offered, stored, refused and why); used instead when set.  Series whose
+    every instance was refused are settled too."""
 
 
 ALLOW_LIST_EMPTY = (
@@ -696,6 +697,11 @@ class StorageScp:
                     self.callbacks.on_series_settled(series_dir, n, state.calling_ae, tally)
                 except Exception:
                     log.exception("DICOM SCP: on_series_settled callback failed")
+            elif self.callbacks.on_series_released is not None:
+                try:
+                    self.callbacks.on_series_released(series_dir, n, state.calling_ae)
+                except Exception:
+                    log.exception("DICOM SCP: on_series_released callback failed")
 
     def _on_aborted(self, event: evt.Event) -> None:
         state = self._pop(event)
