@@ -33,7 +33,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol, RequestResponseCycle
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +90,10 @@ class BoundedHttpProtocol(HttpToolsProtocol):
         super().__init__(*args, **kwargs)
         self._header_deadline: asyncio.TimerHandle | None = None
         self._write_deadline: asyncio.TimerHandle | None = None
+        self._cycles: list[RequestResponseCycle] = []
+        """Requests not answered yet: the running one and those pipelined behind it (uvicorn marks
+        only the newest disconnected when the connection is lost; the running one then wrote on a
+        closed transport, an unhandled error per connection)."""
         self.opened_at = 0.0
 
     def _host(self) -> str:
@@ -208,11 +212,18 @@ class BoundedHttpProtocol(HttpToolsProtocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_header_deadline()
         self._cancel_write_deadline()
+        for cycle in self._cycles:  # before super() resumes writing: a waiting send returns at once
+            if not cycle.response_complete:
+                cycle.disconnected = True
+        self._cycles.clear()
         super().connection_lost(exc)
 
     def on_headers_complete(self) -> None:
         self._cancel_header_deadline()
         super().on_headers_complete()
+        self._cycles = [c for c in self._cycles if not c.response_complete]
+        if self.cycle is not None:
+            self._cycles.append(self.cycle)
 
     def on_response_complete(self) -> None:
         super().on_response_complete()

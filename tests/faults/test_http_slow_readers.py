@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -56,6 +57,10 @@ sys.stdin.read()  # until the test closes our stdin
 """
 
 
+LOGS: dict[int, Path] = {}
+"""The service log of each test service, by port."""
+
+
 def _known(kw: dict[str, Any]) -> dict[str, Any]:
     """``kw`` minus the ``[api]`` settings this checkout does not know (so the module also runs
     against the code before the fix, where each test must fail on its assertion)."""
@@ -66,6 +71,7 @@ def _known(kw: dict[str, Any]) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[int, httpx.Client]]:
+    """(port, client) of the service; its log is ``serve.log`` beside the config (see :func:`_log`)."""
     root = tmp_path_factory.mktemp("http-slow")
     cfg, port = root / "oarmreg.toml", free_port()
     write_config(cfg, _known({
@@ -75,7 +81,8 @@ def svc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[int, httpx.C
         "api.max_connections": MAX_CONNECTIONS, "api.write_timeout_s": WRITE_TIMEOUT_S,
         "api.max_connections_per_address": SHARE,
     }))  # fmt: skip
-    with served(cfg, port) as (_, client):
+    with served(cfg, port) as (serve, client):
+        LOGS[port] = serve.log
         yield port, client
 
 
@@ -131,6 +138,11 @@ def test_slow_readers_from_one_host_leave_http_to_the_others(svc: tuple[int, htt
         problems = {str(p["type"]).rsplit(":", 1)[-1]: str(p["detail"]) for p in ready["problems"]}
         assert "127.0.43.7" in problems["http-peer-limits"], problems
         _probe(port, "127.0.43.9", "/health")  # still served, the slow reader still connected
+    # a response cut off mid-pipeline is dropped quietly: uvicorn marks only the newest pipelined
+    # request disconnected, and the running one used to write on the closed transport (a traceback
+    # per connection)
+    log = LOGS[port].read_text(errors="replace")
+    assert "Traceback" not in log and "RuntimeError" not in log, log[-3000:]
 
 
 def _get_on(sock: socket.socket, path: str) -> int:
@@ -181,3 +193,35 @@ def test_one_host_cannot_hold_more_than_its_share(svc: tuple[int, httpx.Client])
         assert _get_on(other, "/health") == 200  # the other host's connection was not touched
         assert _get_on(mine[0], "/health") == 0  # the address's oldest was closed
         assert _get_on(mine[-1], "/health") == 200
+
+
+def test_a_peer_that_reads_slowly_is_not_cut_off(svc: tuple[int, httpx.Client]) -> None:
+    """The guard on the write deadline: a peer reading the 1.7 MB bundle at about 500 KB/s, longer
+    than ``api.write_timeout_s`` in all, gets every byte (writing pauses and resumes; an SSE stream
+    whose peer reads is the same case).  It fails only if the deadline cuts a reading peer off."""
+    port, _ = svc
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.bind(("127.0.43.40", 0))
+        s.settimeout(DEADLINE_S)
+        s.connect(("127.0.0.1", port))
+        req = (
+            "GET /static/swagger/swagger-ui-bundle.js HTTP/1.1\r\n"
+            f"Host: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
+        )
+        s.sendall(req.encode())
+        t0, got = time.monotonic(), bytearray()
+        while chunk := s.recv(4096):
+            got += chunk
+            time.sleep(0.008)  # the peer's reading pace (4 KiB per 8 ms), not a wait for anything
+        elapsed = time.monotonic() - t0
+    head, _, body = bytes(got).partition(b"\r\n\r\n")
+    length = next(
+        int(v)
+        for k, _, v in (h.partition(b":") for h in head.split(b"\r\n"))
+        if k.lower() == b"content-length"
+    )
+    assert head.startswith(b"HTTP/1.1 200") and len(body) == length > 1_000_000, head
+    assert elapsed > WRITE_TIMEOUT_S, (
+        f"read in {elapsed:.1f} s: too fast to show the deadline spares a reader"
+    )
