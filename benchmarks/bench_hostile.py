@@ -49,6 +49,8 @@ from pathlib import Path
 
 import httpx
 
+from benchmarks.hostile_clients import IGTL_FLOODER, SLOW_READER
+
 REPO = Path(__file__).resolve().parents[1]
 TOKEN = secrets.token_urlsafe(32)  # the token rule (docs/security.md) refuses a patterned one
 IGTL_HEADER = struct.Struct(">H12s20sQQQ")
@@ -272,25 +274,6 @@ def _forwarded_probe(url: str, n: int) -> str:
 
 # ------------------------------------------------------------- OpenIGTLink (issue 41 items 1, 2)
 
-_IGTL_FLOODER = r"""
-import socket, struct, sys
-port, source, kind = int(sys.argv[1]), sys.argv[2], sys.argv[3]
-batch = struct.pack(">H12s20sQQQ", 1, kind.encode(), b"", 0, 0, 0) * 1000  # empty bodies: CRC 0
-while True:  # never reads; reconnects when dropped
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    s.bind((source, 0))
-    try:
-        s.connect(("127.0.0.1", port))
-        print("flooding", flush=True)
-        while True:
-            s.sendall(batch)
-    except OSError:
-        print("dropped", flush=True)
-    finally:
-        s.close()
-"""
-
 
 def _igtl_reader(port: int, source: str, arrivals: list[float], stop: list[bool]) -> socket.socket:
     """A navigation client bound to ``source`` reading every message on a thread of its own; appends
@@ -330,7 +313,7 @@ def _igtl_flood_probe(url: str, port: int, kind: str, peers: int, seconds: float
     _wait(lambda: len(arrivals) >= 2, "the navigation client's first ToolToImage", 30.0)
     procs = [
         subprocess.Popen(
-            ["nice", "-n", "19", sys.executable, "-c", _IGTL_FLOODER, str(port), f"127.0.41.{10 + i}", kind],
+            ["nice", "-n", "19", sys.executable, "-c", IGTL_FLOODER, str(port), f"127.0.41.{10 + i}", kind],
             stdout=subprocess.PIPE,
             text=True,
         )
@@ -407,31 +390,11 @@ def _igtl_slot_probe(url: str, port: int, idle: int) -> str:
     )
 
 
-SLOW_READER = r"""
-import socket, sys
-port, n = int(sys.argv[1]), int(sys.argv[2])
-req = f"GET /static/swagger/swagger-ui-bundle.js HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode() * 10
-held = []
-for _ in range(n):
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    s.bind(("127.0.0.44", 0))
-    try:
-        s.connect(("127.0.0.1", port))
-        s.sendall(req)
-    except OSError:
-        pass
-    held.append(s)
-print("holding", flush=True)
-sys.stdin.read()
-"""
-
-
 def _slow_reader_probe(url: str, port: int, n: int, probes: int, timeout_s: float) -> str:
     """``n`` connections from 127.0.0.44 (a process of its own, niced), each pipelining ten GETs of
     the 1.7 MB Swagger bundle and never reading; ``/health`` probes from 127.0.0.1 meanwhile."""
     proc = subprocess.Popen(
-        ["nice", "-n", "19", sys.executable, "-c", SLOW_READER, str(port), str(n)],
+        ["nice", "-n", "19", sys.executable, "-c", SLOW_READER, str(port), "127.0.0.44", str(n)],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:

@@ -22,6 +22,7 @@ from typing import Any
 import httpx
 import pytest
 
+from benchmarks.hostile_clients import SLOW_READER
 from tests.faults._service import DEADLINE_S, REPO, TOKEN, free_port, served, wait_for, write_config
 
 WRITE_TIMEOUT_S = 2.0
@@ -36,25 +37,6 @@ SLOW = 80
 PROBE_S = 2.0
 """Each probe from another address must answer within this: a behaviour check, not a benchmark
 (before: no answer at all)."""
-
-SLOW_READER = r"""
-import socket, sys
-port, source, n = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
-req = f"GET /static/swagger/swagger-ui-bundle.js HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode() * 10
-held = []
-for _ in range(n):
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # never read: a small window fills soon
-    s.bind((source, 0))
-    try:
-        s.connect(("127.0.0.1", port))
-        s.sendall(req)
-    except OSError:
-        pass
-    held.append(s)
-print("holding", flush=True)
-sys.stdin.read()  # until the test closes our stdin
-"""
 
 
 LOGS: dict[int, Path] = {}

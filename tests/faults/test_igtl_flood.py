@@ -28,6 +28,7 @@ from typing import Any
 import httpx
 import pytest
 
+from benchmarks.hostile_clients import IGTL_FLOODER
 from tests.faults._service import (
     DEADLINE_S,
     REPO,
@@ -50,25 +51,6 @@ FLOOD_S = 3.0
 MAX_CLIENTS = 8
 SHARE = 4
 IGTL_HEADER = struct.Struct(">H12s20sQQQ")
-
-FLOODER = r"""
-import socket, struct, sys
-port, source, kind = int(sys.argv[1]), sys.argv[2], sys.argv[3]
-batch = struct.pack(">H12s20sQQQ", 1, kind.encode(), b"", 0, 0, 0) * 1000  # empty bodies: CRC 0
-while True:
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # never read: a small window fills soon
-    s.bind((source, 0))
-    try:
-        s.connect(("127.0.0.1", port))
-        print("flooding", flush=True)
-        while True:
-            s.sendall(batch)
-    except OSError:
-        print("dropped", flush=True)
-    finally:
-        s.close()
-"""
 
 
 def _known(kw: dict[str, Any]) -> dict[str, Any]:
@@ -176,7 +158,7 @@ def start_flooders(port: int, kinds: list[str], first_address: int) -> list[subp
     for i, kind in enumerate(kinds):
         source = f"127.0.41.{first_address + i}"
         procs.append(subprocess.Popen(
-            ["nice", "-n", "19", sys.executable, "-c", FLOODER, str(port), source, kind],
+            ["nice", "-n", "19", sys.executable, "-c", IGTL_FLOODER, str(port), source, kind],
             cwd=REPO, stdout=subprocess.PIPE, text=True,
         ))  # fmt: skip
     for p in procs:  # each is connected and sending before the measurement starts
