@@ -156,7 +156,10 @@ class LinkWatch:
             for p in procs
             if p.returncode != 0
         ]
-        assert not failed, failed
+        if failed:  # say why the service refused (0xA700 with a full disk, say), not only storescu's code
+            dicom = self.client.get("/status").json()["listeners"]["dicom"]
+            raise AssertionError(f"{failed}; the service's DICOM listener: {dicom}; problems seen: "
+                                 f"{self.unhealthy[-3:]}")  # fmt: skip
 
     def summary(self) -> str:
         n = {s: self.states.count(s) for s in sorted(set(self.states))}
@@ -186,6 +189,12 @@ def test_a_still_robot_is_still_while_a_big_instance_is_decoded(
     service: tuple[httpx.Client, int], phantom: Any, tmp_path: Path
 ) -> None:
     c, dicom_port = service
+    need_b = 3 * SIZE_PX * SIZE_PX * 2  # pynetdicom's received temp file + the intake's copy, + margin
+    free_b = shutil.disk_usage(tmp_path).free
+    assert free_b > need_b, (
+        f"{free_b / 1e9:.1f} GB free under {tmp_path}; this test receives an 800 MB instance twice over "
+        f"and needs {need_b / 1e9:.1f} GB: free disk space (old pytest tmp folders, say) and run it again"
+    )
     outbox = _outbox(tmp_path / "outbox", phantom)
     wait_for(lambda: c.get("/status").json()["link"]["state"] == "connected", "the robot link to connect")
     before = c.get("/status").json()["listeners"]["dicom"]["counters"]
