@@ -125,7 +125,9 @@ def test_a_starved_polled_link_and_a_silent_controller_are_incomplete_not_moved(
         assert j["verdict"] == "incomplete" and j["stillness_reason"].startswith(
             "joint history incomplete"
         ), j
-        assert "gap" in j["stillness_reason"], j
+        # the stop shows as a gap in the polls, or (when the frozen child's Modbus request timed out
+        # meanwhile) as a reconnect inside the window: either way frames may be lost, never "moved"
+        assert "gap" in j["stillness_reason"] or "reconnected" in j["stillness_reason"], j
         r = svc.client.post("/register", json={"scan_id": scan["id"]})
         body = r.json()
         assert r.status_code == 409 and body["title"] == "Joint history incomplete", body
