@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import module_costs
+from tests.helpers import module_costs, scan_cache
 from tests.helpers.paths import CONFIGS, REPO
 
 __all__ = ["CONFIGS", "REPO"]
@@ -96,9 +96,17 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     module_costs.add_durations(_MODULE_TIME_S, report.nodeid, report.duration)
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """The controller names the run's simulated-scan cache before xdist starts its workers."""
+    if not hasattr(config, "workerinput"):
+        scan_cache.init_run_cache()
+
+
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """Record what each module cost in this run, over the record of earlier runs (not on xdist
-    workers: the controller has it all)."""
+    workers: the controller has it all); remove the run's simulated-scan cache."""
+    if not hasattr(session.config, "workerinput"):
+        scan_cache.remove_run_cache()
     cache = getattr(session.config, "cache", None)  # None under -p no:cacheprovider
     if _MODULE_TIME_S and cache is not None and not hasattr(session.config, "workerinput"):
         cache.set(module_costs.CACHE_KEY, {**cache.get(module_costs.CACHE_KEY, {}), **_MODULE_TIME_S})

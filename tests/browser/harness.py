@@ -21,6 +21,7 @@ from typing import Any
 import httpx
 import numpy as np
 
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.tokens import make_token
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import wait_for, wait_robot_still
@@ -65,7 +66,7 @@ class World:
 
 
 def make_world(phantom: Any) -> World:
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from registration.model.frames import invert, transform_from_xyz_rpy
     from registration.model.kinematics import RobotModel
 
@@ -75,8 +76,8 @@ def make_world(phantom: Any) -> World:
     image_from_robot = image_from_phantom_1 @ invert(model.robot_from_tool0(Q1) @ t0p)
     image_from_phantom_2 = image_from_robot @ model.robot_from_tool0(Q2) @ t0p
     small = AcquisitionSettings.preset("small")
-    scan1 = simulate_scan(phantom, image_from_phantom_1, small)
-    scan2 = simulate_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1))
+    scan1 = simulated_scan(phantom, image_from_phantom_1, small)
+    scan2 = simulated_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1))
     return World(phantom, model, scan1, scan2)
 
 

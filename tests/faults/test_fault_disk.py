@@ -23,6 +23,7 @@ import pytest
 
 from registration.model.frames import transform_from_xyz_rpy
 from tests.faults._service import Events, Svc, factory_series, in_process_service, wait_for
+from tests.helpers.scan_cache import simulated_scan
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
 TMPFS_SIZE = "4m"
@@ -30,9 +31,9 @@ TMPFS_SIZE = "4m"
 
 @pytest.fixture(scope="module")
 def small_scan(phantom: Any) -> Any:
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
 
-    return simulate_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
+    return simulated_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
 
 
 def _export(svc: Svc, scan: Any, name: str) -> str:

@@ -22,6 +22,7 @@ import pytest
 
 from registration.model.frames import transform_from_xyz_rpy
 from tests.faults._service import DEADLINE_S, Events, Svc, factory_series, in_process_service, wait_for
+from tests.helpers.scan_cache import simulated_scan
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
 
@@ -40,9 +41,9 @@ def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Svc]
 
 @pytest.fixture(scope="module")
 def small_scan(phantom: Any) -> Any:
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
 
-    return simulate_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
+    return simulated_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
 
 
 def _status_watcher(svc: Svc) -> dict[str, Any]:

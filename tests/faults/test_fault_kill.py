@@ -36,6 +36,7 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers.scan_cache import simulated_scan
 
 KILLS = int(os.environ.get("OARMREG_FAULT_KILLS", "20"))
 """Kill / restart cycles (the README's "kills survived")."""
@@ -114,7 +115,7 @@ def check_database(db_path: Path, acked_regs: set[int], acked_vers: set[int]) ->
 @contextlib.contextmanager
 def _world(root: Path, phantom: Any) -> Iterator[tuple[Path, Any, tuple[Any, Any]]]:
     """The mock controller (robot at Q1), the config file, the two simulated scans."""
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
     from registration.model.kinematics import RobotModel
@@ -123,8 +124,8 @@ def _world(root: Path, phantom: Any) -> Iterator[tuple[Path, Any, tuple[Any, Any
     t0p = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])
     image_from_robot = IMAGE_FROM_PHANTOM @ invert(model.robot_from_tool0(Q1) @ t0p)
     scans = (
-        simulate_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small")),
-        simulate_scan(
+        simulated_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small")),
+        simulated_scan(
             phantom,
             image_from_robot @ model.robot_from_tool0(Q2) @ t0p,
             AcquisitionSettings.preset("small", seed=1),

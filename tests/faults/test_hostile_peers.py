@@ -50,6 +50,7 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.system_tools import system_tool
 
 STORESCU = system_tool("storescu")
@@ -163,11 +164,11 @@ def _supported(kw: dict[str, Any]) -> dict[str, Any]:
 def scan_dir(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Path:
     """A simulated O-arm scan (small preset), simulated once for the module."""
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from registration.model.frames import transform_from_xyz_rpy
 
     image_from_phantom = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-    scan = simulate_scan(phantom, image_from_phantom, AcquisitionSettings.preset("small"))
+    scan = simulated_scan(phantom, image_from_phantom, AcquisitionSettings.preset("small"))
     folder = tmp_path_factory.mktemp("hostile-scan")
     write_dicom_series(scan, folder, write_truth=False)
     return folder

@@ -50,6 +50,7 @@ from tests.faults._service import (
     write_config,
 )
 from tests.faults.conftest import closed_by_peer
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.system_tools import system_tool
 
 E = TypeVar("E", bound=Event)
@@ -196,9 +197,9 @@ class Lc:
 
 @pytest.fixture(scope="module")
 def sim_scan(phantom: Any) -> Any:
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
 
-    return simulate_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
+    return simulated_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small"))
 
 
 INTAKE_TESTS_MAX_GAP_S = 0.5

@@ -50,6 +50,7 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.system_tools import system_tool
 
 STORESCU = system_tool("storescu")
@@ -105,12 +106,12 @@ def _big_instance(folder: Path, size_px: int) -> Path:
 def _outbox(root: Path, phantom: Any) -> Outbox:
     """The big instances and the scan, written while the service's joint history fills."""
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from registration.model.frames import transform_from_xyz_rpy
 
     big = [_big_instance(root / f"big{k}", SIZE_PX).parent for k in range(N_BIG)]
     image_from_phantom = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-    scan = simulate_scan(phantom, image_from_phantom, AcquisitionSettings.preset("small"))
+    scan = simulated_scan(phantom, image_from_phantom, AcquisitionSettings.preset("small"))
     res = write_dicom_series(scan, root / "scan", write_truth=False)
     return Outbox(big, root / "scan", str(res.series_uid))
 

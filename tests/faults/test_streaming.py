@@ -37,6 +37,7 @@ from tests.faults.conftest import (
     read_response,
     serve,
 )
+from tests.helpers.scan_cache import simulated_scan
 from tests.integration.polling import wait_for
 
 N_POLLERS = 50
@@ -50,9 +51,9 @@ IDENTIFIERS = ("Doe^Jane", "Doe", "PID-778899", "19610417")
 
 @pytest.fixture(scope="module")
 def scan(phantom: Any) -> Any:
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
 
-    return simulate_scan(phantom, transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0]),
+    return simulated_scan(phantom, transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0]),
                          AcquisitionSettings.preset("small"))  # fmt: skip
 
 

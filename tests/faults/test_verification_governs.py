@@ -26,6 +26,7 @@ import pytest
 from registration.model.frames import invert, transform_from_xyz_rpy
 from tests.faults._service import DEADLINE_S, Q1, Events, Svc, in_process_service
 from tests.helpers.igtl_ref import needs_ref_client
+from tests.helpers.scan_cache import simulated_scan
 
 Q2 = (*Q1[:5], Q1[5] + 0.3)
 """The verification pose: J6 turned 0.3 rad (the phantom spins about its own axis)."""
@@ -45,7 +46,7 @@ class World:
 
 @pytest.fixture(scope="module")
 def world(phantom: Any) -> World:
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from registration.model.kinematics import RobotModel
 
     model = RobotModel.load("tx60")
@@ -53,9 +54,9 @@ def world(phantom: Any) -> World:
     image_from_phantom_1 = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
     image_from_robot = image_from_phantom_1 @ invert(model.robot_from_tool0(Q1) @ t0p)
     small = AcquisitionSettings.preset("small")
-    scan1 = simulate_scan(phantom, image_from_phantom_1, small)
+    scan1 = simulated_scan(phantom, image_from_phantom_1, small)
     image_from_phantom_2 = image_from_robot @ model.robot_from_tool0(Q2) @ t0p
-    scan2 = simulate_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1))
+    scan2 = simulated_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1))
     return World(phantom, model, scan1, scan2)
 
 

@@ -20,6 +20,7 @@ from pynetdicom import AE
 from dicomnet.scu import associate
 from registration.model.frames import transform_from_xyz_rpy
 from service.events import Event
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.tokens import make_token
 from tests.integration.polling import wait_for
 
@@ -104,9 +105,9 @@ def running_service(root: Path, phantom: Any, **overrides: Any) -> Iterator[Peer
 def simulated_series(phantom: Any, folder: Path, **export: Any) -> tuple[str, list[Path]]:
     """Scan 1 of the phantom (``small`` preset) written as a DICOM series into ``folder``."""
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
 
-    scan = simulate_scan(phantom, IMAGE_FROM_PHANTOM_1, AcquisitionSettings.preset("small"))
+    scan = simulated_scan(phantom, IMAGE_FROM_PHANTOM_1, AcquisitionSettings.preset("small"))
     res = write_dicom_series(scan, folder, write_truth=False, **export)
     return str(res.series_uid), sorted(Path(p) for p in res.paths)
 

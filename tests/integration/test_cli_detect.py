@@ -11,9 +11,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from mocks.oarm.dicom_export import write_dicom_series
-from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
+from mocks.oarm.simulator import AcquisitionSettings, demo_pose
 from service.cli.main import main
 from service.error_map import EXIT_INPUT
+from tests.helpers.scan_cache import simulated_scan
 
 MATCH_MM = 0.5
 """A detection within this of a truth centre is that sphere (spheres are ≥ 15 mm apart)."""
@@ -22,7 +23,7 @@ MATCH_MM = 0.5
 @pytest.fixture(scope="module")
 def export(tmp_path_factory: pytest.TempPathFactory, phantom):  # type: ignore[no-untyped-def]
     settings = AcquisitionSettings.preset("demo", rows=256, columns=256, n_views=180)
-    scan = simulate_scan(phantom, demo_pose(), settings)
+    scan = simulated_scan(phantom, demo_pose(), settings)
     out = tmp_path_factory.mktemp("cli-detect") / "series"
     write_dicom_series(scan, out, reverse_order=True)
     return out, scan
@@ -111,7 +112,7 @@ def wc_export(tmp_path_factory: pytest.TempPathFactory, phantom):  # type: ignor
     from registration.io.resources import default_phantom
 
     settings = AcquisitionSettings.preset("demo", rows=256, columns=256, n_views=180)
-    scan = simulate_scan(phantom, demo_pose(), settings, SceneExtras(sphere_material="tungsten_carbide"))
+    scan = simulated_scan(phantom, demo_pose(), settings, SceneExtras(sphere_material="tungsten_carbide"))
     root = tmp_path_factory.mktemp("cli-detect-wc")
     write_dicom_series(scan, root / "series")
     toml = root / "wc.toml"

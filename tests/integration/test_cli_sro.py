@@ -12,6 +12,7 @@ import pytest
 from registration.io.points import write_json
 from registration.model.frames import apply, transform_from_xyz_rpy
 from service.cli.main import main
+from tests.helpers.scan_cache import simulated_scan
 
 IMAGE_FROM_PHANTOM = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
 ROBOT_FROM_PHANTOM = transform_from_xyz_rpy([500.0, 40.0, 300.0], [0.0, 0.0, 30.0])
@@ -20,10 +21,10 @@ ROBOT_FROM_PHANTOM = transform_from_xyz_rpy([500.0, 40.0, 300.0], [0.0, 0.0, 30.
 @pytest.fixture(scope="module")
 def scan_dir(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Path:
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
 
     out = tmp_path_factory.mktemp("cli-sro") / "scan"
-    write_dicom_series(simulate_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small")), out)
+    write_dicom_series(simulated_scan(phantom, IMAGE_FROM_PHANTOM, AcquisitionSettings.preset("small")), out)
     return out
 
 

@@ -36,6 +36,7 @@ from service.events import (
     IgtlClientHeaderVersion,
     RegistrationRefused,
 )
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.system_tools import system_tool
 from tests.helpers.tokens import make_token
 from tests.integration.polling import wait_for
@@ -115,7 +116,7 @@ class Service:
 def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Service]:
     if OPENSSL is None:
         pytest.skip("openssl CLI not installed")
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from mocks.robot.robot import ScriptedRobot
     from mocks.robot.runner import run_mock_controller
     from registration.model.kinematics import RobotModel
@@ -127,7 +128,7 @@ def svc(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Iterator[Serv
     root = tmp_path_factory.mktemp("or")
     ca, cert, key = make_tls(root)
     model = RobotModel.load("tx60")
-    scan1 = simulate_scan(phantom, IMAGE_FROM_PHANTOM_1, AcquisitionSettings.preset("small"))
+    scan1 = simulated_scan(phantom, IMAGE_FROM_PHANTOM_1, AcquisitionSettings.preset("small"))
     robot = ScriptedRobot(Q1)
     with run_mock_controller("simple-message", robot) as mock:
         settings = load_settings(None, {

@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 
 from registration.model.frames import apply, invert, transform_from_xyz_rpy
+from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.tokens import make_token
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import wait_for, wait_robot_still
@@ -59,7 +60,7 @@ class World:
 
 @pytest.fixture(scope="module")
 def world(phantom) -> World:  # type: ignore[no-untyped-def]
-    from mocks.oarm.simulator import AcquisitionSettings, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings
     from registration.model.kinematics import RobotModel
 
     model = RobotModel.load("tx60")
@@ -68,8 +69,8 @@ def world(phantom) -> World:  # type: ignore[no-untyped-def]
     image_from_robot = IMAGE_FROM_PHANTOM_1 @ invert(robot_from_phantom_1)
     image_from_phantom_2 = image_from_robot @ model.robot_from_tool0(Q2) @ t0p
     acq = AcquisitionSettings.preset("small")
-    scan1 = simulate_scan(phantom, IMAGE_FROM_PHANTOM_1, acq)
-    scan2 = simulate_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1))
+    scan1 = simulated_scan(phantom, IMAGE_FROM_PHANTOM_1, acq)
+    scan2 = simulated_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1))
     return World(phantom, model, t0p, image_from_robot, scan1, scan2)
 
 

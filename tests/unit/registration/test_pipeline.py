@@ -22,6 +22,7 @@ from registration.pipeline import (
     register_scan,
     verify_scan,
 )
+from tests.helpers.scan_cache import simulated_scan
 
 Q = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
 TOOL0_FROM_PHANTOM = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])
@@ -39,12 +40,12 @@ class Case:
 
 @pytest.fixture(scope="module")
 def case(phantom: Phantom) -> Case:
-    from mocks.oarm.simulator import AcquisitionSettings, scan_to_volume, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings, scan_to_volume
 
     model = RobotModel.load("tx60")
     image_from_phantom = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
     image_from_robot = image_from_phantom @ invert(model.robot_from_tool0(Q) @ TOOL0_FROM_PHANTOM)
-    scan = simulate_scan(phantom, image_from_phantom, AcquisitionSettings.preset("small"))
+    scan = simulated_scan(phantom, image_from_phantom, AcquisitionSettings.preset("small"))
     return Case(phantom, model, scan_to_volume(scan), image_from_robot)
 
 

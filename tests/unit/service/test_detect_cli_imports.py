@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.scan_cache import simulated_scan
+
 ROOT = Path(__file__).resolve().parents[3]
 
 NOT_FOR_DETECT = (
@@ -50,10 +52,10 @@ print(json.dumps({"code": code, "modules": sorted(sys.modules)}))
 def small_series(tmp_path_factory: pytest.TempPathFactory, phantom) -> Path:  # type: ignore[no-untyped-def]
     """A real simulated series of the built-in (steel) phantom: detect runs its whole path."""
     from mocks.oarm.dicom_export import write_dicom_series
-    from mocks.oarm.simulator import AcquisitionSettings, demo_pose, simulate_scan
+    from mocks.oarm.simulator import AcquisitionSettings, demo_pose
 
     out = tmp_path_factory.mktemp("detect-imports") / "series"
-    write_dicom_series(simulate_scan(phantom, demo_pose(), AcquisitionSettings.preset("small")), out)
+    write_dicom_series(simulated_scan(phantom, demo_pose(), AcquisitionSettings.preset("small")), out)
     return out
 
 
