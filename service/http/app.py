@@ -48,8 +48,8 @@ from service.events import (
     VerificationDone,
 )
 from service.http.context import ServiceContext, ServiceInputs
-from service.http.limits import HttpLimitCounters
 from service.http.security import SecurityGate
+from service.http.state import HttpState
 from service.intake.intake_scp import INTAKE_FOLDER, CStoreIntake
 from service.intake.recording import Intake
 from service.intake.scan_lifecycle import ScanLifecycle
@@ -124,8 +124,7 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         async with contextlib.AsyncExitStack() as stack:
-            http_limits = getattr(app.state, "http_limits", None)  # the server's counters, set by serve
-            app.state.ctx = await _start(inputs, stack, start_watcher=start_watcher, http_limits=http_limits)
+            app.state.ctx = await _start(inputs, stack, start_watcher=start_watcher)
             yield
 
     docs = settings.api.docs
@@ -135,6 +134,7 @@ def create_app(
         openapi_url="/openapi.json" if docs else None,
     )  # fmt: skip
     app.state.inputs = inputs  # app.state.ctx: set by the lifespan once every part runs
+    app.state.http = HttpState()  # what only HTTP keeps (tickets, connection counters), across restarts
     _install_routes(app)
     app.add_middleware(CurrentRegistrationFastPath)
     app.add_middleware(SecurityGate)  # nothing is read before it admits the request
@@ -181,7 +181,6 @@ async def _start(
     stack: contextlib.AsyncExitStack,
     *,
     start_watcher: bool,
-    http_limits: HttpLimitCounters | None = None,
 ) -> ServiceContext:
     """Start the parts in order, each one's stop pushed on ``stack`` as soon as it runs (a failure
     half-way stops what had started); then build the context, complete.
@@ -204,10 +203,10 @@ async def _start(
 
     ctx = ServiceContext(
         settings=settings, bus=bus, phantom=inputs.phantom, robot_model=inputs.robot_model,
-        robot_link=inputs.robot_link, volumes=inputs.volumes, tickets=inputs.tickets,
-        started_at=inputs.started_at, db=db, capture=core.capture, orchestrator=core.orchestrator,
+        robot_link=inputs.robot_link, volumes=inputs.volumes, started_at=inputs.started_at, db=db,
+        capture=core.capture, orchestrator=core.orchestrator,
         calibrations=core.calibrations, watcher=watcher, cstore=cstore, igtl=outputs.igtl,
-        pacs=outputs.pacs, auto_register=outputs.auto_register, http_limits=http_limits,
+        pacs=outputs.pacs, auto_register=outputs.auto_register,
     )  # fmt: skip
     if settings.api.auth == "none-loopback-only":
         log.warning(
@@ -419,8 +418,12 @@ class CurrentRegistrationFastPath:
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "http" and scope["method"] == "GET" and scope["path"] == self.PATH:
-            ctx: ServiceContext = scope["app"].state.ctx
-            body = ctx.current_registration_json() if self._authorized(scope) else None
+            state = scope["app"].state
+            ctx: ServiceContext = state.ctx
+            http: HttpState = state.http
+            body = (
+                http.current_registration_json(ctx.orchestrator.current) if self._authorized(scope) else None
+            )
             if body is not None:
                 await send(
                     {

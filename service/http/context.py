@@ -17,14 +17,11 @@ from drivers.base import RobotLink
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
 from service.event_bus import EventBus
-from service.http.limits import HttpLimitCounters
-from service.http.tickets import TicketBook
 from service.intake.intake_scp import CStoreIntake
 from service.intake.volume_cache import VolumeCache
 from service.intake.watcher import SeriesWatcher
 from service.navigation.igtl.publisher import IgtlPublisher
 from service.navigation.pacs.exporter import PacsExporter
-from service.records import RegistrationRecord
 from service.registrations.auto_register import AutoRegister
 from service.registrations.calibration_jobs import CalibrationJobs
 from service.registrations.capture import Capture
@@ -44,8 +41,6 @@ class ServiceInputs:
     robot_model: RobotModel
     robot_link: RobotLink
     volumes: VolumeCache = field(default_factory=VolumeCache)
-    tickets: TicketBook = field(default_factory=TicketBook)
-    """Single-use tickets for GET /events?ticket= (service.http.security)."""
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
 
 
@@ -59,7 +54,6 @@ class ServiceContext:
     robot_model: RobotModel
     robot_link: RobotLink
     volumes: VolumeCache
-    tickets: TicketBook
     started_at: datetime
     db: Database
     capture: Capture
@@ -77,23 +71,6 @@ class ServiceContext:
     """``service.registrations.auto_register``."""
     retention_problem: str | None = None
     """Set by the retention loop: why the scan folders exceed ``retention.max_disk_mb`` (``/status``)."""
-    http_limits: HttpLimitCounters | None = None
-    """The HTTP connection bounds' counters (``service.http.limits``; None when not served by ``serve``)."""
-    current_json: tuple[RegistrationRecord, bytes] | None = None
-    """(current registration record, its JSON) for GET /registration/current."""
-
-    def current_registration_json(self) -> bytes | None:
-        """The current registration as JSON bytes, encoded once per registration (None if none)."""
-        cur = self.orchestrator.current
-        if cur is None:
-            return None
-        cached = self.current_json
-        if cached is None or cached[0] is not cur:
-            from service.http.api.models import registration_out
-
-            cached = (cur, registration_out(cur).model_dump_json().encode())
-            self.current_json = cached
-        return cached[1]
 
     def listeners(self) -> dict[str, Any]:
         """For ``GET /status`` (``listeners``): each operating-room interface's state."""
@@ -119,5 +96,4 @@ class ServiceContext:
             "tls": s.tls.enabled,
             "auto_register": s.service.auto_register,
             "event_bus_failures": [asdict(f) for f in self.bus.listener_failures()],
-            "http_limits": self.http_limits.as_dict() if self.http_limits is not None else None,
         }

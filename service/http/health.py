@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from service.http.context import ServiceContext
+    from service.http.state import HttpState
 
 PROBE_BYTES = 4096
 """Size of the file the data-folder probe writes (one filesystem block: a full disk refuses it)."""
@@ -263,12 +264,12 @@ def igtl_slot_problems(ctx: ServiceContext) -> list[HealthProblem]:
     return out
 
 
-def http_slot_problems(ctx: ServiceContext) -> list[HealthProblem]:
+def http_slot_problems(http: HttpState | None) -> list[HealthProblem]:
     """HTTP connections closed within :data:`IGTL_REFUSAL_HOLD_S` because their address held its
     ``api.max_connections_per_address`` share or their peer read nothing for ``api.write_timeout_s``."""
     import time
 
-    c = ctx.http_limits
+    c = None if http is None else http.limits
     if c is None or time.monotonic() - c.last_drop_at >= IGTL_REFUSAL_HOLD_S:
         return []
     ago = time.monotonic() - c.last_drop_at
@@ -298,14 +299,15 @@ PROBLEM_SOURCES: list[Callable[[ServiceContext], list[HealthProblem]]] = [
     registration_withdrawn_problems,
     robot_settings_problems,
     igtl_slot_problems,
-    http_slot_problems,
 ]
-"""Every problem source, in the order their problems are listed.  Append new ones here."""
+"""Every problem source of the service's parts, in the order their problems are listed (then HTTP's
+own, :func:`http_slot_problems`).  Append new ones here."""
 
 
-def collect_problems(ctx: ServiceContext) -> list[HealthProblem]:
-    """Every current problem (empty: healthy)."""
+def collect_problems(ctx: ServiceContext, http: HttpState | None = None) -> list[HealthProblem]:
+    """Every current problem (empty: healthy): the service's parts', then the HTTP door's."""
     out: list[HealthProblem] = []
     for source in PROBLEM_SOURCES:
         out.extend(source(ctx))
+    out.extend(http_slot_problems(http))
     return out

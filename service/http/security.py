@@ -69,6 +69,7 @@ from service.errors import (
     UnsupportedMediaTypeError,
 )
 from service.http.api.problems import problem_kind
+from service.http.tickets import TicketBook
 from service.logsetup import install_redaction
 
 if TYPE_CHECKING:
@@ -197,9 +198,12 @@ def client_address(scope: Scope) -> str:
     return str(client[0]) if client else "?"
 
 
-def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | None = None) -> str | None:
+def authenticate(
+    ctx: ServiceContext, scope: Scope, book: TicketBook, throttle: AuthThrottle | None = None
+) -> str | None:
     """Step 3: the request's principal (None for public paths); raise :class:`UnauthorizedError`, or
-    :class:`AuthThrottledError` while ``throttle`` holds the client's address after repeated failures."""
+    :class:`AuthThrottledError` while ``throttle`` holds the client's address after repeated failures.
+    ``book``: the event tickets GET /events may present instead of a token."""
     settings = ctx.settings
     if is_public(scope):
         return None
@@ -219,7 +223,7 @@ def authenticate(ctx: ServiceContext, scope: Scope, throttle: AuthThrottle | Non
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
         tickets = query.get("ticket")
         if tickets:
-            principal = ctx.tickets.redeem(tickets[0])
+            principal = book.redeem(tickets[0])
             if principal is None:
                 raise UnauthorizedError(
                     "the event ticket is unknown, used or expired; POST /events/ticket again"
@@ -495,7 +499,7 @@ class SecurityGate:
     async def _admit(self, ctx: ServiceContext, scope: Scope, receive: Receive) -> Receive:
         settings = ctx.settings
         check_host_origin(settings, scope)
-        principal = authenticate(ctx, scope, self.throttle)
+        principal = authenticate(ctx, scope, scope["app"].state.http.tickets, self.throttle)
         if principal is not None:
             scope.setdefault("state", {})["principal"] = principal
             if (

@@ -118,7 +118,7 @@ def http_limits(settings: Any, app: Any = None) -> dict[str, Any]:
         api.max_connections, api.first_request_timeout_s, api.max_connections_per_address, api.write_timeout_s
     )
     if app is not None:  # the counters, for /ready and /status (service.http.health)
-        app.state.http_limits = protocol.counters
+        app.state.http.limits = protocol.counters
     return {"http": protocol}
 
 

@@ -9,6 +9,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.errors import UnauthorizedError
 from service.http.context import ServiceContext
+from service.http.state import HttpState
 
 
 async def get_ctx(request: Request) -> ServiceContext:
@@ -17,6 +18,15 @@ async def get_ctx(request: Request) -> ServiceContext:
 
 
 CtxDep = Annotated[ServiceContext, Depends(get_ctx)]
+
+
+async def get_http(request: Request) -> HttpState:
+    http: HttpState = request.app.state.http
+    return http
+
+
+HttpDep = Annotated[HttpState, Depends(get_http)]
+"""What only HTTP keeps (:mod:`service.http.state`): event tickets, connection counters."""
 
 _bearer = HTTPBearer(auto_error=False, description="API token (settings: api_token / OARMREG_API_TOKEN)")
 

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from service.event_bus import Published
-from service.http.api.deps import CtxDep, PrincipalDep
+from service.http.api.deps import CtxDep, HttpDep, PrincipalDep
 from service.http.api.models import EventTicketOut
 from service.http.api.problems import problem_response, problem_responses
 from service.http.security import EVENTS_PATH
@@ -79,10 +79,10 @@ async def events(request: Request, ctx: CtxDep) -> StreamingResponse:
     responses=problem_responses(401, 429),
 )
 async def event_ticket(
-    request: Request, ctx: CtxDep, principal: PrincipalDep
+    request: Request, ctx: CtxDep, http: HttpDep, principal: PrincipalDep
 ) -> EventTicketOut | JSONResponse:
     ttl_s = ctx.settings.api.event_ticket_ttl_s
-    ticket = ctx.tickets.mint(principal, ttl_s)
+    ticket = http.tickets.mint(principal, ttl_s)
     if ticket is None:
         return problem_response(
             429, "Too many tickets", f"{MAX_OUTSTANDING_TICKETS} event tickets are outstanding; use them or "

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Body, Request, Response
 from fastapi.responses import JSONResponse
 
 from service.errors import NoCurrentRegistrationError, NotFoundError, SupersededScanError
-from service.http.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
+from service.http.api.deps import CtxDep, HttpDep, Limit, Offset, PrincipalDep, RecordId
 from service.http.api.models import (
     PacsExportOut,
     RegisterRequest,
@@ -94,10 +94,10 @@ def _refusal(request: Request, rec: RegistrationRefusal) -> JSONResponse:
     ),
     responses=problem_responses(401, 404, 409),
 )
-async def current(request: Request, ctx: CtxDep) -> Response:
+async def current(request: Request, ctx: CtxDep, http: HttpDep) -> Response:
     # Usually answered by the app's CurrentRegistrationFastPath; this route documents it and
     # gives the error answers.  Pre-encoded JSON, re-encoded only when the current one changes.
-    body = ctx.current_registration_json()
+    body = http.current_registration_json(ctx.orchestrator.current)
     if body is None:
         w = ctx.orchestrator.withdrawal
         if w is not None:

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Response
 
 from drivers.errors import RobotLinkError
 from registration import __version__
-from service.http.api.deps import CtxDep
+from service.http.api.deps import CtxDep, HttpDep
 from service.http.api.models import (
     HealthProblemOut,
     JointsOut,
@@ -33,10 +33,10 @@ router = APIRouter(tags=["status"])
     summary="Robot link, watcher, latest scan, current registration",
     responses=problem_responses(401),
 )
-def status(ctx: CtxDep) -> StatusOut:
+def status(ctx: CtxDep, http: HttpDep) -> StatusOut:
     latest = ctx.db.scans.latest_complete()
     cur = ctx.orchestrator.current
-    problems = collect_problems(ctx)
+    problems = collect_problems(ctx, http)
     w = ctx.orchestrator.withdrawal
     return StatusOut(
         healthy=not problems,
@@ -54,7 +54,10 @@ def status(ctx: CtxDep) -> StatusOut:
         busy=ctx.orchestrator.busy,
         counts=ctx.db.counts(),
         config_hash=ctx.orchestrator.config_hash,
-        listeners=ctx.listeners(),
+        listeners={
+            **ctx.listeners(),
+            "http_limits": http.limits.as_dict() if http.limits is not None else None,
+        },
         active_calibration=_active_calibration(ctx),
         disk=_disk(ctx),
         gates={
@@ -87,8 +90,8 @@ def _disk(ctx: CtxDep) -> dict[str, float | None]:
     summary="Readiness: 200 when nothing is wrong, 503 listing each problem",
     responses={**problem_responses(401), 503: {"model": ReadyOut, "description": "not ready: see problems"}},
 )
-def ready(ctx: CtxDep, response: Response) -> ReadyOut:
-    problems = collect_problems(ctx)
+def ready(ctx: CtxDep, http: HttpDep, response: Response) -> ReadyOut:
+    problems = collect_problems(ctx, http)
     if problems:
         response.status_code = 503
     return ReadyOut(

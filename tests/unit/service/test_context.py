@@ -11,9 +11,8 @@ from service.http.context import ServiceContext
 
 SWITCHABLE = {"watcher", "cstore", "igtl", "pacs", "auto_register"}
 """The parts the settings (or ``start_watcher=False``) can switch off."""
-STATE = {"retention_problem", "current_json", "http_limits"}
-"""Not parts: what the retention loop found, the encoded current registration (a cache), and the
-HTTP server's connection counters (None when the app is not served by ``serve``)."""
+STATE = {"retention_problem"}
+"""Not a part: what the retention loop found.  (What only HTTP keeps is ``service.http.state``.)"""
 
 
 def _optional(tp: object) -> bool:
