@@ -23,7 +23,7 @@ from drivers.errors import RobotLinkError
 from registration.errors import OarmRegError
 from service.error_map import title_of
 from service.errors import DatabaseBusyError
-from service.http.context import ServiceContext
+from service.runtime.context import ServiceContext
 from service.store.audit import AuditAction
 
 log = logging.getLogger(__name__)

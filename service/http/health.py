@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from service.http.context import ServiceContext
     from service.http.state import HttpState
+    from service.runtime.context import ServiceContext
 
 PROBE_BYTES = 4096
 """Size of the file the data-folder probe writes (one filesystem block: a full disk refuses it)."""

@@ -73,7 +73,7 @@ from service.http.tickets import TicketBook
 from service.logsetup import install_redaction
 
 if TYPE_CHECKING:
-    from service.http.context import ServiceContext
+    from service.runtime.context import ServiceContext
     from service.settings import ApiSettings, Settings
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """Data lifecycle: delete old intake scans (their DICOM folders) by age or disk quota, oldest first.
 
-Runs at start-up and every ``retention.interval_s`` (``service.http.app``).  A scan's *files* are deleted,
+Runs at start-up and every ``retention.interval_s`` (``service.runtime.loops``).  A scan's *files* are deleted,
 never its row: the record, its joint snapshot, its registrations and verifications stay, marked with
 ``files_deleted_at`` and a ``retention_log`` row, and a ``scan_files_deleted`` event is published.
 Never deleted: the folders of the scans :func:`protected_scan_ids` names (the current registration's

@@ -1,6 +1,6 @@
 """Auto-register (``service.registrations.auto_register = true``): each scan recorded complete is registered.
 
-It listens to :class:`~service.events.ScanArrived` (bound by :mod:`service.http.app`) and runs
+It listens to :class:`~service.events.ScanArrived` (bound by :mod:`service.runtime.assembly`) and runs
 :meth:`service.registrations.orchestrator.Orchestrator.register` on its own worker thread, one scan after the
 other; the orchestrator stores and publishes the result (``registration_done`` /
 ``registration_refused``), which the IGTL publisher and the PACS export pick up like any other.

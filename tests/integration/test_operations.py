@@ -282,7 +282,7 @@ def test_ports_in_use_are_reported_in_one_line_each(
 def test_the_start_up_line_names_every_listener_and_the_data_folder(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="service.http.app")
+    caplog.set_level(logging.INFO, logger="service.runtime.assembly")
     with mock_robot() as mock:
         settings = fault_settings(tmp_path, mock.url, **{"dicom.enabled": True, "dicom.port": 0,
                                                           "igtl.enabled": True, "igtl.port": 0})  # fmt: skip

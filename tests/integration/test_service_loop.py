@@ -86,7 +86,7 @@ class Service:
     n_exports: int = 0
     baseline_scan_id: int | None = None
     ctx: Any = None
-    """The app's :class:`service.http.context.ServiceContext` (its event bus)."""
+    """The app's :class:`service.runtime.context.ServiceContext` (its event bus)."""
 
     def export(
         self, scan: Any, name: str, *, series_uid: str | None = None, drop_slice: int | None = None

@@ -6,7 +6,7 @@
 * No import cycle among the modules of ``service/`` or of ``drivers/``, counting imports inside
   functions and ``TYPE_CHECKING`` blocks too: a lazy import hides a cycle, it does not remove it.
 * ``service/http/api/*`` never imports ``service.http.app`` (the routes get the context from
-  :mod:`service.http.context`).
+  :mod:`service.runtime.context`).
 * ``service/`` is rooms along the data's way (design.md §2): a room imports only the shared top
   level and the rooms before it in :data:`SERVICE_ROOMS`; the shared top level imports no room; the
   top level holds at most :data:`MAX_TOP_LEVEL_MODULES` modules and every room's ``__init__`` says
@@ -44,7 +44,7 @@ MOCK_COMMANDS = frozenset(
 """The only production modules that may import ``mocks``: the commands that run the mocks."""
 
 
-SERVICE_ROOMS = ("store", "intake", "registrations", "navigation", "http", "cli")
+SERVICE_ROOMS = ("store", "intake", "registrations", "navigation", "runtime", "http", "cli")
 """The rooms of ``service/`` in the order of the data's way: each may import the ones before it."""
 MAX_TOP_LEVEL_MODULES = 12
 """Issue #35: ``service/`` has at most 12 top-level modules (``__init__`` included)."""
@@ -291,3 +291,26 @@ def test_no_module_imports_another_modules_private_name() -> None:
     known = set(mods)
     bad = [line for name, path in mods.items() for line in private_imports(path, name, known)]
     assert bad == []
+
+
+PART_CONSTRUCTORS = frozenset(
+    {
+        "Orchestrator", "CalibrationJobs", "Capture", "Intake", "ScanLifecycle", "SeriesWatcher",
+        "CStoreIntake", "IgtlPublisher", "PacsExporter", "AutoRegister",
+    }
+)  # fmt: skip
+"""The service's parts (issue 44: the runtime starts them; HTTP is one door, not the house)."""
+
+
+def test_no_module_in_http_starts_a_part_of_the_service() -> None:
+    started: list[str] = []
+    for name, path in sorted(all_modules().items()):
+        if not name.startswith("service.http"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Call):
+                f = node.func
+                called = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else ""
+                if called in PART_CONSTRUCTORS or (called == "open" and ast.unparse(f) == "Database.open"):
+                    started.append(f"{name}:{node.lineno} {ast.unparse(f)}(…)")
+    assert started == [], f"start the service's parts in service.runtime.assembly, not in HTTP: {started}"

@@ -43,7 +43,7 @@ if TYPE_CHECKING:
 
     from registration.model.kinematics import RobotModel
     from registration.model.phantom import Phantom
-    from service.http.context import ServiceInputs
+    from service.runtime.context import ServiceInputs
     from service.settings import Settings
 
 HELP = "run the whole registration loop on a mock robot and a simulated O-arm (≈ 1–2 min)"

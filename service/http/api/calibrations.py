@@ -14,8 +14,8 @@ from service.errors import ActivationRetiresCurrentError, NotFoundError
 from service.http.api.deps import CtxDep, Offset, RecordId
 from service.http.api.models import DbId
 from service.http.api.problems import problem_for, problem_responses
-from service.http.context import ServiceContext
 from service.registrations.calibration_jobs import CalibrationJobs, CalibrationRefusal, CalibrationRequest
+from service.runtime.context import ServiceContext
 from service.store.calibrations import CalibrationRecord
 
 router = APIRouter(tags=["calibration"])

@@ -8,8 +8,8 @@ from fastapi import Depends, Path, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.errors import UnauthorizedError
-from service.http.context import ServiceContext
 from service.http.state import HttpState
+from service.runtime.context import ServiceContext
 
 
 async def get_ctx(request: Request) -> ServiceContext:

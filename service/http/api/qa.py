@@ -18,8 +18,8 @@ from service.errors import NotFoundError, QaProtocolError, QaProtocolNameTakenEr
 from service.http.api.deps import CtxDep, Limit, Offset, PrincipalDep, RecordId
 from service.http.api.problems import problem_responses
 from service.http.audit import audited
-from service.http.context import ServiceContext
 from service.registrations.qa_drift import drift
+from service.runtime.context import ServiceContext
 from service.store.qa import FrePoint, QaCheck, QaPose, QaProtocol, QaTrendPoint
 
 router = APIRouter(tags=["qa"])

@@ -5,7 +5,7 @@
 the last refusal), the live joints and link health, the robot model's forward kinematics and
 ``igtl.tool0_from_tcp``.  It listens to :class:`~service.events.RegistrationDone` and
 :class:`~service.events.RegistrationRefused` and :class:`~service.events.RegistrationWithdrawn`
-(bound by :mod:`service.http.app`) and pushes at once;
+(bound by :mod:`service.runtime.assembly`) and pushes at once;
 otherwise every ``igtl.period_s``.  It publishes ``igtl_client_connected`` /
 ``igtl_client_disconnected`` / ``igtl_client_header_version`` (the client sent a version-2 message:
 answered in version 2 from then on).

@@ -89,7 +89,7 @@ class PacsExporter:
         self._wake.set()
 
     def on_registration_done(self, event: RegistrationDone) -> None:
-        """Bus listener (bound by :mod:`service.http.app`): queue the new registration's SRO."""
+        """Bus listener (bound by :mod:`service.runtime.assembly`): queue the new registration's SRO."""
         try:
             self.enqueue(event.registration_id)
         except Exception:  # the registration stands; the worker's start-up sweep queues it later

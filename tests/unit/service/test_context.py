@@ -7,7 +7,7 @@ import dataclasses
 import types
 import typing
 
-from service.http.context import ServiceContext
+from service.runtime.context import ServiceContext
 
 SWITCHABLE = {"watcher", "cstore", "igtl", "pacs", "auto_register"}
 """The parts the settings (or ``start_watcher=False``) can switch off."""

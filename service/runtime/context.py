@@ -1,8 +1,8 @@
-"""What the routes need (``request.app.state.ctx``).
+"""The service's inputs and its running parts.
 
-:class:`ServiceInputs` is what :func:`service.http.app.create_app` validates and loads before start-up
-(``app.state.inputs``); the app's lifespan starts the parts in order and only then builds the
-:class:`ServiceContext`, complete: every part that always runs is a plain field, and only the parts
+:class:`ServiceInputs` is what :func:`service.runtime.inputs.prepare_inputs` validates and loads
+before start-up; :func:`service.runtime.assembly.start_service` starts the parts in order and only
+then builds the :class:`ServiceContext` (the routes read it as ``request.app.state.ctx``), complete: every part that always runs is a plain field, and only the parts
 the settings can switch off (the folder watcher, the C-STORE intake, the OpenIGTLink publisher, the
 PACS export, auto-register) are ``Optional``.
 """

@@ -1,0 +1,9 @@
+"""The service's assembly: what starts every part, in order, binds them to the bus, runs the
+background loops and stops them again, with or without a web server in front.
+
+Enters: validated settings, the loaded phantom and robot model and the robot link
+(:class:`~service.runtime.context.ServiceInputs`, from :func:`~service.runtime.inputs.prepare_inputs`).
+Leaves: the running service (:class:`~service.runtime.context.ServiceContext`, from
+:func:`~service.runtime.assembly.running_service`), which the HTTP door, the CLI's ``demo`` and the
+benchmarks use alike.
+"""
