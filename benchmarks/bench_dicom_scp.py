@@ -2,7 +2,7 @@
 
 The series is synthetic (pydicom, int16, Explicit VR Little Endian, CT Image Storage) and
 written once to a temp folder; each run sends it over loopback to a fresh
-:class:`service.intake.dicom_scp.StorageScp` (atomic write with fsync per instance) with dcmtk's
+:class:`service.intake.storage_scp.StorageScp` (atomic write with fsync per instance) with dcmtk's
 ``storescu -R +sd`` (only the contexts it needs) when installed, else a pynetdicom SCU.
 Prints the median of ``--runs``.
 
@@ -23,7 +23,7 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from service.intake.dicom_scp import StorageScp
+from service.intake.storage_scp import StorageScp
 from service.settings import DicomSettings
 
 

@@ -1,7 +1,7 @@
 """DICOM Storage SCP memory under concurrent large instances (issue 19 item 6).
 
 pynetdicom buffers a whole C-STORE dataset in memory before ``EVT_C_STORE`` unless
-``_config.STORE_RECV_CHUNKED_DATASET`` is set; :class:`service.intake.dicom_scp.StorageScp` sets it, so
+``_config.STORE_RECV_CHUNKED_DATASET`` is set; :class:`service.intake.storage_scp.StorageScp` sets it, so
 each instance goes to a temp file and is streamed into place.  This starts the SCP in this process,
 has ``--associations`` dcmtk ``storescu`` processes (pynetdicom SCUs if dcmtk is missing) each send
 one ``--mb`` MB CT instance at once, and reports the SCP process' peak resident memory above its
@@ -24,7 +24,7 @@ import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from service.intake.dicom_scp import StorageScp
+from service.intake.storage_scp import StorageScp
 from service.settings import DicomSettings
 
 

@@ -7,7 +7,7 @@ one still robot.  Each is read as the service reads it (:class:`drivers.link_pro
 a child process at nice 0) while ``stress-ng --cpu 2`` (or two Python busy loops) at nice 0 fills
 both cores.  After ``--record-s`` of history, ``--judgements`` windows of the default
 ``stillness.window_s`` (60 s) whose ends are spread over the last ``record − window`` seconds are
-judged by the service's own :meth:`service.registrations.capture.Capture.snapshot` with default
+judged by the service's own :meth:`service.intake.capture.Capture.snapshot` with default
 settings.  The windows overlap
 (they come from one recording per rate): they are not independent scans.
 
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     args = ap.parse_args(argv)
     from drivers.link_process import ProcessLink
-    from service.registrations.capture import Capture
+    from service.intake.capture import Capture
     from service.settings import load_settings
 
     rows: list[tuple[Any, ...]] = []

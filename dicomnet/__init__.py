@@ -4,7 +4,7 @@
   Used by the PACS export (:mod:`service.navigation.pacs.scu`), the mock O-arm's C-STORE push
   (:mod:`mocks.oarm.cstore`) and the test peers.
 * :mod:`dicomnet.server`: the listening side (``poll`` instead of ``select``, a failed ``accept``
-  reported).  Used by the service's Storage SCP (:mod:`service.intake.dicom_scp`).
+  reported).  Used by the service's Storage SCP (:mod:`service.intake.storage_scp`).
 
 Why a package of its own: the mocks may import it (they may not import ``service``) without the
 robot links of ``drivers/``, and both halves of the same workarounds sit together here, below every

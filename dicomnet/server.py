@@ -6,7 +6,7 @@
   reports it.
 
 :func:`start_server` is ``ae.start_server(block=False)`` with both.  Nothing here knows what the
-server stores or why: the service's Storage SCP (:mod:`service.intake.dicom_scp`) is the one user,
+server stores or why: the service's Storage SCP (:mod:`service.intake.storage_scp`) is the one user,
 and a test peer may be another.  It sits beside the client side
 (:mod:`dicomnet.scu`).
 """

@@ -227,7 +227,7 @@ class VerificationDone(Event):
     passed: bool
 
 
-# ---- the robot link (service.registrations.capture) ---
+# ---- the robot link (service.intake.capture) ---
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -240,7 +240,7 @@ class LinkState(Event):
     reason: str
 
 
-# ---- operating-room interfaces (service.intake.intake_scp, service.navigation.igtl.publisher) ---
+# ---- operating-room interfaces (service.intake.cstore_intake, service.navigation.igtl.publisher) ---
 
 ReleaseOutcome = Literal["unchanged", "refused", "invalid", "complete", "reopened", "reopened_invalid"]
 
@@ -274,7 +274,8 @@ class DicomRefused(Event):
 
     name: ClassVar[str] = "dicom_refused"
     kind: str
-    """``peer``, ``calling_ae``, ``context``, ``dataset``, ``disk`` (service.intake.dicom_scp.ScpRefusal)."""
+    """``peer``, ``calling_ae``, ``context``, ``dataset``, ``disk``
+    (service.intake.storage_scp.ScpRefusal)."""
     reason: str
     calling_ae: str
     peer: str

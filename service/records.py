@@ -105,9 +105,10 @@ def stillness_verdict(value: str) -> StillnessVerdict:
 class JointSnapshot:
     """The joints captured at a scan's arrival and the stillness verdict over the window before it.
 
-    ``verdict`` is the one source of truth for the gate (:func:`service.intake.scan_checks.check_capture`);
-    ``stillness_reason`` is for people and is never parsed.  ``joints_rad`` is None when no joint
-    sample was available (link down, pre-existing series).
+    ``verdict`` is the one source of truth for the gate
+    (:func:`service.registrations.scan_checks.check_capture`); ``stillness_reason`` is for people
+    and is never parsed.  ``joints_rad`` is None when no joint sample was available (link down,
+    pre-existing series).
     """
 
     link_url: str

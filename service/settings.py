@@ -342,7 +342,7 @@ def _check_networks(values: tuple[str, ...]) -> tuple[str, ...]:
 
 
 class DicomSettings(_Section):
-    """DICOM Storage SCP (C-STORE from the O-arm), :mod:`service.intake.dicom_scp`."""
+    """DICOM Storage SCP (C-STORE from the O-arm), :mod:`service.intake.storage_scp`."""
 
     enabled: bool = False
     host: str = "127.0.0.1"
@@ -350,7 +350,7 @@ class DicomSettings(_Section):
     port: int = Field(default=11112, ge=0, le=65535)
     allowed_calling_ae_titles: tuple[str, ...] = ()
     allowed_peer_addresses: tuple[str, ...] = ()
-    # --- bounds (service.intake.dicom_scp.StorageScp reads them from here)
+    # --- bounds (service.intake.storage_scp.StorageScp reads them from here)
     # association negotiation / release, s (pynetdicom's ARTIM timer; its default 30 s let 30 silent
     # sockets hold every slot for ~30 s)
     acse_timeout_s: float = Field(default=10.0, gt=0, le=3600)

@@ -6,17 +6,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from datetime import datetime
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from registration.errors import OarmRegError
+from registration.imaging.volume import Volume
 from service.events import Publish, Reopening, ScanArrived, ScanInvalid
 from service.intake.scan_lifecycle import ContentChange, Hashes, ScanLifecycle, diff, hash_files
 from service.intake.volume_cache import VolumeCache
-from service.intake.watcher import SeriesArrival
 from service.records import JointSnapshot, NewScan, ScanGeometry, matrix4
 from service.store import Database
 from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
@@ -24,8 +25,40 @@ from service.store.scan_instances import SRO_PATIENT_STUDY_KEYS, ScanInstances
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class SeriesArrival:
+    """A series found complete (or found unusable) in the watch folder.
+
+    ``first_seen_t_s`` / ``last_change_t_s`` are ``time.monotonic()`` values: when the
+    watcher first saw the folder's current content appear and when it last changed.
+    ``volume`` is the loaded :class:`registration.imaging.volume.Volume` (None when ``error`` is set
+    or when ``duplicate``).
+    """
+
+    series_uid: str
+    folder: Path
+    first_seen_t_s: float
+    last_change_t_s: float
+    first_seen_at: datetime
+    n_files: int
+    volume: Volume | None = None
+    error: str = ""
+    duplicate: bool = False
+    preexisting: bool = False
+    reopened: bool = False
+    """Late slices of a series recorded before: the earlier record was incomplete."""
+    previous_slices: int = 0
+    """Slices of the earlier record when ``reopened``."""
+    change: Any = None
+    """:class:`service.intake.scan_lifecycle.ContentChange` from the recorded content, when known."""
+    files: dict[str, tuple[str, int]] | None = None
+    """The instances' hashes when the deliverer computed them (else the intake hashes the volume's files)."""
+    source: str = "folder"
+    """``folder`` or ``dicom``."""
+
+
 class SnapshotSource(Protocol):
-    """What the intake needs of :class:`service.registrations.capture.Capture`."""
+    """What the intake needs of :class:`service.intake.capture.Capture`."""
 
     def snapshot(
         self, first_seen_t_s: float, last_change_t_s: float, *, preexisting: bool = False

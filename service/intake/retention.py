@@ -1,8 +1,9 @@
 """Data lifecycle: delete old intake scans (their DICOM folders) by age or disk quota, oldest first.
 
-Runs at start-up and every ``retention.interval_s`` (``service.runtime.loops``).  A scan's *files* are deleted,
-never its row: the record, its joint snapshot, its registrations and verifications stay, marked with
-``files_deleted_at`` and a ``retention_log`` row, and a ``scan_files_deleted`` event is published.
+Runs at start-up and every ``retention.interval_s`` (``service.runtime.loops``).  A scan's *files*
+are deleted, never its row: the record, its joint snapshot, its registrations and verifications
+stay, marked with ``files_deleted_at`` and a ``retention_log`` row, and a ``scan_files_deleted``
+event is published.
 Never deleted: the folders of the scans :func:`protected_scan_ids` names (the current registration's
 scan; the active calibration's scans once calibrations exist), folders outside ``watch_dir`` and the
 C-STORE intake folder (``dicom-intake/``; never the database, audit log or calibrations),

@@ -1,6 +1,6 @@
 """Decode a C-STORE series slice by slice as it arrives, so the volume is ready at association release.
 
-The DICOM Storage SCP (:mod:`service.intake.dicom_scp`) writes each instance to disk and hands its path
+The DICOM Storage SCP (:mod:`service.intake.storage_scp`) writes each instance to disk and hands its path
 here; worker threads read its header and pixel data with the same functions the series loader
 uses (:mod:`registration.dicom`: the header pass :func:`~registration.dicom.headers.read_headers`,
 the HU rescale :func:`~registration.dicom.pixels.read_voxels`) and copy its frames into one

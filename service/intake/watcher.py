@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from registration.errors import DicomSeriesError, OarmRegError
-from registration.imaging.volume import Volume
+from service.intake.recording import SeriesArrival
 
 log = logging.getLogger(__name__)
 
@@ -65,38 +65,6 @@ def demote_watchdog_stop_race(record: logging.LogRecord) -> bool:
 EVENT_DEBOUNCE_S = 0.05
 """After a file-system event, wait this long for more before rescanning (a 192-file export fires
 hundreds of events)."""
-
-
-@dataclass(frozen=True)
-class SeriesArrival:
-    """A series found complete (or found unusable) in the watch folder.
-
-    ``first_seen_t_s`` / ``last_change_t_s`` are ``time.monotonic()`` values: when the
-    watcher first saw the folder's current content appear and when it last changed.
-    ``volume`` is the loaded :class:`registration.imaging.volume.Volume` (None when ``error`` is set
-    or when ``duplicate``).
-    """
-
-    series_uid: str
-    folder: Path
-    first_seen_t_s: float
-    last_change_t_s: float
-    first_seen_at: datetime
-    n_files: int
-    volume: Volume | None = None
-    error: str = ""
-    duplicate: bool = False
-    preexisting: bool = False
-    reopened: bool = False
-    """Late slices of a series recorded before: the earlier record was incomplete."""
-    previous_slices: int = 0
-    """Slices of the earlier record when ``reopened``."""
-    change: Any = None
-    """:class:`service.intake.scan_lifecycle.ContentChange` from the recorded content, when known."""
-    files: dict[str, tuple[str, int]] | None = None
-    """The instances' hashes when the deliverer computed them (else the intake hashes the volume's files)."""
-    source: str = "folder"
-    """``folder`` or ``dicom``."""
 
 
 FOLDER_UID_PREFIX = "folder:"

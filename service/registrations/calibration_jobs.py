@@ -64,11 +64,11 @@ from service.events import (
     Publish,
     RegistrationRetired,
 )
-from service.intake.scan_checks import check_capture
 from service.intake.volume_cache import VolumeCache
 from service.records import ScanRecord
 from service.registrations.orchestrator import Orchestrator
 from service.registrations.robot_side import FINGERPRINT_KEY, changed_settings
+from service.registrations.scan_checks import check_capture
 from service.settings import Settings
 from service.store import Database
 from service.store.base import utc_now

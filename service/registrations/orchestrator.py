@@ -66,7 +66,6 @@ from service.events import (
     RegistrationWithdrawn,
     VerificationDone,
 )
-from service.intake.scan_checks import check_capture
 from service.intake.volume_cache import VolumeCache
 from service.records import (
     RegistrationRecord,
@@ -78,6 +77,7 @@ from service.records import (
 )
 from service.registrations.figures import provenance, registration_figures, verification_figures
 from service.registrations.robot_side import FINGERPRINT_KEY, robot_settings_fingerprint, stale_reasons
+from service.registrations.scan_checks import check_capture
 from service.settings import Settings
 from service.store import Database
 from service.store.base import utc_now

@@ -3,7 +3,7 @@
 :func:`running_service` is the whole service as an async context manager, with no web server:
 the HTTP app's lifespan (:func:`service.http.app.create_app`), the CLI's ``demo`` and the
 benchmarks enter it alike.  The table of who listens to which event is :func:`_start_outputs`
-(and :class:`~service.intake.intake_scp.CStoreIntake` / :class:`~service.intake.recording.Intake`
+(and :class:`~service.intake.cstore_intake.CStoreIntake` / :class:`~service.intake.recording.Intake`
 publish what arrives).
 """
 
@@ -28,7 +28,8 @@ from service.events import (
     ScanArrived,
     VerificationDone,
 )
-from service.intake.intake_scp import INTAKE_FOLDER, CStoreIntake
+from service.intake.capture import Capture
+from service.intake.cstore_intake import INTAKE_FOLDER, CStoreIntake
 from service.intake.recording import Intake
 from service.intake.scan_lifecycle import ScanLifecycle
 from service.intake.watcher import SeriesWatcher
@@ -36,7 +37,6 @@ from service.navigation.igtl.publisher import IgtlPublisher
 from service.navigation.pacs.exporter import PacsExporter
 from service.registrations.auto_register import AutoRegister
 from service.registrations.calibration_jobs import CalibrationJobs
-from service.registrations.capture import Capture
 from service.registrations.orchestrator import Orchestrator
 from service.runtime.context import ServiceContext, ServiceInputs
 from service.runtime.loops import retention_loop, watch_database

@@ -2,9 +2,10 @@
 
 :class:`ServiceInputs` is what :func:`service.runtime.inputs.prepare_inputs` validates and loads
 before start-up; :func:`service.runtime.assembly.start_service` starts the parts in order and only
-then builds the :class:`ServiceContext` (the routes read it as ``request.app.state.ctx``), complete: every part that always runs is a plain field, and only the parts
-the settings can switch off (the folder watcher, the C-STORE intake, the OpenIGTLink publisher, the
-PACS export, auto-register) are ``Optional``.
+then builds the :class:`ServiceContext` (the routes read it as ``request.app.state.ctx``),
+complete: every part that always runs is a plain field, and only the parts the settings can switch
+off (the folder watcher, the C-STORE intake, the OpenIGTLink publisher, the PACS export,
+auto-register) are ``Optional``.
 """
 
 from __future__ import annotations
@@ -17,14 +18,14 @@ from drivers.base import RobotLink
 from registration.model.kinematics import RobotModel
 from registration.model.phantom import Phantom
 from service.event_bus import EventBus
-from service.intake.intake_scp import CStoreIntake
+from service.intake.capture import Capture
+from service.intake.cstore_intake import CStoreIntake
 from service.intake.volume_cache import VolumeCache
 from service.intake.watcher import SeriesWatcher
 from service.navigation.igtl.publisher import IgtlPublisher
 from service.navigation.pacs.exporter import PacsExporter
 from service.registrations.auto_register import AutoRegister
 from service.registrations.calibration_jobs import CalibrationJobs
-from service.registrations.capture import Capture
 from service.registrations.orchestrator import Orchestrator
 from service.settings import Settings
 from service.store import Database

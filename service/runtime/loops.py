@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 
-from service.intake.intake_scp import INTAKE_FOLDER
+from service.intake.cstore_intake import INTAKE_FOLDER
 from service.runtime.context import ServiceContext
 from service.store import Database
 

@@ -164,12 +164,12 @@ def test_item6_one_address_cannot_take_every_slot(scp: Scp) -> None:
 def test_item6_an_empty_allow_list_is_said_at_start_up_and_on_status(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from service.intake.dicom_scp import StorageScp
+    from service.intake.storage_scp import StorageScp
     from service.settings import DicomSettings
 
     config = DicomSettings(enabled=True, port=0)
     with (
-        caplog.at_level(logging.WARNING, logger="service.intake.dicom_scp"),
+        caplog.at_level(logging.WARNING, logger="service.intake.storage_scp"),
         StorageScp(config, tmp_path) as s,
     ):
         assert "allowed_calling_ae_titles is empty" in str(getattr(s, "allow_list", ""))

@@ -40,7 +40,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service.intake.intake_scp import INTAKE_FOLDER
+from service.intake.cstore_intake import INTAKE_FOLDER
 from tests.faults._service import (
     DEADLINE_S,
     TOKEN,

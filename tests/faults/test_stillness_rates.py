@@ -3,7 +3,7 @@
 Each mock controller streams simple_message with the VAL3 driver's cadence (1 s after a client
 connects, each message in three writes, STATUS every fifth frame); each is read as the service reads
 it (:class:`drivers.link_process.ProcessLink`, a child process) and judged by the service's own
-:meth:`service.registrations.capture.Capture.snapshot`, at the default ``max_gap_s`` (0.25 s) and
+:meth:`service.intake.capture.Capture.snapshot`, at the default ``max_gap_s`` (0.25 s) and
 deviation limit.  Two busy-loop processes (nice 0) fill both cores for the whole test.
 
 What runs live and what does not: the window here is ``WINDOW_S`` (2 s), not the default 60 s, so
@@ -33,7 +33,7 @@ import pytest
 from drivers.link_process import ProcessLink
 from mocks.robot.robot import ControllerStatus, ScriptedRobot
 from mocks.robot.runner import MockController, run_mock_controller
-from service.registrations.capture import Capture
+from service.intake.capture import Capture
 from tests.integration.polling import poll_until
 
 RATES_HZ = (50.0, 250.0, 1000.0)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from service.cli.main import main
-from service.intake.dicom_scp import ScpCallbacks, StorageScp
+from service.intake.storage_scp import ScpCallbacks, StorageScp
 from service.settings import DicomSettings
 from tests.helpers.dicom_factory import ramp_volume, write_series
 

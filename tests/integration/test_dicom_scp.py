@@ -28,7 +28,7 @@ from pydicom.uid import (
 from pynetdicom import AE
 
 from dicomnet.scu import associate
-from service.intake.dicom_scp import (
+from service.intake.storage_scp import (
     STATUS_DATASET_MISMATCH,
     STATUS_OUT_OF_RESOURCES,
     DicomScpConfigError,

@@ -18,7 +18,7 @@ from drivers.factory import open_link
 from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 from service.events import Event, LinkState
-from service.registrations.capture import Capture
+from service.intake.capture import Capture
 
 Q = [math.radians(d) for d in (12.5, -33.25, 101.0, -7.75, 44.125, 170.0)]
 

@@ -26,7 +26,7 @@ from mocks.robot.robot import ScriptedRobot
 from mocks.robot.runner import run_mock_controller
 from registration.errors import KinematicsError
 from registration.model.kinematics import RobotModel
-from service.registrations.capture import Capture
+from service.intake.capture import Capture
 
 TX60 = RobotModel.load("tx60")
 POSES = {"lower": tuple(TX60.lower_rad.tolist()), "upper": tuple(TX60.upper_rad.tolist())}

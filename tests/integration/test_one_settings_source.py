@@ -14,14 +14,17 @@ from polling import poll_until, wait_until
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification  # type: ignore[attr-defined]
 
-from service.intake.dicom_scp import StorageScp
+from service.intake.storage_scp import StorageScp
 from service.navigation.igtl.server import IgtlServer, IgtlStateSource, RegistrationState
 from service.settings import load_settings
 
 
 @pytest.mark.parametrize(
     ("module", "name"),
-    [("service.intake.dicom_scp", "DicomScpConfig"), ("service.navigation.igtl.server", "IgtlServerConfig")],
+    [
+        ("service.intake.storage_scp", "DicomScpConfig"),
+        ("service.navigation.igtl.server", "IgtlServerConfig"),
+    ],
 )
 def test_no_second_config_class(module: str, name: str) -> None:
     assert not hasattr(importlib.import_module(module), name)

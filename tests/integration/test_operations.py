@@ -308,10 +308,10 @@ def test_refused_standard_contexts_are_debug_and_still_counted(
     from pynetdicom import AE
 
     from dicomnet.scu import associate
-    from service.intake.dicom_scp import ScpCallbacks, StorageScp
+    from service.intake.storage_scp import ScpCallbacks, StorageScp
     from service.settings import DicomSettings
 
-    caplog.set_level(logging.DEBUG, logger="service.intake.dicom_scp")
+    caplog.set_level(logging.DEBUG, logger="service.intake.storage_scp")
     with StorageScp(DicomSettings(port=0), tmp_path, ScpCallbacks(None, None, None)) as scp:
         for contexts in ((CTImageStorage, MRImageStorage, UltrasoundImageStorage), (MRImageStorage,)):
             ae = AE(ae_title="OARM")

@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 if TYPE_CHECKING:
     from drivers.base import RobotLink
     from registration.model.kinematics import RobotModel
-    from service.registrations.capture import Capture
+    from service.intake.capture import Capture
     from service.registrations.orchestrator import Orchestrator
     from service.settings import IgtlSettings
 

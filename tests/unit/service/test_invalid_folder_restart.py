@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from service.events import Event
-from service.intake.recording import Intake
+from service.intake.recording import Intake, SeriesArrival
 from service.intake.scan_lifecycle import ScanLifecycle, hash_files
 from service.intake.volume_cache import VolumeCache
-from service.intake.watcher import SeriesArrival, folder_uid
+from service.intake.watcher import folder_uid
 from service.records import JointSnapshot
 from service.store import Database
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from registration.errors import JointHistoryIncompleteError, RobotMovedError
-from service.intake.scan_checks import check_capture
 from service.records import JointSnapshot, NewScan, StillnessVerdict, stillness_verdict
+from service.registrations.scan_checks import check_capture
 from service.store import Database
 from service.store.migrations import MIGRATIONS, STILLNESS_VERDICT_MIGRATION
 from tests.helpers.old_schema import database_before

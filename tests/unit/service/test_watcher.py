@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.intake.watcher import SeriesArrival, SeriesWatcher, snapshot_dir
+from service.intake.recording import SeriesArrival
+from service.intake.watcher import SeriesWatcher, snapshot_dir
 from tests.helpers.dicom_factory import ramp_volume, write_series
 
 QUIET_S = 1.0

@@ -12,7 +12,7 @@ and 1000 Hz (tests/faults/test_stillness_rates.py runs the live counterpart over
   bytes of a frame written in three parts may be split across reads;
 * on top, a receive-side stall of 0.5 s (GIL, a decoding C-STORE) whose frames arrive late, intact.
 
-Judged as :class:`service.registrations.capture.Capture` judges them (the session's period from
+Judged as :class:`service.intake.capture.Capture` judges them (the session's period from
 :func:`stream_period_s`, ``max_gap_s`` 0.25 s): every still window is ``still``, while a 0.05° move
 and a controller that really stopped for 0.5 s are still refused.  Before issue 40 the period was the
 median receive interval, which these bursts shrink: the same windows were refused as incomplete.

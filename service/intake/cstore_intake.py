@@ -37,11 +37,10 @@ from service.events import (
     Publish,
     ReleaseOutcome,
 )
-from service.intake.dicom_scp import ScpCallbacks, ScpRefusal, StorageScp
-from service.intake.recording import Intake
+from service.intake.recording import Intake, SeriesArrival
 from service.intake.scan_lifecycle import ContentChange, OfferTally, ScanLifecycle, hash_files
 from service.intake.series_accumulator import SeriesAccumulator
-from service.intake.watcher import SeriesArrival
+from service.intake.storage_scp import ScpCallbacks, ScpRefusal, StorageScp
 from service.workers import started_executor
 
 if TYPE_CHECKING:
