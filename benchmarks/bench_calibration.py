@@ -354,9 +354,7 @@ def matrix(
     """Every case of :mod:`benchmarks.calib_testbed`; one row per case and a summary."""
     from benchmarks import calib_testbed as tb
     from benchmarks.common import print_table
-    from registration.calibration.records import (
-        CalibrationError,
-    )
+    from registration.errors import CalibrationError
 
     today = CalibrationParams(estimator="ls", max_condition=100.0, max_predicted_error_mm=math.inf)
     today_drop = CalibrationParams(

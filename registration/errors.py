@@ -125,3 +125,94 @@ class PosesFileError(PointsFileError):
     """A calibration POSES.json or a JOINTS.json is malformed (too few poses, wrong joint count)."""
 
     title = "Invalid poses file"
+
+
+# raised by registration.model.frames
+
+
+class NotRigidError(OarmRegError):
+    title = "Transform is not rigid"
+
+
+# raised by registration.matching.records
+
+
+class PriorMismatchError(RegistrationError):
+    """No pose within the orientation prior's tolerance explains the detections."""
+
+    title = "Orientation prior not met"
+
+
+# raised by registration.matching.rigid
+
+
+class PointSetError(OarmRegError):
+    """A point set passed to the registration has the wrong shape or non-finite values."""
+
+    title = "Invalid point set"
+
+
+# raised by registration.matching.prereg
+
+
+class PreregistrationError(RegistrationError):
+    """The four marks do not define a usable rigid pre-registration."""
+
+    title = "Pre-registration refused"
+
+
+# raised by registration.matching.face_offset
+
+
+class FaceOffsetError(RegistrationError):
+    """The spheres sit deeper or higher in their holes, all together, than the phantom file says."""
+
+    title = "Face offset out of bounds"
+
+
+# raised by registration.imaging.scan_geometry
+
+
+class SeriesGeometryError(RegistrationError):
+    title = "Series geometry missing or malformed"
+
+
+# raised by registration.calibration.records
+
+
+class CalibrationError(RegistrationError):
+    """A calibration was refused.  Subclasses say why."""
+
+    title = "Calibration refused"
+
+
+class TooFewPosesError(CalibrationError):
+    title = "Too few calibration poses"
+
+
+class SessionMismatchError(CalibrationError):
+    title = "Scans from different O-arm placements"
+
+
+class NotIdentifiableError(CalibrationError):
+    title = "Calibration parameters not identifiable from these poses"
+
+
+class OutlierPoseError(CalibrationError):
+    title = "Calibration pose inconsistent with the others"
+
+
+# raised by registration.calibration.planner
+
+
+class PlanningError(RegistrationError):
+    title = "Cannot plan calibration poses"
+
+
+# raised by registration.io.sro
+
+
+class SroError(OarmRegError):
+    """A Spatial Registration object cannot be built from these inputs."""
+
+    title = "Cannot build the DICOM Spatial Registration object"

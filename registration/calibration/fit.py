@@ -20,12 +20,8 @@ from registration.calibration.model import (
     jacobian,
     residuals_mm,
 )
-from registration.calibration.records import (
-    PRIORS,
-    CalibrationParams,
-    MatchedPose,
-    OutlierPoseError,
-)
+from registration.calibration.records import PRIORS, CalibrationParams, MatchedPose
+from registration.errors import OutlierPoseError
 
 if TYPE_CHECKING:
     pass

@@ -15,13 +15,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.arrays import F64
-from registration.calibration.records import (
-    CalibrationError,
-    CalibrationResult,
-    MatchedPose,
-    Parameter,
-)
+from registration.calibration.records import CalibrationResult, MatchedPose, Parameter
 from registration.calibration.urdf import SerialChain, rotation_about
+from registration.errors import CalibrationError
 from registration.matching.rigid import fit_rigid, nearest_rotation
 from registration.model.frames import as_transform, invert, make_transform
 

@@ -52,7 +52,7 @@ from registration.calibration.sampling import (
 )
 from registration.calibration.targets import MAX_PLANNED_POSES, TARGET_RMS_MM
 from registration.calibration.urdf import SerialChain, rotation_about
-from registration.errors import RegistrationError
+from registration.errors import PlanningError
 from registration.model.frames import as_transform, invert, make_transform
 
 __all__ = [
@@ -68,10 +68,6 @@ __all__ = [
     "sample_poses_in_volume",
     "solve_ik",
 ]
-
-
-class PlanningError(RegistrationError):
-    title = "Cannot plan calibration poses"
 
 
 DEFAULT_TARGET_RMS_MM: Final = TARGET_RMS_MM

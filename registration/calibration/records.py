@@ -18,7 +18,6 @@ from registration import __version__
 from registration.arrays import F64
 from registration.calibration.targets import TARGET_RMS_MM
 from registration.calibration.urdf import SerialChain
-from registration.errors import RegistrationError
 
 if TYPE_CHECKING:
     pass
@@ -94,28 +93,6 @@ class Priors:
 
 
 PRIORS: Final = Priors()
-
-
-class CalibrationError(RegistrationError):
-    """A calibration was refused.  Subclasses say why."""
-
-    title = "Calibration refused"
-
-
-class TooFewPosesError(CalibrationError):
-    title = "Too few calibration poses"
-
-
-class SessionMismatchError(CalibrationError):
-    title = "Scans from different O-arm placements"
-
-
-class NotIdentifiableError(CalibrationError):
-    title = "Calibration parameters not identifiable from these poses"
-
-
-class OutlierPoseError(CalibrationError):
-    title = "Calibration pose inconsistent with the others"
 
 
 @dataclass(frozen=True)

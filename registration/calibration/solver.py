@@ -90,15 +90,12 @@ from registration.calibration.records import (
     CalibrationParams,
     CalibrationResult,
     MatchedPose,
-    NotIdentifiableError,
     Parameter,
-    SessionMismatchError,
-    TooFewPosesError,
     UnmodelledEstimate,
     WorkingPrediction,
 )
 from registration.calibration.urdf import SerialChain
-from registration.errors import OarmRegError
+from registration.errors import NotIdentifiableError, OarmRegError, SessionMismatchError, TooFewPosesError
 from registration.model.frames import as_transform
 
 if TYPE_CHECKING:

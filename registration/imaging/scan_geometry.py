@@ -17,17 +17,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from registration.errors import RegistrationError
+from registration.errors import SeriesGeometryError
 
 if TYPE_CHECKING:
     from registration.calibration.planner import ScanVolume
     from registration.imaging.volume import Volume
 
 Vec3 = tuple[float, float, float]
-
-
-class SeriesGeometryError(RegistrationError):
-    title = "Series geometry missing or malformed"
 
 
 def _vec(v: Any, name: str) -> Vec3:

@@ -24,8 +24,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from registration.arrays import F64
-from registration.errors import InputFileUnreadableError, PointsFileError
-from registration.model.frames import NotRigidError, as_transform
+from registration.errors import InputFileUnreadableError, NotRigidError, PointsFileError
+from registration.model.frames import as_transform
 
 MAX_ABS_COORD_MM: Final = 1.0e5
 """Coordinates beyond 100 m are not millimetres of an operating room."""

@@ -47,7 +47,7 @@ from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, ExplicitVRLittleEndian, generate_uid
 
 from registration.arrays import F64
-from registration.errors import OarmRegError
+from registration.errors import SroError
 
 SPATIAL_REGISTRATION_STORAGE = UID("1.2.840.10008.5.1.4.1.1.66.1")
 FIDUCIAL_ALIGNMENT = ("125022", "DCM", "Fiducial Alignment")
@@ -65,12 +65,6 @@ _PATIENT_STUDY_KEYS = (
     "PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyInstanceUID", "StudyDate",
     "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber",
 )  # fmt: skip
-
-
-class SroError(OarmRegError):
-    """A Spatial Registration object cannot be built from these inputs."""
-
-    title = "Cannot build the DICOM Spatial Registration object"
 
 
 def _check_rigid(m: F64) -> None:

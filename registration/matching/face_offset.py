@@ -29,8 +29,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from registration.arrays import F64
-from registration.errors import RegistrationError
-from registration.matching.rigid import PointSetError, as_points, fit_rigid_unchecked
+from registration.errors import FaceOffsetError, PointSetError
+from registration.matching.rigid import as_points, fit_rigid_unchecked
 
 MAX_FACE_OFFSET_MM: Final = 0.15
 """Largest |β| accepted.  Origin: the pulls measured along the hole axis are 0.004–0.024 mm for the
@@ -43,12 +43,6 @@ spheres are not pressed home, the phantom file's ``hole_centre_depth_mm`` or
 GAUSS_NEWTON_STEPS: Final = 3
 """Linearised steps from the Kabsch pose at β = 0; the first is exact to O(β · angle), the third
 moves β by < 1e-12 mm on the simulator's scans."""
-
-
-class FaceOffsetError(RegistrationError):
-    """The spheres sit deeper or higher in their holes, all together, than the phantom file says."""
-
-    title = "Face offset out of bounds"
 
 
 @dataclass(frozen=True, eq=False)

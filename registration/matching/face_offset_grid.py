@@ -12,10 +12,9 @@ import math
 import numpy as np
 
 from registration.detection.records import DetectionResult, FaceOffset
-from registration.errors import RegistrationError
+from registration.errors import PointSetError, RegistrationError
 from registration.matching.records import RegistrationParams
 from registration.matching.register import register_points
-from registration.matching.rigid import PointSetError
 from registration.model.phantom import Phantom
 
 

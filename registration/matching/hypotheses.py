@@ -22,6 +22,7 @@ from registration.arrays import F64
 from registration.errors import (
     AmbiguousMatchError,
     MirroredInputError,
+    PriorMismatchError,
     TooFewSpheresError,
     TooFewWithinGateError,
 )
@@ -33,11 +34,7 @@ from registration.matching.correspondence import (
 )
 from registration.matching.icp import IcpResult, icp
 from registration.matching.prereg import PreregResult, preregister
-from registration.matching.records import (
-    PriorMismatchError,
-    RegistrationInputs,
-    RegistrationParams,
-)
+from registration.matching.records import RegistrationInputs, RegistrationParams
 from registration.matching.rigid import fit_rigid, rotation_difference_deg
 from registration.model.phantom import Phantom
 

@@ -19,7 +19,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from registration.arrays import F64
-from registration.errors import DegenerateConfigurationError, MirroredInputError, RegistrationError
+from registration.errors import (
+    DegenerateConfigurationError,
+    MirroredInputError,
+    PreregistrationError,
+)
 from registration.matching.rigid import nearest_rotation
 
 MIN_MARK_PLANARITY: Final = 1e-3
@@ -28,12 +32,6 @@ MIN_MARK_PLANARITY: Final = 1e-3
 MAX_NONRIGIDITY: Final = 0.10
 """Largest |singular value − 1| of the affine accepted: 10 % scale/shear means mislabelled marks
 (with σ ≈ 0.25 mm on ~60 mm spreads the expected value is < 1 %)."""
-
-
-class PreregistrationError(RegistrationError):
-    """The four marks do not define a usable rigid pre-registration."""
-
-    title = "Pre-registration refused"
 
 
 @dataclass(frozen=True, eq=False)

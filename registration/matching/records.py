@@ -14,7 +14,6 @@ from numpy.typing import ArrayLike, NDArray
 from registration.arrays import F64
 from registration.errors import (
     ConfigError,
-    RegistrationError,
 )
 from registration.matching.correspondence import (
     DEFAULT_DISTINCT_ROTATION_DEG,
@@ -39,12 +38,6 @@ MAX_PRIOR_TOLERANCE_DEG: Final = 45.0
 PRIOR_ROTATION_TOL: Final = 1e-3
 """An orientation prior is a rotation if RᵀR = I and det R = 1 within this: a matrix written with 4
 decimals (a hand-typed prior) passes, a scaled or sheared one does not."""
-
-
-class PriorMismatchError(RegistrationError):
-    """No pose within the orientation prior's tolerance explains the detections."""
-
-    title = "Orientation prior not met"
 
 
 @dataclass(frozen=True)

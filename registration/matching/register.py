@@ -46,6 +46,7 @@ from registration.errors import (
     ConfigError,
     ImproperRotationError,
     PhantomMismatchError,
+    PointSetError,
     TooFewSpheresError,
 )
 from registration.matching.face_offset import FaceOffsetFit, check_face_offset, fit_face_offset
@@ -73,12 +74,7 @@ from registration.matching.records import (
     RegistrationResult,
     as_rotation,
 )
-from registration.matching.rigid import (
-    PointSetError,
-    as_points,
-    fit_rigid_unchecked,
-    rotation_difference_deg,
-)
+from registration.matching.rigid import as_points, fit_rigid_unchecked, rotation_difference_deg
 from registration.model.phantom import Phantom
 
 log = logging.getLogger(__name__)

@@ -22,18 +22,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from registration.arrays import F64
-from registration.errors import DegenerateConfigurationError, OarmRegError
+from registration.errors import DegenerateConfigurationError, PointSetError
 
 log = logging.getLogger(__name__)
 
 MIN_POINTS: Final = 3
 """A rigid fit needs at least three non-collinear point pairs."""
-
-
-class PointSetError(OarmRegError):
-    """A point set passed to the registration has the wrong shape or non-finite values."""
-
-    title = "Invalid point set"
 
 
 def as_points(a: ArrayLike, name: str) -> F64:

@@ -13,17 +13,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from registration.arrays import F64
-from registration.errors import OarmRegError
+from registration.errors import NotRigidError
 
 FRAMES: Final = ("voxel", "image", "robot", "tool0", "phantom")
 """Every frame the project names (design.md §3)."""
 
 RIGID_TOLERANCE: Final = 1e-6
 """Max |RᵀR − I| and |det R − 1| accepted as rigid (float64 round-off of a chain of ~10 products)."""
-
-
-class NotRigidError(OarmRegError):
-    title = "Transform is not rigid"
 
 
 def as_transform(matrix: ArrayLike, name: str = "transform", *, tol: float = RIGID_TOLERANCE) -> F64:

@@ -400,9 +400,9 @@ def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
     """(calibrated RobotModel, tool0_from_phantom (4 × 4 mm), calibration.json dict) from CALDIR."""
     import numpy as np
 
-    from registration.errors import ConfigError
+    from registration.errors import ConfigError, NotRigidError
     from registration.io.points import read_json
-    from registration.model.frames import NotRigidError, as_transform
+    from registration.model.frames import as_transform
     from registration.model.kinematics import RobotModel
 
     path = Path(caldir) / CALIBRATION_FILE

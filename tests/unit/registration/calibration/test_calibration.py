@@ -25,19 +25,13 @@ from registration.calibration.model import (
     predict_image_mm,
     shah_ax_yb,
 )
-from registration.calibration.records import (
-    CalibrationParams,
-    MatchedPose,
-    NotIdentifiableError,
-    OutlierPoseError,
-    SessionMismatchError,
-    TooFewPosesError,
-)
+from registration.calibration.records import CalibrationParams, MatchedPose
 from registration.calibration.solver import (
     calibrate,
     match_pose,
 )
 from registration.calibration.urdf import SerialChain, read_chain, rotation_about
+from registration.errors import NotIdentifiableError, OutlierPoseError, SessionMismatchError, TooFewPosesError
 from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 

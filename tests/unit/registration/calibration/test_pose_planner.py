@@ -18,9 +18,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from registration.calibration.planner import PlannerParams, PlanningError, ScanVolume, plan_poses
+from registration.calibration.planner import PlannerParams, ScanVolume, plan_poses
 from registration.calibration.sampling import _pose_error, solve_ik
 from registration.calibration.urdf import read_chain, rotation_about
+from registration.errors import PlanningError
 from registration.model import frames
 from registration.model.kinematics import RobotModel, default_tool0_from_phantom
 from registration.model.phantom import load_phantom

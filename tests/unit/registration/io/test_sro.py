@@ -15,12 +15,8 @@ from hypothesis import strategies as st
 from pydicom.dataset import Dataset
 from pydicom.uid import CTImageStorage, generate_uid
 
-from registration.io.sro import (
-    SPATIAL_REGISTRATION_STORAGE,
-    SroError,
-    build_spatial_registration,
-    image_from_robot_of,
-)
+from registration.errors import SroError
+from registration.io.sro import SPATIAL_REGISTRATION_STORAGE, build_spatial_registration, image_from_robot_of
 from service.errors import RobotFrameUidError
 from service.registrations.robot_frame import robot_frame_uid
 

@@ -13,6 +13,8 @@ from registration.errors import (
     ConfigError,
     DegenerateConfigurationError,
     MirroredInputError,
+    PointSetError,
+    PriorMismatchError,
     TooFewSpheresError,
 )
 from registration.matching.correspondence import (
@@ -22,14 +24,11 @@ from registration.matching.correspondence import (
     pairwise_distances,
     same_pose,
 )
-from registration.matching.records import (
-    PriorMismatchError,
-    RegistrationParams,
-)
+from registration.matching.records import RegistrationParams
 from registration.matching.register import (
     register_points,
 )
-from registration.matching.rigid import PointSetError, rotation_difference_deg
+from registration.matching.rigid import rotation_difference_deg
 from registration.matching.verification import verify_registration
 from registration.model import frames
 from registration.model.phantom import Phantom

@@ -11,17 +11,11 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from registration.detection import DetectedSphere, DetectionResult
-from registration.errors import RegistrationError
-from registration.matching.face_offset import (
-    MAX_FACE_OFFSET_MM,
-    FaceOffsetError,
-    check_face_offset,
-    fit_face_offset,
-)
+from registration.errors import FaceOffsetError, PointSetError, RegistrationError
+from registration.matching.face_offset import MAX_FACE_OFFSET_MM, check_face_offset, fit_face_offset
 from registration.matching.face_offset_grid import grid_face_offset
 from registration.matching.records import RegistrationParams
 from registration.matching.register import register_points
-from registration.matching.rigid import PointSetError
 from registration.model.phantom import load_phantom
 
 PHANTOM = load_phantom(Path(__file__).parents[4] / "configs" / "phantoms" / "bai2018_cube.toml")

@@ -20,6 +20,8 @@ from registration.errors import (
     DegenerateConfigurationError,
     ImproperRotationError,
     MirroredInputError,
+    PointSetError,
+    PriorMismatchError,
     TooFewSpheresError,
     TooFewWithinGateError,
 )
@@ -36,17 +38,12 @@ from registration.matching.hypotheses import (
     within_prior,
 )
 from registration.matching.icp import IcpResult
-from registration.matching.records import (
-    PriorMismatchError,
-    RegistrationInputs,
-    RegistrationParams,
-)
+from registration.matching.records import RegistrationInputs, RegistrationParams
 from registration.matching.register import (
     quality_figures,
     register_points,
     validate_inputs,
 )
-from registration.matching.rigid import PointSetError
 from registration.model import frames
 from registration.model.phantom import Phantom
 

@@ -7,16 +7,15 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from registration.errors import DegenerateConfigurationError, MirroredInputError
-from registration.matching.icp import icp, unique_pairs
-from registration.matching.prereg import PreregistrationError, preregister
-from registration.matching.rigid import (
+from registration.errors import (
+    DegenerateConfigurationError,
+    MirroredInputError,
     PointSetError,
-    fit_rigid,
-    fit_rigid_batch,
-    nearest_rotation,
-    rotation_difference_deg,
+    PreregistrationError,
 )
+from registration.matching.icp import icp, unique_pairs
+from registration.matching.prereg import preregister
+from registration.matching.rigid import fit_rigid, fit_rigid_batch, nearest_rotation, rotation_difference_deg
 from registration.model import frames
 
 F64 = NDArray[np.float64]
