@@ -160,7 +160,7 @@ def test_detect_overlay_marks_every_sphere_and_every_refusal_inside_the_figure( 
     from registration.detection import detect_spheres
     from registration.detection.records import Rejection
     from registration.dicom import load_series
-    from service.cli.commands.detect import detection_params_for_phantom
+    from service.cli.commands.scan_inputs import detection_params_for_phantom
     from service.registrations.overlay import write_detection_overlay
     from tests.helpers.figures import assert_inside, capture_figures
 

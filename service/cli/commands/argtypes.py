@@ -133,3 +133,17 @@ def ae_address(text: str) -> tuple[str, str, int]:
             f"expected AE@HOST:PORT (port 1–65535), e.g. OARMREG@127.0.0.1:11112; got {text!r}"
         )
     return parsed
+
+
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config`` / ``--data``: the service's data folder, for the commands that read its database."""
+    parser.add_argument("--config", type=Path, default=None, help="TOML settings file (for data_dir)")
+    parser.add_argument("--data", type=Path, default=None, help="the service's data folder (data_dir)")
+
+
+def db_path_from_args(args: argparse.Namespace) -> Path:
+    """The database path of :func:`add_data_arguments`' folder (data_dir from the settings otherwise)."""
+    from service.settings import load_settings
+
+    path: Path = load_settings(args.config, {"data_dir": args.data}).db_path
+    return path

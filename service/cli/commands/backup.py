@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
+
+from service.cli.commands.argtypes import add_data_arguments, db_path_from_args
 
 HELP = "back up the database and calibrations into a new folder (safe while the service runs)"
 
@@ -22,18 +23,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="new (or empty) folder for the backup (parent must exist)",
     )
     add_data_arguments(parser)
-
-
-def add_data_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", type=Path, default=None, help="TOML settings file (for data_dir)")
-    parser.add_argument("--data", type=Path, default=None, help="the service's data folder (data_dir)")
-
-
-def db_path_from_args(args: argparse.Namespace) -> Path:
-    from service.settings import load_settings
-
-    path: Path = load_settings(args.config, {"data_dir": args.data}).db_path
-    return path
 
 
 def run(args: argparse.Namespace) -> int:

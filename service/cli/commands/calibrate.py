@@ -24,13 +24,20 @@ from typing import Any
 
 from registration.io.resources import default_phantom
 from service.cli.commands.argtypes import output_dir, output_file
-from service.cli.commands.detect import add_method_argument
+from service.cli.commands.scan_inputs import (
+    CALIBRATION_FILE,
+    N_JOINTS,
+    URDF_FILE,
+    add_method_argument,
+    detection_params_for_phantom,
+    load_calibration,
+    poses_file_error,
+    read_joints_file,
+)
 
 HELP = "calibrate robot geometry, rod and O-arm placement from several scans, or plan the poses"
 
 DEFAULT_PHANTOM = default_phantom()
-CALIBRATION_FILE = "calibration.json"
-URDF_FILE = "robot.urdf"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -154,64 +161,6 @@ def run(args: argparse.Namespace) -> int:
     return run_plan(args)
 
 
-def _config_error(msg: str) -> Exception:
-    from registration.errors import PosesFileError
-
-    return PosesFileError(msg)
-
-
-N_JOINTS = 6
-"""Joints of the Stäubli TX60 / TX2-60 (both URDFs): one angle each per pose."""
-
-
-def _is_number(value: object) -> bool:
-    """A JSON number (``true``/``false`` and strings are not angles)."""
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
-JOINTS_KEY = "joints_rad"
-"""The one key of a joints file: ``{"joints_rad": [J1, …, J6]}`` in radians."""
-
-
-def read_joints_file(path: Path) -> tuple[list[float], dict[str, Any]]:
-    """(J1…J6 in radians, the whole JSON object) of a joints file ``{"joints_rad": [6 numbers]}``.
-
-    Raises
-    ------
-    PosesFileError
-        Not an object, no ``joints_rad`` (a ``joints_deg`` key is named as such: the file needs
-        radians), or not 6 finite numbers.
-    InputFileUnreadableError
-        The file is missing or unreadable (exit 8).
-    """
-    from registration.io.points import read_json
-
-    obj = read_json(path)
-    expected = f'expected {{"{JOINTS_KEY}": [6 numbers]}} (radians, J1…J6)'
-    if not isinstance(obj, dict):
-        raise _config_error(f"{path}: {expected}, found a JSON {type(obj).__name__}")
-    if JOINTS_KEY not in obj:
-        found = f"found keys {sorted(obj)[:8]}" if obj else "found an empty object"
-        fix = (
-            f'; the accepted key is "{JOINTS_KEY}" (radians): convert degrees × π/180, '
-            "or copy the radians row of `oarmreg calibrate plan`'s output"
-            if any("deg" in str(k) for k in obj)
-            else f'; the accepted key is "{JOINTS_KEY}"'
-        )
-        raise _config_error(f"{path}: {expected}, {found}{fix}")
-    joints = obj[JOINTS_KEY]
-    if (
-        not isinstance(joints, list)
-        or len(joints) != N_JOINTS
-        or not all(_is_number(v) and math.isfinite(v) for v in joints)
-    ):
-        raise _config_error(
-            f'{path}: "{JOINTS_KEY}" must be {N_JOINTS} finite JSON numbers (radians, J1…J6), '
-            f"got {joints!r}; fix the file"
-        )
-    return [float(v) for v in joints], obj
-
-
 def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[float]]]]:
     """(robot_model, [(name, scan_dir, joints_rad)]) from POSES.json; paths resolved against its folder."""
     from registration.calibration.records import (
@@ -222,14 +171,14 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
     obj = read_json(path)
     poses = obj.get("poses") if isinstance(obj, dict) else None
     if not isinstance(poses, list) or not poses:
-        raise _config_error(
+        raise poses_file_error(
             f'{path}: expected {{"robot_model": ..., '
             '"poses": [{"scan_dir": ..., "joints_rad": [...]}, ...]}'
         )
     out = []
     for i, p in enumerate(poses):
         if not isinstance(p, dict) or "scan_dir" not in p or "joints_rad" not in p:
-            raise _config_error(f'{path}: poses[{i}] needs "scan_dir" and "joints_rad"')
+            raise poses_file_error(f'{path}: poses[{i}] needs "scan_dir" and "joints_rad"')
         joints = p["joints_rad"]
         if (
             not isinstance(joints, list)
@@ -237,7 +186,7 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
             or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in joints)
             or not all(math.isfinite(v) for v in joints)
         ):
-            raise _config_error(
+            raise poses_file_error(
                 f"{path}: poses[{i}].joints_rad must be {N_JOINTS} finite numbers (radians, J1…J6), "
                 f"got {joints!r}"
             )
@@ -245,7 +194,7 @@ def read_poses_file(path: Path) -> tuple[str | None, list[tuple[str, Path, list[
             (str(p["scan_dir"]), (path.parent / str(p["scan_dir"])).resolve(), [float(v) for v in joints])
         )
     if len(out) < MIN_POSES:
-        raise _config_error(
+        raise poses_file_error(
             f"{path}: {len(out)} pose(s); a calibration needs at least {MIN_POSES} scans at poses spread "
             "over orientation and the wrist joints (plan them with `oarmreg calibrate plan`)"
         )
@@ -298,7 +247,6 @@ def run_calibration(args: argparse.Namespace) -> int:
     model = RobotModel.load(args.robot or robot_name or "tx60")
     phantom = load_phantom(args.phantom)
     rod = default_tool0_from_phantom()
-    from service.cli.commands.detect import detection_params_for_phantom
     from service.registrations.calibration_jobs import calibration_params
 
     detection = detection_params_for_phantom(phantom, method=args.method)
@@ -396,62 +344,6 @@ def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
 
-def load_calibration(caldir: Path) -> tuple[Any, Any, dict[str, Any]]:
-    """(calibrated RobotModel, tool0_from_phantom (4 × 4 mm), calibration.json dict) from CALDIR."""
-    import numpy as np
-
-    from registration.errors import ConfigError, NotRigidError
-    from registration.io.points import read_json
-    from registration.model.frames import as_transform
-    from registration.model.kinematics import RobotModel
-
-    path = Path(caldir) / CALIBRATION_FILE
-    if not path.is_file():
-        raise ConfigError(f"{caldir}: no {CALIBRATION_FILE}; run `oarmreg calibrate run` to create it")
-    doc = read_json(path)
-    try:
-        rod = as_transform(
-            np.asarray(doc["tool0_from_phantom"], dtype=np.float64), f"{path}: tool0_from_phantom"
-        )
-    except (KeyError, TypeError, ValueError, NotRigidError) as e:
-        raise ConfigError(f'{path}: needs "tool0_from_phantom" as a rigid 4 × 4 nested list ({e})') from None
-    model = RobotModel.load(Path(caldir) / str(doc.get("robot_urdf", URDF_FILE)))
-    return model, rod, doc
-
-
-def robot_points_from_joints(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
-    """Sphere centres (robot frame) for ``oarmreg register --joints [--calibration]``."""
-    from registration.model.kinematics import RobotModel, default_tool0_from_phantom, sphere_centres_robot_mm
-    from registration.model.phantom import load_phantom
-
-    joints, obj = read_joints_file(args.joints)
-    if args.calibration is not None:
-        model, rod, doc = load_calibration(args.calibration)
-        provenance["calibration"] = {
-            "dir": str(args.calibration),
-            **{
-                k: doc.get("provenance", {}).get(k)
-                for k in ("calibration_id", "config_sha256", "created_utc")
-            },
-            "predicted_chain_error_mm": doc.get("predicted_chain_error_mm"),
-        }
-    else:
-        model = RobotModel.load(args.robot or obj.get("robot_model") or "tx60")
-        rod = default_tool0_from_phantom()
-        provenance["calibration"] = None
-    phantom_path = args.phantom if args.phantom and args.phantom.lower() != "none" else str(DEFAULT_PHANTOM)
-    q = model.check_joints(joints)
-    provenance.update(
-        {
-            "joints_rad": [float(v) for v in q],
-            "robot_model": model.name,
-            "robot_urdf": str(model.urdf_path),
-            "tool0_from_phantom": rod.tolist(),
-        }
-    )
-    return sphere_centres_robot_mm(model, q, rod, load_phantom(phantom_path).centres_phantom_mm)
-
-
 def _pose_set_joints(path: Path, model: Any) -> Any:
     """(K, 6) joints of a plan's JSON (``poses[].joints_rad``, as ``calibrate plan`` writes) or of a
     ``calibrate run`` POSES.json (the same key beside ``scan_dir``)."""
@@ -462,7 +354,7 @@ def _pose_set_joints(path: Path, model: Any) -> Any:
     obj = read_json(path)
     poses = obj.get("poses") if isinstance(obj, dict) else None
     if not isinstance(poses, list) or not poses:
-        raise _config_error(
+        raise poses_file_error(
             f'{path}: expected {{"poses": [{{"joints_rad": [6 numbers]}}, ...]}} (a plan or POSES.json)'
         )
     rows = []
@@ -473,12 +365,12 @@ def _pose_set_joints(path: Path, model: Any) -> Any:
             or len(q) != N_JOINTS
             or not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in q)
         ):
-            raise _config_error(
+            raise poses_file_error(
                 f"{path}: poses[{i}].joints_rad must be {N_JOINTS} finite numbers (rad), got {q!r}"
             )
         rows.append(model.check_joints(q))
     if len(rows) < 6:
-        raise _config_error(f"{path}: {len(rows)} pose(s); a calibration needs at least 6")
+        raise poses_file_error(f"{path}: {len(rows)} pose(s); a calibration needs at least 6")
     return np.asarray(rows, dtype=np.float64)
 
 
@@ -492,14 +384,14 @@ def run_plan(args: argparse.Namespace) -> int:
     from service.settings import load_settings
 
     if args.n is not None and args.n < 6:
-        raise _config_error(f"--n {args.n}: a calibration needs at least 6 poses")
+        raise poses_file_error(f"--n {args.n}: a calibration needs at least 6 poses")
     cal_settings = load_settings(args.config).calibration
     y = read_registration(args.registration)
     reg_doc = read_json(args.registration)
     prov = reg_doc.get("provenance", {}) or {}
     joints = read_joints_file(args.joints)[0] if args.joints else prov.get("joints_rad")
     if not isinstance(joints, list):
-        raise _config_error(
+        raise poses_file_error(
             f"{args.registration}: no joints_rad in its provenance; register with "
             "`oarmreg register --joints JOINTS.json` or pass --joints JOINTS.json"
         )
@@ -644,7 +536,7 @@ def _plan_volume(
     if args.volume_centre_mm:
         c = [float(v) for v in args.volume_centre_mm.split(",")]
         if len(c) != 3:
-            raise _config_error(f"--volume-centre-mm {args.volume_centre_mm!r}: expected X,Y,Z in mm")
+            raise poses_file_error(f"--volume-centre-mm {args.volume_centre_mm!r}: expected X,Y,Z in mm")
         base = ScanVolume((c[0], c[1], c[2]), base.fov_radius_mm, base.half_length_mm, base.axis_image)
         source = "--volume-centre-mm"
     volume = ScanVolume(
@@ -668,7 +560,7 @@ def _keep_out_boxes(specs: list[str]) -> list[Any]:
                 raise ValueError("expected 6 numbers")
             boxes.append(KeepOutBox(name or f"box{len(boxes) + 1}", (v[0], v[1], v[2]), (v[3], v[4], v[5])))
         except ValueError as e:
-            raise _config_error(
+            raise poses_file_error(
                 f"--keep-out {spec!r}: {e}; give NAME:X0,Y0,Z0,X1,Y1,Z1 (image LPS mm)"
             ) from None
     return boxes

@@ -29,31 +29,16 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from registration.detection.estimators import METHODS
 from registration.io.resources import default_phantom
 from service.cli.commands.argtypes import output_file, positive_float
+from service.cli.commands.scan_inputs import add_method_argument, detection_params_for_phantom
 
 if TYPE_CHECKING:
-    from registration.detection import DetectionParams, DetectionResult
-    from registration.model.phantom import Phantom
+    from registration.detection import DetectionResult
 
 DEFAULT_PHANTOM = default_phantom()
 
 HELP = "detect the calibration spheres in an O-arm DICOM series (centres in LPS mm)"
-
-
-def add_method_argument(parser: argparse.ArgumentParser) -> None:
-    """``--method``, the same for every command that detects: an override of the estimator only."""
-    parser.add_argument(
-        "--method",
-        choices=METHODS,
-        default=None,
-        help="centre estimator instead of the phantom material's (registration.detection."
-        "METHOD_FOR_MATERIAL), keeping the material's other detection settings: subvoxel (3-D "
-        "intensity-weighted centroid), paper (per-slice Pythagorean depth, Bai 2018), model (a blurred, "
-        "saturated ball fitted to the raw voxels), core (saturated core of an opaque sphere: tungsten "
-        "carbide) or rays (outline of a streaked sphere: steel, titanium)",
-    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -87,29 +72,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-mar", action="store_true", help="skip the polar metal artefact reduction")
     parser.add_argument("--series-uid", metavar="UID", default=None, help="pick this SeriesInstanceUID")
-
-
-def detection_params_for_phantom(
-    phantom: Phantom | str | Path | None, *, method: str | None = None, **overrides: object
-) -> DetectionParams:
-    """The detection settings every command uses: the phantom's sphere material and diameter
-    through :func:`registration.detection.params_for_spheres`, as the service chooses them.
-
-    ``phantom`` is a loaded phantom or its TOML path; None or ``"none"`` means the built-in
-    phantom.  ``method`` (a ``--method`` flag) replaces only the centre estimator and keeps the
-    material's other settings; ``overrides`` are other
-    :class:`~registration.detection.DetectionParams` fields.
-    """
-    from registration.detection import params_for_spheres
-    from registration.model.phantom import Phantom, load_phantom
-
-    if not isinstance(phantom, Phantom):
-        phantom = load_phantom(
-            DEFAULT_PHANTOM if phantom is None or str(phantom).lower() == "none" else phantom
-        )
-    if method is not None:
-        overrides["method"] = method
-    return params_for_spheres(phantom.sphere_material, phantom.sphere_diameter_mm, **overrides)
 
 
 def sphere_fit_columns(radius_mm: float, n_slices: int, score: float) -> tuple[str, str, str]:

@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from service.cli.commands.backup import add_data_arguments, db_path_from_args
+from service.cli.commands.argtypes import add_data_arguments, db_path_from_args
 
 HELP = "QA protocols: named sets of verification poses (create, list)"
 

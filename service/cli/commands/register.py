@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import sys
-import time
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from registration.io.resources import default_phantom
 from service.cli.commands.argtypes import (
     float_below,
     output_file,
@@ -18,83 +15,16 @@ from service.cli.commands.argtypes import (
     positive_int,
     renamed,
 )
-from service.cli.commands.detect import add_method_argument
+from service.cli.commands.scan_inputs import (
+    add_common_image_arguments,
+    add_joints_arguments,
+    load_image_points,
+    robot_points,
+    write_refusal,
+)
 from service.errors import UsageError
 
 HELP = "register a scan to the robot: detect spheres, match them to the robot points, fit image_from_robot"
-
-DEFAULT_PHANTOM = default_phantom()
-
-
-def add_common_image_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments shared by ``register`` and ``verify``: where the image-space sphere centres come from."""
-    parser.add_argument("dicom_dir", nargs="?", type=Path, help="folder holding the O-arm DICOM series")
-    parser.add_argument(
-        "--image-points",
-        type=Path,
-        metavar="FILE.json",
-        help='detected centres in the image frame, {"spheres_mm": [[x, y, z], ...]}, instead of DICOM_DIR',
-    )
-    parser.add_argument("--series-uid", help="SeriesInstanceUID to use when the folder holds several series")
-    add_method_argument(parser)
-    parser.add_argument(
-        "--phantom",
-        default=str(DEFAULT_PHANTOM),
-        help="phantom TOML: its sphere material and diameter choose the detection settings as the "
-        "service does; register also checks its symmetry twins explicitly ('none' skips that check "
-        "and detects with the built-in phantom's settings; default: %(default)s)",
-    )
-    parser.add_argument(
-        "--robot-points",
-        type=Path,
-        required=True,
-        metavar="FILE.json",
-        help='sphere centres in the robot frame in phantom sphere order, {"spheres_mm": [[x, y, z], ...]}',
-    )
-    parser.add_argument(
-        "--json", type=output_file, metavar="OUT.json", help="write the result (or the refusal) here"
-    )
-
-
-def add_joints_arguments(parser: argparse.ArgumentParser, calibration_default: str = "nominal") -> None:
-    """``--joints``/``--calibration``/``--robot`` (``register`` and ``verify``): the robot side from the
-    joint angles by forward kinematics instead of ``--robot-points``."""
-    for action in parser._actions:
-        if action.dest == "robot_points":
-            action.required = False
-    parser.add_argument(
-        "--joints",
-        type=Path,
-        metavar="JOINTS.json",
-        help='joint angles of the scan, {"joints_rad": [...]}: robot points by forward kinematics '
-        "(instead of --robot-points)",
-    )
-    parser.add_argument(
-        "--calibration",
-        type=Path,
-        metavar="CALDIR",
-        help="with --joints: use this calibration's robot.urdf and tool0_from_phantom "
-        f"(default: {calibration_default})",
-    )
-    parser.add_argument(
-        "--robot", help="with --joints and no --calibration: tx60, tx2_60 or a URDF (default tx60)"
-    )
-
-
-def robot_points(args: argparse.Namespace, provenance: dict[str, Any]) -> Any:
-    """The robot-frame sphere centres from ``--robot-points`` or ``--joints`` (exactly one)."""
-    from registration.errors import PointsFileError
-    from registration.io.points import read_points
-
-    if (args.robot_points is None) == (args.joints is None):
-        raise PointsFileError("give either --robot-points FILE.json or --joints JOINTS.json (exactly one)")
-    if args.joints is not None:
-        from service.cli.commands.calibrate import robot_points_from_joints
-
-        return robot_points_from_joints(args, provenance)
-    provenance["robot_points_file"] = str(args.robot_points)
-    provenance["robot_points_sha256"] = sha256_of(args.robot_points)
-    return read_points(args.robot_points)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -167,54 +97,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def sha256_of(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def load_image_points(args: argparse.Namespace, provenance: dict[str, Any], timings: dict[str, float]) -> Any:
-    """(M, 3) image-frame centres from ``--image-points`` or by loading + detecting ``dicom_dir``."""
-    from registration.errors import PointsFileError
-    from registration.io.points import read_points
-
-    if (args.dicom_dir is None) == (args.image_points is None):
-        raise PointsFileError("give either DICOM_DIR or --image-points FILE.json (exactly one of them)")
-    if args.image_points is not None:
-        provenance["image_points_file"] = str(args.image_points)
-        provenance["image_points_sha256"] = (
-            sha256_of(args.image_points) if args.image_points.is_file() else None
-        )
-        return read_points(args.image_points, min_points=0)
-    from registration.detection import detect_spheres
-    from registration.dicom import load_series
-    from service.cli.commands.detect import detection_params_for_phantom
-    from service.settings import load_settings
-
-    # [detection] from the TOML the service reads (defaults < file < OARMREG_* < --method)
-    ds = load_settings(args.config).detection
-    method = args.method if args.method is not None else (None if ds.method == "default" else ds.method)
-    dparams = detection_params_for_phantom(args.phantom, method=method, use_mar=ds.use_mar)
-    t0 = time.perf_counter()
-    volume = load_series(args.dicom_dir, series_uid=args.series_uid, unique=True)
-    timings["load_s"] = time.perf_counter() - t0
-    from registration.imaging.scan_geometry import series_geometry
-
-    # the scan's real volume, for `oarmreg calibrate plan` (moved to the top level by run)
-    provenance["series_geometry"] = series_geometry(volume).to_dict()
-    t0 = time.perf_counter()
-    det = detect_spheres(volume, dparams)
-    timings["detect_s"] = time.perf_counter() - t0
-    provenance.update(
-        {
-            "dicom_dir": str(args.dicom_dir),
-            "series_uid": volume.series_uid,
-            "frame_of_reference_uid": volume.frame_of_reference_uid,
-            "detection_method": det.method,
-            "n_rejected_detections": len(det.rejections),
-        }
-    )
-    return det.centres_image_mm
-
-
 def prior_rotation_arg(text: str) -> str:
     """argparse type of ``--prior-rotation``: parse it now so a bad value names the flag (exit 2)."""
     from registration.errors import OarmRegError
@@ -267,14 +149,6 @@ def parse_prereg(text: str | None) -> list[tuple[int, int]] | None:
             f"--prereg {text!r}: expected 4 pairs ROBOT_INDEX:IMAGE_INDEX separated by commas"
         )
     return [(a, b) for a, b in pairs]
-
-
-def write_refusal(path: Path | None, error: Exception) -> None:
-    if path is None:
-        return
-    from registration.io.points import write_json
-
-    write_json(path, {"refused": True, "reason": str(error), "error": type(error).__name__})
 
 
 def run(args: argparse.Namespace) -> int:

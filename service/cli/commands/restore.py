@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from service.cli.commands.backup import add_data_arguments, db_path_from_args
+from service.cli.commands.argtypes import add_data_arguments, db_path_from_args
 
 HELP = "restore the database and calibrations from a backup (the service must be stopped)"
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from service.cli.commands.argtypes import output_file, positive_float, renamed
-from service.cli.commands.register import (
+from service.cli.commands.scan_inputs import (
     add_common_image_arguments,
     add_joints_arguments,
     load_image_points,
