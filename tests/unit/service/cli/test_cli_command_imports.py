@@ -7,7 +7,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-COMMANDS = Path(__file__).resolve().parents[3] / "service" / "cli" / "commands"
+COMMANDS = Path(__file__).resolve().parents[4] / "service" / "cli" / "commands"
 ALLOWED = {("demo", "serve")}
 """``demo`` runs the service in a thread exactly as the tests and ``serve`` do (``serve_in_thread``)."""
 

@@ -17,7 +17,7 @@ import pytest
 
 from tests.helpers.scan_cache import simulated_scan
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = Path(__file__).resolve().parents[4]
 
 NOT_FOR_DETECT = (
     "fastapi",
