@@ -617,8 +617,9 @@ class IgtlServer:
         return len(self._clients)
 
     def client_info(self) -> list[dict[str, object]]:
-        """Each connected client's peer address and header version (``/status``)."""
-        return sorted((c.info() for c in self._clients), key=lambda d: str(d["peer"]))
+        """Each connected client's peer address and header version (``/status``).  Read from any thread:
+        a copy of the client set is taken at once (the event loop adds clients meanwhile)."""
+        return sorted((c.info() for c in list(self._clients)), key=lambda d: str(d["peer"]))
 
     def slot_report(self) -> SlotReport:
         """The listener's slots: held per address, the latest refusals (for the health problems).  Read

@@ -52,3 +52,25 @@ def test_an_answer_dropped_from_a_full_queue_is_forgotten() -> None:
     assert client.answers == {}
     client.offer_answer(_answer("STATUS", "oarmreg", b"s2"))  # queued again, not coalesced into nothing
     assert client.queue.qsize() == 1 and counters["answers_coalesced"] == 0
+
+
+def test_the_client_list_is_read_from_a_copy_while_clients_connect() -> None:
+    """GET /status reads the clients on a worker thread while the event loop adds them: under load
+    (200 clients connecting, ``.ci/run`` beside stress-ng) iterating the live set raised "Set changed
+    size during iteration" and /status answered 500."""
+    from service.navigation.igtl.server import IgtlServer
+
+    server = IgtlServer(IgtlSettings(enabled=True, port=0), source=None)  # type: ignore[arg-type]
+
+    class Joining:
+        """A client whose ``info()`` lets another client connect, as the loop does meanwhile."""
+
+        def __init__(self, n: int) -> None:
+            self.n = n
+
+        def info(self) -> dict[str, object]:
+            server._clients.add(Joining(self.n + 100))  # type: ignore[arg-type]
+            return {"peer": f"127.0.0.{self.n}:5000"}
+
+    server._clients.update(Joining(k) for k in range(3))  # type: ignore[misc]
+    assert [d["peer"] for d in server.client_info()] == [f"127.0.0.{k}:5000" for k in range(3)]
