@@ -1,112 +1,369 @@
-"""The calibration jobs alone, without HTTP: a real store in a temp folder, the orchestrator they
-activate through and a recording bus.  What is refused at once (and stored so), what a restart does
-with a calibration it finds running or made under other robot settings.  A whole calibration from
-simulated scans runs through the service in tests/integration/test_calibration_service.py."""
+"""Unit tests of :class:`service.registrations.calibration_jobs.CalibrationJobs` without the HTTP app.
+
+A real SQLite database, real settings and orchestrator, the real calibration worker thread (pose
+matching and the solver) on scans whose sphere centres the test computed from the nominal robot
+model and rod (tests/unit/service/registrations/doubles.py); a recording publisher checks the events
+and is what the tests wait on (no sleeps).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from dataclasses import dataclass
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from registration.model.kinematics import RobotModel
-from service.errors import NotFoundError
-from service.events import CalibrationRefused
-from service.records import NewScan
-from service.registrations.calibration_jobs import CalibrationJobs, CalibrationRefusal, CalibrationRequest
+from registration.calibration.records import MIN_POSES
+from registration.errors import RobotMovedError, SessionMismatchError, TooFewPosesError
+from service.error_map import http_status_of
+from service.errors import (
+    CalibrationBusyError,
+    CalibrationNotUsableError,
+    CalibrationRefusedError,
+    NotFoundError,
+)
+from service.events import (
+    CalibrationActivated,
+    CalibrationDeactivated,
+    CalibrationDone,
+    CalibrationProgress,
+    CalibrationRefused,
+    CalibrationStarted,
+    RegistrationDone,
+    RegistrationRetired,
+    RegistrationWithdrawn,
+)
+from service.records import RegistrationRecord
+from service.registrations.calibration_jobs import (
+    URDF_FILE,
+    CalibrationJobs,
+    CalibrationRefusal,
+    CalibrationRequest,
+    calibration_hash,
+)
 from service.registrations.orchestrator import Orchestrator
 from service.registrations.robot_side import FINGERPRINT_KEY
-from service.settings import load_settings
-from service.store import Database
-from service.store.base import utc_now
 from service.store.calibrations import CalibrationRecord
+from tests.unit.service.registrations.doubles import POSES, Cell, make_settings, open_cell
 
-PLACEMENT = "1.2.826.0.1.3680043.8.498.4402"
+N_POSES = 8
+"""Scans of a calibration session here: 6 (MIN_POSES) fit in ~1.5 s, 8 in ~0.7 s."""
 
 
-@dataclass
-class World:
-    jobs: CalibrationJobs
-    orchestrator: Orchestrator
-    db: Database
-    events: list[Any]
+class Service:
+    """The two objects as ``_start_core`` makes them (service/http/app.py), on one cell."""
 
-    def scan(self, name: str, for_uid: str = PLACEMENT, status: str = "complete") -> int:
-        sid, _ = self.db.scans.upsert(
-            NewScan(series_uid=f"1.2.3.{name}", folder=f"/{name}", status=status,  # type: ignore[arg-type]
-                    frame_of_reference_uid=for_uid)
-        )  # fmt: skip
-        return sid
+    def __init__(self, cell: Cell) -> None:
+        self.cell = cell
+        self.orch = Orchestrator(
+            cell.settings, cell.db, cell.phantom, cell.model, cell.publish, volumes=cell.volumes
+        )
+        self.jobs = CalibrationJobs(
+            cell.settings, cell.db, self.orch, cell.phantom, cell.model, cell.volumes, cell.publish
+        )
 
-    def calibration(self, status: str, fingerprint: Any) -> int:
-        return self.db.calibrations.insert(
-            CalibrationRecord(
-                created_at=utc_now(), status=status, scan_ids=(1, 2, 3, 4, 5, 6),  # type: ignore[arg-type]
-                params={FINGERPRINT_KEY: fingerprint}, config_hash="c", software_version="v",
-                frame_of_reference_uid=PLACEMENT, urdf_text="<robot name='x'/>", calibration_hash="h" * 64,
-                result={}, finished_at=utc_now() if status == "done" else None,
-            )
-        )  # fmt: skip
+    def restart(self) -> Service:
+        """A new service on the same database (the old one's worker stopped)."""
+        self.jobs.stop()
+        again = Service(self.cell)
+        again.jobs.restore()
+        again.orch.withdraw_if_robot_side_changed()
+        return again
 
 
 @pytest.fixture
-def world(tmp_path: Path, phantom: Any) -> Iterator[World]:
-    settings = load_settings(None, {"data_dir": tmp_path / "data"})
-    db = Database.open(tmp_path / "oarmreg.sqlite3")
-    events: list[Any] = []
-    try:
-        model = RobotModel.load("tx60")
-        orch = Orchestrator(settings, db, phantom, model, events.append)
-        jobs = CalibrationJobs(settings, db, orch, phantom, model, orch.volumes, events.append)
-        yield World(jobs, orch, db, events)
-        jobs.stop()
-    finally:
-        db.close()
+def cell(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Cell]:
+    c = open_cell(tmp_path, monkeypatch)
+    yield c
+    c.db.close()
 
 
-def test_scans_from_two_placements_are_refused_at_once_and_stored_refused(world: World) -> None:
-    ids = [world.scan(f"a{k}") for k in range(5)] + [world.scan("b", for_uid=PLACEMENT + ".9")]
-    out = world.jobs.start(CalibrationRequest(scan_ids=tuple(ids)))
-    assert isinstance(out, CalibrationRefusal), out
-    stored = world.db.calibrations.get(out.calibration_id)
-    assert stored is not None and stored.status == "refused" and stored.reason, stored
-    assert not world.jobs.running
-    assert [e.calibration_id for e in world.events if isinstance(e, CalibrationRefused)] == [
-        out.calibration_id
+@pytest.fixture
+def svc(cell: Cell) -> Iterator[Service]:
+    s = Service(cell)
+    yield s
+    s.jobs.stop()  # joins the worker: no thread outlives the test
+
+
+def session(cell: Cell, n: int = N_POSES) -> list[int]:
+    assert len(POSES) >= n
+    return [cell.scan(q) for q in POSES[:n]]
+
+
+def calibrated(svc: Service, scan_ids: Sequence[int] | None = None) -> CalibrationRecord:
+    """A finished calibration of ``scan_ids`` (default: a new session); its events are cleared."""
+    ids = tuple(session(svc.cell) if scan_ids is None else scan_ids)
+    started = svc.jobs.start(CalibrationRequest(scan_ids=ids))
+    assert isinstance(started, CalibrationRecord)
+    done = svc.cell.publish.wait_for(CalibrationDone)
+    svc.jobs.stop()
+    rec = svc.cell.db.calibrations.get(done.calibration_id)
+    assert rec is not None and rec.status == "done", rec
+    svc.cell.publish.clear()
+    return rec
+
+
+# ---- a calibration session -----------------------------------------------------------------
+
+
+def test_a_calibration_runs_on_a_worker_and_stores_the_calibrated_model(svc: Service) -> None:
+    cell = svc.cell
+    ids = session(cell)
+    out = svc.jobs.start(CalibrationRequest(last=N_POSES, parameter_set="full"))
+    assert isinstance(out, CalibrationRecord)
+    assert (out.status, out.scan_ids) == ("running", tuple(ids))  # the last K complete, oldest first
+    done = cell.publish.wait_for(CalibrationDone)
+    svc.jobs.stop()
+    assert not svc.jobs.running
+    rec = cell.db.calibrations.get(out.id)
+    assert rec is not None and rec.status == "done" and rec.reason == ""
+    assert not rec.is_active  # done is not active: only activate() makes it so
+    assert svc.orch.calibration is None
+    assert rec.result is not None and rec.urdf_text is not None and rec.urdf_path is not None
+    assert Path(rec.urdf_path) == cell.settings.data_dir / "calibrations" / str(rec.id) / URDF_FILE
+    assert Path(rec.urdf_path).read_text(encoding="utf-8") == rec.urdf_text
+    assert rec.calibration_hash == calibration_hash(rec.urdf_text, rec.result["tool0_from_phantom"])
+    prov = rec.result["provenance"]
+    assert prov["calibration_id"] == rec.id and [s["scan_id"] for s in prov["scans"]] == ids
+    assert rec.params[FINGERPRINT_KEY] == svc.orch.robot_settings
+    assert rec.params["request"]["last"] == N_POSES
+    # events: started, one detect step per scan, the fit, done
+    assert cell.publish.names == (
+        ["calibration_started"] + ["calibration_progress"] * (N_POSES + 1) + ["calibration_done"]
+    )
+    started = cell.publish.of(CalibrationStarted)[0]
+    assert (started.calibration_id, started.scan_ids) == (rec.id, tuple(ids))
+    progress = cell.publish.of(CalibrationProgress)
+    assert [(p.stage, p.pose, p.scan_id) for p in progress[:-1]] == [
+        ("detect", i, sid) for i, sid in enumerate(ids, start=1)
     ]
+    assert all(p.n_matched == len(cell.phantom.centres_phantom_mm) for p in progress[:-1])
+    assert (progress[-1].stage, progress[-1].pose, progress[-1].n_poses) == ("fit", N_POSES, N_POSES)
+    assert (done.calibration_id, done.calibration_hash, done.n_poses_used) == (
+        rec.id,
+        rec.calibration_hash,
+        N_POSES,
+    )
+    # the scans were consistent with the nominal model: the fit explains them to well under a mm
+    assert done.leave_one_pose_out_mean_mm is not None and done.leave_one_pose_out_mean_mm < 0.5
 
 
-def test_a_scan_named_twice_or_incomplete_is_refused(world: World) -> None:
-    a = world.scan("a")
-    twice = world.jobs.start(CalibrationRequest(scan_ids=(a, a)))
-    assert isinstance(twice, CalibrationRefusal) and "once" in str(twice.error), twice
-    bad = world.scan("bad", status="invalid")
-    incomplete = world.jobs.start(CalibrationRequest(scan_ids=(a, bad)))
-    assert isinstance(incomplete, CalibrationRefusal) and "complete" in str(incomplete.error), incomplete
-    assert not world.jobs.running
+def test_request_params_map_the_request_and_the_settings_target(cell: Cell) -> None:
+    p = CalibrationRequest(parameter_set="offsets", drop_weak=True, max_condition=1e6).params(0.2)
+    assert (p.parameter_set, p.on_weak, p.max_condition, p.target_rms_mm) == ("offsets", "drop", 1e6, 0.2)
+    default = CalibrationRequest().params()
+    assert (default.parameter_set, default.on_weak, default.max_condition) == ("full", "refuse", None)
 
 
-def test_an_unknown_scan_is_not_found_and_nothing_is_stored(world: World) -> None:
-    with pytest.raises(NotFoundError, match="scan 999"):
-        world.jobs.start(CalibrationRequest(scan_ids=(999,)))
-    assert world.db.calibrations.list() == []
+@pytest.mark.parametrize("what", ["too few", "twice", "incomplete", "two placements", "none"])
+def test_a_request_refused_at_once_is_stored_and_published_and_starts_nothing(
+    svc: Service, what: str
+) -> None:
+    cell = svc.cell
+    ids = session(cell, MIN_POSES)
+    req = CalibrationRequest(scan_ids=tuple(ids))
+    if what == "too few":
+        req = CalibrationRequest(scan_ids=tuple(ids[:-1]))
+    elif what == "twice":
+        req = CalibrationRequest(scan_ids=(*ids, ids[0]))
+    elif what == "incomplete":
+        req = CalibrationRequest(scan_ids=(*ids, cell.scan(POSES[6], status="invalid")))
+    elif what == "two placements":
+        req = CalibrationRequest(scan_ids=(*ids, cell.scan(POSES[6], for_uid="1.2.826.0.1.3680043.8.498.9")))
+    else:
+        req = CalibrationRequest()  # neither scan ids nor last: no scans
+    cell.publish.clear()
+    out = svc.jobs.start(req)
+    assert isinstance(out, CalibrationRefusal)
+    expected = {
+        "too few": TooFewPosesError,
+        "twice": CalibrationRefusedError,
+        "incomplete": CalibrationRefusedError,
+        "two placements": SessionMismatchError,
+        "none": TooFewPosesError,
+    }[what]
+    assert isinstance(out.error, expected)
+    assert not svc.jobs.running
+    rec = cell.db.calibrations.get(out.calibration_id)
+    assert rec is not None and rec.status == "refused" and rec.reason == str(out.error)
+    assert rec.finished_at is not None
+    [event] = cell.publish.events
+    assert isinstance(event, CalibrationRefused)
+    assert (event.calibration_id, event.reason, event.title) == (rec.id, rec.reason, rec.problem_title)
+    assert event.status == http_status_of(out.error) and event.status >= 400
+    with pytest.raises(CalibrationNotUsableError, match="only a finished calibration"):
+        svc.jobs.activate(rec.id)
+    assert svc.orch.calibration is None and cell.db.calibrations.active_id() is None
 
 
-def test_a_restart_refuses_a_calibration_it_finds_running(world: World) -> None:
-    cal = world.calibration("running", world.orchestrator.robot_settings)
-    world.jobs.restore()
-    stored = world.db.calibrations.get(cal)
-    assert stored is not None and stored.status == "refused" and "stopped" in stored.reason, stored
-    assert world.orchestrator.calibration is None
+def test_an_unknown_scan_raises_and_stores_nothing(svc: Service) -> None:
+    ids = session(svc.cell, MIN_POSES)
+    with pytest.raises(NotFoundError):
+        svc.jobs.start(CalibrationRequest(scan_ids=(*ids, 999)))
+    assert svc.cell.db.calibrations.list() == [] and svc.cell.publish.events == []
 
 
-def test_a_restart_does_not_use_a_calibration_made_under_other_robot_settings(world: World) -> None:
-    other = {**world.orchestrator.robot_settings, "robot.model": "tx2_60 0123abcd"}
-    cal = world.calibration("done", other)
-    world.db.calibrations.activate(cal)
-    world.jobs.restore()
-    assert f"calibration {cal}" in world.jobs.inactive_reason and "not used" in world.jobs.inactive_reason
-    assert world.orchestrator.calibration is None  # the nominal model and rod stay in force
+def test_a_scan_the_worker_refuses_refuses_the_calibration_and_nothing_is_activated(svc: Service) -> None:
+    cell = svc.cell
+    ids = session(cell, MIN_POSES)
+    ids.append(cell.scan(POSES[MIN_POSES], verdict="moved"))
+    out = svc.jobs.start(CalibrationRequest(scan_ids=tuple(ids)))
+    assert isinstance(out, CalibrationRecord) and out.status == "running"
+    refusal = cell.publish.wait_for(CalibrationRefused)
+    svc.jobs.stop()
+    rec = cell.db.calibrations.get(out.id)
+    assert rec is not None and rec.status == "refused"
+    assert rec.problem_title == RobotMovedError.title and "moved" in rec.reason
+    assert (refusal.calibration_id, refusal.reason) == (rec.id, rec.reason)
+    assert cell.publish.of(CalibrationDone) == []
+    with pytest.raises(CalibrationNotUsableError):
+        svc.jobs.activate(rec.id)
+    with pytest.raises(NotFoundError):
+        svc.jobs.activate(rec.id + 1)
+    assert svc.orch.calibration is None and cell.db.calibrations.active_id() is None
+
+
+def test_one_calibration_at_a_time_and_stop_abandons_the_running_one(svc: Service) -> None:
+    cell = svc.cell
+    ids = session(cell, MIN_POSES)
+    entered, release = threading.Event(), threading.Event()
+
+    def hold(uid: str) -> None:  # the worker waits in its first detection until released
+        entered.set()
+        assert release.wait(timeout=60.0)
+
+    cell.detector.before = hold
+    out = svc.jobs.start(CalibrationRequest(scan_ids=tuple(ids)))
+    assert isinstance(out, CalibrationRecord)
+    assert entered.wait(timeout=60.0) and svc.jobs.running
+    with pytest.raises(CalibrationBusyError):
+        svc.jobs.start(CalibrationRequest(scan_ids=tuple(ids)))
+    assert [c.id for c in cell.db.calibrations.list()] == [out.id]  # the busy request stored nothing
+    release.set()
+    svc.jobs.stop()  # asks the worker to stop after this step, waits for it
+    assert not svc.jobs.running
+    rec = cell.db.calibrations.get(out.id)
+    assert rec is not None and rec.status == "refused" and "stopping" in rec.reason
+    assert len(cell.publish.of(CalibrationProgress)) == 1  # one scan, then it stopped
+    assert cell.publish.of(CalibrationRefused)[0].calibration_id == out.id
+
+
+# ---- activation and restore ----------------------------------------------------------------
+
+
+def test_activating_a_calibration_makes_the_orchestrator_use_it_and_retires_the_registrations(
+    svc: Service,
+) -> None:
+    cell = svc.cell
+    cal = calibrated(svc)
+    reg = svc.orch.register(cell.scan(POSES[0]))
+    assert isinstance(reg, RegistrationRecord) and svc.orch.current is not None
+    cell.publish.clear()
+    rec, act = svc.jobs.activate(cal.id)
+    assert rec.is_active and cell.db.calibrations.active_id() == cal.id
+    assert (act.retired_registration_ids, act.previous_current_registration_id) == ((reg.id,), reg.id)
+    assert svc.orch.current is None and cell.db.registrations.current_id() is None
+    assert svc.orch.calibration is not None
+    assert (svc.orch.calibration["calibration_id"], svc.orch.calibration["calibration_hash"]) == (
+        cal.id,
+        cal.calibration_hash,
+    )
+    assert svc.orch.robot_model.urdf_path == Path(str(cal.urdf_path))
+    assert cell.publish.names == ["calibration_activated", "registration_retired"]
+    activated, retired = cell.publish.events
+    assert isinstance(activated, CalibrationActivated) and isinstance(retired, RegistrationRetired)
+    assert (activated.calibration_id, activated.previous_calibration_id) == (cal.id, None)
+    assert (retired.registration_ids, retired.calibration_id) == ((reg.id,), cal.id)
+    # the next registration is made with the calibrated model and names it
+    cell.publish.clear()
+    new = svc.orch.register(cell.scan(POSES[1]))
+    assert isinstance(new, RegistrationRecord) and new.figures is not None
+    assert new.figures.provenance["calibration"]["calibration_id"] == cal.id
+    assert cell.publish.of(RegistrationDone)[0].registration_id == new.id
+
+
+def test_restore_after_a_restart_uses_the_active_calibration(svc: Service) -> None:
+    cell = svc.cell
+    cal = calibrated(svc)
+    svc.jobs.activate(cal.id)
+    reg = svc.orch.register(cell.scan(POSES[0]))
+    assert isinstance(reg, RegistrationRecord)
+    assert cal.urdf_path is not None
+    Path(cal.urdf_path).unlink()  # rewritten from the stored row
+    cell.publish.clear()
+    again = svc.restart()
+    try:
+        assert again.orch.calibration is not None and again.orch.calibration["calibration_id"] == cal.id
+        assert Path(cal.urdf_path).read_text(encoding="utf-8") == cal.urdf_text
+        assert again.jobs.inactive_reason == ""
+        # the registration made with it stays current
+        assert again.orch.current is not None and again.orch.current.id == reg.id
+        assert cell.publish.events == []
+    finally:
+        again.jobs.stop()
+
+
+def test_restore_refuses_an_interrupted_calibration(svc: Service) -> None:
+    cell = svc.cell
+    ids = session(cell, MIN_POSES)
+    entered, release = threading.Event(), threading.Event()
+
+    def hold(uid: str) -> None:
+        entered.set()
+        assert release.wait(timeout=60.0)
+
+    cell.detector.before = hold
+    out = svc.jobs.start(CalibrationRequest(scan_ids=tuple(ids)))
+    assert isinstance(out, CalibrationRecord) and entered.wait(timeout=60.0)
+    # a second service on the database while the row says running: what a crash leaves behind
+    other = Service(cell)
+    other.jobs.restore()
+    rec = cell.db.calibrations.get(out.id)
+    assert rec is not None and rec.status == "refused" and "service stopped" in rec.reason
+    assert other.orch.calibration is None
+    release.set()
+    svc.jobs.stop()
+
+
+def test_restore_under_other_robot_settings_does_not_use_the_calibration(
+    svc: Service, tmp_path: Path
+) -> None:
+    cell = svc.cell
+    cal = calibrated(svc)
+    svc.jobs.activate(cal.id)
+    reg = svc.orch.register(cell.scan(POSES[0]))
+    assert isinstance(reg, RegistrationRecord)
+    svc.jobs.stop()
+    cell.settings = make_settings(tmp_path, **{"robot.tool0_from_phantom.translation_mm": [0.0, 0.0, 250.0]})
+    cell.publish.clear()
+    again = svc.restart()
+    try:
+        assert f"calibration {cal.id} was made under other robot settings" in again.jobs.inactive_reason
+        assert "robot.tool0_from_phantom" in again.jobs.inactive_reason
+        assert again.orch.calibration is None
+        # ...and the registration made with it is withdrawn, not served
+        assert again.orch.current is None
+        [gone] = cell.publish.events
+        assert isinstance(gone, RegistrationWithdrawn) and gone.registration_ids == (reg.id,)
+    finally:
+        again.jobs.stop()
+
+
+def test_a_changed_scan_of_the_active_calibration_deactivates_it(svc: Service) -> None:
+    cell = svc.cell
+    ids = session(cell)
+    cal = calibrated(svc, ids)
+    svc.jobs.activate(cal.id)
+    reg = svc.orch.register(cell.scan(POSES[0]))
+    assert isinstance(reg, RegistrationRecord)
+    cell.publish.clear()
+    assert svc.orch.withdraw_scan(ids[0], "instances replaced") == []
+    assert svc.orch.calibration is None and svc.orch.robot_model is cell.model  # the nominal model again
+    assert svc.orch.current is None and cell.db.calibrations.active_id() is None
+    assert cell.publish.names == ["derived_withdrawn", "calibration_deactivated", "registration_retired"]
+    deactivated = cell.publish.of(CalibrationDeactivated)[0]
+    assert deactivated.calibration_id == cal.id and "instances replaced" in deactivated.reason
+    assert cell.publish.of(RegistrationRetired)[0].registration_ids == (reg.id,)
+    with pytest.raises(CalibrationNotUsableError, match="was withdrawn"):
+        svc.jobs.activate(cal.id)
