@@ -360,6 +360,14 @@ class Orchestrator:
         if v is not None:
             return v.describe()
         w = self.db.registrations.latest_withdrawn()
+        r = self.db.registrations.latest_retired()
+        if r is not None and (w is None or (r.retired_at or "") >= (w.withdrawn_at or "")):
+            # the newest end of a current registration was a calibration's activation, not the
+            # withdrawal (which a later registration outlived)
+            return (
+                f"registration {r.id} was retired when calibration {r.retired_by_calibration} was "
+                "activated (it was made with the previous robot model); register a new scan"
+            )
         return "" if w is None else f"registration {w.id} was withdrawn: {w.reason}"
 
     def withdraw_scan(self, scan_id: int, reason: str) -> list[int]:

@@ -235,6 +235,14 @@ class RegistrationStore:
         )
         return _record(rows[0], self.current_id()) if rows else None
 
+    def latest_retired(self) -> RegistrationRecord | None:
+        """The registration a calibration activation retired most recently (None: none ever was)."""
+        rows = self._db.query(
+            "SELECT * FROM registrations WHERE retired_at IS NOT NULL ORDER BY retired_at DESC, id DESC "
+            "LIMIT 1"
+        )
+        return _record(rows[0], self.current_id()) if rows else None
+
     def current_id(self) -> int | None:
         rows = self._db.query("SELECT registration_id FROM current_registration WHERE singleton = 1")
         return int(rows[0][0]) if rows else None

@@ -1,201 +1,470 @@
-"""The orchestrator alone, without HTTP: a real store in a temp folder, a recording bus, two simulated
-scans of the default phantom on the TX60 (the pipeline runs for real: it is what the orchestrator
-orchestrates), and scan records written as the intake writes them.
+"""Unit tests of :class:`service.registrations.orchestrator.Orchestrator` without the HTTP app.
 
-What becomes current, what is refused and stored, what a failed verification withdraws, which scan
-is superseded, and which events reach the bus.  The same rules are tested through the running
-service in tests/integration/test_service_loop.py and tests/faults/test_verification_governs.py.
+A real SQLite database, real settings, the real pipeline after detection (kinematics, matching, the
+FRE and verification gates); detection returns the sphere centres the test put in the scan
+(tests/unit/service/registrations/doubles.py).  Each test checks the events published.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from mocks.oarm.dicom_export import write_dicom_series
-from mocks.oarm.simulator import AcquisitionSettings
-from registration.model.frames import invert, transform_from_xyz_rpy
-from registration.model.kinematics import RobotModel
-from service.errors import SupersededScanError, VerificationUncomputableError
+from drivers.errors import RobotLinkError
+from registration.errors import AccuracyGateError, RobotMovedError, TooFewSpheresError
+from service.errors import (
+    InternalError,
+    NoCurrentRegistrationError,
+    NoScanError,
+    NotFoundError,
+    SupersededScanError,
+    VerificationRefusedError,
+    VerificationUncomputableError,
+)
 from service.events import (
+    DerivedWithdrawn,
     RegistrationDone,
     RegistrationRefused,
     RegistrationWithdrawn,
     VerificationDone,
 )
-from service.records import JointSnapshot, NewScan, RegistrationRecord, RegistrationRefusal
+from service.records import RegistrationRecord, RegistrationRefusal
 from service.registrations.orchestrator import Orchestrator, SupersededOverride
-from service.settings import Settings, load_settings
-from service.store import Database
-from tests.helpers.scan_cache import simulated_scan
-
-Q1 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.0)
-Q2 = (0.0, 0.0, np.pi / 2, 0.0, np.pi / 4, 0.3)  # J6 +0.3 rad: the phantom turns about its own axis
-IMAGE_FROM_PHANTOM_1 = transform_from_xyz_rpy([2.0, -3.0, 1.0], [10.0, -6.0, 20.0])
-TOOL0_FROM_PHANTOM = transform_from_xyz_rpy([0, 0, 200], [180, 0, 0])
-"""The settings' default rod (robot.tool0_from_phantom)."""
-WINDOW_S = 2.0
-
-
-@dataclass(frozen=True)
-class Folders:
-    """Two scans on disk as DICOM: at Q1 and at Q2 (the robot moved the phantom between them)."""
-
-    scan1: Path
-    scan2: Path
-    for_uid: str
-
-
-@pytest.fixture(scope="module")
-def folders(tmp_path_factory: pytest.TempPathFactory, phantom: Any) -> Folders:
-    model = RobotModel.load("tx60")
-    image_from_robot = IMAGE_FROM_PHANTOM_1 @ invert(model.robot_from_tool0(Q1) @ TOOL0_FROM_PHANTOM)
-    image_from_phantom_2 = image_from_robot @ model.robot_from_tool0(Q2) @ TOOL0_FROM_PHANTOM
-    root = tmp_path_factory.mktemp("orchestrator-scans")
-    for_uid = "1.2.826.0.1.3680043.8.498.4401"  # one O-arm placement for both scans
-    scans = (
-        simulated_scan(phantom, IMAGE_FROM_PHANTOM_1, AcquisitionSettings.preset("small")),
-        simulated_scan(phantom, image_from_phantom_2, AcquisitionSettings.preset("small", seed=1)),
-    )
-    for name, scan in zip(("scan1", "scan2"), scans, strict=True):
-        write_dicom_series(scan, root / name, write_truth=False, frame_of_reference_uid=for_uid)
-    return Folders(root / "scan1", root / "scan2", for_uid)
-
-
-@dataclass
-class World:
-    orchestrator: Orchestrator
-    db: Database
-    events: list[Any]
-    folders: Folders
-    settings: Settings
-
-    def record(self, folder: Path, joints: tuple[float, ...], verdict: str = "still", name: str = "") -> int:
-        """The scan record the intake writes for ``folder`` (``name`` tells re-recordings apart)."""
-        snapshot = JointSnapshot(
-            link_url="simple-message://127.0.0.1:11002", link_state="connected", window_s=WINDOW_S,
-            verdict=verdict,  # type: ignore[arg-type]
-            joints_rad=tuple(joints), joints_received_at="2026-12-05T10:00:00+00:00",
-            stillness_reason="" if verdict == "still" else f"the robot {verdict} during the scan",
-        )  # fmt: skip
-        from registration.dicom import load_series
-
-        volume = load_series(folder, unique=True)
-        uid = volume.series_uid + name
-        self.orchestrator.volumes.put(uid, volume)  # as the intake caches what it recorded
-        scan_id, _ = self.db.scans.upsert(
-            NewScan(
-                series_uid=uid,
-                folder=str(folder),
-                status="complete",
-                frame_of_reference_uid=self.folders.for_uid,
-                n_files=volume.shape[0],
-                n_slices=volume.shape[0],
-                snapshot=snapshot,
-            )
-        )
-        return scan_id
-
-    def of(self, kind: type) -> list[Any]:
-        return [e for e in self.events if isinstance(e, kind)]
-
-    def failing_verification(self) -> int:
-        """Verify on the second scan recorded with the first pose's joints: the prediction misses by
-        millimetres, so the verification fails its gate (a stored record) or cannot be computed (an
-        error); either withdraws.  Returns the verification scan's id."""
-        wrong = self.record(self.folders.scan2, Q1, name=".wrong-joints")
-        try:
-            ver = self.orchestrator.verify(wrong)
-        except VerificationUncomputableError:
-            return wrong
-        assert not ver.passed and ver.max_mm > self.settings.quality.max_verification_error_mm, ver
-        return wrong
+from service.store.calibrations import CalibrationRecord
+from tests.unit.service.registrations.doubles import (
+    IMAGE_FROM_ROBOT,
+    POSES,
+    Cell,
+    make_settings,
+    moved,
+    open_cell,
+)
 
 
 @pytest.fixture
-def world(tmp_path: Path, folders: Folders, phantom: Any) -> Iterator[World]:
-    settings = load_settings(None, {"data_dir": tmp_path / "data", "stillness.window_s": WINDOW_S})
-    db = Database.open(tmp_path / "oarmreg.sqlite3")
-    events: list[Any] = []
+def cell(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Cell]:
+    c = open_cell(tmp_path, monkeypatch)
+    yield c
+    c.db.close()
+
+
+def orchestrator(cell: Cell) -> Orchestrator:
+    return Orchestrator(cell.settings, cell.db, cell.phantom, cell.model, cell.publish, volumes=cell.volumes)
+
+
+def accepted(out: RegistrationRecord | RegistrationRefusal) -> RegistrationRecord:
+    assert isinstance(out, RegistrationRecord), f"refused: {getattr(out, 'error', out)}"
+    return out
+
+
+def refused(out: RegistrationRecord | RegistrationRefusal) -> RegistrationRefusal:
+    assert isinstance(out, RegistrationRefusal), f"accepted: registration {getattr(out, 'id', out)}"
+    return out
+
+
+def registered(cell: Cell, orch: Orchestrator, joints: Any = POSES[0]) -> RegistrationRecord:
+    """A scan at ``joints``, registered and current; the events so far are cleared."""
+    rec = accepted(orch.register(cell.scan(joints)))
+    cell.publish.clear()
+    return rec
+
+
+# ---- register ------------------------------------------------------------------------------
+
+
+def test_an_accepted_registration_becomes_current_and_is_published(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    assert orch.current is None and orch.no_current_reason == ""
+    sid = cell.scan()
+    rec = accepted(orch.register())  # the latest complete scan
+    assert (rec.status, rec.scan_id, rec.is_current) == ("accepted", sid, True)
+    assert orch.current is not None and orch.current.id == rec.id
+    assert cell.db.registrations.current_id() == rec.id
+    # the real matching recovered the pose the detections were made with
+    assert rec.image_from_robot is not None
+    assert np.allclose(np.asarray(rec.image_from_robot), IMAGE_FROM_ROBOT, atol=0.2)
+    assert rec.fre_mm is not None and rec.fre_mm < cell.settings.quality.max_fre_mm
+    assert rec.figures is not None and rec.figures.n_matched == len(cell.phantom.centres_phantom_mm)
+    prov = rec.figures.provenance
+    assert prov["joints_rad"] == list(POSES[0]) and prov["calibration"] is None
+    assert rec.figures.predicted_chain_error_mm == 1.0  # the nominal prior: no calibration
+    [done] = cell.publish.events
+    assert isinstance(done, RegistrationDone)
+    assert (done.registration_id, done.scan_id, done.fre_mm) == (rec.id, sid, rec.fre_mm)
+    assert cell.detector.calls == [rec.series_uid]
+
+
+def test_targets_and_phantom_confirmation_are_passed_to_the_pipeline(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    targets = [[300.0, -100.0, 500.0], [310.0, -90.0, 520.0]]
+    rec = accepted(orch.register(cell.scan(), targets, phantom_confirmed=True))
+    assert rec.figures is not None
+    assert rec.figures.targets_source == "request"
+    assert [list(t) for t in rec.figures.targets_image_mm] == targets
+    assert len(rec.figures.predicted_tre_mm) == 2
+
+
+@pytest.mark.parametrize(
+    ("what", "error", "title", "status"),
+    [
+        ("too few spheres", TooFewSpheresError, "Too few spheres", 409),
+        ("robot moved", RobotMovedError, "Robot moved during the scan", 409),
+        ("no joints", RobotLinkError, "Robot link error", 409),
+        ("FRE over the gate", AccuracyGateError, "Accuracy gate failed", 409),
+        ("a bug", InternalError, "Internal error", 500),
+    ],
+)
+def test_a_refusal_is_stored_and_published_and_the_current_registration_stays(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    what: str,
+    error: type[Exception],
+    title: str,
+    status: int,
+) -> None:
+    cell = open_cell(tmp_path, monkeypatch, **({"quality.max_fre_mm": 0.01} if "FRE" in what else {}))
     try:
-        orch = Orchestrator(settings, db, phantom, RobotModel.load("tx60"), events.append)
-        yield World(orch, db, events, folders, settings)
+        orch = orchestrator(cell)
+        before = None
+        if "FRE" not in what:  # with a 0.01 mm gate nothing is accepted
+            before = registered(cell, orch)
+        if what == "too few spheres":
+            sid = cell.scan(POSES[1], n_spheres=4)
+        elif what == "robot moved":
+            sid = cell.scan(POSES[1], verdict="moved")
+        elif what == "no joints":
+            sid = cell.scan(POSES[1], snapshot=False)
+        elif what == "a bug":
+            sid = cell.scan(POSES[1])
+
+            def boom(uid: str) -> None:
+                raise ZeroDivisionError("oops")
+
+            cell.detector.before = boom
+        else:
+            sid = cell.scan(POSES[1])
+        out = refused(orch.register(sid))
+        assert out.registration_id is not None
+        stored = cell.db.registrations.get(out.registration_id)
+        assert stored is not None
+        assert (stored.status, stored.scan_id, stored.is_current) == ("refused", sid, False)
+        assert (stored.problem_title, stored.http_status) == (title, status)
+        assert stored.reason == str(out.error) and stored.reason
+        assert type(out.error) is error
+        if what == "a bug":
+            assert "ZeroDivisionError: oops" in stored.reason
+        # the previous current registration stays current, in memory and on disk
+        assert (orch.current and orch.current.id) == (before and before.id)
+        assert cell.db.registrations.current_id() == (before and before.id)
+        [event] = cell.publish.events
+        assert isinstance(event, RegistrationRefused)
+        assert (event.registration_id, event.scan_id, event.title) == (out.registration_id, sid, title)
+        assert event.reason == stored.reason
     finally:
-        db.close()
+        cell.db.close()
 
 
-def test_an_accepted_registration_becomes_current_and_is_announced(world: World) -> None:
-    scan_id = world.record(world.folders.scan1, Q1)
-    rec = world.orchestrator.register(scan_id)
-    assert isinstance(rec, RegistrationRecord) and rec.status == "accepted", rec
-    assert world.orchestrator.current is not None and world.orchestrator.current.id == rec.id
-    assert world.db.registrations.current_id() == rec.id
-    assert rec.fre_mm is not None and rec.fre_mm < 0.5
-    assert [e.registration_id for e in world.of(RegistrationDone)] == [rec.id]
-    assert world.of(RegistrationRefused) == []
+def test_a_scan_that_changes_while_it_is_registered_is_refused(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    before = registered(cell, orch)
+    sid = cell.scan(POSES[1])
+    cell.detector.before = lambda uid: cell.db.scans.set_status(sid, "reopened", "instances added")
+    out = refused(orch.register(sid))
+    assert "changed while it was being registered" in str(out.error) and "reopened" in str(out.error)
+    assert out.registration_id is not None
+    stored = cell.db.registrations.get(out.registration_id)
+    assert stored is not None and stored.status == "refused"
+    assert orch.current is not None and orch.current.id == before.id
+    assert cell.publish.names == ["registration_refused"]
 
 
-def test_a_moved_robot_is_refused_stored_and_the_current_one_stays(world: World) -> None:
-    good = world.orchestrator.register(world.record(world.folders.scan1, Q1))
-    assert isinstance(good, RegistrationRecord)
-    moved = world.record(world.folders.scan1, Q1, verdict="moved", name=".moved")
-    out = world.orchestrator.register(moved)
-    assert isinstance(out, RegistrationRefusal) and out.registration_id is not None, out
-    stored = world.db.registrations.get(out.registration_id)
-    assert stored is not None and stored.status == "refused" and stored.http_status == 409, stored
-    assert "moved" in stored.reason.lower(), stored.reason
-    assert world.orchestrator.current is not None and world.orchestrator.current.id == good.id
-    refused = world.of(RegistrationRefused)
-    assert [(e.registration_id, e.scan_id) for e in refused] == [(out.registration_id, moved)]
+def test_nothing_to_register_raises_and_stores_nothing(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    with pytest.raises(NoScanError):
+        orch.register()
+    with pytest.raises(NotFoundError):
+        orch.register(99)
+    cell.scan(status="invalid")
+    with pytest.raises(NoScanError):  # an invalid scan is not a complete one
+        orch.register()
+    assert cell.db.registrations.list() == [] and cell.publish.events == []
+    assert not orch.busy
 
 
-def test_a_passing_verification_keeps_it_current_and_a_failing_one_withdraws_it(world: World) -> None:
-    reg = world.orchestrator.register(world.record(world.folders.scan1, Q1))
-    assert isinstance(reg, RegistrationRecord)
-    passed = world.orchestrator.verify(world.record(world.folders.scan2, Q2))
-    assert passed.passed and passed.registration_id == reg.id, passed
-    assert world.orchestrator.current is not None and world.orchestrator.current.id == reg.id
-    wrong = world.failing_verification()
-    assert world.orchestrator.current is None
-    assert world.db.registrations.current_id() is None
-    withdrawal = world.orchestrator.withdrawal
-    assert withdrawal is not None and withdrawal.registration_id == reg.id
-    assert withdrawal.verification_scan_id == wrong
-    withdrawn = world.of(RegistrationWithdrawn)
-    assert [(e.registration_ids, e.was_current) for e in withdrawn] == [((reg.id,), True)]
-    assert [v.passed for v in world.of(VerificationDone)][:1] == [True]
+# ---- supersession --------------------------------------------------------------------------
 
 
-def test_a_scan_with_newer_evidence_against_it_is_refused_unless_overridden(world: World) -> None:
-    first = world.record(world.folders.scan1, Q1)
-    reg = world.orchestrator.register(first)
-    assert isinstance(reg, RegistrationRecord)
-    world.failing_verification()
-    again = world.orchestrator.register(first)  # the withdrawn registration's own scan
-    assert isinstance(again, RegistrationRefusal) and isinstance(again.error, SupersededScanError), again
-    assert world.orchestrator.current is None
-    why = "the O-arm was put back; the failed verification's scan was taken while it was bumped"
-    overridden = world.orchestrator.register(first, override=SupersededOverride(why))
-    assert isinstance(overridden, RegistrationRecord) and overridden.status == "accepted", overridden
-    assert world.orchestrator.current is not None and world.orchestrator.current.id == overridden.id
-    assert overridden.figures is not None
-    assert why in str(overridden.figures.provenance.get("superseded_override")), overridden.figures.provenance
+def test_an_older_scan_is_refused_once_a_newer_scan_at_its_placement_is_registered(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    older, newer = cell.scan(POSES[0]), cell.scan(POSES[1])
+    current = accepted(orch.register(newer))
+    cell.publish.clear()
+    out = refused(orch.register(older))
+    assert isinstance(out.error, SupersededScanError)
+    assert (out.error.rule, out.error.newer_scan_id) == ("newer-registration", newer)
+    assert out.registration_id is not None
+    stored = cell.db.registrations.get(out.registration_id)
+    assert stored is not None and (stored.status, stored.http_status) == ("refused", 409)
+    assert orch.current is not None and orch.current.id == current.id
+    assert cell.publish.names == ["registration_refused"]
+    older_uid = cell.db.scans.get(older).series_uid  # type: ignore[union-attr]
+    assert older_uid not in cell.detector.calls  # refused before the pipeline ran
+    # elsewhere (another placement) an older scan is not superseded
+    other = accepted(orch.register(cell.scan(POSES[2], for_uid="1.2.826.0.1.3680043.8.498.4402")))
+    assert orch.current is not None and orch.current.id == other.id
 
 
-def test_withdrawing_a_changed_scan_withdraws_its_current_registration(world: World) -> None:
-    scan_id = world.record(world.folders.scan1, Q1)
-    reg = world.orchestrator.register(scan_id)
-    assert isinstance(reg, RegistrationRecord)
-    withdrawn_ids = world.orchestrator.withdraw_scan(scan_id, "the series changed on disk")
-    assert withdrawn_ids == [reg.id]
-    assert world.orchestrator.current is None and world.db.registrations.current_id() is None
-    stored = world.db.registrations.get(reg.id)
+def test_an_override_registers_a_superseded_scan_and_names_it_in_the_provenance(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    older, newer = cell.scan(POSES[0]), cell.scan(POSES[1])
+    accepted(orch.register(newer))
+    cell.publish.clear()
+    rec = accepted(orch.register(older, override=SupersededOverride("the surgeon asked")))
+    assert rec.figures is not None
+    override = rec.figures.provenance["superseded_override"]
+    assert override["rule"] == "newer-registration" and override["newer_scan_id"] == newer
+    assert override["reason"] == "the surgeon asked"
+    assert orch.current is not None and orch.current.id == rec.id
+    assert cell.publish.names == ["registration_done"]
+
+
+def test_the_scan_of_a_registration_a_verification_withdrew_may_not_be_registered_again(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    failing = cell.scan(POSES[1], image_from_robot=moved([2.0, 0.0, 0.0]))
+    assert not orch.verify(failing).passed
+    out = refused(orch.register(reg.scan_id))
+    assert isinstance(out.error, SupersededScanError)
+    assert (out.error.rule, out.error.newer_scan_id) == ("withdrawn", failing)
+    assert "may not be registered again" in str(out.error)
+    assert orch.current is None
+
+
+# ---- verify --------------------------------------------------------------------------------
+
+
+def test_a_passing_verification_at_another_pose_keeps_and_upgrades_the_current_registration(
+    cell: Cell,
+) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    assert reg.verified_by is None
+    sid = cell.scan(POSES[1])
+    ver = orch.verify()
+    assert (ver.registration_id, ver.scan_id, ver.passed) == (reg.id, sid, True)
+    assert ver.max_mm <= cell.settings.quality.max_verification_error_mm
+    assert ver.histogram_path is not None and Path(ver.histogram_path).is_file()
+    assert orch.current is not None and orch.current.id == reg.id and orch.current.verified_by == ver.id
+    [done] = cell.publish.events
+    assert isinstance(done, VerificationDone)
+    assert (done.verification_id, done.registration_id, done.passed) == (ver.id, reg.id, True)
+    # a restart restores the current registration with its evidence
+    again = orchestrator(cell)
+    assert again.current is not None and again.current.verified_by == ver.id
+
+
+def test_a_failed_verification_withdraws_the_registration_it_verified(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    sid = cell.scan(POSES[1], image_from_robot=moved([0.0, 2.0, 0.0]))  # the phantom was knocked 2 mm
+    ver = orch.verify(sid)
+    assert not ver.passed and 1.5 < ver.max_mm < 2.5
+    assert orch.current is None and cell.db.registrations.current_id() is None
+    withdrawn = cell.db.registrations.get(reg.id)
+    assert withdrawn is not None and withdrawn.status == "withdrawn"
+    assert (withdrawn.withdrawn_by_scan, withdrawn.withdrawn_by_verification) == (sid, ver.id)
+    assert cell.publish.names == ["verification_done", "registration_withdrawn"]
+    done, gone = cell.publish.events
+    assert isinstance(done, VerificationDone) and not done.passed
+    assert isinstance(gone, RegistrationWithdrawn)
+    assert (gone.registration_ids, gone.was_current, gone.verification_scan_id) == ((reg.id,), True, sid)
+    assert (
+        gone.verification_id == ver.id
+        and f"verification {ver.id} (scan {sid}) failed its gate" in gone.reason
+    )
+    # why nothing is current: at another pose, with the nominal model's 1 mm prior at the 1 mm gate
+    w = orch.withdrawal
+    assert w is not None and (w.registration_id, w.verification_id) == (reg.id, ver.id)
+    assert (w.likely_cause, w.calibrated, w.predicted_chain_error_mm) == ("cell-not-calibrated", False, 1.0)
+    assert orch.no_current_reason == w.describe() and f"registration {reg.id} was withdrawn" in w.describe()
+    with pytest.raises(NoCurrentRegistrationError):
+        orch.verify()
+    # the withdrawal is still why nothing is current after a restart
+    again = orchestrator(cell)
+    assert again.current is None and again.withdrawal == w
+    # a new accepted registration ends it
+    accepted(orch.register(cell.scan(POSES[2], image_from_robot=moved([0.0, 2.0, 0.0]))))
+    assert orch.withdrawal is None and orch.no_current_reason == ""
+
+
+def test_a_failed_verification_at_the_registration_pose_blames_the_phantom_or_the_oarm(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    registered(cell, orch, POSES[0])
+    orch.verify(cell.scan(POSES[0], image_from_robot=moved([2.0, 0.0, 0.0])))
+    w = orch.withdrawal
+    assert w is not None and w.likely_cause == "phantom-or-oarm-moved"
+    assert "registration scan's own joints" in w.cause
+
+
+def test_a_verification_beyond_matching_withdraws_and_raises_uncomputable(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    sid = cell.scan(POSES[1], image_from_robot=moved([40.0, 0.0, 0.0]))
+    with pytest.raises(VerificationUncomputableError, match=f"registration {reg.id} is withdrawn"):
+        orch.verify(sid)
+    assert orch.current is None
+    withdrawn = cell.db.registrations.get(reg.id)
+    assert withdrawn is not None and (withdrawn.withdrawn_by_scan, withdrawn.withdrawn_by_verification) == (
+        sid,
+        None,
+    )
+    assert cell.db.verifications.list() == []
+    [gone] = cell.publish.events
+    assert isinstance(gone, RegistrationWithdrawn)
+    assert (gone.registration_ids, gone.verification_scan_id, gone.verification_id) == ((reg.id,), sid, None)
+    w = orch.withdrawal
+    assert w is not None and w.verification_id is None and "could not be computed" in w.reason
+
+
+def test_a_verification_scan_showing_too_few_spheres_withdraws_nothing(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    with pytest.raises(TooFewSpheresError):
+        orch.verify(cell.scan(POSES[1], n_spheres=3))
+    assert orch.current is not None and orch.current.id == reg.id
+    assert cell.db.registrations.current_id() == reg.id
+    assert cell.publish.events == []
+
+
+def test_a_verification_needs_a_current_registration_and_a_newer_scan(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    with pytest.raises(NoCurrentRegistrationError):
+        orch.verify(cell.scan())
+    older = cell.scan(POSES[1])
+    reg = registered(cell, orch, POSES[2])
+    for sid in (older, reg.scan_id):
+        with pytest.raises(VerificationRefusedError, match="is not newer than"):
+            orch.verify(sid)
+    assert orch.current is not None and orch.current.id == reg.id
+    assert cell.publish.events == [] and cell.db.verifications.list() == []
+    assert not orch.busy
+
+
+# ---- withdrawals ---------------------------------------------------------------------------
+
+
+def test_withdraw_scan_withdraws_the_registrations_of_a_changed_scan(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    first = registered(cell, orch, POSES[0])
+    assert first.scan_id is not None
+    assert orch.withdraw_scan(first.scan_id + 100, "no such scan") == []  # nothing to withdraw
+    assert cell.publish.events == []
+    second = registered(cell, orch, POSES[1])
+    assert second.scan_id is not None
+    # the old scan changed: its registration is withdrawn, the current one (another scan) stays
+    assert orch.withdraw_scan(first.scan_id, "instances replaced") == [first.id]
+    assert orch.current is not None and orch.current.id == second.id
+    [gone] = cell.publish.events
+    assert isinstance(gone, RegistrationWithdrawn)
+    assert (gone.registration_ids, gone.was_current, gone.reason) == (
+        (first.id,),
+        False,
+        "instances replaced",
+    )
+    cell.publish.clear()
+    # the current one's scan changed: nothing is current
+    assert orch.withdraw_scan(second.scan_id, "instances added") == [second.id]
+    assert orch.current is None and cell.db.registrations.current_id() is None
+    [gone] = cell.publish.events
+    assert isinstance(gone, RegistrationWithdrawn) and gone.was_current and gone.scan_id == second.scan_id
+    assert orch.withdrawal is None  # not a verification's withdrawal
+    assert orch.no_current_reason == f"registration {second.id} was withdrawn: instances added"
+
+
+def test_withdraw_scan_also_withdraws_the_verifications_made_from_it(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    sid = cell.scan(POSES[1])
+    ver = orch.verify(sid)
+    cell.publish.clear()
+    assert orch.withdraw_scan(sid, "instances replaced") == []
+    [derived] = cell.publish.events
+    assert isinstance(derived, DerivedWithdrawn)
+    assert (derived.verification_ids, derived.calibration_ids) == ((ver.id,), ())
+    assert orch.current is not None and orch.current.id == reg.id
+
+
+def test_a_restart_under_other_robot_settings_withdraws_the_restored_registration(
+    cell: Cell, tmp_path: Path
+) -> None:
+    reg = registered(cell, orchestrator(cell))
+    same = orchestrator(cell)  # a restart under the same settings restores it
+    assert same.current is not None and same.current.id == reg.id
+    assert same.withdraw_if_robot_side_changed() == "" and same.current is not None
+    assert cell.publish.events == []
+    cell.settings = make_settings(tmp_path, **{"robot.tool0_from_phantom.translation_mm": [0.0, 0.0, 250.0]})
+    other = orchestrator(cell)
+    assert other.current is not None  # restored, until the check
+    reason = other.withdraw_if_robot_side_changed()
+    assert "robot.tool0_from_phantom" in reason and f"registration {reg.id}" in reason
+    assert other.current is None and cell.db.registrations.current_id() is None
+    assert other.robot_side_withdrawal == reason
+    stored = cell.db.registrations.get(reg.id)
     assert stored is not None and stored.status == "withdrawn"
-    withdrawn = world.of(RegistrationWithdrawn)
-    assert [(e.registration_ids, e.scan_id, e.was_current) for e in withdrawn] == [((reg.id,), scan_id, True)]
-    assert withdrawn[0].reason == "the series changed on disk"
+    [gone] = cell.publish.events
+    assert isinstance(gone, RegistrationWithdrawn)
+    assert (gone.registration_ids, gone.was_current, gone.reason) == ((reg.id,), True, reason)
+    assert other.no_current_reason == f"registration {reg.id} was withdrawn: {reason}"
+
+
+# ---- calibration ---------------------------------------------------------------------------
+
+
+def test_use_calibration_changes_the_model_and_rod_and_an_activation_clears_the_current(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    reg = registered(cell, orch, POSES[0])
+    rod = cell.rod.copy()
+    ref = {"calibration_id": 7, "calibration_hash": "h", "robot_urdf": "x", "predicted_chain_error_mm": 0.2}
+    assert orch.use_calibration(cell.model, rod, ref) is None  # a restore: the current one stays
+    assert orch.calibration == ref and orch.tool0_from_phantom is rod
+    assert orch.current is not None and orch.current.id == reg.id
+    assert orch.use_calibration(cell.model, rod, ref, activate=lambda: "activated") == "activated"
+    assert orch.current is None
+    rec = accepted(orch.register(cell.scan(POSES[1])))
+    assert rec.figures is not None and rec.figures.provenance["calibration"] == ref
+    assert rec.figures.predicted_chain_error_mm == 0.2
+    assert "calibration 7 posterior" in rec.figures.chain_error_source
+    assert cell.publish.names == ["registration_done"]
+
+
+def test_after_an_activation_no_current_reason_does_not_blame_an_older_withdrawal(cell: Cell) -> None:
+    orch = orchestrator(cell)
+    first = registered(cell, orch, POSES[0])
+    assert first.scan_id is not None
+    orch.withdraw_scan(first.scan_id, "instances replaced")  # nothing current: this is why
+    assert orch.no_current_reason == f"registration {first.id} was withdrawn: instances replaced"
+    second = registered(cell, orch, POSES[1])  # current again: the withdrawal is history
+    cal_id = cell.db.calibrations.insert(
+        CalibrationRecord(
+            created_at="2026-01-01T00:00:00+00:00", status="done", scan_ids=(), params={},
+            config_hash="c", software_version="v",
+        )
+    )  # fmt: skip
+    orch.use_calibration(
+        cell.model,
+        cell.rod,
+        {"calibration_id": cal_id},
+        activate=lambda: cell.db.calibrations.activate(cal_id),
+    )
+    retired = cell.db.registrations.get(second.id)
+    assert orch.current is None and retired is not None and retired.retired_by_calibration == cal_id
+    # nothing is current because calibration cal_id retired registration `second`, not because of
+    # registration `first`'s withdrawal (which `second` outlived)
+    assert f"registration {first.id} was withdrawn" not in orch.no_current_reason
+    assert orch.no_current_reason.startswith(
+        f"registration {second.id} was retired when calibration {cal_id}"
+    )
