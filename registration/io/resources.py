@@ -28,7 +28,8 @@ CONFIGS_PACKAGE = "oarmreg_configs"
 
 SERVICE_TOML = "oarmreg.toml"
 DEFAULT_PHANTOM_NAME = "bai2018_cube"
-_CHECKOUT_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+_CHECKOUT_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+"""``configs/`` of a source checkout (this file is ``registration/io/resources.py``)."""
 
 
 def configs_dir() -> Path:

@@ -22,6 +22,14 @@ def test_checkout_configs_are_the_ones_used() -> None:
     assert load_phantom(resources.default_phantom()).n_spheres == 28
 
 
+def test_a_checkout_needs_no_installed_package(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A source checkout finds its own configs/ (the path was one folder short after the move into
+    registration/io/, so every checkout used the installed package: a worktree read the main
+    checkout's URDFs through its editable install)."""
+    monkeypatch.setattr(resources, "CONFIGS_PACKAGE", "oarmreg_no_such_package")
+    assert resources.configs_dir() == REPO / "configs"
+
+
 def test_named_robot_loads_from_the_resources(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     (tmp_path / "robots").mkdir()
     (tmp_path / "robots" / "other.urdf").write_bytes((REPO / "configs" / "robots" / "tx60.urdf").read_bytes())
