@@ -65,24 +65,10 @@ def create_app(
 ) -> FastAPI:
     """Build the app.
 
-    Parameters
-    ----------
-    settings : Settings
-        From :func:`service.settings.load_settings`.
-    robot_link : RobotLink, optional
-        Default: :func:`drivers.factory.open_link` on ``settings.robot.link_url``, or a
-        :class:`drivers.link_process.ProcessLink` when ``robot.link_process`` is set (``_open_link``;
-        not connected until start-up).
-    phantom, robot_model : optional
-        Pre-loaded :class:`registration.model.phantom.Phantom` /
-        :class:`registration.model.kinematics.RobotModel`.
-    start_watcher : bool
-        False to run without the folder watcher (tests that record scans themselves).
-
-    Raises
-    ------
-    ConfigError, RobotLinkError
-        Bad phantom file, robot model or link URL (fail at start-up, naming the setting).
+    ``settings``, ``robot_link``, ``phantom`` and ``robot_model`` are checked and loaded by
+    :func:`service.runtime.inputs.prepare_inputs` (which raises ``ConfigError`` / ``RobotLinkError``
+    for a bad phantom file, robot model or link URL, naming the setting); ``start_watcher`` False
+    runs without the folder watcher (tests that record scans themselves).
     """
     inputs = prepare_inputs(settings, robot_link=robot_link, phantom=phantom, robot_model=robot_model)
 
