@@ -1,8 +1,8 @@
 """Start every part of the service in order, bind them to the bus, stop them in reverse.
 
 :func:`running_service` is the whole service as an async context manager, with no web server:
-the HTTP app's lifespan (:func:`service.http.app.create_app`), the CLI's ``demo`` and the
-benchmarks enter it alike.  The table of who listens to which event is :func:`_start_outputs`
+the HTTP app's lifespan (:func:`service.http.app.create_app`) enters it, and it runs without HTTP
+too.  The table of who listens to which event is :func:`_start_outputs`
 (and :class:`~service.intake.cstore_intake.CStoreIntake` / :class:`~service.intake.recording.Intake`
 publish what arrives).
 """
