@@ -343,11 +343,17 @@ def _box_chords(o: F64, d: F64, box: _Box3) -> F64:
     """Chord (mm) of rays o + t·d (d unit) through a box, by the slab method."""
     ol = (o - box.centre_rtk_mm) @ box.axes  # (3,)
     dl = d @ box.axes  # (..., 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / np.where(np.abs(dl) < 1e-12, 1e-12, dl)
-        t1, t2 = (-box.half_mm - ol) * inv, (box.half_mm - ol) * inv
-    tmin = np.max(np.minimum(t1, t2), axis=-1)
-    tmax = np.min(np.maximum(t1, t2), axis=-1)
+    tmin: F64 | None = None
+    tmax: F64 | None = None
+    for k in range(3):  # one slab per box axis (element-wise, not reductions over a length-3 axis)
+        dk = dl[..., k]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / np.where(np.abs(dk) < 1e-12, 1e-12, dk)
+        t1, t2 = (-box.half_mm[k] - ol[k]) * inv, (box.half_mm[k] - ol[k]) * inv
+        near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+        tmin = near if tmin is None else np.maximum(tmin, near)
+        tmax = far if tmax is None else np.minimum(tmax, far)
+    assert tmin is not None and tmax is not None
     return np.asarray(np.clip(tmax - tmin, 0.0, None))
 
 
@@ -473,7 +479,8 @@ def _rays(s: ConeBeamSettings, theta: float, u_mm: F64, v_mm: F64) -> tuple[F64,
     src = r_t @ np.array([0.0, 0.0, s.sid_mm])
     det = np.stack([u_mm, v_mm, np.full_like(u_mm, s.sid_mm - s.sdd_mm)], axis=-1) @ r_t.T
     d = det - src
-    return src, d / np.linalg.norm(d, axis=-1, keepdims=True)
+    length = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2)
+    return src, d / length[..., None]
 
 
 def _add_extended(paths: F32, scene: _Scene, src: F64, d: F64) -> None:
@@ -528,6 +535,19 @@ def _pixel_window(s: ConeBeamSettings, theta: float, pts: F64, margin_mm: float)
     return c0, e0, c1, e1
 
 
+def _ball_windows(s: ConeBeamSettings, uv: F64, rad: F64) -> list[tuple[int, int, int, int, int]]:
+    """Each ball's (index, c0, e0, c1, e1): :func:`_pixel_window` of its projected centre ``uv``
+    ± ``rad`` (mm), for all balls at once; balls whose window misses the panel are left out."""
+    p = s.det_pitch_mm
+    mid_u, mid_v = (s.det_cols - 1) / 2, (s.det_rows - 1) / 2
+    c0 = np.maximum(0, np.floor((uv[:, 0] - rad) / p + mid_u)).astype(int)
+    c1 = np.maximum(0, np.floor((uv[:, 1] - rad) / p + mid_v)).astype(int)
+    e0 = np.minimum(s.det_cols, np.ceil((uv[:, 0] + rad) / p + mid_u) + 1).astype(int)
+    e1 = np.minimum(s.det_rows, np.ceil((uv[:, 1] + rad) / p + mid_v) + 1).astype(int)
+    keep = np.flatnonzero((e0 > c0) & (e1 > c1))
+    return [(int(i), int(c0[i]), int(e0[i]), int(c1[i]), int(e1[i])) for i in keep]
+
+
 def project_view(
     s: ConeBeamSettings, scene: _Scene, theta: float, mu: F32, weights: F64, n_slots: int
 ) -> F32:
@@ -560,38 +580,40 @@ def project_view(
     offs = ((np.arange(ns) + 0.5) / ns - 0.5) * p
     centres = np.array([bl.centre_rtk_mm for bl in scene.balls])
     radii = np.array([bl.radius_mm for bl in scene.balls])
-    h = np.c_[centres, np.ones(len(centres))] @ projection_matrix(s, theta).T
-    uv = h[:, :2] / h[:, 2:3]
-    # Shadow radius on the panel (tangent cone, generous) plus 1.5 pixels of window margin.
-    rad = radii * s.sdd_mm / np.maximum(np.abs(h[:, 2]) - radii, 1.0) + 1.5 * p
+    uv, rad = _projected_discs(s, theta, centres, radii)
     # Balls whose shadows overlap a window in this view (near in projection, however far apart).
     overlap = np.all(
         np.abs(uv[:, None, :] - uv[None, :, :]) < (rad[:, None] + rad[None, :])[..., None], axis=2
     )
-    for ib, b in enumerate(scene.balls):
-        c0, e0, c1, e1 = _pixel_window(s, theta, b.centre_rtk_mm[None], float(rad[ib]))
-        if e0 <= c0 or e1 <= c1:
-            continue
-        # Sub-rays across each pixel of the window, through every object they may meet.
-        suu, svv = np.meshgrid(
-            (u[c0:e0, None] + offs[None, :]).ravel(), (v[c1:e1, None] + offs[None, :]).ravel()
-        )
-        src, sd = _rays(s, theta, suu, svv)
-        sp = np.zeros((n_slots, *suu.shape), np.float32)
-        _add_extended(sp, scene, src, sd)
+    windows = _ball_windows(s, uv, rad)
+    if not windows:
+        return trans
+    # Sub-rays across each pixel of every ball's window, traced together (one flat batch, each
+    # window a contiguous segment in row-major order), through every object they may meet.
+    coords = [
+        np.meshgrid((u[c0:e0, None] + offs).ravel(), (v[c1:e1, None] + offs).ravel())
+        for _, c0, e0, c1, e1 in windows
+    ]
+    bounds = np.cumsum([0] + [su.size for su, _ in coords])
+    src, sd = _rays(s, theta, np.concatenate([su.ravel() for su, _ in coords]), np.concatenate([sv.ravel() for _, sv in coords]))
+    sp = np.zeros((n_slots, len(sd)), np.float32)
+    _add_extended(sp, scene, src, sd)
+    for (ib, *_), a, b in zip(windows, bounds[:-1], bounds[1:], strict=True):
+        seg = sd[a:b]
         for io in np.flatnonzero(overlap[ib]):
             other = scene.balls[io]
-            chord = _sphere_chords(src, sd, other).astype(np.float32)
+            chord = _sphere_chords(src, seg, other).astype(np.float32)
             for slot, sign in other.paths:
-                sp[slot] += np.float32(sign) * chord
+                sp[slot, a:b] += np.float32(sign) * chord
         near = np.all(np.abs(hole_uv - uv[ib]) < (hole_rad + rad[ib])[:, None], axis=1)
         for ih in np.flatnonzero(near):
             hole = scene.holes[ih]
-            chord = _cylinder_chords(src, sd, hole).astype(np.float32)
+            chord = _cylinder_chords(src, seg, hole).astype(np.float32)
             for slot, sign in hole.paths:
-                sp[slot] += np.float32(sign) * chord
-        st = polychromatic_transmission(sp, mu, weights)
-        trans[c1:e1, c0:e0] = st.reshape(e1 - c1, ns, e0 - c0, ns).mean(axis=(1, 3))
+                sp[slot, a:b] += np.float32(sign) * chord
+    st = polychromatic_transmission(sp, mu, weights)
+    for (_, c0, e0, c1, e1), a, b in zip(windows, bounds[:-1], bounds[1:], strict=True):
+        trans[c1:e1, c0:e0] = st[a:b].reshape(e1 - c1, ns, e0 - c0, ns).mean(axis=(1, 3))
     return trans
 
 
