@@ -21,6 +21,7 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.helpers import http
 from tests.helpers.tokens import make_token
 from tests.integration.fast_service import fast_overrides
 from tests.integration.polling import wait_for, wait_robot_still
@@ -178,7 +179,7 @@ class ServeProcess:
             if self.proc.poll() is not None:
                 pytest.fail(f"serve exited with {self.proc.returncode}; log:\n{self.log.read_text()[-3000:]}")
             try:
-                return httpx.get(self.base_url + "/health", timeout=2.0).status_code == 200
+                return http.get(self.base_url + "/health", timeout=2.0).status_code == 200
             except httpx.HTTPError:
                 return False
 
@@ -249,7 +250,7 @@ class ForkedServe:
 
         def up() -> bool:
             try:
-                return httpx.get(self.base_url + "/health", timeout=2.0).status_code == 200
+                return http.get(self.base_url + "/health", timeout=2.0).status_code == 200
             except httpx.HTTPError:
                 return False
 

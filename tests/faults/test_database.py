@@ -11,7 +11,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import httpx
 import pytest
 
 from registration.errors import ConfigError
@@ -19,6 +18,7 @@ from service.error_map import EXIT_CONFIG, EXIT_USAGE
 from service.records import NewScan
 from service.store import Database
 from tests.faults.conftest import JSON, REPO_ROOT, fault_settings, mock_robot, serve
+from tests.helpers import http
 from tests.helpers.tokens import make_token
 
 N_SCANS = 83
@@ -127,8 +127,8 @@ def test_no_auth_mode_is_explicit_and_warned(tmp_path: Path, caplog: pytest.LogC
     settings = fault_settings(tmp_path, api_token="", **{"api.auth": "none-loopback-only"})
     with mock_robot() as mock, serve(settings.model_copy(update={"robot": settings.robot.model_copy(
             update={"link_url": mock.url})})) as s:  # fmt: skip
-        assert httpx.get(s.base_url + "/status").status_code == 200
-        assert httpx.post(s.base_url + "/register", headers={"Content-Type": "text/plain"}).status_code == 415
+        assert http.get(s.base_url + "/status").status_code == 200
+        assert http.post(s.base_url + "/register", headers={"Content-Type": "text/plain"}).status_code == 415
     assert any("authentication is OFF" in r.getMessage() for r in caplog.records)
 
 

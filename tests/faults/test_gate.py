@@ -35,6 +35,7 @@ from tests.faults.conftest import (
     read_response,
     serve,
 )
+from tests.helpers import http
 
 TEN_MB = 10 * 1024 * 1024
 SECRET_ROW = "ROW-TEXT-Doe^Jane-must-not-leak"
@@ -119,7 +120,7 @@ def test_small_chunked_body_is_admitted(svc: Running) -> None:
 
 def test_cross_site_text_plain_post_is_refused(svc: Running) -> None:
     """The tester's page: bodiless POST /register, text/plain, foreign Origin (no token needed to fail)."""
-    r = httpx.post(
+    r = http.post(
         svc.base_url + "/register", headers={"Content-Type": "text/plain", "Origin": "http://evil.example"}
     )
     assert "api.allowed_origins" in assert_problem(r, 403)["detail"]
@@ -150,7 +151,7 @@ def test_foreign_host_is_refused(svc: Running, host: str) -> None:
 
 
 def test_rebinding_page_cannot_read_health_either(svc: Running) -> None:
-    assert_problem(httpx.get(svc.base_url + "/health", headers={"Host": f"evil.example:{svc.port}"}), 400)
+    assert_problem(http.get(svc.base_url + "/health", headers={"Host": f"evil.example:{svc.port}"}), 400)
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1:{port}", "localhost:{port}", "LOCALHOST:{port}"])
@@ -175,11 +176,11 @@ def test_same_origin_browser_request_is_allowed(svc: Running) -> None:
 
 @pytest.mark.parametrize("path", ["/openapi.json", "/status", "/audit", "/events", "/verifications"])
 def test_everything_but_health_needs_the_token(svc: Running, path: str) -> None:
-    assert_problem(httpx.get(svc.base_url + path), 401)
+    assert_problem(http.get(svc.base_url + path), 401)
     assert_problem(
-        httpx.get(svc.base_url + path, headers={"Authorization": "Bearer wrong-token-0123456789"}), 401
+        http.get(svc.base_url + path, headers={"Authorization": "Bearer wrong-token-0123456789"}), 401
     )
-    assert httpx.get(svc.base_url + "/health").status_code == 200
+    assert http.get(svc.base_url + "/health").status_code == 200
 
 
 def test_docs_with_token(svc: Running) -> None:
@@ -288,7 +289,7 @@ def test_event_ticket_is_single_use(svc: Running) -> None:
 
 def test_ticket_is_only_for_events(svc: Running) -> None:
     ticket = svc.client.post("/events/ticket", headers=JSON).json()["ticket"]
-    assert_problem(httpx.get(f"{svc.base_url}/status?ticket={ticket}"), 401)
+    assert_problem(http.get(f"{svc.base_url}/status?ticket={ticket}"), 401)
 
 
 def test_audit_names_the_token_by_hash_only(svc: Running) -> None:
@@ -410,7 +411,7 @@ def test_the_event_ticket_never_reaches_the_access_log(svc: Running) -> None:
         ticket = svc.client.post("/events/ticket", headers=JSON).json()["ticket"]
         with httpx.Client(base_url=svc.base_url) as c, c.stream("GET", f"/events?ticket={ticket}") as r:
             assert r.status_code == 200 and next(r.iter_lines()) == ": connected"
-        assert httpx.get(f"{svc.base_url}/events?ticket={ticket}").status_code == 401  # used up: logged too
+        assert http.get(f"{svc.base_url}/events?ticket={ticket}").status_code == 401  # used up: logged too
         assert svc.client.get("/health", headers=AUTH).status_code == 200  # a line after them
     finally:
         access.removeHandler(handler)

@@ -50,6 +50,7 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers import http
 from tests.helpers.scan_cache import simulated_scan
 from tests.helpers.system_tools import system_tool
 
@@ -266,7 +267,7 @@ def n_closed(socks: list[socket.socket]) -> int:
 def health_200(base_url: str) -> bool:
     """``GET /health`` on a fresh connection answers 200 within :data:`LIVENESS_DEADLINE_S`."""
     try:
-        r = httpx.get(base_url + "/health", timeout=LIVENESS_DEADLINE_S)
+        r = http.get(base_url + "/health", timeout=LIVENESS_DEADLINE_S)
     except httpx.HTTPError:
         return False
     return r.status_code == 200

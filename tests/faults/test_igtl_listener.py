@@ -27,6 +27,7 @@ import pytest
 
 from service.navigation.igtl import wire
 from tests.faults._service import wait_for
+from tests.helpers import http
 
 TOKEN = secrets.token_urlsafe(24)
 LIVENESS_S = 3.0
@@ -67,14 +68,14 @@ def serve(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Serve, int
 
 
 def counters(proc: Serve) -> dict[str, int]:
-    r = httpx.get(proc.base_url + "/status", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10.0)
+    r = http.get(proc.base_url + "/status", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10.0)
     return dict(r.json()["listeners"]["igtl"]["counters"])
 
 
 def health_alive(proc: Serve) -> None:
     """``/health`` answers 200 within the liveness deadline, three times in a row."""
     for _ in range(3):
-        assert httpx.get(proc.base_url + "/health", timeout=LIVENESS_S).status_code == 200
+        assert http.get(proc.base_url + "/health", timeout=LIVENESS_S).status_code == 200
 
 
 def closed_by_server(s: socket.socket, deadline_s: float = CLOSE_DEADLINE_S) -> bool:
@@ -196,7 +197,7 @@ def test_connections_beyond_max_clients_are_closed_at_once_and_counted(
     serve: tuple[Serve, int],
 ) -> None:
     proc, port = serve
-    wait_for(lambda: httpx.get(proc.base_url + "/health", timeout=LIVENESS_S).status_code == 200, "health")
+    wait_for(lambda: http.get(proc.base_url + "/health", timeout=LIVENESS_S).status_code == 200, "health")
     before = counters(proc)["refused_full"]
     with contextlib.ExitStack() as stack:
         held = [stack.enter_context(peer(port)) for _ in range(MAX_CLIENTS)]
@@ -210,7 +211,7 @@ def test_connections_beyond_max_clients_are_closed_at_once_and_counted(
     # a slot frees when a client leaves
     wait_for(
         lambda: (
-            httpx.get(
+            http.get(
                 proc.base_url + "/status", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10.0
             ).json()["listeners"]["igtl"]["clients"]
             == 0

@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from tests.faults._service import (
@@ -24,6 +23,7 @@ from tests.faults._service import (
     wait_for,
     write_config,
 )
+from tests.helpers import http
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +101,7 @@ def test_second_serve_on_one_data_folder_exits_3_and_kill9_ends_the_link_child(t
             )  # fmt: skip
             assert second.returncode == 3, second.stderr[-2000:]
             assert "another oarmreg serve" in second.stderr and f"pid {first.proc.pid}" in second.stderr  # type: ignore[union-attr]
-            link = httpx.get(first.base_url + "/status", headers={"Authorization": f"Bearer {TOKEN}"}).json()
+            link = http.get(first.base_url + "/status", headers={"Authorization": f"Bearer {TOKEN}"}).json()
             assert link["healthy"], link["problems"]
             child = _link_child(first.proc.pid)  # type: ignore[union-attr]
             first.kill9()

@@ -16,6 +16,7 @@ import httpx
 import pytest
 
 from tests.faults.conftest import TOKEN, Running, fault_settings, mock_robot, serve
+from tests.helpers import http
 from tests.helpers.tokens import make_token
 
 REPO = Path(__file__).resolve().parents[2]
@@ -46,7 +47,7 @@ def _data_routes(svc: Running) -> list[tuple[str, str]]:
 
 @pytest.mark.parametrize("path", PUBLIC)
 def test_public_paths_answer_without_a_token_with_the_csp(svc: Running, path: str) -> None:
-    r = httpx.get(svc.base_url + path)
+    r = http.get(svc.base_url + path)
     assert r.status_code == 200, (path, r.text[:200])
     csp = r.headers["content-security-policy"]
     assert csp.startswith("default-src 'self'"), csp
@@ -55,33 +56,33 @@ def test_public_paths_answer_without_a_token_with_the_csp(svc: Running, path: st
 
 
 def test_the_page_loads_nothing_from_elsewhere(svc: Running) -> None:
-    html = httpx.get(svc.base_url + "/").text
+    html = http.get(svc.base_url + "/").text
     assert "<script>" not in html and " style=" not in html  # CSP: no inline script or style
     for needle in ("http://", "https://", "//cdn"):
         assert needle not in html.replace("http://www.w3.org", ""), needle
-    assert httpx.get(svc.base_url + "/").headers["content-type"].startswith("text/html")
-    assert httpx.get(svc.base_url + "/static/app.js").headers["content-type"].startswith("text/javascript")
+    assert http.get(svc.base_url + "/").headers["content-type"].startswith("text/html")
+    assert http.get(svc.base_url + "/static/app.js").headers["content-type"].startswith("text/javascript")
 
 
 def test_every_data_route_and_the_schema_need_the_token(svc: Running) -> None:
     routes = _data_routes(svc)
     assert ("GET", "/verifications") in routes and ("GET", "/status") in routes
     for method, path in [*routes, ("GET", "/openapi.json")]:
-        r = httpx.request(method, svc.base_url + path, headers={"Content-Type": "application/json"})
+        r = http.request(method, svc.base_url + path, headers={"Content-Type": "application/json"})
         assert r.status_code == 401, (method, path, r.status_code)
 
 
 def test_a_public_path_is_public_for_reading_only(svc: Running) -> None:
-    r = httpx.post(svc.base_url + "/", headers={"Content-Type": "application/json"})
+    r = http.post(svc.base_url + "/", headers={"Content-Type": "application/json"})
     assert r.status_code == 401
-    assert httpx.get(svc.base_url + "/static/nope.js").status_code == 404
-    assert httpx.get(svc.base_url + "/static/../status").status_code in (401, 404)
-    assert httpx.get(svc.base_url + "/static/index.html").status_code == 404  # only at /
+    assert http.get(svc.base_url + "/static/nope.js").status_code == 404
+    assert http.get(svc.base_url + "/static/../status").status_code in (401, 404)
+    assert http.get(svc.base_url + "/static/index.html").status_code == 404  # only at /
 
 
 def test_static_files_revalidate_with_their_etag(svc: Running) -> None:
-    r = httpx.get(svc.base_url + "/static/app.js")
-    again = httpx.get(svc.base_url + "/static/app.js", headers={"If-None-Match": r.headers["etag"]})
+    r = http.get(svc.base_url + "/static/app.js")
+    again = http.get(svc.base_url + "/static/app.js", headers={"If-None-Match": r.headers["etag"]})
     assert again.status_code == 304 and again.content == b""
 
 
@@ -101,10 +102,10 @@ def test_cors_preflight_from_a_listed_origin_needs_no_token(svc: Running) -> Non
 
 
 def test_cors_real_request_still_needs_the_token(svc: Running) -> None:
-    anon = httpx.get(svc.base_url + "/status", headers={"Origin": NAV_UI})
+    anon = http.get(svc.base_url + "/status", headers={"Origin": NAV_UI})
     assert anon.status_code == 401
     assert anon.headers["access-control-allow-origin"] == NAV_UI  # the UI can read why
-    ok = httpx.get(svc.base_url + "/status", headers={"Origin": NAV_UI, "Authorization": f"Bearer {TOKEN}"})
+    ok = http.get(svc.base_url + "/status", headers={"Origin": NAV_UI, "Authorization": f"Bearer {TOKEN}"})
     assert ok.status_code == 200 and ok.headers["access-control-allow-origin"] == NAV_UI
 
 
@@ -115,7 +116,7 @@ def test_cors_preflight_from_an_unlisted_origin_gets_no_allow_headers(svc: Runni
     )
     assert r.status_code == 400
     assert "access-control-allow-origin" not in r.headers
-    assert httpx.get(svc.base_url + "/status", headers={"Origin": "http://evil.example"}).status_code == 403
+    assert http.get(svc.base_url + "/status", headers={"Origin": "http://evil.example"}).status_code == 403
 
 
 def test_without_listed_origins_there_is_no_cors(tmp_path: Path) -> None:
