@@ -61,16 +61,20 @@ def test_controller_in_motion_reaches_the_stillness_verdict(kind: str) -> None:
                 for reported, verdict in ((1, "moved"), (-1, "still")):
                     robot.controller_status = replace(robot.controller_status, in_motion=reported)
                     t0 = time.monotonic()
+
+                    def reporting(t0: float = t0, reported: int = reported) -> list[float]:
+                        """Receive times of the statuses carrying the new value (a status sent before
+                        the change may arrive after it: the window starts at the first new one)."""
+                        return [s.t_s for s in link.status_history(t0) if s.in_motion == reported]
+
                     await wait_until(
-                        lambda t0=t0: (
-                            len([s for s in link.status_history(t0) if s.t_s > t0 + 0.1]) >= 2
-                            and link.latest().t_s > t0 + 0.5
-                        ),
+                        lambda: len(reporting()) >= 2 and link.latest().t_s > reporting()[0] + 0.4,
                         f"statuses reporting in_motion={reported}",
                     )
-                    h = [s for s in link.history(t0) if s.t_s >= t0 + 0.1]
+                    t1 = reporting()[0]
+                    h = [s for s in link.history(t1) if s.t_s >= t1]
                     t, q = np.array([s.t_s for s in h]), np.array([s.joints_rad for s in h])
-                    moving_t = [s.t_s for s in link.status_history(t0 + 0.1) if s.in_motion == 1]
+                    moving_t = [s.t_s for s in link.status_history(t1) if s.in_motion == 1]
                     res = assess_stillness(
                         t,
                         q,
