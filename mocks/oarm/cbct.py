@@ -595,7 +595,12 @@ def project_view(
         for _, c0, e0, c1, e1 in windows
     ]
     bounds = np.cumsum([0] + [su.size for su, _ in coords])
-    src, sd = _rays(s, theta, np.concatenate([su.ravel() for su, _ in coords]), np.concatenate([sv.ravel() for _, sv in coords]))
+    src, sd = _rays(
+        s,
+        theta,
+        np.concatenate([su.ravel() for su, _ in coords]),
+        np.concatenate([sv.ravel() for _, sv in coords]),
+    )
     sp = np.zeros((n_slots, len(sd)), np.float32)
     _add_extended(sp, scene, src, sd)
     for (ib, *_), a, b in zip(windows, bounds[:-1], bounds[1:], strict=True):
