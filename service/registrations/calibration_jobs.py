@@ -214,8 +214,9 @@ class CalibrationJobs:
                 args=(cal_id, scans, req.params(self.settings.calibration.target_rms_mm)),
                 name=f"calibration-{cal_id}",
             )
+            # announced before the worker can publish its first progress: a listener sees started first
+            self.publish(CalibrationStarted(calibration_id=cal_id, scan_ids=draft.scan_ids))
             self._thread.start()
-        self.publish(CalibrationStarted(calibration_id=cal_id, scan_ids=draft.scan_ids))
         stored = self.db.calibrations.get(cal_id)
         assert stored is not None
         return stored

@@ -63,6 +63,11 @@ class Recorder:
             assert found, f"no {kind.__name__} within {timeout_s} s; events: {self.names}"
             return found[0]
 
+    def published_within(self, kind: type[Event], timeout_s: float) -> bool:
+        """Whether an event of ``kind`` is (or gets) published within ``timeout_s`` (no assertion)."""
+        with self._changed:
+            return bool(self._changed.wait_for(lambda: self.of(kind), timeout=timeout_s))
+
     def of(self, kind: type[E]) -> list[E]:
         return [e for e in self.events if isinstance(e, kind)]
 

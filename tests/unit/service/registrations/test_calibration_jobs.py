@@ -30,6 +30,7 @@ from service.events import (
     CalibrationProgress,
     CalibrationRefused,
     CalibrationStarted,
+    Event,
     RegistrationDone,
     RegistrationRetired,
     RegistrationWithdrawn,
@@ -105,6 +106,30 @@ def calibrated(svc: Service, scan_ids: Sequence[int] | None = None) -> Calibrati
 
 
 # ---- a calibration session -----------------------------------------------------------------
+
+
+def test_calibration_started_reaches_listeners_before_the_workers_progress(cell: Cell) -> None:
+    """``calibration_started`` is published before the worker can report: a listener here holds it
+    for up to HOLD_S watching for the worker's first ``calibration_progress``, which it sees first
+    if the worker is already running (as it was: started was published after the worker began, and
+    under load the first progress came first in a full run)."""
+    hold_s = 0.5
+    record = cell.publish
+
+    def listener(event: Event) -> None:
+        if isinstance(event, CalibrationStarted):
+            record.published_within(CalibrationProgress, hold_s)
+        record(event)
+
+    orch = Orchestrator(cell.settings, cell.db, cell.phantom, cell.model, listener, volumes=cell.volumes)
+    jobs = CalibrationJobs(cell.settings, cell.db, orch, cell.phantom, cell.model, cell.volumes, listener)
+    ids = session(cell)
+    try:
+        assert isinstance(jobs.start(CalibrationRequest(scan_ids=tuple(ids))), CalibrationRecord)
+        record.wait_for(CalibrationDone)
+    finally:
+        jobs.stop()
+    assert record.names[:2] == ["calibration_started", "calibration_progress"], record.names
 
 
 def test_a_calibration_runs_on_a_worker_and_stores_the_calibrated_model(svc: Service) -> None:
