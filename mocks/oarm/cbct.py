@@ -523,29 +523,35 @@ def _add_holes_in_window(
             paths[slot][c1:e1, c0:e0] += np.float32(sign) * chord
 
 
+def _panel_windows(s: ConeBeamSettings, lo_uv_mm: F64, hi_uv_mm: F64) -> NDArray[np.int64]:
+    """Detector columns [c0, e0) and rows [c1, e1) of panel rectangles (u, v mm, shapes (..., 2)),
+    clipped to the panel: an int array (..., 4) of c0, e0, c1, e1 (empty where e <= c)."""
+    p = s.det_pitch_mm
+    mid = np.array([(s.det_cols - 1) / 2, (s.det_rows - 1) / 2])
+    first = np.maximum(0, np.floor(lo_uv_mm / p + mid))
+    end = np.minimum([s.det_cols, s.det_rows], np.ceil(hi_uv_mm / p + mid) + 1)
+    return np.stack([first[..., 0], end[..., 0], first[..., 1], end[..., 1]], axis=-1).astype(np.int64)
+
+
 def _pixel_window(s: ConeBeamSettings, theta: float, pts: F64, margin_mm: float) -> tuple[int, int, int, int]:
     """Detector columns [c0, e0) and rows [c1, e1) covering the projections of ``pts`` ± margin."""
     h = np.c_[pts, np.ones(len(pts))] @ projection_matrix(s, theta).T
-    u, v = h[:, 0] / h[:, 2], h[:, 1] / h[:, 2]
-    p = s.det_pitch_mm
-    c0 = max(0, math.floor((u.min() - margin_mm) / p + (s.det_cols - 1) / 2))
-    c1 = max(0, math.floor((v.min() - margin_mm) / p + (s.det_rows - 1) / 2))
-    e0 = min(s.det_cols, math.ceil((u.max() + margin_mm) / p + (s.det_cols - 1) / 2) + 1)
-    e1 = min(s.det_rows, math.ceil((v.max() + margin_mm) / p + (s.det_rows - 1) / 2) + 1)
+    uv = h[:, :2] / h[:, 2:3]
+    c0, e0, c1, e1 = (
+        int(x) for x in _panel_windows(s, uv.min(axis=0) - margin_mm, uv.max(axis=0) + margin_mm)
+    )
     return c0, e0, c1, e1
 
 
 def _ball_windows(s: ConeBeamSettings, uv: F64, rad: F64) -> list[tuple[int, int, int, int, int]]:
-    """Each ball's (index, c0, e0, c1, e1): :func:`_pixel_window` of its projected centre ``uv``
-    ± ``rad`` (mm), for all balls at once; balls whose window misses the panel are left out."""
-    p = s.det_pitch_mm
-    mid_u, mid_v = (s.det_cols - 1) / 2, (s.det_rows - 1) / 2
-    c0 = np.maximum(0, np.floor((uv[:, 0] - rad) / p + mid_u)).astype(int)
-    c1 = np.maximum(0, np.floor((uv[:, 1] - rad) / p + mid_v)).astype(int)
-    e0 = np.minimum(s.det_cols, np.ceil((uv[:, 0] + rad) / p + mid_u) + 1).astype(int)
-    e1 = np.minimum(s.det_rows, np.ceil((uv[:, 1] + rad) / p + mid_v) + 1).astype(int)
-    keep = np.flatnonzero((e0 > c0) & (e1 > c1))
-    return [(int(i), int(c0[i]), int(e0[i]), int(c1[i]), int(e1[i])) for i in keep]
+    """Each ball's (index, c0, e0, c1, e1): the window of its projected centre ``uv`` ± ``rad``
+    (mm), for all balls at once; balls whose window misses the panel are left out."""
+    win = _panel_windows(s, uv - rad[:, None], uv + rad[:, None])
+    out = []
+    for i, (c0, e0, c1, e1) in enumerate(win.tolist()):
+        if e0 > c0 and e1 > c1:
+            out.append((i, c0, e0, c1, e1))
+    return out
 
 
 def project_view(
