@@ -11,8 +11,9 @@ BIN := $(VENV)/bin
 # compiling matters: these machines and CI set PYTHONDONTWRITEBYTECODE=1, so Python never caches what
 # it compiles on import, and every process recompiled every module it imported, every time: importing
 # the service and the libraries it loads took 3.0 s of CPU against 1.1 s compiled, ITK with RTK 15.8 s
-# against 10.4 s, and `make test` starts well over a hundred Python processes (services, robot links,
-# CLIs).  On 2 idle cores, fresh clone: 12.6 s (22.6 s of CPU, once) against pip's 50 s (issue 42).
+# against 10.4 s, and one `make test` starts some 160 Python processes (py-spy saw 164: robot links,
+# services, CLIs).  On 2 idle cores, fresh clone: 12.6 s (22.6 s of CPU, once) against pip's 50 s
+# (issue 42).
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet uv

@@ -2,7 +2,7 @@
 
 ``httpx.get`` builds a throwaway ``httpx.Client`` per call, and every client builds a default TLS
 context, loading certifi's CA bundle, even for ``http://``: 20 ms of CPU per call against 0.1 ms
-through a reused client (measured, httpx 0.28).  A ``/health`` poll every 50 ms while a service
+through a reused client (measured, httpx 0.29).  A ``/health`` poll every 50 ms while a service
 starts spent 40 % of a core on that, which a loaded CI machine takes from the service it waits for
 (issue #42 item 8: ~30 s of the suite's CPU).
 
