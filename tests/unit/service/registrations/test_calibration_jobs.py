@@ -9,7 +9,7 @@ and is what the tests wait on (no sleeps).
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import pytest
@@ -55,13 +55,15 @@ N_POSES = 8
 class Service:
     """The two objects as ``_start_core`` makes them (service/http/app.py), on one cell."""
 
-    def __init__(self, cell: Cell) -> None:
+    def __init__(self, cell: Cell, publish: Callable[[Event], None] | None = None) -> None:
+        """``publish`` defaults to the cell's recorder."""
         self.cell = cell
+        publish = cell.publish if publish is None else publish
         self.orch = Orchestrator(
-            cell.settings, cell.db, cell.phantom, cell.model, cell.publish, volumes=cell.volumes
+            cell.settings, cell.db, cell.phantom, cell.model, publish, volumes=cell.volumes
         )
         self.jobs = CalibrationJobs(
-            cell.settings, cell.db, self.orch, cell.phantom, cell.model, cell.volumes, cell.publish
+            cell.settings, cell.db, self.orch, cell.phantom, cell.model, cell.volumes, publish
         )
 
     def restart(self) -> Service:
@@ -110,9 +112,9 @@ def calibrated(svc: Service, scan_ids: Sequence[int] | None = None) -> Calibrati
 
 def test_calibration_started_reaches_listeners_before_the_workers_progress(cell: Cell) -> None:
     """``calibration_started`` is published before the worker can report: a listener here holds it
-    for up to HOLD_S watching for the worker's first ``calibration_progress``, which it sees first
-    if the worker is already running (as it was: started was published after the worker began, and
-    under load the first progress came first in a full run)."""
+    for up to ``hold_s`` watching for the worker's first ``calibration_progress``, which it sees
+    first if the worker is already running (as it was: started was published after the worker
+    began, and under load the first progress came first in a full run)."""
     hold_s = 0.5
     record = cell.publish
 
@@ -121,8 +123,7 @@ def test_calibration_started_reaches_listeners_before_the_workers_progress(cell:
             record.published_within(CalibrationProgress, hold_s)
         record(event)
 
-    orch = Orchestrator(cell.settings, cell.db, cell.phantom, cell.model, listener, volumes=cell.volumes)
-    jobs = CalibrationJobs(cell.settings, cell.db, orch, cell.phantom, cell.model, cell.volumes, listener)
+    jobs = Service(cell, publish=listener).jobs
     ids = session(cell)
     try:
         assert isinstance(jobs.start(CalibrationRequest(scan_ids=tuple(ids))), CalibrationRecord)

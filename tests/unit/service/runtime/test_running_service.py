@@ -4,7 +4,6 @@ and leaving it stops them all (the module's leak guard fails on a thread left be
 from __future__ import annotations
 
 import asyncio
-import time
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +13,7 @@ from service.runtime.assembly import running_service
 from service.runtime.inputs import prepare_inputs
 from service.settings import load_settings
 from tests.helpers.tokens import make_token
+from tests.integration.polling import wait_until
 
 Q = (0.0, 0.0, 1.5707963267948966, 0.0, 0.7853981633974483, 0.0)
 DEADLINE_S = 30.0
@@ -33,10 +33,9 @@ def test_the_service_runs_and_stops_without_a_web_server(tmp_path: Path, phantom
         async def run() -> dict[str, Any]:
             async with running_service(inputs, start_watcher=False) as ctx:
                 assert ctx.watcher is None and ctx.orchestrator.current is None
-                deadline = time.monotonic() + DEADLINE_S
-                while ctx.capture.health()["state"] != "connected":  # poll with a deadline
-                    assert time.monotonic() < deadline, ctx.capture.health()
-                    await asyncio.sleep(0.02)
+                await wait_until(
+                    lambda: ctx.capture.health()["state"] == "connected", "the robot link", DEADLINE_S
+                )
                 return {"health": ctx.capture.health(), "counts": ctx.db.counts()}
 
         seen = asyncio.run(run())
