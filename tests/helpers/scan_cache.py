@@ -15,6 +15,7 @@ is the SHA-256 of the pickled inputs (phantom, pose, settings, extras).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import pickle
@@ -67,17 +68,31 @@ def simulated_scan(
     if not folder:  # outside pytest (a helper run by hand): no cache
         return simulate_scan(phantom, image_from_phantom, settings, extras)
     path = Path(folder) / f"{_key(phantom, image_from_phantom, settings, extras)}.pickle"
+    cached = _load(path)
+    if cached is not None:
+        return cached
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # One simulation per key: a second worker asking for the same scan meanwhile waits on the lock
+    # and reads the first one's file (without it, two full runs simulated two scans twice each).
+    with path.with_name(f"{path.name}.lock").open("wb") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        cached = _load(path)
+        if cached is not None:
+            return cached
+        scan = simulate_scan(phantom, image_from_phantom, settings, extras)
+        part = path.with_name(f"{path.name}.{uuid.uuid4().hex}.part")
+        with part.open("wb") as f:
+            pickle.dump(scan, f, protocol=5)
+        os.replace(part, path)
+    return scan
+
+
+def _load(path: Path) -> SimulatedScan | None:
+    """The cached scan at ``path`` (a fresh copy), or None if none is stored yet."""
     try:
         with path.open("rb") as f:
             cached = pickle.load(f)
-        assert isinstance(cached, SimulatedScan)
-        return cached
     except FileNotFoundError:
-        pass
-    scan = simulate_scan(phantom, image_from_phantom, settings, extras)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    part = path.with_name(f"{path.name}.{uuid.uuid4().hex}.part")
-    with part.open("wb") as f:
-        pickle.dump(scan, f, protocol=5)
-    os.replace(part, path)  # two workers simulating the same scan at once both write; either wins
-    return scan
+        return None
+    assert isinstance(cached, SimulatedScan)
+    return cached
