@@ -116,6 +116,16 @@ def pytest_configure(config: pytest.Config) -> None:
             os.environ.setdefault(name, "1")
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Move what collection built (every imported module, the test items, hypothesis' strategies) out
+    of the garbage collector's view: it lives for the whole run, and the full collections of a worker
+    would otherwise walk it again each time (issue #42 item 8; a ``gc.callbacks`` timer over
+    tests/unit, tests/property and tests/integration on 3 workers: 7.8 s in the collector without
+    this, 6.3 s with it)."""
+    gc.collect()
+    gc.freeze()
+
+
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """Record what each module cost in this run, over the record of earlier runs (not on xdist
     workers: the controller has it all); remove the run's simulated-scan cache."""
