@@ -1,6 +1,6 @@
 """Long-tail scheduling for ``make test`` (issue #42 item 8): the costliest test modules start first.
 
-``make test`` runs ``pytest -n 2 --dist loadfile --no-loadscope-reorder``: each module goes whole to
+``make test`` runs ``pytest -n 3 --dist loadfile --no-loadscope-reorder``: each module goes whole to
 one worker, in collection order.  xdist's default reorder (by number of tests) let a module of few
 slow tests (the browser page, the simulator-driven accuracy checks) start last and run alone at the
 end.  Here the collected items are sorted by their module's cost, dearest first, from the checked-in
@@ -77,7 +77,9 @@ def main(argv: Sequence[str]) -> int:
     if not cache.is_file():
         print(f"no {cache}: run the suite first (make test)", file=sys.stderr)
         return 1
-    measured = {k: round(float(v), 1) for k, v in json.loads(cache.read_text()).items()}
+    # the record keeps every module ever run in this checkout; a moved or deleted one is left out
+    recorded = json.loads(cache.read_text()).items()
+    measured = {k: round(float(v), 1) for k, v in recorded if Path(k).is_file()}
     text = json.dumps(dict(sorted(measured.items(), key=lambda kv: -kv[1])), indent=1) + "\n"
     if "--write" in argv:
         TABLE.write_text(text)

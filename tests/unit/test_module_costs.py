@@ -6,6 +6,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 from tests.helpers import module_costs as mc
 
 
@@ -51,3 +53,19 @@ def test_the_checked_in_table_names_modules_that_exist() -> None:
     missing = [m for m in table if not (repo / m).is_file()]
     assert not missing, f"{missing} are gone: python -m tests.helpers.module_costs --write after a full run"
     assert json.loads(mc.TABLE.read_text()) == table
+
+
+def test_the_refreshed_table_leaves_out_modules_that_are_gone(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """pytest's record keeps every module ever run in a checkout; ``--write`` keeps those that exist."""
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "test_here.py").write_text("")
+    record = tmp_path / ".pytest_cache" / "v" / mc.CACHE_KEY
+    record.parent.mkdir(parents=True)
+    record.write_text(json.dumps({"tests/test_here.py": 3.04, "tests/test_moved_away.py": 9.0}))
+    table = tmp_path / "table.json"
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(mc, "TABLE", table)
+    assert mc.main(["--write"]) == 0
+    assert json.loads(table.read_text()) == {"tests/test_here.py": 3.0}
