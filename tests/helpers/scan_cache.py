@@ -73,7 +73,7 @@ def simulated_scan(
         return cached
     path.parent.mkdir(parents=True, exist_ok=True)
     # One simulation per key: a second worker asking for the same scan meanwhile waits on the lock
-    # and reads the first one's file (without it, two full runs simulated two scans twice each).
+    # and reads the first one's file (without it, one full run simulated two of its scans twice).
     with path.with_name(f"{path.name}.lock").open("wb") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
         cached = _load(path)
