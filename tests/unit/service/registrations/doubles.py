@@ -58,15 +58,18 @@ class Recorder:
 
     def wait_for(self, kind: type[E], timeout_s: float = 60.0) -> E:
         """The first event of ``kind``, once published (AssertionError after ``timeout_s``)."""
-        with self._changed:
-            found = self._changed.wait_for(lambda: self.of(kind), timeout=timeout_s)
-            assert found, f"no {kind.__name__} within {timeout_s} s; events: {self.names}"
-            return found[0]
+        found = self._published(kind, timeout_s)
+        assert found, f"no {kind.__name__} within {timeout_s} s; events: {self.names}"
+        return found[0]
 
     def published_within(self, kind: type[Event], timeout_s: float) -> bool:
         """Whether an event of ``kind`` is (or gets) published within ``timeout_s`` (no assertion)."""
+        return bool(self._published(kind, timeout_s))
+
+    def _published(self, kind: type[E], timeout_s: float) -> list[E]:
+        """The events of ``kind`` once there is one, or none after ``timeout_s``."""
         with self._changed:
-            return bool(self._changed.wait_for(lambda: self.of(kind), timeout=timeout_s))
+            return self._changed.wait_for(lambda: self.of(kind), timeout=timeout_s)
 
     def of(self, kind: type[E]) -> list[E]:
         return [e for e in self.events if isinstance(e, kind)]
