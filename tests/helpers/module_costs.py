@@ -77,8 +77,14 @@ def main(argv: Sequence[str]) -> int:
     if not cache.is_file():
         print(f"no {cache}: run the suite first (make test)", file=sys.stderr)
         return 1
+    try:
+        recorded = json.loads(cache.read_text()).items()
+    except (ValueError, AttributeError) as e:  # truncated or not a JSON object
+        print(
+            f"{cache} is not the record pytest writes ({e}): run the suite again (make test)", file=sys.stderr
+        )
+        return 1
     # the record keeps every module ever run in this checkout; a moved or deleted one is left out
-    recorded = json.loads(cache.read_text()).items()
     measured = {k: round(float(v), 1) for k, v in recorded if Path(k).is_file()}
     text = json.dumps(dict(sorted(measured.items(), key=lambda kv: -kv[1])), indent=1) + "\n"
     if "--write" in argv:

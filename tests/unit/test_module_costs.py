@@ -69,3 +69,19 @@ def test_the_refreshed_table_leaves_out_modules_that_are_gone(
     monkeypatch.setattr(mc, "TABLE", table)
     assert mc.main(["--write"]) == 0
     assert json.loads(table.read_text()) == {"tests/test_here.py": 3.0}
+
+
+@pytest.mark.parametrize("text", ['{"tests/test_here.py": 3.', "[1, 2]"])
+def test_a_damaged_record_is_refused_with_what_to_do_and_the_table_is_left_alone(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], text: str
+) -> None:
+    record = tmp_path / ".pytest_cache" / "v" / mc.CACHE_KEY
+    record.parent.mkdir(parents=True)
+    record.write_text(text)
+    table = tmp_path / "table.json"
+    table.write_text('{"tests/test_here.py": 1.0}\n')
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(mc, "TABLE", table)
+    assert mc.main(["--write"]) == 1
+    assert "run the suite again (make test)" in capsys.readouterr().err
+    assert table.read_text() == '{"tests/test_here.py": 1.0}\n'
